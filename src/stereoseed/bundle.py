@@ -1,0 +1,249 @@
+"""Bundle adjustment: Levenberg-Marquardt with the Schur complement on the points.
+
+Paper §4.3 (eq. 12): after each insertion, the newest camera(s) and the points they observe are
+refined with older cameras fixed. The same solver runs the windowed local BA of the accurate
+mode (Mouragnon et al. 2006) and the global baselines: what changes is which cameras and points
+are free. The calibrated pair is always fixed: it carries the metric frame (and the gauge).
+
+The normal equations are [[U, W], [W^T, V]] with V block-diagonal (one 3x3 block per point):
+eliminating the points leaves the small reduced camera system S = U - W V^-1 W^T
+(Triggs et al. 2000, "Bundle adjustment - a modern synthesis", §6.1).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import camera_models
+from .config import BundleConfig
+
+__all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
+
+
+@dataclass
+class BundleProblem:
+    """What a bundle adjustment sees.
+
+    Ps: (C, 3, 4) all cameras involved; free_cameras: (C,) bool; model: the camera model of the
+    free cameras (they share one); reference_K: K of the reference camera for the 'focal' model.
+    points: (M, 3); free_points: (M,) bool. obs_camera, obs_point: (O,) int indices into Ps and
+    points; obs_xy: (O, 2) measured pixels.
+    """
+
+    Ps: np.ndarray
+    free_cameras: np.ndarray
+    points: np.ndarray
+    free_points: np.ndarray
+    obs_camera: np.ndarray
+    obs_point: np.ndarray
+    obs_xy: np.ndarray
+    model: str = "free"
+    reference_K: np.ndarray | None = None
+
+
+@dataclass
+class BundleResult:
+    Ps: np.ndarray
+    points: np.ndarray
+    rms_before: float
+    rms_after: float
+    iterations: int
+    seconds: float
+    info: dict = field(default_factory=dict)
+
+
+def _project(Ps_obs: np.ndarray, X_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-observation projection. Ps_obs: (O, 3, 4), X_obs: (O, 3) -> h (O, 3), uv (O, 2)."""
+    h = np.einsum("oij,oj->oi", Ps_obs[:, :, :3], X_obs) + Ps_obs[:, :, 3]
+    return h, h[:, :2] / h[:, 2:3]
+
+
+def _point_jacobian(Ps_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """d(u, v)/dX, (O, 2, 3)."""
+    inv = 1.0 / h[:, 2]
+    Ju = (Ps_obs[:, 0, :3] - uv[:, 0:1] * Ps_obs[:, 2, :3]) * inv[:, None]
+    Jv = (Ps_obs[:, 1, :3] - uv[:, 1:2] * Ps_obs[:, 2, :3]) * inv[:, None]
+    return np.stack([Ju, Jv], axis=1)
+
+
+def _projection_derivatives(params: np.ndarray, model: str, ref_K: np.ndarray | None) -> np.ndarray:
+    """dP/dparam_j for one camera, (n, 3, 4), by central differences (P is smooth in its
+    parameters; a relative step of 1e-6 keeps the truncation error near 1e-12)."""
+    n = len(params)
+    out = np.empty((n, 3, 4))
+    for j in range(n):
+        step = 1e-6 * max(1.0, abs(params[j]))
+        p_plus = params.copy()
+        p_plus[j] += step
+        p_minus = params.copy()
+        p_minus[j] -= step
+        out[j] = (camera_models.projection_from_params(p_plus, model, ref_K)
+                  - camera_models.projection_from_params(p_minus, model, ref_K)) / (2 * step)
+    return out
+
+
+def _camera_jacobian(dP: np.ndarray, Xh: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """d(u, v)/dparams for observations of one camera. dP: (n, 3, 4); Xh: (O, 4) -> (O, 2, n)."""
+    dh = np.einsum("jik,ok->oij", dP, Xh)  # (O, 3, n)
+    inv = 1.0 / h[:, 2]
+    du = (dh[:, 0] - uv[:, 0:1] * dh[:, 2]) * inv[:, None]
+    dv = (dh[:, 1] - uv[:, 1:2] * dh[:, 2]) * inv[:, None]
+    return np.stack([du, dv], axis=1)
+
+
+def _huber_weights(r: np.ndarray, delta: float) -> np.ndarray:
+    """IRLS weights of the Huber loss on the 2D residual norm. r: (O, 2) -> (O,)."""
+    norm = np.linalg.norm(r, axis=1)
+    return np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
+
+
+def _robust_cost(r: np.ndarray, delta: float) -> float:
+    norm = np.linalg.norm(r, axis=1)
+    return float(np.sum(np.where(norm <= delta, norm ** 2, 2 * delta * norm - delta ** 2)))
+
+
+def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:
+    """Minimise the robust reprojection error over the free cameras and free points.
+
+    Returns new cameras (C, 3, 4) and points (M, 3); fixed ones are returned unchanged.
+    Observations of fixed points by free cameras pin those cameras (paper.md §4 trap).
+    """
+    t0 = time.perf_counter()
+    Ps = np.array(problem.Ps, dtype=np.float64, copy=True)
+    X = np.array(problem.points, dtype=np.float64, copy=True)
+    oc = np.asarray(problem.obs_camera, dtype=np.int64)
+    op = np.asarray(problem.obs_point, dtype=np.int64)
+    xy = np.asarray(problem.obs_xy, dtype=np.float64)
+    free_cams = np.flatnonzero(problem.free_cameras)
+    free_pts = np.asarray(problem.free_points, dtype=bool)
+    model, ref_K = problem.model, problem.reference_K
+    delta = config.huber_px
+
+    all_oc, all_op, all_xy = oc, op, xy
+
+    def residuals(Ps_: np.ndarray, X_: np.ndarray) -> np.ndarray:
+        return _project(Ps_[all_oc], X_[all_op])[1] - all_xy
+
+    r = residuals(Ps, X)
+    rms_before = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else 0.0
+    # Only observations touching something free matter; the others add a constant.
+    relevant = np.isin(oc, free_cams) | free_pts[op]
+    oc, op, xy = oc[relevant], op[relevant], xy[relevant]
+    if len(oc) == 0 or (len(free_cams) == 0 and not free_pts.any()):
+        return BundleResult(Ps, X, rms_before, rms_before, 0, time.perf_counter() - t0)
+
+    n = camera_models.n_params(model) if len(free_cams) else 0
+    cam_slot = np.full(len(Ps), -1, dtype=np.int64)
+    cam_slot[free_cams] = np.arange(len(free_cams))
+    params = [camera_models.params_from_projection(Ps[c], model, ref_K)[0] for c in free_cams]
+    for c, p in zip(free_cams, params):  # start from the model's closest camera
+        Ps[c] = camera_models.projection_from_params(p, model, ref_K)
+    free_pt_idx = np.flatnonzero(free_pts)
+    pt_slot = np.full(len(X), -1, dtype=np.int64)
+    pt_slot[free_pt_idx] = np.arange(len(free_pt_idx))
+    slot_c = cam_slot[oc]
+    slot_p = pt_slot[op]
+    has_c = slot_c >= 0
+    has_p = slot_p >= 0
+    both = has_c & has_p
+    nC, nP = len(free_cams), len(free_pt_idx)
+
+    # observation pairs sharing a free point, both by free cameras: they fill S's off-diagonal
+    order = np.argsort(slot_p[both], kind="stable")
+    both_idx = np.flatnonzero(both)[order]
+    pts_sorted = slot_p[both_idx]
+    pair_a, pair_b = [], []
+    d = 0
+    while d < len(both_idx):
+        same = pts_sorted[d:] == pts_sorted[:len(pts_sorted) - d]
+        if not same.any():
+            break
+        pair_a.append(both_idx[:len(both_idx) - d][same])
+        pair_b.append(both_idx[d:][same])
+        d += 1
+    pair_a = np.concatenate(pair_a) if pair_a else np.zeros(0, np.int64)
+    pair_b = np.concatenate(pair_b) if pair_b else np.zeros(0, np.int64)
+
+    lam = 1e-3
+    cost = _robust_cost(_project(Ps[oc], X[op])[1] - xy, delta)
+    iterations = 0
+    for iterations in range(1, config.max_iterations + 1):
+        h, uv = _project(Ps[oc], X[op])
+        r = uv - xy
+        w = _huber_weights(r, delta)
+        Jp = _point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
+        Jc = np.zeros((len(oc), 2, n))
+        Xh = np.hstack([X[op], np.ones((len(op), 1))])
+        for c in free_cams:
+            sel = oc == c
+            if sel.any():
+                dP = _projection_derivatives(params[cam_slot[c]], model, ref_K)
+                Jc[sel] = _camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
+        wJc = Jc * w[:, None, None]
+        wJp = Jp * w[:, None, None]
+        # blocks of the normal equations
+        U = np.zeros((nC, n, n))
+        np.add.at(U, slot_c[has_c], np.einsum("oki,okj->oij", wJc[has_c], Jc[has_c]))
+        gc = np.zeros((nC, n))
+        np.add.at(gc, slot_c[has_c], np.einsum("oki,ok->oi", wJc[has_c], r[has_c]))
+        V = np.zeros((nP, 3, 3))
+        np.add.at(V, slot_p[has_p], np.einsum("oki,okj->oij", wJp[has_p], Jp[has_p]))
+        gp = np.zeros((nP, 3))
+        np.add.at(gp, slot_p[has_p], np.einsum("oki,ok->oi", wJp[has_p], r[has_p]))
+        Wo = np.einsum("oki,okj->oij", wJc, Jp)  # (O, n, 3), meaningful where both
+
+        while True:
+            Ud = U + lam * (U * np.eye(n)[None]) + 1e-12 * np.eye(n)[None]
+            Vd = V + lam * (V * np.eye(3)[None]) + 1e-12 * np.eye(3)[None]
+            Vinv = np.linalg.inv(Vd)
+            if nC:
+                Y = np.einsum("oij,ojk->oik", Wo[both], Vinv[slot_p[both]])  # (Ob, n, 3)
+                Yfull = np.zeros((len(oc), n, 3))
+                Yfull[both] = Y
+                S = np.zeros((nC, nC, n, n))
+                S[np.arange(nC), np.arange(nC)] = Ud
+                contrib = np.einsum("pij,pkj->pik", Yfull[pair_a], Wo[pair_b])
+                np.add.at(S, (slot_c[pair_a], slot_c[pair_b]), -contrib)
+                off = pair_a != pair_b
+                np.add.at(S, (slot_c[pair_b][off], slot_c[pair_a][off]), -np.transpose(contrib[off], (0, 2, 1)))
+                rhs = -gc.copy()
+                np.add.at(rhs, slot_c[both], np.einsum("oij,oj->oi", Y, gp[slot_p[both]]))
+                S2 = S.transpose(0, 2, 1, 3).reshape(nC * n, nC * n)
+                try:
+                    dc = np.linalg.solve(S2, rhs.ravel()).reshape(nC, n)
+                except np.linalg.LinAlgError:
+                    dc = np.linalg.lstsq(S2, rhs.ravel(), rcond=None)[0].reshape(nC, n)
+                # back-substitution: V dp = -gp - W^T dc
+                back = -gp.copy()
+                np.add.at(back, slot_p[both], -np.einsum("oij,oi->oj", Wo[both], dc[slot_c[both]]))
+            else:
+                dc = np.zeros((0, n))
+                back = -gp
+            dp = np.einsum("pij,pj->pi", Vinv, back)
+
+            new_params = [params[i] + dc[i] for i in range(nC)]
+            Ps_new = Ps.copy()
+            for i, c in enumerate(free_cams):
+                Ps_new[c] = camera_models.projection_from_params(new_params[i], model, ref_K)
+            X_new = X.copy()
+            X_new[free_pt_idx] += dp
+            with np.errstate(all="ignore"):
+                new_cost = _robust_cost(_project(Ps_new[oc], X_new[op])[1] - xy, delta)
+            if np.isfinite(new_cost) and new_cost < cost:
+                improvement = (cost - new_cost) / max(cost, 1e-300)
+                params, Ps, X, cost = new_params, Ps_new, X_new, new_cost
+                lam = max(lam * 0.3, 1e-9)
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                improvement = 0.0
+                break
+        if improvement < 1e-6:
+            break
+
+    r = residuals(Ps, X)
+    rms_after = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else 0.0
+    return BundleResult(Ps, X, rms_before, rms_after, iterations, time.perf_counter() - t0,
+                        info={"free_cameras": int(nC), "free_points": int(nP), "observations": int(len(oc))})

@@ -1,0 +1,147 @@
+"""Pinhole camera geometry: projection, centre, P <-> K[R|t], fundamental matrix.
+
+Conventions, written once for the whole package:
+
+* ``P`` is a (3, 4) float64 matrix mapping homogeneous world points to homogeneous pixels:
+  ``lambda * (u, v, 1) = P @ (X, Y, Z, 1)``.
+* Pixel (0, 0) is the centre of the top-left pixel, x to the right, y down (OpenCV's).
+* ``R, t`` are ``cam_from_world``: a world point X sits at ``R @ X + t`` in the camera frame;
+  the camera centre is ``C = -R.T @ t``.
+* ``F`` maps a pixel x1 of image 1 to its epipolar line in image 2: ``x2.T @ F @ x1 = 0``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "to_homogeneous",
+    "project",
+    "camera_center",
+    "depths",
+    "compose_projection",
+    "decompose_projection",
+    "normalize_projection",
+    "fundamental_from_projections",
+    "epipolar_distances",
+    "skew",
+    "rotation_angle_deg",
+]
+
+
+def to_homogeneous(points: np.ndarray) -> np.ndarray:
+    """Append a column of ones. points: (N, D) -> (N, D+1)."""
+    points = np.asarray(points, dtype=np.float64)
+    return np.hstack([points, np.ones((points.shape[0], 1))])
+
+
+def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Project world points to pixels.
+
+    P: (3, 4) float64; points: (N, 3) float64 -> (N, 2) float64 pixels.
+    Points on the principal plane (zero depth) project to inf/nan.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    h = points @ P[:, :3].T + P[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h[:, :2] / h[:, 2:3]
+
+
+def camera_center(P: np.ndarray) -> np.ndarray:
+    """Camera centre C (3,) with ``P @ (C, 1) = 0``, for a finite camera P (3, 4)."""
+    return -np.linalg.solve(P[:, :3], P[:, 3])
+
+
+def depths(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Signed depth of each point in the camera (positive in front), in world units.
+
+    P: (3, 4); points: (N, 3) -> (N,). Invariant to the (signed) scale of P
+    (Hartley & Zisserman, eq. 6.15).
+    """
+    M = P[:, :3]
+    w = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ P[2, :3] + P[2, 3]
+    return np.sign(np.linalg.det(M)) * w / np.linalg.norm(M[2])
+
+
+def compose_projection(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """P = K [R | t]. K: (3, 3), R: (3, 3), t: (3,) -> (3, 4)."""
+    return K @ np.hstack([R, np.asarray(t, dtype=np.float64).reshape(3, 1)])
+
+
+def normalize_projection(P: np.ndarray) -> np.ndarray:
+    """Scale P so that its left 3x3 block has det > 0 and ||P[2, :3]|| = 1.
+
+    With this scale the third homogeneous coordinate of ``P @ X`` is the depth of X.
+    """
+    M = P[:, :3]
+    s = np.sign(np.linalg.det(M)) / np.linalg.norm(M[2])
+    return P * s
+
+
+def _rq3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RQ decomposition of a 3x3 matrix: M = U @ Q, U upper triangular, Q orthogonal."""
+    flip = np.eye(3)[::-1]
+    q, r = np.linalg.qr((flip @ M).T)
+    U = flip @ r.T @ flip
+    Q = flip @ q.T
+    return U, Q
+
+
+def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split P into K, R, t with P ~ K [R | t].
+
+    P: (3, 4) finite camera. Returns K (3, 3) upper triangular with positive diagonal and
+    K[2, 2] = 1, R (3, 3) with det R = +1, t (3,). The overall sign of P is chosen so that
+    det R = +1 (points in front of the camera then have positive depth).
+    """
+    P = normalize_projection(np.asarray(P, dtype=np.float64))
+    K, R = _rq3(P[:, :3])
+    d = np.sign(np.diag(K))
+    d[d == 0] = 1.0
+    signs = np.diag(d)
+    K = K @ signs
+    R = signs @ R
+    if np.linalg.det(R) < 0:  # cannot happen after normalize_projection, kept for safety
+        R = -R
+        K = -K
+    t = np.linalg.solve(K, P[:, 3])
+    scale = K[2, 2]
+    return K / scale, R, t
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix [v]_x of a 3-vector."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def fundamental_from_projections(P1: np.ndarray, P2: np.ndarray) -> np.ndarray:
+    """Fundamental matrix F (3, 3), ``x2.T F x1 = 0``, from two finite cameras (3, 4).
+
+    F = [e2]_x P2 P1^+, with e2 = P2 C1 (Hartley & Zisserman, eq. 9.1). Scaled to unit
+    Frobenius norm.
+    """
+    C1 = np.append(camera_center(P1), 1.0)
+    e2 = P2 @ C1
+    F = skew(e2) @ P2 @ np.linalg.pinv(P1)
+    return F / np.linalg.norm(F)
+
+
+def epipolar_distances(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Distance (px) of each x2 to the epipolar line F x1, and of x1 to F^T x2; the max of both.
+
+    F: (3, 3); x1, x2: (N, 2) -> (N,).
+    """
+    h1 = to_homogeneous(x1)
+    h2 = to_homogeneous(x2)
+    l2 = h1 @ F.T  # lines in image 2
+    l1 = h2 @ F  # lines in image 1
+    num = np.abs(np.sum(h2 * l2, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = num / np.hypot(l2[:, 0], l2[:, 1])
+        d1 = num / np.hypot(l1[:, 0], l1[:, 1])
+    return np.maximum(d1, d2)
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (degrees) of the relative rotation R_a R_b^T."""
+    c = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

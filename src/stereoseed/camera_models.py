@@ -1,0 +1,105 @@
+"""Camera models: how a projection matrix is parameterised for refinement and bundle adjustment.
+
+A camera is K (intrinsics) + rotation vector (3) + translation (3). The models differ in which
+intrinsics are free:
+
+* ``free``      - the paper's 11-DOF camera: fx, fy, skew, cx, cy (5) + 6.
+* ``zero-skew`` - square pixels and no skew, principal point free: f, cx, cy (3) + 6.
+* ``focal``     - a zoom lens: only the focal length varies; aspect ratio, skew and principal
+                  point are those of a reference camera (the calibrated second camera): 1 + 6.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .camera import compose_projection, decompose_projection
+
+MODELS = ("free", "zero-skew", "focal")
+N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1}
+
+__all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection",
+           "krt_from_params", "projection_from_params", "project_to_model"]
+
+
+def n_params(model: str) -> int:
+    return N_INTRINSICS[_check(model)] + 6
+
+
+def _check(model: str) -> str:
+    if model not in N_INTRINSICS:
+        raise ValueError(f"unknown camera model {model!r}; choose one of {', '.join(MODELS)}")
+    return model
+
+
+def _intrinsics_from_K(K: np.ndarray, model: str, reference_K: np.ndarray | None) -> np.ndarray:
+    if model == "free":
+        return np.array([K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]])
+    if model == "zero-skew":
+        return np.array([0.5 * (K[0, 0] + K[1, 1]), K[0, 2], K[1, 2]])
+    ref = _require_reference(reference_K)
+    # least-squares focal that best reproduces K's fx, fy with the reference's aspect ratio
+    aspect = ref[1, 1] / ref[0, 0]
+    return np.array([(K[0, 0] + aspect * K[1, 1]) / (1.0 + aspect * aspect)])
+
+
+def _require_reference(reference_K: np.ndarray | None) -> np.ndarray:
+    if reference_K is None:
+        raise ValueError("the 'focal' camera model needs the reference camera's K")
+    return np.asarray(reference_K, dtype=np.float64)
+
+
+def K_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | None) -> np.ndarray:
+    """Build K (3, 3) from the model's intrinsic parameters."""
+    if model == "free":
+        fx, fy, s, cx, cy = intr
+        return np.array([[fx, s, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if model == "zero-skew":
+        f, cx, cy = intr
+        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    ref = _require_reference(reference_K)
+    scale = intr[0] / ref[0, 0]
+    K = ref.copy()
+    K[0, 0] *= scale
+    K[0, 1] *= scale
+    K[1, 1] *= scale
+    return K
+
+
+def params_from_krt(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: str,
+                    reference_K: np.ndarray | None = None) -> np.ndarray:
+    """Parameter vector (n_params(model),) of a camera K, R, t under ``model``."""
+    _check(model)
+    rvec = Rotation.from_matrix(R).as_rotvec()
+    return np.concatenate([_intrinsics_from_K(K, model, reference_K), rvec, np.asarray(t, float).ravel()])
+
+
+def params_from_projection(P: np.ndarray, model: str, reference_K: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(params, reference_K) for P (3, 4); a constrained model takes the closest K of its family."""
+    K, R, t = decompose_projection(P)
+    if model != "free":
+        # Re-express t for the constrained K so the camera centre is kept: t = -R C.
+        C = -R.T @ t
+        Kc = K_from_intrinsics(_intrinsics_from_K(K, model, reference_K), model, reference_K)
+        return params_from_krt(Kc, R, -R @ C, model, reference_K), reference_K
+    return params_from_krt(K, R, t, model, reference_K), reference_K
+
+
+def krt_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ni = N_INTRINSICS[_check(model)]
+    K = K_from_intrinsics(params[:ni], model, reference_K)
+    R = Rotation.from_rotvec(params[ni:ni + 3]).as_matrix()
+    return K, R, np.asarray(params[ni + 3:ni + 6], dtype=np.float64)
+
+
+def projection_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | None = None) -> np.ndarray:
+    """P (3, 4) from a parameter vector of ``model``."""
+    return compose_projection(*krt_from_params(params, model, reference_K))
+
+
+def project_to_model(P: np.ndarray, model: str, reference_K: np.ndarray | None = None) -> np.ndarray:
+    """The camera of ``model``'s family closest to P (same centre and rotation)."""
+    params, ref = params_from_projection(P, model, reference_K)
+    return projection_from_params(params, model, ref)

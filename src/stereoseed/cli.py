@@ -1,0 +1,126 @@
+"""Command-line interface: each subcommand is a few lines over the Python API.
+
+Errors the user can fix (bad input, degenerate data) are :class:`StereoseedError`: printed as
+one line ``stereoseed: error: ...`` with exit code 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import StereoseedError
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibration import calibrate_camera
+    from .io import read_points_file, write_json
+
+    pattern = read_points_file(args.pattern, 3)
+    cameras = []
+    for i, path in enumerate((args.points1, args.points2), 1):
+        pixels = read_points_file(path, 2)
+        if len(pixels) != len(pattern):
+            raise StereoseedError(f"{path}: {len(pixels)} image points but {len(pattern)} pattern points "
+                                  f"in {args.pattern}; give one pixel per pattern point, same order")
+        cal = calibrate_camera(pattern, pixels, what=str(path))
+        cameras.append(cal.to_dict())
+        print(f"camera {i}: {cal.n_points} points, reprojection RMS {cal.rms_px:.3f} px, "
+              f"f = ({cal.K[0, 0]:.1f}, {cal.K[1, 1]:.1f}) px, centre = {np.round(-cal.R.T @ cal.t, 4).tolist()}")
+    write_json(args.output, {"cameras": cameras})
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse)
+
+
+def _cmd_match(args: argparse.Namespace) -> int:
+    from .config import Config
+    from .features import extract_features
+    from .io import read_image
+    from .matching import draw_matches, match_pair
+
+    cfg = Config()
+    img1, img2 = read_image(args.image1), read_image(args.image2)
+    f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
+    matches, stats = match_pair(f1, f2, cfg.matching, image_width=img1.shape[1], return_stats=True)
+    print(f"{len(f1.points)} / {len(f2.points)} interest points; "
+          + ", ".join(f"{k}: {v}" for k, v in stats.items()))
+    if args.output:
+        draw_matches(img1, f1.points, img2, f2.points, matches, args.output)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from .pipeline import reconstruct_cli
+
+    return reconstruct_cli(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("calibrate", help="calibrate the stereo pair from a 3D pattern (DLT + LM)")
+    p.add_argument("pattern", help="text file, one known 3D point 'X Y Z' a line")
+    p.add_argument("points1", help="text file, the pixel 'u v' of each pattern point in image 1")
+    p.add_argument("points2", help="text file, the pixel 'u v' of each pattern point in image 2")
+    p.add_argument("-o", "--output", default="calib.json", help="calib.json to write (default: %(default)s)")
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("match", help="Harris + ZNCC matches between two images, drawn side by side")
+    p.add_argument("image1")
+    p.add_argument("image2")
+    p.add_argument("-o", "--output", help="PNG to draw the matches into")
+    p.set_defaults(func=_cmd_match)
+
+    p = sub.add_parser("reconstruct", help="incremental reconstruction of an ordered image sequence")
+    p.add_argument("images", help="a folder (images in name order) or a text file listing image paths")
+    p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed) or a Middlebury *_par.txt")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
+                   help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
+                        "'accurate': multi-view tracks, constrained camera, wider window (default)")
+    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal"], default=None,
+                   help="moving camera model (default: free in paper mode, zero-skew in accurate mode)")
+    p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
+    p.add_argument("--ba", choices=["local", "global", "final"], default="local",
+                   help="local BA after each insertion (default), global BA after each insertion, or local + one final global BA")
+    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("demo", help="render the synthetic box scene, calibrate, reconstruct, report the error")
+    p.add_argument("--out", default="demo_output", help="output folder (default: %(default)s)")
+    p.add_argument("--images", type=int, default=14, help="number of images (default: %(default)s)")
+    p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
+    p.add_argument("--sparse", action="store_true", help="skip the dense stage")
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except StereoseedError as e:
+        print(f"stereoseed: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("stereoseed: interrupted", file=sys.stderr)
+        return 130
+    except OSError as e:  # e.g. an output folder that cannot be created
+        print(f"stereoseed: error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

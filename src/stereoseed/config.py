@@ -1,0 +1,104 @@
+"""All tunable parameters, one frozen dataclass per stage, gathered in :class:`Config`.
+
+Every default states its source. "paper" is "Incremental Multi-view 3D Reconstruction Starting
+from Two Images Taken by a Stereo Pair of Cameras" (see ../shared/paper.md); "LQ02" is
+Lhuillier & Quan, "Match propagation for image-based modeling and rendering", PAMI 2002;
+"HZ" is Hartley & Zisserman, Multiple View Geometry, 2nd ed.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    harris_k: float = 0.04  # paper.md defaults table; Harris & Stephens 1988
+    block_size: int = 3  # Harris structure-tensor window (OpenCV cornerHarris blockSize)
+    aperture: int = 3  # Sobel aperture for the Harris gradients
+    max_corners: int = 1500  # paper.md: "~1,500 strongest corners"
+    min_distance: float = 6.0  # paper.md: "min spacing ~6 px"
+    quality_level: float = 0.001  # response floor relative to the strongest corner
+    subpixel_window: int = 5  # half-size of the cornerSubPix search window
+    border: int = 8  # corners closer than this to the image edge cannot carry a patch
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    patch_size: int = 11  # paper.md: "11x11 ZNCC"
+    min_zncc: float = 0.8  # paper.md: "threshold 0.8"
+    mutual: bool = True  # paper.md: "mutual best"
+    search_radius: float = 0.25  # fraction of the image width; paper.md "~25 % of width"
+    epipolar_band_px: float = 2.0  # max distance to the epipolar line when both cameras are known
+    ransac_threshold_px: float = 1.0  # paper.md: RANSAC for F, "~1 px"
+    ransac_confidence: float = 0.999  # paper.md
+    ransac_max_iters: int = 5000
+    seed: int = 0  # RANSAC randomness, for deterministic runs
+
+
+@dataclass(frozen=True)
+class TriangulationConfig:
+    max_reprojection_px: float = 2.0  # reject points reprojecting farther than this in any view
+    min_angle_deg: float = 1.0  # tiny triangulation angles give unbounded depth error
+    lm_iterations: int = 10  # per-point Gauss-Newton/LM steps (converges in 3-5)
+
+
+@dataclass(frozen=True)
+class ResectionConfig:
+    min_points: int = 6  # paper eq. 10-11: 11 DOF need 6 points (2 equations each)
+    ransac_threshold_px: float = 2.0  # paper.md: "6-point DLT in RANSAC, 2 px"
+    ransac_confidence: float = 0.999
+    ransac_max_iters: int = 2000
+    min_inliers: int = 12  # below this an insertion is reported as failed
+    max_rms_px: float = 3.0  # "wild reprojection error" guard after refinement
+    coplanarity_tol: float = 1e-3  # smallest/largest singular value of centred 3D points
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class BundleConfig:
+    huber_px: float = 1.0  # paper.md: "Huber loss ~1 px"
+    max_iterations: int = 20  # paper.md: "10-20 LM iterations"
+    window: int = 1  # number of latest cameras left free; 1 is the paper's local BA (eq. 12)
+
+
+@dataclass(frozen=True)
+class PropagationConfig:
+    window: int = 5  # LQ02 / paper.md: 5x5 ZNCC
+    min_zncc: float = 0.5  # LQ02: acceptance threshold
+    min_texture: float = 0.01  # LQ02: s(x) > 0.01 for intensities in [0, 1]
+    neighbourhood: int = 2  # LQ02: 5x5 neighbourhood (radius 2)
+    disparity_gradient: int = 1  # LQ02: +-1 px disparity-gradient limit
+    epipolar_band_px: float = 1.0  # paper.md: "within ~1 px of the epipolar line"
+    subpixel: bool = True  # quadratic ZNCC fit along the epipolar line (ours)
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    max_reprojection_px: float = 1.5  # paper.md: "drop points whose reprojection error exceeds ~1.5 px"
+    min_angle_deg: float = 2.0  # drop points with a tiny triangulation angle
+    fusion_voxel: float = 0.0  # metres; 0 = automatic (about one pixel footprint)
+    workers: int = 2  # process pool size; the target machine has 2 cores
+
+
+@dataclass(frozen=True)
+class Config:
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    resection: ResectionConfig = field(default_factory=ResectionConfig)
+    bundle: BundleConfig = field(default_factory=BundleConfig)
+    propagation: PropagationConfig = field(default_factory=PropagationConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **sections: Any) -> "Config":
+        """Copy with some stages' fields replaced: ``cfg.replace(matching={"min_zncc": 0.7})``."""
+        updates = {}
+        for name, values in sections.items():
+            current = getattr(self, name)
+            updates[name] = dataclasses.replace(current, **values) if isinstance(values, dict) else values
+        return dataclasses.replace(self, **updates)

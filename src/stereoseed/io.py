@@ -1,0 +1,261 @@
+"""Everything that touches the disk: images, point files, calibrations, JSON, PLY.
+
+Writers are atomic (write to a temporary file in the same folder, then rename), so an
+interrupted run never leaves a half-written result. Readers raise :class:`StereoseedError` with
+a message naming the file and what to do.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable
+
+import cv2
+import numpy as np
+
+from .camera import decompose_projection
+from .errors import StereoseedError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
+
+__all__ = ["read_image", "list_images", "read_points_file", "read_calibration", "write_json",
+           "write_text", "write_ply", "read_ply", "atomic_path", "IMAGE_EXTENSIONS"]
+
+
+# ---------------------------------------------------------------- atomic writing
+class atomic_path:
+    """Context manager yielding a temporary path that replaces ``path`` on success."""
+
+    def __init__(self, path: str | os.PathLike, suffix: str = ""):
+        self.path = Path(path)
+        self.suffix = suffix or self.path.suffix
+
+    def __enter__(self) -> Path:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix="." + self.path.name + ".", suffix=".tmp" + self.suffix,
+                                   dir=self.path.parent)
+        os.close(fd)
+        self.tmp = Path(tmp)
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj)}")
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """Write ``data`` as indented JSON, atomically; NumPy arrays become lists."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n")
+    return Path(path)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+# ---------------------------------------------------------------- images
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image as uint8 BGR (H, W, 3); clear error if missing, unreadable or empty."""
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: image not found; check the path")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None or image.size == 0:
+        raise StereoseedError(f"{path}: not a readable image (OpenCV cannot decode it); give a PNG, JPEG, PPM...")
+    return image
+
+
+def list_images(source: str | os.PathLike) -> list[Path]:
+    """Image paths in order: a folder (images in name order) or a text file (one path a line,
+    relative paths resolved against the file's folder; blank lines and '#' comments skipped)."""
+    source = Path(source)
+    if source.is_dir():
+        paths = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+        if not paths:
+            raise StereoseedError(f"{source}: no images in this folder ({', '.join(IMAGE_EXTENSIONS)})")
+        return paths
+    if not source.is_file():
+        raise StereoseedError(f"{source}: not found; give a folder of images or a text file listing them")
+    paths = []
+    for line in source.read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        p = Path(line)
+        paths.append(p if p.is_absolute() else source.parent / p)
+    if not paths:
+        raise StereoseedError(f"{source}: the list holds no image paths")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise StereoseedError(f"{source}: listed image not found: {missing[0]}"
+                              + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    return paths
+
+
+# ---------------------------------------------------------------- point files
+def read_points_file(path: str | os.PathLike, columns: int) -> np.ndarray:
+    """Read a whitespace/comma separated table with ``columns`` numbers a line -> (N, columns).
+
+    Blank lines and '#' comments are skipped. Any other line must hold exactly ``columns``
+    finite numbers.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: file not found")
+    rows = []
+    try:
+        text = path.read_text()
+    except (UnicodeDecodeError, OSError) as e:
+        raise StereoseedError(f"{path}: cannot read as text ({e.__class__.__name__})") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].replace(",", " ").strip()
+        if not line:
+            continue
+        fields = line.split()
+        if len(fields) != columns:
+            raise StereoseedError(f"{path}:{lineno}: expected {columns} numbers a line, found {len(fields)}")
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise StereoseedError(f"{path}:{lineno}: not a number in {line!r}") from None
+        if not all(np.isfinite(values)):
+            raise StereoseedError(f"{path}:{lineno}: NaN or infinite value; fix or remove the line")
+        rows.append(values)
+    if not rows:
+        raise StereoseedError(f"{path}: no points in the file")
+    return np.array(rows, dtype=np.float64)
+
+
+# ---------------------------------------------------------------- calibrations
+def _check_P(P: Any, where: str) -> np.ndarray:
+    try:
+        P = np.asarray(P, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise StereoseedError(f"{where}: 'P' must be a 3x4 matrix of numbers") from None
+    if P.shape != (3, 4):
+        raise StereoseedError(f"{where}: 'P' must be a 3x4 matrix, got shape {P.shape}")
+    if not np.all(np.isfinite(P)) or abs(np.linalg.det(P[:, :3])) < 1e-12 * np.abs(P).max() ** 3:
+        raise StereoseedError(f"{where}: 'P' is not a finite camera (NaN or singular left 3x3 block)")
+    return P
+
+
+def read_middlebury_par(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Middlebury ``*_par.txt``: first line a count, then "name k11..k33 r11..r33 t1 t2 t3"
+    per image, P = K [R | t]. Returns {image name: P (3, 4)}."""
+    path = Path(path)
+    cameras: dict[str, np.ndarray] = {}
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    for lineno, fields in enumerate(lines, 1):
+        if len(fields) == 1 and lineno == 1:
+            continue  # the count line
+        if len(fields) != 22:
+            raise StereoseedError(f"{path}:{lineno}: a par line holds a name and 21 numbers, found {len(fields)} fields")
+        try:
+            v = np.array([float(f) for f in fields[1:]])
+        except ValueError:
+            raise StereoseedError(f"{path}:{lineno}: not a number in the camera parameters") from None
+        K, R, t = v[:9].reshape(3, 3), v[9:18].reshape(3, 3), v[18:21]
+        cameras[fields[0]] = _check_P(K @ np.hstack([R, t[:, None]]), f"{path}:{lineno}")
+    if not cameras:
+        raise StereoseedError(f"{path}: no cameras in the par file")
+    return cameras
+
+
+def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None = None) -> list[np.ndarray]:
+    """The stereo pair's projection matrices [P1, P2] from a calib.json or a Middlebury par file.
+
+    calib.json: ``{"cameras": [{"P": 3x4, ...}, {"P": 3x4, ...}]}`` (only "P" is required).
+    Middlebury ``*_par.txt``: cameras are looked up by the names of the first two images.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: calibration file not found")
+    names = list(image_names or [])
+    if path.suffix.lower() == ".txt":
+        cams = read_middlebury_par(path)
+        if len(names) < 2:
+            raise StereoseedError(f"{path}: a par file needs the image names to look the pair up")
+        missing = [n for n in names[:2] if n not in cams]
+        if missing:
+            raise StereoseedError(f"{path}: no camera for image {missing[0]!r} in the par file")
+        return [cams[n] for n in names[:2]]
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise StereoseedError(f"{path}: not valid JSON ({e.__class__.__name__}); expected "
+                              '{"cameras": [{"P": ...}, {"P": ...}]}') from None
+    cams = data.get("cameras") if isinstance(data, dict) else None
+    if not isinstance(cams, list) or len(cams) < 2:
+        raise StereoseedError(f'{path}: expected {{"cameras": [{{"P": 3x4}}, {{"P": 3x4}}]}} with two cameras')
+    out = []
+    for i, cam in enumerate(cams[:2]):
+        if not isinstance(cam, dict) or "P" not in cam:
+            raise StereoseedError(f"{path}: camera {i} has no 'P'")
+        out.append(_check_P(cam["P"], f"{path}: camera {i}"))
+    return out
+
+
+def camera_entry(P: np.ndarray) -> dict[str, Any]:
+    """JSON fields of a camera: P, K, R, t and centre (world frame)."""
+    K, R, t = decompose_projection(P)
+    return {"P": P.tolist(), "K": K.tolist(), "R": R.tolist(), "t": t.tolist(),
+            "center": (-R.T @ t).tolist()}
+
+
+# ---------------------------------------------------------------- PLY
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY with x y z (float32) red green blue (uint8), atomically.
+
+    points: (N, 3); colors: (N, 3) uint8 RGB or None (grey).
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if colors is None:
+        colors = np.full((len(points), 3), 200, dtype=np.uint8)
+    vertex = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = points.T.astype(np.float32)
+    colors = np.asarray(colors).reshape(-1, 3).astype(np.uint8)
+    vertex["red"], vertex["green"], vertex["blue"] = colors.T
+    header = ("ply\nformat binary_little_endian 1.0\ncomment written by stereoseed\n"
+              f"element vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(vertex.tobytes())
+    return Path(path)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a PLY written by :func:`write_ply` -> (points (N, 3) float64, colors (N, 3) uint8)."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii")
+    n = int(next(line.split()[2] for line in header.splitlines() if line.startswith("element vertex")))
+    vertex = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                              ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=n)
+    pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
+    cols = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
+    return pts, cols

@@ -1,0 +1,152 @@
+"""Robust estimation of a new camera P_k from 3D-2D pairs (paper §4.2, eq. 10-11).
+
+RANSAC over 6-point DLT samples (drawn with a preference for high-NCC points spread over the
+image, as the paper chooses its N points), refit on the inliers, then LM on the reprojection
+error under the chosen camera model.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .calibration import (check_correspondences, dlt_projection, normalization_2d, normalization_3d,
+                          refine_projection)
+from .camera import depths, normalize_projection, project
+from .config import ResectionConfig
+from .errors import StereoseedError
+
+__all__ = ["ResectionResult", "resect"]
+
+
+@dataclass
+class ResectionResult:
+    """P (3, 4); inliers (N,) bool; rms_px over inliers; n_hypotheses tried."""
+
+    P: np.ndarray
+    inliers: np.ndarray
+    rms_px: float
+    n_hypotheses: int
+    info: dict = field(default_factory=dict)
+
+
+def _batched_dlt(Xn: np.ndarray, xn: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """DLT of every sample at once in normalised coordinates. samples: (S, 6) -> (S, 3, 4)."""
+    Xs = Xn[samples]  # (S, 6, 4)
+    xs = xn[samples]  # (S, 6, 3)
+    S, n = samples.shape
+    A = np.zeros((S, 2 * n, 12))
+    A[:, 0::2, 4:8] = -Xs
+    A[:, 0::2, 8:12] = xs[:, :, 1:2] * Xs
+    A[:, 1::2, 0:4] = Xs
+    A[:, 1::2, 8:12] = -xs[:, :, 0:1] * Xs
+    _, _, Vt = np.linalg.svd(A)
+    return Vt[:, -1].reshape(S, 3, 4)
+
+
+def _draw_samples(rng: np.random.Generator, n_samples: int, weights: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """6-point samples, points drawn with probability ~ weights, from 6 distinct image cells when
+    the points cover enough cells (spread over the image makes the DLT well conditioned)."""
+    n = len(weights)
+    p = weights / weights.sum()
+    draws = rng.choice(n, size=(n_samples, 12), p=p)
+    samples = np.empty((n_samples, 6), dtype=np.int64)
+    distinct_cells = len(np.unique(cells)) >= 6
+    for s in range(n_samples):  # cheap: 12 candidates per sample
+        chosen: list[int] = []
+        used_cells: set[int] = set()
+        for idx in draws[s]:
+            if idx in chosen or (distinct_cells and cells[idx] in used_cells):
+                continue
+            chosen.append(int(idx))
+            used_cells.add(int(cells[idx]))
+            if len(chosen) == 6:
+                break
+        while len(chosen) < 6:
+            idx = int(rng.integers(n))
+            if idx not in chosen:
+                chosen.append(idx)
+        samples[s] = chosen
+    return samples
+
+
+def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig = ResectionConfig(),
+           scores: np.ndarray | None = None, image_size: tuple[int, int] | None = None,
+           model: str = "free", reference_K: np.ndarray | None = None, what: str = "resection") -> ResectionResult:
+    """Estimate P from 3D-2D pairs robustly.
+
+    points3d: (N, 3); points2d: (N, 2); scores: (N,) NCC score of each pair's match (higher is
+    better) or None; image_size: (width, height) for the spread criterion. Raises
+    :class:`StereoseedError` when there are too few pairs, they are coplanar, or too few inliers.
+    """
+    X, x = check_correspondences(points3d, points2d, config.coplanarity_tol, what=what)
+    n = len(X)
+    rng = np.random.default_rng(config.seed)
+    weights = np.ones(n) if scores is None else np.clip(np.asarray(scores, float), 1e-3, None) ** 4
+    if image_size is None:
+        image_size = (x[:, 0].max() + 1, x[:, 1].max() + 1)
+    grid = 4
+    cx = np.clip((x[:, 0] / image_size[0] * grid).astype(int), 0, grid - 1)
+    cy = np.clip((x[:, 1] / image_size[1] * grid).astype(int), 0, grid - 1)
+    cells = cy * grid + cx
+
+    T = normalization_2d(x)
+    U = normalization_3d(X)
+    Xn = np.hstack([X, np.ones((n, 1))]) @ U.T
+    xn = np.hstack([x, np.ones((n, 1))]) @ T.T
+    Xh = np.hstack([X, np.ones((n, 1))])
+    thr2 = config.ransac_threshold_px ** 2
+
+    best_inliers = np.zeros(n, dtype=bool)
+    best_count = 0
+    tried = 0
+    max_iters = config.ransac_max_iters
+    batch = 128
+    while tried < max_iters:
+        samples = _draw_samples(rng, batch, weights, cells)
+        Pn = _batched_dlt(Xn, xn, samples)
+        Ps = np.einsum("ij,sjk,kl->sil", np.linalg.inv(T), Pn, U)
+        h = np.einsum("sij,nj->sni", Ps, Xh)  # (S, N, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            proj = h[..., :2] / h[..., 2:3]
+            err2 = np.sum((proj - x) ** 2, axis=2)
+            # cheirality: the inliers must lie on the same side of the camera as most points
+            sign = np.sign(h[..., 2]) * np.sign(np.linalg.det(Ps[:, :, :3]))[:, None]
+        inl = (err2 < thr2) & (sign > 0)
+        counts = inl.sum(axis=1)
+        s = int(np.argmax(counts))
+        tried += batch
+        if counts[s] > best_count:
+            best_count = int(counts[s])
+            best_inliers = inl[s]
+            ratio = best_count / n
+            # standard adaptive stopping (Fischler & Bolles; HZ §4.7.1)
+            denom = np.log(max(1e-12, 1.0 - ratio ** 6))
+            needed = np.log(1.0 - config.ransac_confidence) / denom if denom < 0 else 0
+            max_iters = min(config.ransac_max_iters, max(batch, int(np.ceil(needed))))
+    if best_count < max(config.min_points, config.min_inliers):
+        raise StereoseedError(
+            f"{what}: only {best_count} of {n} 3D-2D pairs agree on a camera "
+            f"(need {max(config.min_points, config.min_inliers)}); too few correct matches")
+
+    inliers = best_inliers
+    P = dlt_projection(X[inliers], x[inliers])
+    for _ in range(2):  # refit, re-select inliers, refine: converges in one or two rounds
+        P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K,
+                              loss="huber", f_scale=config.ransac_threshold_px / 2)
+        err2 = np.sum((project(P, X) - x) ** 2, axis=1)
+        new_inliers = (err2 < thr2) & (depths(P, X) > 0)
+        if new_inliers.sum() < config.min_inliers:
+            break
+        if np.array_equal(new_inliers, inliers):
+            break
+        inliers = new_inliers
+    P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K)
+    P = normalize_projection(P)
+    err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
+    rms = float(np.sqrt(np.mean(err2)))
+    if rms > config.max_rms_px:
+        raise StereoseedError(f"{what}: the best camera reprojects its inliers with {rms:.2f} px RMS "
+                              f"(limit {config.max_rms_px} px); the 3D-2D pairs are inconsistent")
+    return ResectionResult(P=P, inliers=inliers, rms_px=rms, n_hypotheses=tried,
+                           info={"n_pairs": n, "n_inliers": int(inliers.sum())})

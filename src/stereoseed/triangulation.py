@@ -1,0 +1,168 @@
+"""Triangulation of many points at once: linear (SVD) then per-point Levenberg-Marquardt.
+
+Paper §4.1 steps 4-5 (eq. 3-5). Every function handles N points in one batch and any number V
+of views; a point need not be seen in every view (``mask``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import camera_center, depths as camera_depths
+
+__all__ = ["triangulate_linear", "refine_points", "TriangulationResult", "triangulate",
+           "reprojection_errors", "triangulation_angles"]
+
+
+def _as_views(Ps: np.ndarray | list, x: np.ndarray, mask: np.ndarray | None):
+    Ps = np.asarray(Ps, dtype=np.float64).reshape(-1, 3, 4)
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 2:  # a single point set per view is not allowed; (V, N, 2) expected
+        raise ValueError("x must have shape (V, N, 2)")
+    if mask is None:
+        mask = np.ones(x.shape[:2], dtype=bool)
+    return Ps, x, np.asarray(mask, dtype=bool)
+
+
+def triangulate_linear(Ps: np.ndarray, x: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Linear triangulation: SVD of the stacked system A M = 0 (paper eq. 3-4, HZ §12.2).
+
+    Ps: (V, 3, 4) cameras; x: (V, N, 2) pixels; mask: (V, N) bool, which views see each point
+    (each point needs >= 2). Returns (N, 3) float64. Rows are normalised so that every view
+    weighs the same regardless of the scale of its P.
+    """
+    Ps, x, mask = _as_views(Ps, x, mask)
+    V, N = mask.shape
+    A = np.empty((N, 2 * V, 4))
+    for v in range(V):  # V is small (2 for pairs, a track length otherwise)
+        P = Ps[v] / np.linalg.norm(Ps[v][2, :3])
+        rows_u = x[v, :, 0:1] * P[2] - P[0]
+        rows_v = x[v, :, 1:2] * P[2] - P[1]
+        w = mask[v][:, None].astype(np.float64)
+        A[:, 2 * v] = rows_u * w
+        A[:, 2 * v + 1] = rows_v * w
+    A /= np.maximum(np.linalg.norm(A, axis=2, keepdims=True), 1e-300)
+    _, _, Vt = np.linalg.svd(A)
+    Mh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return Mh[:, :3] / Mh[:, 3:4]
+
+
+def _project_all(Ps: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Homogeneous projections h (V, N, 3) and pixels (V, N, 2)."""
+    h = np.einsum("vij,nj->vni", Ps[:, :, :3], X) + Ps[:, None, :, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h, h[..., :2] / h[..., 2:3]
+
+
+def reprojection_errors(Ps: np.ndarray, x: np.ndarray, X: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Reprojection distance (px) of each point in each view, NaN where not observed. -> (V, N)."""
+    Ps, x, mask = _as_views(Ps, x, mask)
+    _, proj = _project_all(Ps, X)
+    err = np.linalg.norm(proj - x, axis=2)
+    return np.where(mask, err, np.nan)
+
+
+def refine_points(Ps: np.ndarray, x: np.ndarray, X0: np.ndarray, mask: np.ndarray | None = None,
+                  iterations: int = 10) -> np.ndarray:
+    """Per-point Levenberg-Marquardt on the reprojection error (paper eq. 5), all points at once.
+
+    Each point has its own 3x3 normal equations and damping; points stop moving independently.
+    Ps: (V, 3, 4); x: (V, N, 2); X0: (N, 3) initial points -> (N, 3).
+    """
+    Ps, x, mask = _as_views(Ps, x, mask)
+    X = np.array(X0, dtype=np.float64, copy=True)
+    ok = np.all(np.isfinite(X), axis=1)
+    X[~ok] = 0.0
+    w = mask.astype(np.float64)
+    lam = np.full(len(X), 1e-3)
+
+    def cost_and_jac(Xc):
+        h, proj = _project_all(Ps, Xc)
+        r = (proj - x) * w[..., None]  # (V, N, 2)
+        # d(u)/dX = (P0 - u P2) / h2, d(v)/dX = (P1 - v P2) / h2
+        inv = 1.0 / h[..., 2]
+        Ju = (Ps[:, None, 0, :3] - proj[..., 0:1] * Ps[:, None, 2, :3]) * inv[..., None]
+        Jv = (Ps[:, None, 1, :3] - proj[..., 1:2] * Ps[:, None, 2, :3]) * inv[..., None]
+        J = np.stack([Ju, Jv], axis=2) * w[..., None, None]  # (V, N, 2, 3)
+        cost = np.sum(r * r, axis=(0, 2))
+        return r, J, cost
+
+    r, J, cost = cost_and_jac(X)
+    for _ in range(iterations):
+        H = np.einsum("vnki,vnkj->nij", J, J)
+        g = np.einsum("vnki,vnk->ni", J, r)
+        Hd = H + lam[:, None, None] * np.eye(3) * (np.trace(H, axis1=1, axis2=2)[:, None, None] / 3 + 1e-12)
+        try:
+            step = np.linalg.solve(Hd, -g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        step[~np.all(np.isfinite(step), axis=1)] = 0.0
+        Xn = X + step
+        rn, Jn, cost_n = cost_and_jac(Xn)
+        better = np.isfinite(cost_n) & (cost_n < cost)
+        X[better] = Xn[better]
+        r[:, better] = rn[:, better]
+        J[:, better] = Jn[:, better]
+        cost[better] = cost_n[better]
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    X[~ok] = np.nan
+    return X
+
+
+def triangulation_angles(Ps: np.ndarray, X: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Largest angle (degrees) between the rays from the observing cameras to each point. -> (N,)."""
+    Ps = np.asarray(Ps, dtype=np.float64).reshape(-1, 3, 4)
+    V = len(Ps)
+    if mask is None:
+        mask = np.ones((V, len(X)), dtype=bool)
+    rays = np.stack([camera_center(P) for P in Ps])[:, None, :] - X[None]  # (V, N, 3)
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    best = np.zeros(len(X))
+    for a in range(V):
+        for b in range(a + 1, V):
+            c = np.clip(np.sum(rays[a] * rays[b], axis=1), -1.0, 1.0)
+            ang = np.where(mask[a] & mask[b], np.degrees(np.arccos(c)), 0.0)
+            best = np.maximum(best, ang)
+    return best
+
+
+@dataclass
+class TriangulationResult:
+    """Triangulated points with the measures callers filter on.
+
+    points: (N, 3); errors: (V, N) reprojection distance in px (NaN where unobserved);
+    depths: (V, N) signed depth in each camera; angles: (N,) degrees.
+    """
+
+    points: np.ndarray
+    errors: np.ndarray
+    depths: np.ndarray
+    angles: np.ndarray
+
+    def max_error(self) -> np.ndarray:
+        return np.nanmax(self.errors, axis=0)
+
+    def valid(self, max_error_px: float, min_angle_deg: float, mask: np.ndarray | None = None) -> np.ndarray:
+        """Finite, in front of every observing camera, small reprojection error, wide enough angle."""
+        observed = np.isfinite(self.errors) if mask is None else mask
+        in_front = np.all((self.depths > 0) | ~observed, axis=0)
+        with np.errstate(invalid="ignore"):
+            return (np.all(np.isfinite(self.points), axis=1) & in_front
+                    & (self.max_error() <= max_error_px) & (self.angles >= min_angle_deg))
+
+
+def triangulate(Ps: np.ndarray, x: np.ndarray, mask: np.ndarray | None = None, iterations: int = 10) -> TriangulationResult:
+    """Linear triangulation refined by LM, with errors, depths and angles.
+
+    Ps: (V, 3, 4); x: (V, N, 2); mask: (V, N) bool or None (all observed).
+    """
+    Ps, x, mask = _as_views(Ps, x, mask)
+    X = refine_points(Ps, x, triangulate_linear(Ps, x, mask), mask, iterations)
+    return TriangulationResult(
+        points=X,
+        errors=reprojection_errors(Ps, x, X, mask),
+        depths=np.stack([camera_depths(P, X) for P in Ps]),
+        angles=triangulation_angles(Ps, X, mask),
+    )

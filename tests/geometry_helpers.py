@@ -1,0 +1,33 @@
+"""Small random cameras and point clouds for the geometry tests (no rendering needed)."""
+import numpy as np
+
+from stereoseed.camera import compose_projection
+
+
+def look_at_camera(center, target=(0.0, 0.0, 0.2), f=800.0, skew=0.0, aspect=1.0, pp=(320.0, 240.0)):
+    """K, R, t, P of a camera at ``center`` looking at ``target``, image y down = world -z."""
+    center = np.asarray(center, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - center
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    t = -R @ center
+    K = np.array([[f, skew, pp[0]], [0.0, f * aspect, pp[1]], [0.0, 0.0, 1.0]])
+    return K, R, t, compose_projection(K, R, t)
+
+
+def ring_camera(angle_deg, distance=1.4, height=0.8, **kw):
+    a = np.radians(angle_deg)
+    return look_at_camera((distance * np.cos(a), distance * np.sin(a), height), **kw)
+
+
+def box_points(rng, n, half=0.17, height=0.44):
+    """n points on the visible surfaces of a box (non-coplanar by construction)."""
+    pts = rng.uniform([-half, -half, 0.0], [half, half, height], size=(n, 3))
+    face = rng.integers(0, 3, n)
+    pts[face == 0, 0] = half
+    pts[face == 1, 1] = half
+    pts[face == 2, 2] = height
+    return pts

@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from stereoseed.camera import (camera_center, decompose_projection, depths, epipolar_distances,
+                               fundamental_from_projections, normalize_projection, project)
+from geometry_helpers import box_points, ring_camera
+
+
+def test_pixel_convention_principal_point():
+    # A point on the optical axis lands exactly on the principal point (cx, cy): pixel (0, 0) is
+    # the centre of the top-left pixel, so no half-pixel offset enters P.
+    K, R, t, P = ring_camera(30.0, pp=(319.5, 239.5))
+    C = camera_center(P)
+    on_axis = C + 0.7 * R[2]
+    np.testing.assert_allclose(project(P, on_axis[None])[0], [319.5, 239.5], atol=1e-9)
+    # y grows downwards: a point above the target projects to a smaller v
+    up = project(P, np.array([[0.0, 0.0, 0.4], [0.0, 0.0, 0.0]]))
+    assert up[0, 1] < up[1, 1]
+
+
+def test_decomposition_recovers_krt_whatever_the_scale_and_sign():
+    K, R, t, P = ring_camera(75.0, f=900.0, skew=1.5, aspect=1.02, pp=(310.0, 250.0))
+    for s in (1.0, -2.5, 1e-4):
+        K2, R2, t2 = decompose_projection(s * P)
+        np.testing.assert_allclose(K2, K, rtol=1e-10, atol=1e-9)
+        np.testing.assert_allclose(R2, R, atol=1e-12)
+        np.testing.assert_allclose(t2, t, atol=1e-12)
+        assert np.linalg.det(R2) == pytest.approx(1.0)
+        assert np.all(np.diag(K2) > 0)
+
+
+def test_center_and_depths():
+    rng = np.random.default_rng(1)
+    K, R, t, P = ring_camera(10.0)
+    np.testing.assert_allclose(camera_center(P), -R.T @ t, atol=1e-12)
+    X = box_points(rng, 20)
+    d = depths(-7.0 * P, X)
+    np.testing.assert_allclose(d, (X @ R.T + t)[:, 2], rtol=1e-10)
+    assert np.all(d > 0)
+
+
+def test_fundamental_matrix_vanishes_on_true_matches():
+    rng = np.random.default_rng(2)
+    P1 = ring_camera(0.0)[3]
+    P2 = ring_camera(20.0, f=850.0)[3]
+    X = box_points(rng, 50)
+    x1, x2 = project(P1, X), project(P2, X)
+    F = fundamental_from_projections(P1, P2)
+    assert np.max(epipolar_distances(F, x1, x2)) < 1e-8
+    # shifting x2 by 3 px perpendicular to its epipolar line gives a 3 px distance
+    l2 = np.hstack([x1, np.ones((50, 1))]) @ F.T
+    n = l2[:, :2] / np.linalg.norm(l2[:, :2], axis=1, keepdims=True)
+    np.testing.assert_allclose(epipolar_distances(F, x1, x2 + 3.0 * n).min(), 3.0, rtol=0.05)
+
+
+@settings(max_examples=50, deadline=None)
+@given(angle=st.floats(0, 360), f=st.floats(200, 5000), skew=st.floats(-5, 5),
+       aspect=st.floats(0.8, 1.25), scale=st.floats(-1e3, 1e3).filter(lambda s: abs(s) > 1e-6))
+def test_decompose_roundtrip_property(angle, f, skew, aspect, scale):
+    K, R, t, P = ring_camera(angle, f=f, skew=skew, aspect=aspect)
+    K2, R2, t2 = decompose_projection(scale * P)
+    np.testing.assert_allclose(K2, K, rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(R2, R, atol=1e-9)
+    np.testing.assert_allclose(normalize_projection(scale * P), normalize_projection(P), atol=1e-9)

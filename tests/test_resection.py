@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+from stereoseed.camera import camera_center, normalize_projection, project
+from stereoseed.config import ResectionConfig
+from stereoseed.errors import StereoseedError
+from stereoseed.resection import resect
+from geometry_helpers import box_points, ring_camera
+
+
+def test_robust_resection_rejects_outliers():
+    rng = np.random.default_rng(0)
+    P = ring_camera(60.0, f=900.0)[3]
+    X = box_points(rng, 300)
+    x = project(P, X) + rng.normal(0, 0.3, (300, 2))
+    bad = rng.random(300) < 0.4
+    x[bad] += rng.uniform(-60, 60, (bad.sum(), 2))
+    res = resect(X, x, scores=rng.uniform(0.8, 1.0, 300), image_size=(640, 480))
+    assert not np.any(res.inliers & bad & (np.linalg.norm(project(P, X) - x, axis=1) > 2.0))
+    assert res.inliers[~bad].mean() > 0.97
+    assert np.linalg.norm(camera_center(res.P) - camera_center(P)) < 0.01
+    assert res.rms_px < 0.6
+
+
+@pytest.mark.parametrize("model", ["free", "zero-skew", "focal"])
+def test_models_recover_exact_camera(model):
+    rng = np.random.default_rng(1)
+    ref_K = ring_camera(0.0, f=800.0)[0]
+    K, R, t, P = ring_camera(40.0, f=880.0)  # same pp/aspect as ref_K: all models can fit it
+    X = box_points(rng, 100)
+    res = resect(X, project(P, X), model=model, reference_K=ref_K)
+    np.testing.assert_allclose(res.P, normalize_projection(P), atol=1e-6 * np.abs(P).max())
+
+
+def test_constrained_model_reduces_noise_sensitivity():
+    rng = np.random.default_rng(2)
+    ref_K = ring_camera(0.0, f=800.0)[0]
+    P = ring_camera(40.0, f=880.0)[3]
+    C = camera_center(P)
+    X = box_points(rng, 60)
+    errs = {"free": [], "focal": []}
+    for _ in range(10):
+        x = project(P, X) + rng.normal(0, 1.0, (60, 2))
+        for model in errs:
+            errs[model].append(np.linalg.norm(camera_center(resect(X, x, model=model, reference_K=ref_K).P) - C))
+    assert np.median(errs["focal"]) < np.median(errs["free"])
+
+
+def test_too_few_and_degenerate():
+    rng = np.random.default_rng(3)
+    P = ring_camera(0.0)[3]
+    X = box_points(rng, 40)
+    with pytest.raises(StereoseedError, match="at least 6"):
+        resect(X[:5], project(P, X[:5]))
+    flat = X.copy()
+    flat[:, 2] = 0.0
+    with pytest.raises(StereoseedError, match="coplanar"):
+        resect(flat, project(P, flat))
+    with pytest.raises(StereoseedError, match="agree"):
+        resect(X, rng.uniform(0, 640, (40, 2)), ResectionConfig(min_inliers=12))
