@@ -82,6 +82,30 @@ class DenseConfig:
     workers: int = 2  # process pool size; the target machine has 2 cores
 
 
+MODES = ("paper", "accurate")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    # "paper": 2-view points, 11-DOF moving camera, 3-image local BA (paper §4.2-4.3).
+    # "accurate": multi-view tracks, constrained moving camera, wider BA window (issue 7;
+    # Mouragnon et al. 2006 for the windowed local BA).
+    mode: str = "accurate"
+    camera_model: str | None = None  # None: "free" (paper) / "focal" (accurate: the moving camera is the
+    #                                  calibrated second camera, only its zoom/focus changes)
+    window: int | None = None  # free cameras in the local BA; None: 1 (paper eq. 12) / 3 (accurate)
+    ba: str = "local"  # "local" after each insertion, "global" after each insertion, "final": local + one global
+    min_chained_points: int = 6  # paper: N >= 6 3D-2D pairs for the DLT
+    retriangulate: bool = True  # accurate mode: re-triangulate a point from its whole track when it grows
+    loop_closure: bool = True  # accurate mode: match the last images against the first ones
+
+    def resolved_model(self) -> str:
+        return self.camera_model or ("free" if self.mode == "paper" else "focal")
+
+    def resolved_window(self) -> int:
+        return self.window or (1 if self.mode == "paper" else 3)
+
+
 @dataclass(frozen=True)
 class Config:
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -91,6 +115,7 @@ class Config:
     bundle: BundleConfig = field(default_factory=BundleConfig)
     propagation: PropagationConfig = field(default_factory=PropagationConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

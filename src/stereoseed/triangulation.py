@@ -166,3 +166,61 @@ def triangulate(Ps: np.ndarray, x: np.ndarray, mask: np.ndarray | None = None, i
         depths=np.stack([camera_depths(P, X) for P in Ps]),
         angles=triangulation_angles(Ps, X, mask),
     )
+
+
+def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarray, n_points: int,
+                       iterations: int = 10) -> np.ndarray:
+    """Triangulate points seen in varying numbers of views (tracks of any length).
+
+    P_obs: (O, 3, 4) the camera of each observation; xy: (O, 2) its pixel; point_index: (O,)
+    which point (0..n_points-1) it belongs to. Linear solution from the per-point sum of the
+    DLT rows' outer products (4x4, smallest eigenvector), then Gauss-Newton/LM per point with
+    the normal equations accumulated over its observations. Returns (n_points, 3); points with
+    fewer than two observations are NaN.
+    """
+    P_obs = np.asarray(P_obs, np.float64)
+    scale = np.linalg.norm(P_obs[:, 2, :3], axis=1)
+    Pn = P_obs / scale[:, None, None]
+    ru = xy[:, 0:1] * Pn[:, 2] - Pn[:, 0]
+    rv = xy[:, 1:2] * Pn[:, 2] - Pn[:, 1]
+    ru /= np.linalg.norm(ru, axis=1, keepdims=True)
+    rv /= np.linalg.norm(rv, axis=1, keepdims=True)
+    AtA = np.zeros((n_points, 4, 4))
+    np.add.at(AtA, point_index, ru[:, :, None] * ru[:, None, :] + rv[:, :, None] * rv[:, None, :])
+    _, vecs = np.linalg.eigh(AtA)
+    Mh = vecs[:, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Mh[:, :3] / Mh[:, 3:4]
+    counts = np.bincount(point_index, minlength=n_points)
+    bad = (counts < 2) | ~np.all(np.isfinite(X), axis=1)
+    X[bad] = 0.0
+    lam = np.full(n_points, 1e-3)
+
+    def cost_and_normal(Xc):
+        Xo = Xc[point_index]
+        h = np.einsum("oij,oj->oi", P_obs[:, :, :3], Xo) + P_obs[:, :, 3]
+        uv = h[:, :2] / h[:, 2:3]
+        r = uv - xy
+        inv = 1.0 / h[:, 2]
+        J = np.stack([(P_obs[:, 0, :3] - uv[:, 0:1] * P_obs[:, 2, :3]) * inv[:, None],
+                      (P_obs[:, 1, :3] - uv[:, 1:2] * P_obs[:, 2, :3]) * inv[:, None]], axis=1)
+        H = np.zeros((n_points, 3, 3))
+        g = np.zeros((n_points, 3))
+        np.add.at(H, point_index, np.einsum("oki,okj->oij", J, J))
+        np.add.at(g, point_index, np.einsum("oki,ok->oi", J, r))
+        cost = np.bincount(point_index, weights=np.sum(r * r, axis=1), minlength=n_points)
+        return cost, H, g
+
+    with np.errstate(all="ignore"):
+        cost, H, g = cost_and_normal(X)
+        for _ in range(iterations):
+            damp = lam[:, None, None] * (np.trace(H, axis1=1, axis2=2)[:, None, None] / 3 + 1e-12) * np.eye(3)
+            step = np.linalg.solve(H + damp + 1e-15 * np.eye(3), -g[..., None])[..., 0]
+            step[~np.all(np.isfinite(step), axis=1)] = 0.0
+            Xn = X + step
+            cost_n, Hn, gn = cost_and_normal(Xn)
+            better = np.isfinite(cost_n) & (cost_n < cost)
+            X[better], cost[better], H[better], g[better] = Xn[better], cost_n[better], Hn[better], gn[better]
+            lam = np.where(better, lam * 0.3, lam * 10.0)
+    X[bad] = np.nan
+    return X

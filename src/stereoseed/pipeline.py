@@ -1,0 +1,379 @@
+"""The incremental reconstruction loop (paper §4.1-4.3), one short function per step.
+
+    recon = initialise(images, names, P_pair, cfg)      # match I1-I2, triangulate, filter
+    for k in 2 .. n-1: insert_view(recon, k, cfg)       # match, chain, resect, triangulate, local BA
+    finish(recon, cfg)                                  # loop closure / final global BA (optional)
+
+``reconstruct`` runs all of it; every step returns a JSON-able report and an insertion that
+fails is reported with its reason and skipped: the run keeps what it has.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from .bundle import BundleProblem, bundle_adjust
+from .camera import decompose_projection, fundamental_from_projections, project
+from .config import Config
+from .errors import StereoseedError
+from .features import Features, extract_features
+from .matching import Matches, match_pair
+from .reconstruction import Reconstruction, View
+from .resection import resect
+from .triangulation import triangulate, triangulate_tracks
+
+__all__ = ["initialise", "insert_view", "finish", "reconstruct", "adjust"]
+
+Progress = Callable[[int, int, str], None]
+
+
+def _colors(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """RGB colours (N, 3) uint8 at pixels xy (N, 2) of a BGR image."""
+    h, w = image.shape[:2]
+    u = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
+    return image[v, u][:, ::-1] if image.ndim == 3 else np.repeat(image[v, u][:, None], 3, axis=1)
+
+
+class HarrisZncc:
+    """The paper's correspondences: Harris interest points matched by ZNCC under the epipolar
+    constraint (known F) or a robust F. Any object with the same two methods can replace it
+    (tests use exact correspondences from the synthetic scene to measure the chain alone)."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+
+    def features(self, index: int, image: np.ndarray) -> Features:
+        return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
+
+    def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
+        return match_pair(fa, fb, self.cfg.matching, F=F, image_width=image_width)
+
+
+def _features(recon: Reconstruction, index: int) -> None:
+    view = recon.views[index]
+    if view.features is None:
+        view.features = recon.source.features(index, view.image)
+        view.point_of_feature = np.full(len(view.features), -1, np.int64)
+
+
+def _match(recon: Reconstruction, a: int, b: int, F: np.ndarray | None = None) -> Matches:
+    va, vb = recon.views[a], recon.views[b]
+    return recon.source.match(a, b, va.features, vb.features, F, va.image.shape[1])
+
+
+def _triangulate_matches(recon: Reconstruction, a: int, b: int, m: Matches, cfg: Config) -> tuple[np.ndarray, Matches]:
+    """Triangulate matches between registered views a, b; keep the valid ones. -> (points, matches)."""
+    va, vb = recon.views[a], recon.views[b]
+    x1, x2 = m.points(va.features, vb.features)
+    res = triangulate(np.stack([va.P, vb.P]), np.stack([x1, x2]), iterations=cfg.triangulation.lm_iterations)
+    ok = res.valid(cfg.triangulation.max_reprojection_px, cfg.triangulation.min_angle_deg)
+    return res.points[ok], m.subset(ok)
+
+
+def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
+               source: Any = None) -> tuple[Reconstruction, dict[str, Any]]:
+    """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
+    linear + LM triangulation, filtered by reprojection error, cheirality and angle.
+
+    source: where correspondences come from (default :class:`HarrisZncc`)."""
+    t0 = time.perf_counter()
+    views = [View(name=n, image=img) for n, img in zip(names, images)]
+    recon = Reconstruction(views)
+    recon.source = source or HarrisZncc(cfg)
+    for i in (0, 1):
+        views[i].P = np.asarray(P_pair[i], np.float64)
+        views[i].status = "calibrated"
+        _features(recon, i)
+    F = fundamental_from_projections(views[0].P, views[1].P)
+    m = _match(recon, 0, 1, F=F)
+    X, kept = _triangulate_matches(recon, 0, 1, m, cfg)
+    if len(X) < cfg.resection.min_inliers:
+        raise StereoseedError(f"{names[0]}, {names[1]}: only {len(X)} points triangulated from the calibrated pair "
+                              f"({len(m)} matches); check the calibration belongs to these two images")
+    ids = recon.add_points(X, _colors(views[0].image, views[0].features.points[kept.idx1]))
+    recon.add_observations(0, kept.idx1, ids)
+    recon.add_observations(1, kept.idx2, ids)
+    return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
+                   "seconds": {"total": time.perf_counter() - t0}}
+
+
+def _previous_registered(recon: Reconstruction, k: int, count: int) -> list[int]:
+    return [i for i in range(k - 1, -1, -1) if recon.views[i].registered][:count]
+
+
+def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
+    """Paper §4.2-4.3: register view k from the last registered view, add its points, local BA.
+
+    Raises :class:`StereoseedError` (the view is left unregistered) when it cannot be placed.
+    """
+    pc = cfg.pipeline
+    timing: dict[str, float] = {}
+    t = time.perf_counter()
+    view = recon.views[k]
+    prev = _previous_registered(recon, k, 1)[0]
+    vp = recon.views[prev]
+    _features(recon, k)
+    timing["features"] = time.perf_counter() - t
+
+    # 1. match I_{k-1} <-> I_k with a robust F (P_k unknown yet)
+    t = time.perf_counter()
+    m = _match(recon, prev, k)
+    timing["matching"] = time.perf_counter() - t
+    # 2. chain: interest points of I_{k-1} that stand for a 3D point (the paper's B_{k-1})
+    pid = vp.point_of_feature[m.idx1]
+    chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+    report: dict[str, Any] = {"image": view.name, "matches": len(m), "chained_points": int(chained.sum())}
+    if chained.sum() < pc.min_chained_points:
+        raise StereoseedError(f"{view.name}: only {int(chained.sum())} matches with already reconstructed points "
+                              f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
+    # 3. resection: robust DLT then LM under the camera model
+    t = time.perf_counter()
+    X3 = recon.points[pid[chained]]
+    x2 = view.features.points[m.idx2[chained]]
+    model = pc.resolved_model()
+    ref_K = decompose_projection(recon.views[1].P)[0]
+    res = resect(X3, x2, cfg.resection, scores=m.score[chained], image_size=view.image.shape[1::-1],
+                 model=model, reference_K=ref_K, what=view.name)
+    view.P = res.P
+    timing["resection"] = time.perf_counter() - t
+    report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px)
+
+    # 4. re-match under the now-known epipolar geometry, then chain and triangulate
+    t = time.perf_counter()
+    m = _match(recon, prev, k, F=fundamental_from_projections(vp.P, view.P))
+    pid = vp.point_of_feature[m.idx1]
+    chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+    if chained.any():
+        # keep only chained observations consistent with the camera just estimated
+        err = np.linalg.norm(project(view.P, recon.points[pid[chained]]) - view.features.points[m.idx2[chained]], axis=1)
+        good = np.zeros(len(m), bool)
+        good[np.flatnonzero(chained)[err <= cfg.resection.ransac_threshold_px]] = True
+    else:
+        good = chained
+    chain_feats, chain_pids = m.idx2[good], pid[good]
+    if pc.mode == "paper":
+        # The paper: every match of A_{k-1,k} gives a new 2-view point (S_{k-1,k}); the chained old
+        # points enter the cost through their observation in I_k (paper.md §4 trap) but their
+        # features keep standing for the new points, which the next insertion chains through.
+        recon.add_observations(k, chain_feats, chain_pids, link=False)
+        new_m = m
+    else:
+        recon.add_observations(k, chain_feats, chain_pids)
+        new_m = m.subset(~chained & (view.point_of_feature[m.idx2] < 0))
+    X, kept = _triangulate_matches(recon, prev, k, new_m, cfg)
+    ids = recon.add_points(X, _colors(view.image, view.features.points[kept.idx2]))
+    recon.add_observations(prev, kept.idx1, ids, link=pc.mode != "paper")
+    recon.add_observations(k, kept.idx2, ids)
+    if pc.mode != "paper" and pc.retriangulate and len(chain_pids):
+        _retriangulate(recon, np.unique(chain_pids), cfg)
+    timing["triangulation"] = time.perf_counter() - t
+    report.update(matches_guided=len(m), chained_observations=int(len(chain_pids)), new_points=int(len(ids)))
+
+    # 5. local bundle adjustment
+    t = time.perf_counter()
+    if pc.ba == "global":
+        ba = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
+    elif pc.mode == "paper":
+        window_views = [k] + _previous_registered(recon, k, 2)
+        ba = adjust(recon, cfg, free_views=[k], free_points=ids, views_in_cost=window_views)
+    else:
+        ba = adjust(recon, cfg, free_views=[i for i in _last_registered(recon, pc.resolved_window()) if i > 1])
+    timing["bundle"] = time.perf_counter() - t
+    removed = _drop_outliers(recon, cfg)
+    view.status = "registered"
+    report.update(ba=ba, removed_observations=removed, seconds=timing)
+    report["seconds"]["total"] = float(sum(timing.values()))
+    return report
+
+
+def _last_registered(recon: Reconstruction, count: int) -> list[int]:
+    return recon.registered_views[-count:]
+
+
+def _retriangulate(recon: Reconstruction, point_ids: np.ndarray, cfg: Config) -> None:
+    """Re-triangulate points from all their observations; keep the new position when it
+    reprojects within the threshold everywhere."""
+    sel = np.isin(recon.obs_point, point_ids)
+    local = np.searchsorted(point_ids, recon.obs_point[sel])
+    P_obs = np.stack([recon.views[v].P for v in recon.obs_view[sel]])
+    xy = recon.observation_xy(sel)
+    X = triangulate_tracks(P_obs, xy, local, len(point_ids), cfg.triangulation.lm_iterations)
+    h = np.einsum("oij,oj->oi", P_obs[:, :, :3], X[local]) + P_obs[:, :, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = np.linalg.norm(h[:, :2] / h[:, 2:3] - xy, axis=1)
+        worst = np.full(len(point_ids), np.inf)
+        np.maximum.at(worst, local, np.where(h[:, 2] > 0, err, np.inf))
+    ok = np.isfinite(worst) & (worst <= cfg.triangulation.max_reprojection_px)
+    recon.points[point_ids[ok]] = X[ok]
+
+
+def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
+           views_in_cost: list[int] | None = None) -> dict[str, Any]:
+    """Bundle-adjust: ``free_views`` free; points free = ``free_points`` or, by default, every
+    point those views observe; the cost holds every observation of the involved points (in
+    ``views_in_cost`` only, if given). The calibrated pair (views 0, 1) never moves."""
+    free_views = [v for v in free_views if v > 1]
+    in_free_views = np.isin(recon.obs_view, free_views)
+    if free_points is None:
+        free_points = np.unique(recon.obs_point[in_free_views])
+    involved = np.isin(recon.obs_point, free_points) | in_free_views
+    if views_in_cost is not None:
+        involved &= np.isin(recon.obs_view, views_in_cost)
+    involved &= recon.alive[recon.obs_point]
+    if not involved.any():
+        return {"skipped": True}
+    cams = np.unique(recon.obs_view[involved])
+    pts = np.unique(recon.obs_point[involved])
+    pc = cfg.pipeline
+    problem = BundleProblem(
+        Ps=np.stack([recon.views[v].P for v in cams]),
+        free_cameras=np.isin(cams, free_views),
+        points=recon.points[pts],
+        free_points=np.isin(pts, free_points),
+        obs_camera=np.searchsorted(cams, recon.obs_view[involved]),
+        obs_point=np.searchsorted(pts, recon.obs_point[involved]),
+        obs_xy=recon.observation_xy(involved),
+        model=pc.resolved_model(),
+        reference_K=decompose_projection(recon.views[1].P)[0],
+    )
+    result = bundle_adjust(problem, cfg.bundle)
+    for i, v in enumerate(cams):
+        if problem.free_cameras[i]:
+            recon.views[v].P = result.Ps[i]
+    recon.points[pts] = result.points
+    m, n = len(cams), len(pts)
+    rms_b, rms_a = result.rms_before, result.rms_after
+    o = len(problem.obs_camera)
+    return {"free_cameras": int(problem.free_cameras.sum()), "free_points": int(problem.free_points.sum()),
+            "observations": o, "iterations": result.iterations, "seconds": result.seconds,
+            "rms_before_px": rms_b, "rms_after_px": rms_a,
+            "eq14_before": rms_b ** 2 * o / (m * n), "eq14_after": rms_a ** 2 * o / (m * n)}
+
+
+def _drop_outliers(recon: Reconstruction, cfg: Config) -> int:
+    """Remove observations reprojecting beyond the threshold, then points seen fewer than twice."""
+    if len(recon.obs_view) == 0:
+        return 0
+    bad = recon.observation_errors() > 2.0 * cfg.triangulation.max_reprojection_px
+    recon.remove_observations(bad)
+    lonely = np.flatnonzero(recon.alive & (recon.track_lengths() < 2))
+    recon.remove_points(lonely)
+    return int(bad.sum())
+
+
+def finish(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+    """After the last insertion: one global BA when asked (``ba="final"``)."""
+    if cfg.pipeline.ba != "final":
+        return {}
+    t = time.perf_counter()
+    ba = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
+    _drop_outliers(recon, cfg)
+    return {"final_ba": ba, "seconds": time.perf_counter() - t}
+
+
+def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
+                progress: Progress | None = None, source: Any = None) -> tuple[Reconstruction, dict[str, Any]]:
+    """The whole incremental loop over an ordered sequence whose first two images are the
+    calibrated pair (P_pair: their two (3, 4) cameras). Returns the reconstruction and a report."""
+    t0 = time.perf_counter()
+    n = len(images)
+    if n < 2:
+        raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
+    recon, init = initialise(images, names, P_pair, cfg, source)
+    per_image: list[dict[str, Any]] = [{"image": names[0], "status": "calibrated"}, init]
+    if progress:
+        progress(2, n, f"pair: {init['new_points']} points")
+    for k in range(2, n):
+        try:
+            rep = insert_view(recon, k, cfg)
+            rep["status"] = "registered"
+        except StereoseedError as e:
+            recon.views[k].P = None
+            recon.views[k].status = f"failed: {e}"
+            _forget_view(recon, k)
+            rep = {"image": names[k], "status": "failed", "reason": str(e)}
+        per_image.append(rep)
+        if progress:
+            progress(k + 1, n, f"{names[k]}: {rep['status']}")
+    final = finish(recon, cfg)
+    summary = recon.reprojection_summary()
+    pc = cfg.pipeline
+    report = {
+        "mode": pc.mode, "camera_model": pc.resolved_model(), "window": pc.resolved_window(), "ba": pc.ba,
+        "images": n, "registered": len(recon.registered_views),
+        "points": int(len(recon.live_points()[0])), "reprojection": summary,
+        "per_image": per_image, "final": final, "seconds": time.perf_counter() - t0,
+        "config": cfg.to_dict(),
+    }
+    return recon, report
+
+
+def _forget_view(recon: Reconstruction, k: int) -> None:
+    """Undo a failed insertion: its observations, and points no longer seen twice."""
+    recon.remove_observations(recon.obs_view == k)
+    lonely = np.flatnonzero(recon.alive & (recon.track_lengths() < 2))
+    recon.remove_points(lonely)
+    if recon.views[k].features is not None:
+        recon.views[k].point_of_feature[:] = -1
+
+
+def load_sequence(images_source: str, calib_path: str) -> tuple[list[np.ndarray], list[str], list[np.ndarray]]:
+    """Read an ordered image sequence (folder or list file) and the pair's calibration."""
+    from .io import list_images, read_calibration, read_image
+
+    paths = list_images(images_source)
+    if len(paths) < 2:
+        raise StereoseedError(f"{images_source}: {len(paths)} image(s); the calibrated pair needs two")
+    P_pair = read_calibration(calib_path, [p.name for p in paths])
+    images = [read_image(p) for p in paths]
+    return images, [p.name for p in paths], P_pair
+
+
+def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str) -> None:
+    """cameras.json, sparse.ply and report.json in out_dir (atomic writes)."""
+    from pathlib import Path
+
+    from .io import write_json
+
+    recon.save(out_dir)
+    write_json(Path(out_dir) / "report.json", report)
+
+
+def reconstruct_cli(args: Any) -> int:
+    """`stereoseed reconstruct`: the CLI's thin layer over :func:`reconstruct`."""
+    import dataclasses
+    import sys
+
+    from tqdm import tqdm
+
+    images, names, P_pair = load_sequence(args.images, args.calib)
+    pipeline_cfg = dataclasses.replace(Config().pipeline, mode=args.mode, camera_model=args.camera_model,
+                                       window=args.window, ba=args.ba)
+    cfg = dataclasses.replace(Config(), pipeline=pipeline_cfg)
+    bar = None if args.quiet else tqdm(total=len(images), unit="image", file=sys.stderr)
+
+    def progress(done: int, total: int, message: str) -> None:
+        if bar is not None:
+            bar.n = done
+            bar.set_postfix_str(message[:40])
+            bar.refresh()
+
+    try:
+        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    if getattr(args, "dense", False):
+        from .dense import densify
+
+        report["dense"] = densify(recon, cfg, args.out)
+    save_outputs(recon, report, args.out)
+    failed = [r for r in report["per_image"] if r.get("status") == "failed"]
+    print(f"registered {report['registered']}/{report['images']} images, {report['points']} points, "
+          f"reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    for r in failed:
+        print(f"  skipped: {r['reason']}")
+    return 0

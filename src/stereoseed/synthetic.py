@@ -1,0 +1,668 @@
+"""The paper's simulation target, rendered with exact ground truth.
+
+A 34 x 34 x 44 cm box stands on the ground plane ``z = 0`` (world frame: metres, z up), centred on
+the z axis: ``x, y in [-0.17, 0.17]``, ``z in [0, 0.44]``. Its five visible faces carry 57 dark
+6 x 6 cm squares with 4 cm gaps: 3 columns x 4 rows on each side face, 3 x 3 on the top, hence
+228 corners with exactly known 3D coordinates (the calibration pattern of the paper, section 5).
+
+A ring of ``n_images`` views looks at the box: images 0 and 1 are the calibrated stereo pair (two
+physically different cameras), images 1, 2, ... are the "moving camera", whose focal length varies
+from image to image. Every image is ray cast (NumPy for the set-up, a Numba kernel for the
+per-sample work) with box-filtered supersampling, so the ground truth (cameras, the world point
+seen through each pixel, visibility, the square corners) is exact, not estimated.
+
+Surface labels (used by :meth:`SyntheticScene.surface_points` and friends):
+
+====  =================================  =====================================
+ -1   background (sky; ray hits nothing)
+  0   ground plane ``z = 0``
+  1   side face ``x = +0.17``            outward normal +x
+  2   side face ``y = +0.17``            outward normal +y
+  3   side face ``x = -0.17``            outward normal -x
+  4   side face ``y = -0.17``            outward normal -y
+  5   top face ``z = 0.44``              outward normal +z
+====  =================================  =====================================
+
+Each face f has a local 2D frame ``X = FACE_ORIGIN[f] + s * FACE_U[f] + r * FACE_V[f]`` with
+``s, r >= 0``, ``FACE_U x FACE_V = normal``: on a side face ``FACE_V`` is +z and ``FACE_U`` points
+to the right of a viewer standing outside; on the top ``FACE_U = +x``, ``FACE_V = +y``.
+
+Corner order (``box_corners()``, ``SyntheticScene.corners``): faces 1..5 in label order; within a
+face squares row-major (row = index along ``FACE_V``, bottom to top, then column along
+``FACE_U``); within a square its 4 corners counter-clockwise seen from outside, starting at its
+(min s, min r) corner: ``(s0, r0), (s1, r0), (s1, r1), (s0, r1)``. Square k owns corners
+``4k .. 4k+3``; squares 0..47 are on the side faces (12 each), 48..56 on the top.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numba import njit, prange
+
+from .camera import camera_center, compose_projection, depths, project
+
+__all__ = [
+    "BOX_HALF",
+    "BOX_HEIGHT",
+    "SQUARE_SIZE",
+    "SQUARE_GAP",
+    "GROUND_RADIUS",
+    "FACE_LABELS",
+    "FACE_NORMALS",
+    "FACE_ORIGIN",
+    "FACE_U",
+    "FACE_V",
+    "SceneConfig",
+    "SyntheticScene",
+    "box_corners",
+    "render_scene",
+    "write_scene",
+    "add_noise",
+]
+
+# --------------------------------------------------------------------------------------------
+# Fixed geometry of the target (paper section 5); not configurable because 228 corners is the
+# paper's number and other modules' tests rely on it.
+BOX_HALF = 0.17  # half of the 34 cm base side, metres
+BOX_HEIGHT = 0.44
+SQUARE_SIZE = 0.06
+SQUARE_GAP = 0.04
+GROUND_RADIUS = 1.0  # textured ground disk; beyond it a flat, featureless floor
+
+FACE_LABELS = {-1: "background", 0: "ground", 1: "+x", 2: "+y", 3: "-x", 4: "-y", 5: "top"}
+# Index 0 (the ground) is filled in so that label-indexed lookups need no offset.
+FACE_NORMALS = np.array(
+    [[0, 0, 1], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1]], dtype=np.float64
+)
+FACE_U = np.array(
+    [[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [1, 0, 0], [1, 0, 0]], dtype=np.float64
+)
+FACE_V = np.array(
+    [[0, 1, 0], [0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 1, 0]], dtype=np.float64
+)
+_h = BOX_HALF
+FACE_ORIGIN = np.array(
+    [[0, 0, 0], [_h, -_h, 0], [_h, _h, 0], [-_h, _h, 0], [-_h, -_h, 0], [-_h, -_h, BOX_HEIGHT]],
+    dtype=np.float64,
+)
+# Face extent (s, r) and square grid (columns along s, rows along r), label-indexed.
+_FACE_EXTENT = np.array([[0, 0]] + [[2 * _h, BOX_HEIGHT]] * 4 + [[2 * _h, 2 * _h]], dtype=float)
+_FACE_GRID = np.array([[0, 0]] + [[3, 4]] * 4 + [[3, 3]], dtype=np.int64)
+del _h
+
+# Appearance. Half-Lambert shading ("wrapped" diffuse) keeps every face lit but at a different
+# level, so the box edges stay visible from every side while no face goes black.
+_LIGHT = np.array([0.6, -0.35, 1.0]) / np.linalg.norm([0.6, -0.35, 1.0])
+_SHADE = 0.55 + 0.45 * (0.5 + 0.5 * FACE_NORMALS @ _LIGHT)  # (6,), label-indexed
+# RGB tints: warm box, cool ground, neutral-ish far floor; the sky is a colour on its own.
+_TINTS = np.array([[1.0, 0.88, 0.70], [0.72, 0.86, 1.0], [0.80, 0.82, 0.80]], dtype=np.float64)
+_SKY_RGB = np.array([0.80, 0.88, 1.0], dtype=np.float64)
+_FAR_GROUND_ALBEDO = 0.45
+# Albedo = clip(mean + amplitude * z, lo, hi) for a unit-variance texture value z.
+# Rows: box (light part), box squares (dark), ground disk.
+_ALBEDO_TEXTURED = np.array(
+    [[0.75, 0.10, 0.55, 0.95], [0.10, 0.025, 0.05, 0.15], [0.50, 0.12, 0.25, 0.80]]
+)
+_ALBEDO_PLAIN = np.array([[0.85, 0.0, 0.0, 1.0], [0.08, 0.0, 0.0, 1.0], [0.50, 0.0, 0.0, 1.0]])
+_FACE_TEXEL = 0.001  # 1 mm texels: several per pixel at ~1.4 m, so the texture is never blocky
+_GROUND_TEXEL = 0.002
+# Octaves of band-limited noise (Gaussian blur sigma in metres, weight): blobs from ~1.5 px to
+# ~10 px in the images, what Harris (3x3) and 5x5 / 11x11 ZNCC windows can grip.
+_OCTAVES = ((0.0025, 1.0), (0.005, 0.9), (0.010, 0.7), (0.020, 0.5))
+
+# Independent random streams, each seeded by (seed, stream[, image]) so that e.g. changing the
+# noise level or the number of images does not move the cameras or the texture.
+_STREAM_POSE, _STREAM_TEXTURE, _STREAM_NOISE, _STREAM_CALIB = 1, 2, 3, 4
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Parameters of the rendered ring of views around the box.
+
+    Camera i (i >= 0) sits at azimuth ``azimuth0_deg + i * step_deg`` around the z axis, at
+    elevation ``elevation_deg`` above the horizontal and at ``distance`` metres **from its look-at
+    point** ``(0, 0, look_at_height)`` (not from the z axis), then jittered if ``pose_jitter``.
+    """
+
+    n_images: int = 14  # paper section 5: 14 images
+    step_deg: float = 20.0  # azimuth step between consecutive views
+    distance: float = 1.4  # metres, camera centre to look-at point
+    elevation_deg: float = 25.0
+    width: int = 640
+    height: int = 480
+    focal_px: float = 800.0  # camera 1 (the moving camera's nominal focal length)
+    focal_jitter: float = 0.10  # images >= 2: focal_px * (1 + U(-jitter, jitter))
+    noise_sigma: float = 0.0  # Gaussian grey-level noise (0..255 scale), see add_noise
+    textured: bool = True  # False: the paper's plain box (uniform faces + dark squares)
+    supersample: int = 3  # s x s box-filtered samples per pixel
+    seed: int = 0
+    calib_noise_px: float = 0.1  # noise on the "measured" calibration image points
+    pose_jitter: bool = True  # elevation +-3 deg, distance +-5 cm, look-at +-2 cm, roll +-2 deg
+    azimuth0_deg: float = 30.0  # camera 0 sees faces +x, +y and the top: non-coplanar corners
+    look_at_height: float = 0.2  # roughly the box centre
+    focal0_px: float = 780.0  # camera 0 is another physical camera ...
+    principal_offset0_px: tuple[float, float] = (3.5, -2.5)  # ... and an off-centre principal pt
+
+    def __post_init__(self) -> None:
+        if self.n_images < 2:
+            raise ValueError("n_images must be >= 2 (the stereo pair)")
+        if self.supersample < 1:
+            raise ValueError("supersample must be >= 1")
+        if not 0.0 <= self.focal_jitter < 1.0:
+            raise ValueError("focal_jitter must be in [0, 1)")
+
+
+# --------------------------------------------------------------------------------------------
+# Ground-truth geometry
+
+
+def box_corners() -> tuple[np.ndarray, np.ndarray]:
+    """The 228 square corners in the documented order.
+
+    Returns corners (228, 3) float64 world coordinates and labels (228,) int8 (face 1..5).
+    """
+    corners, labels = [], []
+    for f in range(1, 6):
+        n_cols, n_rows = _FACE_GRID[f]
+        for row in range(n_rows):
+            r0 = SQUARE_GAP + row * (SQUARE_SIZE + SQUARE_GAP)
+            for col in range(n_cols):
+                s0 = SQUARE_GAP + col * (SQUARE_SIZE + SQUARE_GAP)
+                s1, r1 = s0 + SQUARE_SIZE, r0 + SQUARE_SIZE
+                for s, r in ((s0, r0), (s1, r0), (s1, r1), (s0, r1)):
+                    corners.append(FACE_ORIGIN[f] + s * FACE_U[f] + r * FACE_V[f])
+                    labels.append(f)
+    # Round away the 1e-17 residue of the sums: the corners are exact centimetre values.
+    return np.round(np.array(corners), 12), np.array(labels, dtype=np.int8)
+
+
+def _look_at(center: np.ndarray, target: np.ndarray, roll_rad: float) -> np.ndarray:
+    """cam_from_world rotation (3, 3) looking from center to target, image y down ~ world -z."""
+    z = target - center
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])  # right of the viewer, horizontal
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # completes a right-handed frame pointing down
+    R = np.stack([x, y, z])
+    c, s = math.cos(roll_rad), math.sin(roll_rad)
+    roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return roll @ R
+
+
+def _cameras(cfg: SceneConfig) -> tuple[list, list, list]:
+    """K, R, t lists for the ring (see SceneConfig); one seeded stream per image."""
+    cx, cy = (cfg.width - 1) / 2.0, (cfg.height - 1) / 2.0  # centre under the pixel convention
+    Ks, Rs, ts = [], [], []
+    for i in range(cfg.n_images):
+        rng = np.random.default_rng([cfg.seed, _STREAM_POSE, i])
+        # Always draw the same numbers in the same order, so pose_jitter=False changes only the
+        # pose and the focal lengths stay those of the jittered ring.
+        d_elev = np.radians(rng.uniform(-3.0, 3.0))
+        d_dist = rng.uniform(-0.05, 0.05)
+        d_look = rng.uniform(-0.02, 0.02, size=3)
+        roll = np.radians(rng.uniform(-2.0, 2.0))
+        focal_factor = 1.0 + rng.uniform(-cfg.focal_jitter, cfg.focal_jitter)
+        if not cfg.pose_jitter:
+            d_elev, d_dist, d_look, roll = 0.0, 0.0, np.zeros(3), 0.0
+
+        if i == 0:
+            dx0, dy0 = cfg.principal_offset0_px
+            f, px, py = cfg.focal0_px, cx + dx0, cy + dy0
+        elif i == 1:
+            f, px, py = cfg.focal_px, cx, cy
+        else:
+            f, px, py = cfg.focal_px * focal_factor, cx, cy
+        K = np.array([[f, 0.0, px], [0.0, f, py], [0.0, 0.0, 1.0]])
+
+        az = np.radians(cfg.azimuth0_deg + i * cfg.step_deg)
+        el = np.radians(cfg.elevation_deg) + d_elev
+        target = np.array([0.0, 0.0, cfg.look_at_height]) + d_look
+        direction = np.array(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
+        )
+        center = target + (cfg.distance + d_dist) * direction
+        if center[2] <= 0.0:
+            raise ValueError("camera below the ground plane; raise elevation_deg")
+        R = _look_at(center, target, roll)
+        Ks.append(K)
+        Rs.append(R)
+        ts.append(-R @ center)
+    return Ks, Rs, ts
+
+
+# --------------------------------------------------------------------------------------------
+# Textures
+
+
+def _band_noise(shape: tuple[int, int], texel: float, rng: np.random.Generator) -> np.ndarray:
+    """Multi-octave band-limited noise, zero mean, unit variance. -> (H, W) float32."""
+    total = np.zeros(shape, dtype=np.float32)
+    for sigma_m, weight in _OCTAVES:
+        white = rng.standard_normal(shape).astype(np.float32)
+        blurred = cv2.GaussianBlur(white, (0, 0), sigma_m / texel, borderType=cv2.BORDER_REFLECT)
+        total += np.float32(weight) * blurred / blurred.std()
+    total -= total.mean()
+    return total / total.std()
+
+
+def _textures(cfg: SceneConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Face textures (6, T, T) (label-indexed; index 0 unused) and ground texture (1, G, G).
+
+    Side faces and the top share one square array size (the largest face) so that the kernel
+    indexes a single 3D array.
+    """
+    n_face = int(round(BOX_HEIGHT / _FACE_TEXEL))
+    n_ground = int(round(2 * GROUND_RADIUS / _GROUND_TEXEL))
+    if not cfg.textured:
+        # Albedo amplitudes are zero then; tiny arrays keep the kernel's code path unchanged.
+        return np.zeros((6, 2, 2), np.float32), np.zeros((1, 2, 2), np.float32)
+    rng = np.random.default_rng([cfg.seed, _STREAM_TEXTURE])
+    faces = np.zeros((6, n_face, n_face), np.float32)
+    for f in range(1, 6):
+        faces[f] = _band_noise((n_face, n_face), _FACE_TEXEL, rng)
+    ground = _band_noise((n_ground, n_ground), _GROUND_TEXEL, rng)[None]
+    return faces, ground
+
+
+# --------------------------------------------------------------------------------------------
+# Numba kernels (ray casting, shading)
+
+
+@njit(cache=True)
+def _intersect(ox, oy, oz, dx, dy, dz, half, height):
+    """First hit of the ray o + t d (t > 0) with the box or the ground: (t, label), (inf, -1)."""
+    tnear = -np.inf
+    tfar = np.inf
+    label = -1
+    hit_box = True
+    # Slab method; the entering face is the slab whose entry parameter is the largest.
+    if dx != 0.0:
+        t1 = (-half - ox) / dx
+        t2 = (half - ox) / dx
+        if dx > 0.0:
+            enter, leave, lab = t1, t2, 3
+        else:
+            enter, leave, lab = t2, t1, 1
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif ox < -half or ox > half:
+        hit_box = False
+    if dy != 0.0:
+        t1 = (-half - oy) / dy
+        t2 = (half - oy) / dy
+        if dy > 0.0:
+            enter, leave, lab = t1, t2, 4
+        else:
+            enter, leave, lab = t2, t1, 2
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif oy < -half or oy > half:
+        hit_box = False
+    if dz != 0.0:
+        t1 = (0.0 - oz) / dz
+        t2 = (height - oz) / dz
+        if dz > 0.0:
+            enter, leave, lab = t1, t2, 0  # bottom face: only reachable from under the ground
+        else:
+            enter, leave, lab = t2, t1, 5
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif oz < 0.0 or oz > height:
+        hit_box = False
+    if hit_box and tnear <= tfar and tnear > 0.0:
+        return tnear, label
+    # The box stands on the ground, so a ray that misses it can only meet the ground plane.
+    if dz < 0.0 and oz > 0.0:
+        return -oz / dz, 0
+    return np.inf, -1
+
+
+@njit(cache=True)
+def _bilinear(tex, k, x, y):
+    """Bilinear lookup in tex[k] (n, H, W) at continuous texel coords (x, y), clamped."""
+    h = tex.shape[1]
+    w = tex.shape[2]
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0 = min(int(x), w - 2)
+    y0 = min(int(y), h - 2)
+    fx = x - x0
+    fy = y - y0
+    top = tex[k, y0, x0] * (1.0 - fx) + tex[k, y0, x0 + 1] * fx
+    bottom = tex[k, y0 + 1, x0] * (1.0 - fx) + tex[k, y0 + 1, x0 + 1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+@njit(cache=True)
+def _in_grid(s, n, size, gap):
+    """True if local coordinate s falls inside one of n intervals [gap + k(size+gap), +size)."""
+    q = s - gap
+    if q < 0.0:
+        return False
+    k = int(q // (size + gap))
+    return k < n and q - k * (size + gap) < size
+
+
+@njit(cache=True)
+def _shade_sample(ox, oy, oz, dx, dy, dz, half, height, face_o, face_u, face_v, grid, sq_size,
+                  sq_gap, tex_faces, face_texel, tex_ground, ground_texel, ground_radius, albedo,
+                  shade, tints, sky, far_ground):
+    """Linear RGB colour seen along one ray. Returns (r, g, b)."""
+    t, label = _intersect(ox, oy, oz, dx, dy, dz, half, height)
+    if label < 0:
+        return sky[0], sky[1], sky[2]
+    x = ox + t * dx
+    y = oy + t * dy
+    z = oz + t * dz
+    if label == 0:
+        if x * x + y * y > ground_radius * ground_radius:
+            a = far_ground * shade[0]
+            return a * tints[2, 0], a * tints[2, 1], a * tints[2, 2]
+        zt = _bilinear(tex_ground, 0, (x + ground_radius) / ground_texel - 0.5,
+                       (y + ground_radius) / ground_texel - 0.5)
+        row = 2
+        tint = 1
+    else:
+        px = x - face_o[label, 0]
+        py = y - face_o[label, 1]
+        pz = z - face_o[label, 2]
+        s = px * face_u[label, 0] + py * face_u[label, 1] + pz * face_u[label, 2]
+        r = px * face_v[label, 0] + py * face_v[label, 1] + pz * face_v[label, 2]
+        zt = _bilinear(tex_faces, label, s / face_texel - 0.5, r / face_texel - 0.5)
+        # Squares are tested analytically, not painted in the texture, so their edges are exact.
+        dark = (_in_grid(s, grid[label, 0], sq_size, sq_gap)
+                and _in_grid(r, grid[label, 1], sq_size, sq_gap))
+        row = 1 if dark else 0
+        tint = 0
+    a = min(max(albedo[row, 0] + albedo[row, 1] * zt, albedo[row, 2]), albedo[row, 3])
+    a *= shade[label]
+    return a * tints[tint, 0], a * tints[tint, 1], a * tints[tint, 2]
+
+
+@njit(parallel=True, cache=True)
+def _render_kernel(Minv, C, height_px, width_px, ss, half, height, face_o, face_u, face_v, grid,
+                   sq_size, sq_gap, tex_faces, face_texel, tex_ground, ground_texel, ground_radius,
+                   albedo, shade, tints, sky, far_ground):
+    """Box-filtered supersampled render. Minv = R^T K^-1 (3, 3), C (3,) -> (H, W, 3) linear RGB."""
+    out = np.empty((height_px, width_px, 3), dtype=np.float64)
+    inv = 1.0 / (ss * ss)
+    for v in prange(height_px):
+        for u in range(width_px):
+            acc_r = 0.0
+            acc_g = 0.0
+            acc_b = 0.0
+            for j in range(ss):
+                vs = v + (j + 0.5) / ss - 0.5
+                for i in range(ss):
+                    us = u + (i + 0.5) / ss - 0.5
+                    dx = Minv[0, 0] * us + Minv[0, 1] * vs + Minv[0, 2]
+                    dy = Minv[1, 0] * us + Minv[1, 1] * vs + Minv[1, 2]
+                    dz = Minv[2, 0] * us + Minv[2, 1] * vs + Minv[2, 2]
+                    r, g, b = _shade_sample(C[0], C[1], C[2], dx, dy, dz, half, height, face_o,
+                                            face_u, face_v, grid, sq_size, sq_gap, tex_faces,
+                                            face_texel, tex_ground, ground_texel, ground_radius,
+                                            albedo, shade, tints, sky, far_ground)
+                    acc_r += r
+                    acc_g += g
+                    acc_b += b
+            out[v, u, 0] = acc_r * inv
+            out[v, u, 1] = acc_g * inv
+            out[v, u, 2] = acc_b * inv
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _cast_kernel(C, dirs, half, height):
+    """First hits of rays C + t dirs[n]: t (N,) float64 (inf if none), labels (N,) int8."""
+    n = dirs.shape[0]
+    ts = np.empty(n, dtype=np.float64)
+    labels = np.empty(n, dtype=np.int8)
+    for k in prange(n):
+        t, lab = _intersect(C[0], C[1], C[2], dirs[k, 0], dirs[k, 1], dirs[k, 2], half, height)
+        ts[k] = t
+        labels[k] = lab
+    return ts, labels
+
+
+def _cast(C: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First hit along each ray. C (3,), dirs (N, 3) -> t (N,), labels (N,) int8."""
+    dirs = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    return _cast_kernel(np.ascontiguousarray(C, dtype=np.float64), dirs, BOX_HALF, BOX_HEIGHT)
+
+
+def _snap_to_surface(points: np.ndarray, labels: np.ndarray) -> None:
+    """Set the coordinate fixed by each point's plane to its exact value (in place).
+
+    Removes the ~1e-17 rounding of o + t d, so that e.g. ground points have z == 0 exactly.
+    """
+    fixed = {0: (2, 0.0), 1: (0, BOX_HALF), 2: (1, BOX_HALF), 3: (0, -BOX_HALF),
+             4: (1, -BOX_HALF), 5: (2, BOX_HEIGHT)}
+    for lab, (axis, value) in fixed.items():
+        points[labels == lab, axis] = value
+
+
+def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Add Gaussian grey-level noise to a uint8 image, round and clip. -> uint8, same shape.
+
+    image: (H, W) or (H, W, 3) uint8; sigma in grey levels (0..255). For colour images one sample
+    per pixel is added to all channels: the grey conversion (weights summing to 1) then carries
+    noise of standard deviation sigma, which is what the paper's Fig. 9 varies.
+    """
+    image = np.asarray(image)
+    if sigma <= 0:
+        return image.copy()
+    noise = rng.normal(0.0, sigma, size=image.shape[:2])
+    if image.ndim == 3:
+        noise = noise[:, :, None]
+    return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# The scene
+
+
+@dataclass(eq=False)  # holds arrays: identity equality only
+class SyntheticScene:
+    """Rendered images and exact ground truth. Build it with :func:`render_scene`.
+
+    images: list of (H, W, 3) uint8 BGR; P: list of (3, 4) = K [R | t]; K, R: lists of (3, 3);
+    t: list of (3,); corners: (228, 3) world coordinates (module docstring: order);
+    corner_labels: (228,) face label of each corner; names: "img_000.png", ...
+    """
+
+    config: SceneConfig
+    images: list
+    P: list
+    K: list
+    R: list
+    t: list
+    corners: np.ndarray
+    names: list
+    corner_labels: np.ndarray = field(default_factory=lambda: box_corners()[1])
+    _surface_cache: dict = field(default_factory=dict, init=False, repr=False)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.images)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """Camera centres (n_images, 3)."""
+        return np.array([camera_center(P) for P in self.P])
+
+    def _rays(self, i: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """World ray directions (N, 3) (not normalised; t = 1 at depth 1) through pixels (u, v)."""
+        Minv = self.R[i].T @ np.linalg.inv(self.K[i])
+        pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+        return pix @ Minv.T
+
+    def surface_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """World point seen through each pixel centre of image i (no supersampling).
+
+        Returns points (H, W, 3) float64 (NaN on background) and labels (H, W) int8 (-1
+        background, 0 ground, 1..5 box faces; module docstring). Cached; do not modify in place.
+        """
+        if i not in self._surface_cache:
+            H, W = self.config.height, self.config.width
+            v, u = np.mgrid[0:H, 0:W]
+            dirs = self._rays(i, u.ravel(), v.ravel())
+            C = camera_center(self.P[i])
+            t, labels = _cast(C, dirs)
+            with np.errstate(invalid="ignore"):
+                points = C + t[:, None] * dirs
+            points[labels < 0] = np.nan
+            _snap_to_surface(points, labels)
+            self._surface_cache[i] = (points.reshape(H, W, 3), labels.reshape(H, W))
+        return self._surface_cache[i]
+
+    def is_visible(self, i: int, points: np.ndarray, margin: float = 0.0,
+                   tol: float = 1e-6) -> np.ndarray:
+        """Whether each world point is seen by camera i. points (N, 3) -> (N,) bool.
+
+        Visible = in front of the camera, projecting inside the image shrunk by ``margin`` px
+        (image area: ``-0.5 + margin <= u < W - 0.5 - margin``, likewise v), and not occluded:
+        the first surface along the ray from the centre is not closer than ``1 - tol`` times the
+        point's distance. Points in empty space count as visible if nothing hides them.
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        cfg = self.config
+        uv = project(self.P[i], points)
+        with np.errstate(invalid="ignore"):
+            inside = (
+                (depths(self.P[i], points) > 0)
+                & (uv[:, 0] >= margin - 0.5) & (uv[:, 0] < cfg.width - 0.5 - margin)
+                & (uv[:, 1] >= margin - 0.5) & (uv[:, 1] < cfg.height - 0.5 - margin)
+            )
+        C = camera_center(self.P[i])
+        # Parametrise the ray so that t = 1 at the point itself: occluded iff a hit has t < 1.
+        t, labels = _cast(C, points - C)
+        return inside & ((labels < 0) | (t >= 1.0 - tol))
+
+    def corner_visibility(self, i: int, margin: float = 10.0) -> np.ndarray:
+        """(228,) bool: corner's face turned towards camera i, unoccluded, >= margin px inside."""
+        C = camera_center(self.P[i])
+        facing = np.einsum("nk,nk->n", FACE_NORMALS[self.corner_labels], C - self.corners) > 0
+        return facing & self.is_visible(i, self.corners, margin=margin)
+
+    def sample_surface_points(self, n: int, rng: np.random.Generator,
+                              include_ground: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """n points uniform by area on the textured surfaces. -> points (n, 3), labels (n,) int8.
+
+        Surfaces: the 5 box faces and, if include_ground, the ground disk of radius
+        GROUND_RADIUS minus the box footprint (label 0).
+        """
+        areas = [0.0] + [float(np.prod(_FACE_EXTENT[f])) for f in range(1, 6)]
+        if include_ground:
+            areas[0] = math.pi * GROUND_RADIUS**2 - (2 * BOX_HALF) ** 2
+        p = np.array(areas) / sum(areas)
+        labels = rng.choice(6, size=n, p=p).astype(np.int8)
+        points = np.empty((n, 3))
+        box = labels > 0
+        s = rng.uniform(0.0, 1.0, size=(n, 2)) * _FACE_EXTENT[labels]
+        points[box] = (FACE_ORIGIN[labels[box]] + s[box, :1] * FACE_U[labels[box]]
+                       + s[box, 1:] * FACE_V[labels[box]])
+        # Ground: uniform on the disk, rejecting the footprint; a few rounds suffice (~4 % loss).
+        todo = np.flatnonzero(~box)
+        while todo.size:
+            r = GROUND_RADIUS * np.sqrt(rng.uniform(size=todo.size))
+            a = rng.uniform(0.0, 2 * math.pi, size=todo.size)
+            xy = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+            ok = np.any(np.abs(xy) > BOX_HALF, axis=1)
+            points[todo[ok], :2] = xy[ok]
+            points[todo[ok], 2] = 0.0
+            todo = todo[~ok]
+        _snap_to_surface(points, labels)
+        return points, labels
+
+    def calibration_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a user would measure on the pattern with the stereo pair (images 0 and 1).
+
+        Returns pattern (M, 3) corners visible in both images (corner order kept), points1 (M, 2)
+        their pixels in image 0 and points2 (M, 2) in image 1, each with Gaussian noise of
+        ``config.calib_noise_px`` (seeded; the same call always gives the same numbers).
+        """
+        both = self.corner_visibility(0) & self.corner_visibility(1)
+        pattern = self.corners[both]
+        rng = np.random.default_rng([self.config.seed, _STREAM_CALIB])
+        sigma = self.config.calib_noise_px
+        points1 = project(self.P[0], pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
+        points2 = project(self.P[1], pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
+        return pattern, points1, points2
+
+
+def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
+    """Render the ring of views around the box (deterministic: same config, same bytes)."""
+    cfg = config
+    Ks, Rs, ts = _cameras(cfg)
+    tex_faces, tex_ground = _textures(cfg)
+    albedo = _ALBEDO_TEXTURED if cfg.textured else _ALBEDO_PLAIN
+    tints, far_ground = _TINTS, _FAR_GROUND_ALBEDO
+    if not cfg.textured:
+        # The plain scene's ground is one uniform floor: no disk rim to offer a spurious feature.
+        tints = _TINTS.copy()
+        tints[2] = tints[1]
+        far_ground = albedo[2, 0]
+    images, Ps = [], []
+    for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
+        Minv = R.T @ np.linalg.inv(K)
+        rgb = _render_kernel(
+            np.ascontiguousarray(Minv), -R.T @ t, cfg.height, cfg.width, cfg.supersample,
+            BOX_HALF, BOX_HEIGHT, FACE_ORIGIN, FACE_U, FACE_V, _FACE_GRID, SQUARE_SIZE,
+            SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
+            albedo, _SHADE, tints, _SKY_RGB, far_ground,
+        )
+        image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
+        if cfg.noise_sigma > 0:
+            rng = np.random.default_rng([cfg.seed, _STREAM_NOISE, i])
+            image = add_noise(image, cfg.noise_sigma, rng)
+        images.append(np.ascontiguousarray(image))
+        Ps.append(compose_projection(K, R, t))
+    corners, labels = box_corners()
+    return SyntheticScene(
+        config=cfg, images=images, P=Ps, K=Ks, R=Rs, t=ts, corners=corners,
+        names=[f"img_{i:03d}.png" for i in range(cfg.n_images)], corner_labels=labels,
+    )
+
+
+def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
+    """Write images and ground truth to out_dir (created if missing).
+
+    Files: the PNG images (scene.names); ``cameras.json`` {"images": [{"name", "P", "K", "R",
+    "t", "center"}]}; ``corners.txt`` (228 lines "X Y Z"); ``pattern.txt`` (M lines "X Y Z"),
+    ``points1.txt`` / ``points2.txt`` (M lines "u v", images 0 / 1) from calibration_points();
+    ``images.txt`` (image paths relative to out_dir, in order).
+    Returns {"images": [Path, ...], "cameras", "corners", "pattern", "points1", "points2",
+    "images_txt": Path}.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict = {"images": []}
+    for name, image in zip(scene.names, scene.images):
+        path = out / name
+        if not cv2.imwrite(str(path), image):
+            raise OSError(f"could not write {path}")
+        written["images"].append(path)
+    cams = [
+        {"name": name, "P": P.tolist(), "K": K.tolist(), "R": R.tolist(),
+         "t": np.asarray(t).tolist(), "center": camera_center(P).tolist()}
+        for name, P, K, R, t in zip(scene.names, scene.P, scene.K, scene.R, scene.t)
+    ]
+    written["cameras"] = out / "cameras.json"
+    written["cameras"].write_text(json.dumps({"images": cams}, indent=1))
+    pattern, points1, points2 = scene.calibration_points()
+    for key, array, fmt in (("corners", scene.corners, "%.10f"), ("pattern", pattern, "%.10f"),
+                            ("points1", points1, "%.6f"), ("points2", points2, "%.6f")):
+        written[key] = out / f"{key}.txt"
+        np.savetxt(written[key], array, fmt=fmt)
+    written["images_txt"] = out / "images.txt"
+    written["images_txt"].write_text("".join(f"{name}\n" for name in scene.names))
+    return written

@@ -1,0 +1,52 @@
+"""Shared fixtures: the data folder of real sequences and the rendered synthetic box scenes."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from stereoseed.synthetic import SceneConfig, SyntheticScene, render_scene
+
+
+# --- SHARED_DATA ------------------------------------------------------------------------------
+def shared_data_dir() -> Path:
+    """Folder holding the real sequences: $STEREOSEED_DATA, else ../shared/data beside the repo."""
+    env = os.environ.get("STEREOSEED_DATA")
+    if env:
+        return Path(env).expanduser().resolve()
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def _sequence_dir(name: str) -> Path:
+    path = shared_data_dir() / name
+    if not path.is_dir():
+        pytest.skip(
+            f"../shared/data/{name} not found; set STEREOSEED_DATA to the folder holding it"
+        )
+    return path
+
+
+@pytest.fixture(scope="session")
+def temple_dir() -> Path:
+    """The Middlebury templeSparseRing folder; skips the test when it is absent."""
+    return _sequence_dir("templeSparseRing")
+
+
+@pytest.fixture(scope="session")
+def dino_dir() -> Path:
+    """The Middlebury dinoSparseRing folder; skips the test when it is absent."""
+    return _sequence_dir("dinoSparseRing")
+
+
+# --- synthetic scenes, rendered once per session ----------------------------------------------
+@pytest.fixture(scope="session")
+def box_scene() -> SyntheticScene:
+    """The default textured 14-image ring around the box (SceneConfig())."""
+    return render_scene(SceneConfig())
+
+
+@pytest.fixture(scope="session")
+def plain_box_scene() -> SyntheticScene:
+    """The paper's plain box: uniform faces with only the dark squares, untextured ground."""
+    return render_scene(SceneConfig(textured=False))
