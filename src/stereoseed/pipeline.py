@@ -167,8 +167,13 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     ids = recon.add_points(X, _colors(view.image, view.features.points[kept.idx2]))
     recon.add_observations(prev, kept.idx1, ids, link=pc.mode != "paper")
     recon.add_observations(k, kept.idx2, ids)
-    if pc.mode != "paper" and pc.retriangulate and len(chain_pids):
-        _retriangulate(recon, np.unique(chain_pids), cfg)
+    grown = chain_pids
+    if pc.mode != "paper":
+        extended = _extend_tracks(recon, k, _previous_registered(recon, k, pc.resolved_window() + 1)[1:], cfg)
+        grown = np.concatenate([chain_pids, extended])
+        report["extended_observations"] = int(len(extended))
+    if pc.mode != "paper" and pc.retriangulate and len(grown):
+        _retriangulate(recon, np.unique(grown), cfg)
     timing["triangulation"] = time.perf_counter() - t
     report.update(matches_guided=len(m), chained_observations=int(len(chain_pids)), new_points=int(len(ids)))
 
@@ -187,6 +192,38 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     report.update(ba=ba, removed_observations=removed, seconds=timing)
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
+
+
+def _extend_tracks(recon: Reconstruction, k: int, others: list[int], cfg: Config) -> np.ndarray:
+    """Match view k against older registered views under their known epipolar geometry and add
+    the observations this reveals: a point of the older view gains its image in k, a new point
+    of k gains its image in the older view. Each is kept only if the point reprojects within
+    the threshold. Returns the ids of the points whose track grew."""
+    vk = recon.views[k]
+    thr = cfg.resection.ransac_threshold_px
+    grown = []
+    for j in others:
+        vj = recon.views[j]
+        m = _match(recon, j, k, F=fundamental_from_projections(vj.P, vk.P))
+        pj = vj.point_of_feature[m.idx1]
+        pk = vk.point_of_feature[m.idx2]
+        for pid, view, feats, src in ((pj, k, m.idx2, pk), (pk, j, m.idx1, pj)):
+            cand = (pid >= 0) & (src < 0)
+            if not cand.any():
+                continue
+            pid_c, f_c = pid[cand], feats[cand]
+            pid_c = np.where(recon.alive[pid_c], pid_c, -1)
+            err = np.linalg.norm(project(recon.views[view].P, recon.points[np.maximum(pid_c, 0)])
+                                 - recon.views[view].features.points[f_c], axis=1)
+            ok = (pid_c >= 0) & (err <= thr)
+            # one observation per point and view: skip points the view already sees
+            seen = np.isin(pid_c, recon.obs_point[recon.obs_view == view])
+            ok &= ~seen
+            _, first = np.unique(pid_c[ok], return_index=True)
+            sel = np.flatnonzero(ok)[first]
+            recon.add_observations(view, f_c[sel], pid_c[sel])
+            grown.append(pid_c[sel])
+    return np.concatenate(grown) if grown else np.zeros(0, np.int64)
 
 
 def _last_registered(recon: Reconstruction, count: int) -> list[int]:
