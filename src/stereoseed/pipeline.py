@@ -301,14 +301,85 @@ def _drop_outliers(recon: Reconstruction, cfg: Config) -> int:
     return int(bad.sum())
 
 
-def finish(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
-    """After the last insertion: one global BA when asked (``ba="final"``)."""
-    if cfg.pipeline.ba != "final":
-        return {}
-    t = time.perf_counter()
+def _merge_points(recon: Reconstruction, keep: np.ndarray, drop: np.ndarray) -> int:
+    """Merge point ``drop[i]`` into ``keep[i]``: its observations move over (unless the view
+    already sees ``keep[i]``), it dies. Returns the number of merges done."""
+    done = 0
+    for p, q in zip(keep, drop):
+        if p == q or not (recon.alive[p] and recon.alive[q]):
+            continue
+        views_p = set(recon.obs_view[recon.obs_point == p].tolist())
+        obs_q = np.flatnonzero(recon.obs_point == q)
+        clash = np.isin(recon.obs_view[obs_q], list(views_p))
+        if clash.any():
+            continue  # the same view would see both: not the same point
+        recon.obs_point[obs_q] = p
+        for o in obs_q:
+            recon.views[recon.obs_view[o]].point_of_feature[recon.obs_feature[o]] = p
+        recon.alive[q] = False
+        done += 1
+    return done
+
+
+def close_loop(recon: Reconstruction, cfg: Config, span: int = 3, min_matches: int = 20) -> dict[str, Any]:
+    """Loop closure for a sequence that comes back to its start: match each of the last ``span``
+    registered views against the first ``span`` (cameras known, so under the epipolar
+    constraint), link or merge the tracks they share, then one global BA (the pair fixed)."""
+    reg = recon.registered_views
+    if len(reg) < 2 * span + 1:
+        return {"closed": False, "reason": "sequence too short"}
+    firsts, lasts = reg[:span], reg[-span:]
+    thr = cfg.resection.ransac_threshold_px
+    links = merges = tried = 0
+    for a in lasts:
+        for b in firsts:
+            va, vb = recon.views[a], recon.views[b]
+            axis_a = decompose_projection(va.P)[1][2]
+            axis_b = decompose_projection(vb.P)[1][2]
+            if np.dot(axis_a, axis_b) < np.cos(np.radians(60.0)):
+                continue  # looking too differently to share much
+            m = _match(recon, b, a, F=fundamental_from_projections(vb.P, va.P))
+            tried += len(m)
+            if len(m) < min_matches:
+                continue
+            pb, pa = vb.point_of_feature[m.idx1], va.point_of_feature[m.idx2]
+            both = (pa >= 0) & (pb >= 0) & (pa != pb)
+            if both.any():
+                # the same physical point reconstructed twice: close in space after drift
+                d = np.linalg.norm(recon.points[pa[both]] - recon.points[pb[both]], axis=1)
+                depth = np.linalg.norm(recon.points[pb[both]] - (-np.linalg.inv(vb.P[:, :3]) @ vb.P[:, 3]), axis=1)
+                close = d < 0.02 * depth
+                merges += _merge_points(recon, pb[both][close], pa[both][close])
+            for pid, view, feats, other in ((pb, a, m.idx2, pa), (pa, b, m.idx1, pb)):
+                cand = (pid >= 0) & (other < 0)
+                if not cand.any():
+                    continue
+                err = np.linalg.norm(project(recon.views[view].P, recon.points[pid[cand]])
+                                     - recon.views[view].features.points[feats[cand]], axis=1)
+                ok = (err <= 4 * thr) & ~np.isin(pid[cand], recon.obs_point[recon.obs_view == view])
+                pid_ok, f_ok = pid[cand][ok], feats[cand][ok]
+                _, first = np.unique(pid_ok, return_index=True)
+                recon.add_observations(view, f_ok[first], pid_ok[first])
+                links += len(first)
+    if links + merges == 0:
+        return {"closed": False, "reason": "no shared points between the last and first views", "matches": tried}
     ba = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
-    _drop_outliers(recon, cfg)
-    return {"final_ba": ba, "seconds": time.perf_counter() - t}
+    removed = _drop_outliers(recon, cfg)
+    return {"closed": True, "links": links, "merges": merges, "ba": ba, "removed_observations": removed}
+
+
+def finish(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+    """After the last insertion: loop closure (accurate mode) and/or one global BA (``ba="final"``)."""
+    t = time.perf_counter()
+    out: dict[str, Any] = {}
+    pc = cfg.pipeline
+    if pc.mode != "paper" and pc.loop_closure:
+        out["loop_closure"] = close_loop(recon, cfg)
+    if pc.ba == "final":
+        out["final_ba"] = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
+        _drop_outliers(recon, cfg)
+    out["seconds"] = time.perf_counter() - t
+    return out
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),

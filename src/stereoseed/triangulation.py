@@ -8,10 +8,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .camera import camera_center, depths as camera_depths
 
-__all__ = ["triangulate_linear", "refine_points", "TriangulationResult", "triangulate",
+__all__ = ["triangulate_linear", "refine_points", "TriangulationResult", "triangulate", "triangulate_two_view",
+           "triangulate_tracks",
            "reprojection_errors", "triangulation_angles"]
 
 
@@ -224,3 +226,130 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
             lam = np.where(better, lam * 0.3, lam * 10.0)
     X[bad] = np.nan
     return X
+
+
+@njit(cache=True)
+def _solve3(H, g):
+    """Solve the 3x3 system H x = g by Cramer's rule (H symmetric positive definite here)."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 1], H[1, 2], H[2, 2]
+    c00 = d * f - e * e
+    c01 = c * e - b * f
+    c02 = b * e - c * d
+    det = a * c00 + b * c01 + c * c02
+    if abs(det) < 1e-300:
+        return np.zeros(3), False
+    c11 = a * f - c * c
+    c12 = b * c - a * e
+    c22 = a * d - b * b
+    x = np.empty(3)
+    x[0] = (c00 * g[0] + c01 * g[1] + c02 * g[2]) / det
+    x[1] = (c01 * g[0] + c11 * g[1] + c12 * g[2]) / det
+    x[2] = (c02 * g[0] + c12 * g[1] + c22 * g[2]) / det
+    return x, True
+
+
+@njit(cache=True)
+def _two_view_kernel(P1, P2, x1, x2, iterations, out_X, out_err):
+    n = x1.shape[0]
+    H = np.empty((3, 3))
+    g = np.empty(3)
+    for i in range(n):
+        # linear: the four DLT rows with W = 1, in least squares (normal equations)
+        H[:, :] = 0.0
+        g[:] = 0.0
+        for v in range(2):
+            P = P1 if v == 0 else P2
+            x = x1[i] if v == 0 else x2[i]
+            s = 1.0 / np.sqrt(P[2, 0] ** 2 + P[2, 1] ** 2 + P[2, 2] ** 2)
+            for row in range(2):
+                r0 = (x[row] * P[2, 0] - P[row, 0]) * s
+                r1 = (x[row] * P[2, 1] - P[row, 1]) * s
+                r2 = (x[row] * P[2, 2] - P[row, 2]) * s
+                r3 = (x[row] * P[2, 3] - P[row, 3]) * s
+                H[0, 0] += r0 * r0
+                H[0, 1] += r0 * r1
+                H[0, 2] += r0 * r2
+                H[1, 1] += r1 * r1
+                H[1, 2] += r1 * r2
+                H[2, 2] += r2 * r2
+                g[0] -= r0 * r3
+                g[1] -= r1 * r3
+                g[2] -= r2 * r3
+        H[1, 0] = H[0, 1]
+        H[2, 0] = H[0, 2]
+        H[2, 1] = H[1, 2]
+        X, ok = _solve3(H, g)
+        if not ok:
+            out_X[i, :] = np.nan
+            out_err[i] = np.inf
+            continue
+        # Gauss-Newton on the reprojection error (eq. 5)
+        for _ in range(iterations):
+            H[:, :] = 0.0
+            g[:] = 0.0
+            for v in range(2):
+                P = P1 if v == 0 else P2
+                x = x1[i] if v == 0 else x2[i]
+                h0 = P[0, 0] * X[0] + P[0, 1] * X[1] + P[0, 2] * X[2] + P[0, 3]
+                h1 = P[1, 0] * X[0] + P[1, 1] * X[1] + P[1, 2] * X[2] + P[1, 3]
+                h2 = P[2, 0] * X[0] + P[2, 1] * X[1] + P[2, 2] * X[2] + P[2, 3]
+                u = h0 / h2
+                w = h1 / h2
+                for row in range(2):
+                    val = u if row == 0 else w
+                    j0 = (P[row, 0] - val * P[2, 0]) / h2
+                    j1 = (P[row, 1] - val * P[2, 1]) / h2
+                    j2 = (P[row, 2] - val * P[2, 2]) / h2
+                    r = val - x[row]
+                    H[0, 0] += j0 * j0
+                    H[0, 1] += j0 * j1
+                    H[0, 2] += j0 * j2
+                    H[1, 1] += j1 * j1
+                    H[1, 2] += j1 * j2
+                    H[2, 2] += j2 * j2
+                    g[0] -= j0 * r
+                    g[1] -= j1 * r
+                    g[2] -= j2 * r
+            H[1, 0] = H[0, 1]
+            H[2, 0] = H[0, 2]
+            H[2, 1] = H[1, 2]
+            step, ok = _solve3(H, g)
+            if not ok:
+                break
+            X += step
+        worst = 0.0
+        for v in range(2):
+            P = P1 if v == 0 else P2
+            x = x1[i] if v == 0 else x2[i]
+            h0 = P[0, 0] * X[0] + P[0, 1] * X[1] + P[0, 2] * X[2] + P[0, 3]
+            h1 = P[1, 0] * X[0] + P[1, 1] * X[1] + P[1, 2] * X[2] + P[1, 3]
+            h2 = P[2, 0] * X[0] + P[2, 1] * X[1] + P[2, 2] * X[2] + P[2, 3]
+            e = np.sqrt((h0 / h2 - x[0]) ** 2 + (h1 / h2 - x[1]) ** 2)
+            if e > worst:
+                worst = e
+        out_X[i, :] = X
+        out_err[i] = worst
+
+
+def triangulate_two_view(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                         iterations: int = 3) -> TriangulationResult:
+    """Many matches of one pair at once, compiled: the dense stage's hot loop.
+
+    Same estimate as :func:`triangulate` (linear least squares, then Gauss-Newton on the
+    reprojection error) without its per-batch overheads. P1, P2: (3, 4); x1, x2: (N, 2).
+    Points at infinity (W = 0) are not representable here: they come out NaN or far away and
+    are filtered by their angle.
+    """
+    P1 = np.ascontiguousarray(P1, np.float64)
+    P2 = np.ascontiguousarray(P2, np.float64)
+    x1 = np.ascontiguousarray(x1, np.float64)
+    x2 = np.ascontiguousarray(x2, np.float64)
+    X = np.empty((len(x1), 3))
+    worst = np.empty(len(x1))
+    _two_view_kernel(P1, P2, x1, x2, iterations, X, worst)
+    errors = np.stack([worst, worst])
+    Ps = np.stack([P1, P2])
+    return TriangulationResult(points=X, errors=errors,
+                               depths=np.stack([camera_depths(P, X) for P in Ps]),
+                               angles=triangulation_angles(Ps, X))

@@ -1,0 +1,63 @@
+import json
+
+import numpy as np
+import pytest
+
+from stereoseed.camera import camera_center
+from stereoseed.cli import main
+from stereoseed.synthetic import write_scene
+
+
+@pytest.fixture(scope="module")
+def scene_files(tmp_path_factory, box_scene):
+    return write_scene(box_scene, tmp_path_factory.mktemp("scene")), box_scene
+
+
+def test_calibrate_writes_calib_json(scene_files, tmp_path, capsys):
+    paths, scene = scene_files
+    out = tmp_path / "new" / "calib.json"
+    assert main(["calibrate", str(paths["pattern"]), str(paths["points1"]), str(paths["points2"]), "-o", str(out)]) == 0
+    cams = json.loads(out.read_text())["cameras"]
+    assert len(cams) == 2 and all(set(c) >= {"P", "K", "R", "t", "rms_px"} for c in cams)
+    for i, c in enumerate(cams):
+        assert np.linalg.norm(camera_center(np.array(c["P"])) - camera_center(scene.P[i])) < 0.01
+    assert "reprojection RMS" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("bad", ["missing", "columns", "length", "few", "coplanar", "nan"])
+def test_calibrate_bad_input_one_line_exit_2(scene_files, tmp_path, capsys, bad):
+    paths, _ = scene_files
+    pattern = np.loadtxt(paths["pattern"])
+    pts1 = np.loadtxt(paths["points1"])
+    pat_file, p1_file = tmp_path / "pattern.txt", tmp_path / "p1.txt"
+    if bad == "columns":
+        pattern = pattern[:, :2]
+    elif bad == "length":
+        pts1 = pts1[:-3]
+    elif bad == "few":
+        pattern, pts1 = pattern[:5], pts1[:5]
+    elif bad == "coplanar":
+        pattern = pattern.copy()
+        pattern[:, 2] = 0.0
+    np.savetxt(pat_file, pattern)
+    np.savetxt(p1_file, pts1)
+    if bad == "nan":
+        p1_file.write_text(p1_file.read_text().replace("\n", "\nnan 1\n", 1))
+    if bad == "missing":
+        p1_file = tmp_path / "does-not-exist.txt"
+    code = main(["calibrate", str(pat_file), str(p1_file), str(paths["points2"]), "-o", str(tmp_path / "c.json")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("stereoseed: error: ") and err.count("\n") == 1
+    assert "Traceback" not in err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_reconstruct_bad_inputs(tmp_path, capsys, scene_files):
+    paths, _ = scene_files
+    assert main(["reconstruct", str(tmp_path / "nothing"), "--calib", "x.json", "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
+    bad = tmp_path / "calib.json"
+    bad.write_text('{"cameras": [{"P": [[1, 0, 0, 0]]}]}')
+    assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "two cameras" in capsys.readouterr().err
