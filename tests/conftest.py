@@ -50,3 +50,9 @@ def box_scene() -> SyntheticScene:
 def plain_box_scene() -> SyntheticScene:
     """The paper's plain box: uniform faces with only the dark squares, untextured ground."""
     return render_scene(SceneConfig(textured=False))
+
+
+@pytest.fixture(scope="session")
+def box_scene_noisy() -> SyntheticScene:
+    """The default ring with Gaussian image noise sigma = 2 grey levels."""
+    return render_scene(SceneConfig(noise_sigma=2.0))

@@ -58,6 +58,38 @@ def _cmd_match(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_propagate(args: argparse.Namespace) -> int:
+    from .camera import fundamental_from_projections
+    from .config import Config
+    from .features import extract_features
+    from .io import read_calibration, read_image
+    from .matching import match_pair
+    from .propagation import propagate, save_propagation_png
+
+    cfg = Config()
+    img1, img2 = read_image(args.image1), read_image(args.image2)
+    P1, P2 = read_calibration(args.calib, [Path(args.image1).name, Path(args.image2).name])
+    F = fundamental_from_projections(P1, P2)
+    f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
+    seeds = match_pair(f1, f2, cfg.matching, F=F, image_width=img1.shape[1])
+    x1, x2 = seeds.points(f1, f2)
+    result = propagate(img1, img2, np.hstack([x1, x2]), F, cfg.propagation,
+                       subpixel_method=cfg.propagation.subpixel_method)
+    print(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")
+    if args.output:
+        save_propagation_png(img1, result, args.output)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from .experiments import run_paper_bench
+
+    run_paper_bench(Path(args.out), quick=args.quick, seed=args.seed)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from .pipeline import reconstruct_cli
 
@@ -96,6 +128,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("propagate", help="quasi-dense match propagation of one calibrated pair, drawn as a disparity map")
+    p.add_argument("image1")
+    p.add_argument("image2")
+    p.add_argument("--calib", required=True, help="calib.json or Middlebury *_par.txt holding both images' cameras")
+    p.add_argument("-o", "--output", help="PNG: image 1 beside the disparity-coloured matches")
+    p.set_defaults(func=_cmd_propagate)
+
+    p = sub.add_parser("bench", help="reproduce the paper's experiments (figures, JSON, Markdown)")
+    p.add_argument("which", choices=["paper"])
+    p.add_argument("--out", default="paper_bench", help="output folder (default: %(default)s)")
+    p.add_argument("--quick", action="store_true", help="a reduced run (few images, one seed)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("demo", help="render the synthetic box scene, calibrate, reconstruct, report the error")
     p.add_argument("--out", default="demo_output", help="output folder (default: %(default)s)")

@@ -71,7 +71,10 @@ class PropagationConfig:
     neighbourhood: int = 2  # LQ02: 5x5 neighbourhood (radius 2)
     disparity_gradient: int = 1  # LQ02: +-1 px disparity-gradient limit
     epipolar_band_px: float = 1.0  # paper.md: "within ~1 px of the epipolar line"
-    subpixel: bool = True  # quadratic ZNCC fit along the epipolar line (ours)
+    subpixel: bool = True  # refine each whole-pixel match (ours; propagation alone rounds up to 0.7 px)
+    # "affine": ZNCC of an affine-warped window maximised along the epipolar line (ours: the 5x5
+    # window's shear at wide baselines moves the plain ZNCC peak by a pixel); "quadratic": 3x3 fit
+    subpixel_method: str = "affine"
 
 
 @dataclass(frozen=True)

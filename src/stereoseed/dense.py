@@ -51,7 +51,7 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
     """
     t0 = time.perf_counter()
     F = fundamental_from_projections(P_a, P_b)
-    result = propagate(image_a, image_b, seeds, F, propagation)
+    result = propagate(image_a, image_b, seeds, F, propagation, subpixel_method=propagation.subpixel_method)
     t1 = time.perf_counter()
     m = result.matches
     report: dict[str, Any] = {"seeds": int(len(seeds)), "seeds_used": int(result.n_seeds_used),

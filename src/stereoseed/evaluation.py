@@ -11,7 +11,7 @@ from .features import Features
 from .matching import Matches
 from .triangulation import triangulate_tracks
 
-__all__ = ["rms_3d", "camera_errors", "reconstruct_corners", "TrueCorrespondences"]
+__all__ = ["rms_3d", "camera_errors", "reconstruct_corners", "TrueCorrespondences", "surface_distance"]
 
 
 def rms_3d(points: np.ndarray, truth: np.ndarray) -> float:
@@ -99,3 +99,13 @@ class TrueCorrespondences:
             keep = np.sort(np.random.default_rng([self.seed, a, b]).choice(len(common), self.max_matches, replace=False))
             ia, ib = ia[keep], ib[keep]
         return Matches(ia, ib, np.ones(len(ia)))
+
+
+def surface_distance(points: np.ndarray, half: float = 0.17, height: float = 0.44) -> np.ndarray:
+    """Distance (m) of each point (N, 3) to the synthetic scene's surfaces: the box
+    [-half, half]^2 x [0, height] and the ground plane z = 0."""
+    centre_z = height / 2
+    q = np.c_[np.abs(points[:, :2]) - half, np.abs(points[:, 2] - centre_z) - centre_z]
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0.0)
+    return np.minimum(np.abs(outside + inside), np.abs(points[:, 2]))

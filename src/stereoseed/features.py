@@ -11,7 +11,7 @@ Conventions: images are (H, W) float32 grey levels in [0, 1]; points are (N, 2) 
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -24,6 +24,13 @@ __all__ = ["Features", "to_gray", "detect_corners", "describe", "extract_feature
 # A patch whose grey-level standard deviation is below this (in [0, 1] units, ~0.25 grey level
 # of an 8-bit image) has no usable signal: its ZNCC would be driven by quantisation alone.
 DEFAULT_MIN_PATCH_STD = 1e-3
+# Sub-pixel refinement keeps cv2.cornerSubPix's position only where its model holds: at an ideal
+# junction every image gradient in the window is orthogonal to the vector joining its pixel to
+# the corner. The normalised residual of that model (see _junction_residual) is 0 for a perfect
+# junction, ~0.5 for isotropic texture and 1 for a blob centre; 0.1 allows gradient directions
+# ~18 degrees (rms) off orthogonal. Elsewhere the Harris peak is refined by a quadratic fit.
+DEFAULT_JUNCTION_TOL = 0.1
+_REMAP_ROWS = 16384
 
 
 @dataclass(frozen=True)
@@ -35,6 +42,8 @@ class Features:
     valid: (N,) bool, False for points whose patch leaves the image or is flat.
     response: (N,) float64 Harris response at the (integer) detection position.
     image_shape: (H, W) of the grey image the points were found in.
+    gray: (H, W) float32 grey image in [0, 1], kept for the sub-pixel alignment of matches
+        (:func:`stereoseed.matching.align_matches`); None if not available.
     """
 
     points: np.ndarray
@@ -42,6 +51,7 @@ class Features:
     valid: np.ndarray
     response: np.ndarray
     image_shape: tuple[int, int]
+    gray: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -93,7 +103,10 @@ def _empty_points(reason: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def detect_corners_with_response(
-    gray: np.ndarray, config: FeatureConfig = FeatureConfig()
+    gray: np.ndarray,
+    config: FeatureConfig = FeatureConfig(),
+    *,
+    junction_tol: float = DEFAULT_JUNCTION_TOL,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Harris corners with their responses; see :func:`detect_corners`.
 
@@ -104,7 +117,8 @@ def detect_corners_with_response(
         raise StereoseedError(f"detect_corners needs a (H, W) grey image, got shape {gray.shape}")
     gray = np.ascontiguousarray(gray, dtype=np.float32)
     h, w = gray.shape
-    b = int(config.border)
+    # At least one pixel: the quadratic peak fit reads the 3x3 neighbourhood of each maximum.
+    b = max(int(config.border), 1)
     if h <= 2 * b + 2 or w <= 2 * b + 2:
         return _empty_points(f"image {w}x{h} is too small for a border of {b} px")
     if not np.all(np.isfinite(gray)) or float(gray.max() - gray.min()) <= 0.0:
@@ -115,7 +129,7 @@ def detect_corners_with_response(
     mask[b : h - b, b : w - b] = 255
     # goodFeaturesToTrack = Harris response + 3x3 local maxima + relative quality floor + greedy
     # min-distance suppression in order of decreasing response + max count, all in C++.
-    corners, quality = cv2.goodFeaturesToTrackWithQuality(
+    corners = cv2.goodFeaturesToTrack(
         gray,
         maxCorners=int(config.max_corners),
         qualityLevel=float(config.quality_level),
@@ -128,35 +142,114 @@ def detect_corners_with_response(
     )
     if corners is None or len(corners) == 0:
         return _empty_points("no Harris maximum above the quality floor")
-    corners = corners.reshape(-1, 1, 2).astype(np.float32)
-    response = np.asarray(quality, np.float64).reshape(-1)
-    # Harris responses are positive at corners; a non-positive best response means only edges.
-    keep = response > 0
-    corners, response = corners[keep], response[keep]
-    if len(corners) == 0:
-        return _empty_points("no positive Harris response")
-
-    win = int(config.subpixel_window)
-    if win > 0:
-        start = corners[:, 0, :].astype(np.float64)
-        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 1e-3)
-        cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), criteria)
-        pts = corners[:, 0, :].astype(np.float64)
-        # cornerSubPix may wander off when the window holds no clear corner (e.g. an edge):
-        # a refinement that leaves the search window is not a refinement, keep the detection.
-        moved = np.abs(pts - start).max(axis=1) > win
-        bad = moved | ~np.all(np.isfinite(pts), axis=1)
-        pts[bad] = start[bad]
-    else:
-        pts = corners[:, 0, :].astype(np.float64)
+    corners = corners.reshape(-1, 1, 2)
+    xi = np.rint(corners[:, 0, 0]).astype(np.int64)
+    yi = np.rint(corners[:, 0, 1]).astype(np.int64)
+    harris = cv2.cornerHarris(gray, int(config.block_size), int(config.aperture), float(config.harris_k))
+    response = harris[yi, xi].astype(np.float64)
+    pts = _refine_subpixel(gray, harris, xi, yi, int(config.subpixel_window), junction_tol)
 
     inside = (
         (pts[:, 0] >= b) & (pts[:, 0] <= w - 1 - b) & (pts[:, 1] >= b) & (pts[:, 1] <= h - 1 - b)
     )
-    pts, response = pts[inside], response[inside]
+    # Harris responses are positive at corners; a non-positive response means an edge or flat.
+    keep = inside & (response > 0)
+    pts, response = pts[keep], response[keep]
+    if len(pts) == 0:
+        return _empty_points("no positive Harris response")
     # goodFeaturesToTrack already returns strongest first; a stable sort makes it a guarantee.
     order = np.argsort(-response, kind="stable")
     return pts[order], response[order]
+
+
+def _quadratic_peak(harris: np.ndarray, xi: np.ndarray, yi: np.ndarray) -> np.ndarray:
+    """Sub-pixel maxima of the Harris response: (N, 2) float64 from integer maxima (N,), (N,).
+
+    Fits a 2-D quadratic to the 3x3 neighbourhood (central differences). Where the fit is not a
+    maximum within one pixel, falls back to independent 1-D parabolas clipped to +-0.5 px.
+    The maxima must be at least one pixel inside the image.
+    """
+    r = harris.astype(np.float64)
+    c = r[yi, xi]
+    left, right = r[yi, xi - 1], r[yi, xi + 1]
+    up, down = r[yi - 1, xi], r[yi + 1, xi]
+    gx, gy = 0.5 * (right - left), 0.5 * (down - up)
+    hxx, hyy = right + left - 2.0 * c, down + up - 2.0 * c
+    hxy = 0.25 * (r[yi + 1, xi + 1] - r[yi + 1, xi - 1] - r[yi - 1, xi + 1] + r[yi - 1, xi - 1])
+    det = hxx * hyy - hxy**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ox = -(hyy * gx - hxy * gy) / det
+        oy = -(hxx * gy - hxy * gx) / det
+        ox1 = np.clip(np.nan_to_num(-gx / hxx), -0.5, 0.5)
+        oy1 = np.clip(np.nan_to_num(-gy / hyy), -0.5, 0.5)
+    # A maximum needs a negative-definite Hessian; beyond one pixel the fit is extrapolating.
+    good = (det > 0) & (hxx < 0) & (np.abs(ox) <= 1.0) & (np.abs(oy) <= 1.0)
+    ox = np.where(good, ox, ox1)
+    oy = np.where(good, oy, oy1)
+    return np.stack([xi + ox, yi + oy], axis=1)
+
+
+def _junction_residual(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int) -> np.ndarray:
+    """How badly the cornerSubPix model fits at q: (N, 2) -> (N,) float64 in [0, 1].
+
+    gx, gy: (H, W) float32 image gradients. Returns
+    sum_p (g_p . (q - p))^2 / sum_p |g_p|^2 |q - p|^2 over the (2 win + 1)^2 pixels p around q:
+    0 when every gradient g_p is orthogonal to q - p (an ideal junction at q).
+    """
+    h, w = gx.shape
+    qi = np.rint(q).astype(np.int64)
+    qi[:, 0] = np.clip(qi[:, 0], win, w - 1 - win)
+    qi[:, 1] = np.clip(qi[:, 1], win, h - 1 - win)
+    d = np.arange(-win, win + 1)
+    dy, dx = np.meshgrid(d, d, indexing="ij")
+    flat = (qi[:, 1:2] + dy.reshape(1, -1)) * w + qi[:, 0:1] + dx.reshape(1, -1)  # (N, K)
+    g_x, g_y = gx.reshape(-1)[flat], gy.reshape(-1)[flat]
+    vx = (q[:, 0:1] - qi[:, 0:1] - dx.reshape(1, -1)).astype(np.float32)
+    vy = (q[:, 1:2] - qi[:, 1:2] - dy.reshape(1, -1)).astype(np.float32)
+    num = ((g_x * vx + g_y * vy) ** 2).sum(axis=1, dtype=np.float64)
+    den = ((g_x * g_x + g_y * g_y) * (vx * vx + vy * vy)).sum(axis=1, dtype=np.float64)
+    return np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+
+
+def _refine_subpixel(
+    gray: np.ndarray, harris: np.ndarray, xi: np.ndarray, yi: np.ndarray, win: int, junction_tol: float
+) -> np.ndarray:
+    """Sub-pixel positions (N, 2) float64 of integer Harris maxima (xi, yi).
+
+    Textured blobs and junctions need different refinements (measured on the synthetic box:
+    cornerSubPix halves the repeatability of texture points, the Harris peak biases the corners of
+    the squares). Every point gets the quadratic Harris peak; cv2.cornerSubPix (window
+    (2 win + 1)^2, started from the peak) replaces it where the junction model fits
+    (residual < junction_tol) and the refinement stayed inside its window.
+    """
+    peak = _quadratic_peak(harris, xi, yi)
+    if win <= 0 or len(peak) == 0:
+        return peak
+    h, w = gray.shape
+    if h <= 2 * win + 2 or w <= 2 * win + 2:
+        return peak
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+
+    def subpix(start: np.ndarray, iters: int) -> np.ndarray:
+        pts = start.astype(np.float32).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, iters, 1e-3)
+        cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), criteria)
+        return pts[:, 0, :].astype(np.float64)
+
+    # Two passes for speed: a short one everywhere, then convergence only where the junction
+    # model looks plausible (most texture points are rejected after the short pass).
+    refined = subpix(peak, 8)
+    moved_ok = np.all(np.isfinite(refined), axis=1) & (np.abs(refined - peak).max(axis=1) < win)
+    cand = np.flatnonzero(moved_ok)
+    cand = cand[_junction_residual(gx, gy, refined[cand], win) < 2.0 * junction_tol]
+    ok = np.zeros(len(peak), bool)
+    if len(cand):
+        refined[cand] = subpix(refined[cand], 40)
+        good = np.all(np.isfinite(refined[cand]), axis=1) & (np.abs(refined[cand] - peak[cand]).max(axis=1) < win)
+        good[good] = _junction_residual(gx, gy, refined[cand[good]], win) < junction_tol
+        ok[cand[good]] = True
+    return np.where(ok[:, None], refined, peak)
 
 
 def detect_corners(gray: np.ndarray, config: FeatureConfig = FeatureConfig()) -> np.ndarray:
@@ -172,29 +265,38 @@ def detect_corners(gray: np.ndarray, config: FeatureConfig = FeatureConfig()) ->
     return detect_corners_with_response(gray, config)[0]
 
 
-def _bilinear_patches(gray: np.ndarray, points: np.ndarray, patch_size: int) -> np.ndarray:
+def _bilinear_patches(
+    gray: np.ndarray, points: np.ndarray, patch_size: int, spacing: float = 1.0
+) -> np.ndarray:
     """Sample (N, P*P) float32 patches centred on sub-pixel points by bilinear interpolation.
 
-    Samples outside the image are clamped to the edge (the caller marks those patches invalid).
+    cv2.remap with one output row per point (positions quantised to 1/32 px, far below the
+    detector's accuracy). Samples outside the image are clamped to the edge (the caller marks
+    those patches invalid).
     """
-    h, w = gray.shape
     r = patch_size // 2
-    d = np.arange(-r, r + 1, dtype=np.float64)
+    d = np.arange(-r, r + 1, dtype=np.float32) * np.float32(spacing)
     dy, dx = np.meshgrid(d, d, indexing="ij")
-    xs = points[:, 0:1] + dx.reshape(1, -1)  # (N, P*P), row-major patch order
-    ys = points[:, 1:2] + dy.reshape(1, -1)
-    x0 = np.floor(xs)
-    y0 = np.floor(ys)
-    fx = (xs - x0).astype(np.float32)
-    fy = (ys - y0).astype(np.float32)
-    x0 = np.clip(x0.astype(np.int64), 0, w - 1)
-    y0 = np.clip(y0.astype(np.int64), 0, h - 1)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    flat = gray.reshape(-1)
-    top = flat[y0 * w + x0] * (1 - fx) + flat[y0 * w + x1] * fx
-    bottom = flat[y1 * w + x0] * (1 - fx) + flat[y1 * w + x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+    out = np.empty((len(points), patch_size * patch_size), np.float32)
+    # remap needs maps smaller than 32767 in each dimension.
+    for start in range(0, len(points), _REMAP_ROWS):
+        p = points[start : start + _REMAP_ROWS].astype(np.float32)
+        xs = p[:, 0:1] + dx.reshape(1, -1)  # (n, P*P), row-major patch order
+        ys = p[:, 1:2] + dy.reshape(1, -1)
+        out[start : start + len(p)] = cv2.remap(
+            gray, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+    return out
+
+
+def describe_scaled(
+    gray: np.ndarray, points: np.ndarray, patch_size: int, scale: float, *, min_std: float = DEFAULT_MIN_PATCH_STD
+) -> tuple[np.ndarray, np.ndarray]:
+    """Like :func:`describe`, with the P x P samples spaced ``scale`` px apart.
+
+    Matches a patch of another image seen ``scale`` times smaller (zoom, distance change).
+    """
+    return describe(gray, points, patch_size, min_std=min_std, spacing=scale)
 
 
 def describe(
@@ -203,6 +305,7 @@ def describe(
     patch_size: int = MatchingConfig().patch_size,
     *,
     min_std: float = DEFAULT_MIN_PATCH_STD,
+    spacing: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ZNCC descriptors: zero-mean, unit-norm grey-level patches at sub-pixel positions.
 
@@ -221,7 +324,7 @@ def describe(
     n = pts.shape[0]
     desc = np.zeros((n, patch_size * patch_size), np.float32)
     h, w = gray.shape
-    r = patch_size // 2
+    r = (patch_size // 2) * float(spacing)
     finite = np.all(np.isfinite(pts), axis=1)
     inside = finite.copy()
     inside[finite] = (
@@ -233,7 +336,7 @@ def describe(
     if n == 0 or not inside.any():
         return desc, np.zeros(n, bool)
 
-    patches = _bilinear_patches(np.ascontiguousarray(gray, np.float32), pts[inside], patch_size)
+    patches = _bilinear_patches(np.ascontiguousarray(gray, np.float32), pts[inside], patch_size, spacing)
     patches -= patches.mean(axis=1, keepdims=True)
     norm = np.linalg.norm(patches, axis=1)
     # norm / sqrt(P*P) is the patch standard deviation.
@@ -260,4 +363,4 @@ def extract_features(
     gray = to_gray(image)
     points, response = detect_corners_with_response(gray, config)
     desc, valid = describe(gray, points, patch_size)
-    return Features(points, desc, valid, response, (int(gray.shape[0]), int(gray.shape[1])))
+    return Features(points, desc, valid, response, (int(gray.shape[0]), int(gray.shape[1])), gray)
