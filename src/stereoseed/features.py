@@ -19,7 +19,15 @@ import numpy as np
 from .config import FeatureConfig, MatchingConfig
 from .errors import StereoseedError
 
-__all__ = ["Features", "to_gray", "detect_corners", "describe", "extract_features"]
+__all__ = [
+    "Features",
+    "to_gray",
+    "detect_corners",
+    "detect_corners_with_response",
+    "describe",
+    "describe_scaled",
+    "extract_features",
+]
 
 # A patch whose grey-level standard deviation is below this (in [0, 1] units, ~0.25 grey level
 # of an 8-bit image) has no usable signal: its ZNCC would be driven by quantisation alone.
@@ -76,7 +84,8 @@ def to_gray(image: np.ndarray) -> np.ndarray:
         img = img[:, :, 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
         raise StereoseedError(
-            f"image of shape {img.shape} is not a grey (H, W), BGR (H, W, 3) or BGRA (H, W, 4) image"
+            f"image of shape {img.shape} is not a grey (H, W), BGR (H, W, 3) or BGRA (H, W, 4) "
+            "image"
         )
     if img.dtype == np.uint8:
         gray = img.astype(np.float32) / 255.0
@@ -145,7 +154,9 @@ def detect_corners_with_response(
     corners = corners.reshape(-1, 1, 2)
     xi = np.rint(corners[:, 0, 0]).astype(np.int64)
     yi = np.rint(corners[:, 0, 1]).astype(np.int64)
-    harris = cv2.cornerHarris(gray, int(config.block_size), int(config.aperture), float(config.harris_k))
+    harris = cv2.cornerHarris(
+        gray, int(config.block_size), int(config.aperture), float(config.harris_k)
+    )
     response = harris[yi, xi].astype(np.float64)
     pts = _refine_subpixel(gray, harris, xi, yi, int(config.subpixel_window), junction_tol)
 
@@ -212,13 +223,20 @@ def _junction_residual(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int) 
 
 
 def _refine_subpixel(
-    gray: np.ndarray, harris: np.ndarray, xi: np.ndarray, yi: np.ndarray, win: int, junction_tol: float
+    gray: np.ndarray,
+    harris: np.ndarray,
+    xi: np.ndarray,
+    yi: np.ndarray,
+    win: int,
+    junction_tol: float,
 ) -> np.ndarray:
     """Sub-pixel positions (N, 2) float64 of integer Harris maxima (xi, yi).
 
-    Textured blobs and junctions need different refinements (measured on the synthetic box:
-    cornerSubPix halves the repeatability of texture points, the Harris peak biases the corners of
-    the squares). Every point gets the quadratic Harris peak; cv2.cornerSubPix (window
+    Textured blobs and junctions need different refinements. Measured on the synthetic box (20
+    degrees between views, detections of image 0 within 1 px / 0.5 px of the true position of a
+    detection of image 1): cornerSubPix alone 449 / 243, Harris peak alone 687 / 516 on the
+    textured scene; on the plain box's square corners cornerSubPix 119 / 111 but the peak only
+    104 / 70. Every point gets the quadratic Harris peak; cv2.cornerSubPix (window
     (2 win + 1)^2, started from the peak) replaces it where the junction model fits
     (residual < junction_tol) and the refinement stayed inside its window.
     """
@@ -226,7 +244,7 @@ def _refine_subpixel(
     if win <= 0 or len(peak) == 0:
         return peak
     h, w = gray.shape
-    if h <= 2 * win + 2 or w <= 2 * win + 2:
+    if h < 2 * win + 5 or w < 2 * win + 5:  # cv2.cornerSubPix's own requirement
         return peak
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
@@ -246,7 +264,8 @@ def _refine_subpixel(
     ok = np.zeros(len(peak), bool)
     if len(cand):
         refined[cand] = subpix(refined[cand], 40)
-        good = np.all(np.isfinite(refined[cand]), axis=1) & (np.abs(refined[cand] - peak[cand]).max(axis=1) < win)
+        step = np.abs(refined[cand] - peak[cand]).max(axis=1)
+        good = np.all(np.isfinite(refined[cand]), axis=1) & (step < win)
         good[good] = _junction_residual(gx, gy, refined[cand[good]], win) < junction_tol
         ok[cand[good]] = True
     return np.where(ok[:, None], refined, peak)
@@ -257,10 +276,13 @@ def detect_corners(gray: np.ndarray, config: FeatureConfig = FeatureConfig()) ->
 
     gray: (H, W) float32 in [0, 1] (see :func:`to_gray`).
     Returns (N, 2) float64 ``(x, y)``, N <= ``config.max_corners``, sorted by Harris response
-    (strongest first), pairwise at least ``config.min_distance`` apart at detection, at least
-    ``config.border`` px from the image edge. Refined with ``cv2.cornerSubPix`` over a
-    ``(2 * subpixel_window + 1)``² window. Empty, tiny or flat images give a (0, 2) array and a
-    RuntimeWarning.
+    (strongest first), pairwise at least ``config.min_distance`` apart at detection (3x3 local
+    maxima of the response above ``config.quality_level`` times the best one), at least
+    ``config.border`` px from the image edge.
+    Sub-pixel positions: ``cv2.cornerSubPix`` over a ``(2 * subpixel_window + 1)``² window where
+    the image is a junction (its model fits), the quadratic peak of the Harris response elsewhere
+    (see :func:`_refine_subpixel`; ``subpixel_window = 0`` keeps the peak everywhere).
+    Empty, tiny or flat images give a (0, 2) array and a RuntimeWarning.
     """
     return detect_corners_with_response(gray, config)[0]
 
@@ -290,7 +312,12 @@ def _bilinear_patches(
 
 
 def describe_scaled(
-    gray: np.ndarray, points: np.ndarray, patch_size: int, scale: float, *, min_std: float = DEFAULT_MIN_PATCH_STD
+    gray: np.ndarray,
+    points: np.ndarray,
+    patch_size: int,
+    scale: float,
+    *,
+    min_std: float = DEFAULT_MIN_PATCH_STD,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Like :func:`describe`, with the P x P samples spaced ``scale`` px apart.
 
@@ -336,7 +363,8 @@ def describe(
     if n == 0 or not inside.any():
         return desc, np.zeros(n, bool)
 
-    patches = _bilinear_patches(np.ascontiguousarray(gray, np.float32), pts[inside], patch_size, spacing)
+    gray32 = np.ascontiguousarray(gray, np.float32)
+    patches = _bilinear_patches(gray32, pts[inside], patch_size, spacing)
     patches -= patches.mean(axis=1, keepdims=True)
     norm = np.linalg.norm(patches, axis=1)
     # norm / sqrt(P*P) is the patch standard deviation.

@@ -1,0 +1,288 @@
+"""Interest points and ZNCC descriptors (stereoseed.features)."""
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from stereoseed.config import FeatureConfig
+from stereoseed.errors import StereoseedError
+from stereoseed.features import (
+    Features,
+    describe,
+    describe_scaled,
+    detect_corners,
+    detect_corners_with_response,
+    extract_features,
+    to_gray,
+)
+
+
+# --- test images with known geometry ---------------------------------------------------------
+def band_noise(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
+    """Smooth random texture in [0, 1], blobs of a few pixels: (H, W) float32."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros(shape, np.float32)
+    for sigma, weight in ((1.2, 1.0), (2.5, 0.8), (5.0, 0.6)):
+        layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+        img += weight * layer / layer.std()
+    return (img - img.min()) / (img.max() - img.min())
+
+
+def checkerboard(
+    shape: tuple[int, int], H: np.ndarray, cell: float = 20.0, ss: int = 8
+) -> np.ndarray:
+    """Anti-aliased checkerboard seen through homography H (board -> image), (H, W) float32.
+
+    Rendered analytically with ss x ss supersampling: pixel (u, v) covers [u-0.5, u+0.5]^2, so
+    its centre is (u, v) as in the package's convention.
+    """
+    h, w = shape
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    acc = np.zeros(shape)
+    Hinv = np.linalg.inv(H)
+    for dy in o:
+        for dx in o:
+            p = np.stack([u + dx, v + dy, np.ones_like(u)], axis=-1) @ Hinv.T
+            bx, by = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+            acc += (np.floor(bx / cell) + np.floor(by / cell)) % 2
+    return (0.2 + 0.6 * acc / ss**2).astype(np.float32)
+
+
+def board_homography(angle_deg: float = 17.0, shift=(31.3, 27.6)) -> np.ndarray:
+    a = np.radians(angle_deg)
+    H = np.array([[np.cos(a), -np.sin(a), shift[0]], [np.sin(a), np.cos(a), shift[1]], [0, 0, 1]])
+    H[2, :2] = [2e-4, -1e-4]  # a little perspective
+    return H
+
+
+def board_corners(H: np.ndarray, shape: tuple[int, int], cell: float = 20.0) -> np.ndarray:
+    """Image positions (K, 2) of the board's inner corners that fall well inside the image."""
+    g = np.arange(-20, 40) * cell
+    bx, by = np.meshgrid(g, g)
+    pts = np.stack([bx.ravel(), by.ravel(), np.ones(bx.size)], axis=1) @ H.T
+    xy = pts[:, :2] / pts[:, 2:]
+    h, w = shape
+    inside = (xy[:, 0] > 15) & (xy[:, 0] < w - 16) & (xy[:, 1] > 15) & (xy[:, 1] < h - 16)
+    return xy[inside]
+
+
+# --- to_gray ---------------------------------------------------------------------------------
+def test_to_gray_dtypes_and_channels():
+    rng = np.random.default_rng(1)
+    bgr = rng.integers(0, 256, (12, 9, 3), dtype=np.uint8)
+    g = to_gray(bgr)
+    assert g.dtype == np.float32 and g.shape == (12, 9)
+    expected = cv2.cvtColor(bgr.astype(np.float32) / 255.0, cv2.COLOR_BGR2GRAY)
+    np.testing.assert_allclose(g, expected, atol=1e-6)
+    np.testing.assert_allclose(to_gray(bgr[:, :, 0]), bgr[:, :, 0] / 255.0, atol=1e-6)
+    np.testing.assert_allclose(to_gray(bgr[:, :, :1]), bgr[:, :, 0] / 255.0, atol=1e-6)
+    bgra = np.dstack([bgr, np.full((12, 9), 7, np.uint8)])
+    np.testing.assert_allclose(to_gray(bgra), g, atol=1e-6)
+    np.testing.assert_allclose(to_gray(bgr.astype(np.uint16) * 257), g, atol=1e-5)
+    # Floats are taken in [0, 1]; above 1 they are read as 0..255.
+    np.testing.assert_allclose(to_gray(bgr.astype(np.float64) / 255.0), g, atol=1e-6)
+    np.testing.assert_allclose(to_gray(bgr.astype(np.float64)), g, atol=1e-5)
+    weird = np.array([[np.nan, -1.0], [0.5, np.inf]])
+    out = to_gray(weird)
+    assert np.all(np.isfinite(out)) and out.min() >= 0 and out.max() <= 1
+
+
+@pytest.mark.parametrize("shape", [(5,), (4, 4, 2), (2, 3, 4, 5)])
+def test_to_gray_rejects_bad_shapes(shape):
+    with pytest.raises(StereoseedError):
+        to_gray(np.zeros(shape, np.uint8))
+
+
+# --- detection -------------------------------------------------------------------------------
+def test_detect_corners_contract():
+    cfg = FeatureConfig(max_corners=300, min_distance=7.0, border=10)
+    gray = band_noise((200, 260))
+    pts, resp = detect_corners_with_response(gray, cfg)
+    assert pts.dtype == np.float64 and pts.shape[1] == 2
+    assert 0 < len(pts) <= 300
+    assert np.all(np.diff(resp) <= 0), "strongest first"
+    assert np.all(resp > 0)
+    b = cfg.border
+    assert np.all((pts >= b) & (pts <= np.array([260 - 1 - b, 200 - 1 - b])))
+    # Spacing holds at detection; sub-pixel refinement moves a point by about a pixel at most.
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
+    assert d.min() > cfg.min_distance - 2.0
+    np.testing.assert_array_equal(detect_corners(gray, cfg), pts)
+
+
+def test_detect_corners_subpixel_on_junctions():
+    """Checkerboard corners (junctions) are found to a small fraction of a pixel."""
+    shape = (240, 320)
+    H = board_homography()
+    img = checkerboard(shape, H)
+    truth = board_corners(H, shape)
+    pts = detect_corners(img, FeatureConfig(min_distance=8.0))
+    d = np.linalg.norm(truth[:, None] - pts[None], axis=2)
+    nearest = d.min(axis=1)
+    assert np.mean(nearest < 1.0) > 0.95, "almost every inner corner is detected"
+    assert np.median(nearest) < 0.08
+    assert np.percentile(nearest[nearest < 1.0], 95) < 0.15
+    # The Harris peak alone is biased at junctions (~0.4 px here): cornerSubPix took over.
+    peak_only = detect_corners(img, FeatureConfig(min_distance=8.0, subpixel_window=0))
+    d_peak = np.linalg.norm(truth[:, None] - peak_only[None], axis=2).min(axis=1)
+    assert np.median(d_peak) > 3 * np.median(nearest)
+
+
+def test_detect_corners_repeatable_under_subpixel_shift():
+    """On texture (no junctions) the Harris-peak refinement follows a sub-pixel translation."""
+    big = band_noise((260, 340), seed=3)
+    shift = np.array([0.37, -0.61])
+    M = np.array([[1, 0, shift[0]], [0, 1, shift[1]]])
+    moved = cv2.warpAffine(big, M, (340, 260), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    a = detect_corners(big[20:-20, 20:-20])[:200]  # the strongest: weak maxima are unstable
+    b = detect_corners(moved[20:-20, 20:-20])
+    d = np.linalg.norm((a + shift)[:, None] - b[None], axis=2)
+    nearest = d.min(axis=1)
+    close = nearest < 1.0
+    assert close.mean() > 0.85
+    # Harris at this scale on 1-2 px blobs is good to ~0.15 px; matches are then aligned to
+    # ~0.03 px by stereoseed.matching.align_matches.
+    assert np.median(nearest[close]) < 0.2
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((0, 0), np.float32),
+        np.zeros((10, 10), np.float32),  # smaller than twice the border
+        np.full((120, 160), 0.5, np.float32),  # flat
+    ],
+)
+def test_detect_corners_empty_or_flat_warns(image):
+    with pytest.warns(RuntimeWarning, match="no interest points"):
+        pts = detect_corners(image)
+    assert pts.shape == (0, 2) and pts.dtype == np.float64
+
+
+def test_detect_corners_rejects_colour():
+    with pytest.raises(StereoseedError):
+        detect_corners(np.zeros((50, 50, 3), np.float32))
+
+
+# --- descriptors -----------------------------------------------------------------------------
+def test_describe_is_normalised_and_invariant_to_gain_and_bias():
+    gray = band_noise((80, 90), seed=5)
+    pts = np.array([[20.3, 30.7], [45.0, 40.0], [60.5, 25.25]])
+    desc, valid = describe(gray, pts, 11)
+    assert desc.shape == (3, 121) and desc.dtype == np.float32 and valid.all()
+    np.testing.assert_allclose(desc.mean(axis=1), 0, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1, atol=1e-5)
+    desc2, _ = describe(0.5 * gray + 0.2, pts, 11)
+    np.testing.assert_allclose(desc2, desc, atol=1e-5)
+    # The dot product is the ZNCC, 1 with itself.
+    np.testing.assert_allclose(np.einsum("ij,ij->i", desc, desc), 1, atol=1e-5)
+
+
+def test_describe_samples_subpixel_positions_bilinearly():
+    # On a plane of grey levels bilinear interpolation is exact: the patch at (x, y) is the
+    # plane sampled at (x + dx, y + dy), whatever the sub-pixel part of (x, y).
+    v, u = np.mgrid[0:40, 0:50].astype(np.float32)
+    plane = (0.01 * u + 0.004 * v + 0.1).astype(np.float32)
+    pts = np.array([[20.25, 17.75]])
+    desc, valid = describe(plane, pts, 5)
+    d = np.arange(-2, 3)
+    dy, dx = np.meshgrid(d, d, indexing="ij")
+    expect = 0.01 * (20.25 + dx) + 0.004 * (17.75 + dy)
+    expect = (expect - expect.mean()).ravel()
+    np.testing.assert_allclose(desc[0], expect / np.linalg.norm(expect), atol=2e-3)
+    assert valid[0]
+
+
+def test_describe_marks_flat_outside_and_nan_invalid():
+    gray = band_noise((60, 60))
+    gray[:, :25] = 0.3  # a flat region
+    pts = np.array([[10.0, 30.0], [2.0, 30.0], [np.nan, 5.0], [40.0, 30.0], [57.0, 57.0]])
+    desc, valid = describe(gray, pts, 11)
+    np.testing.assert_array_equal(valid, [False, False, False, True, False])
+    assert np.all(desc[~valid] == 0)
+    with pytest.raises(StereoseedError):
+        describe(gray, pts, 10)
+    d0, v0 = describe(gray, np.zeros((0, 2)), 11)
+    assert d0.shape == (0, 121) and v0.shape == (0,)
+
+
+def test_describe_scaled_matches_a_zoomed_copy():
+    gray = band_noise((200, 200), seed=9)
+    zoom = 1.25  # the second image is the first magnified about (100, 100)
+    M = np.array([[zoom, 0, 100 * (1 - zoom)], [0, zoom, 100 * (1 - zoom)]])
+    big = cv2.warpAffine(gray, M, (200, 200), flags=cv2.INTER_CUBIC)
+    pts = np.array([[90.0, 95.0], [110.5, 104.25], [99.0, 120.0]])
+    d1, _ = describe(gray, pts, 11)
+    same, _ = describe(big, 100 + zoom * (pts - 100), 11)
+    scaled, _ = describe_scaled(big, 100 + zoom * (pts - 100), 11, zoom)
+    z_same = np.einsum("ij,ij->i", d1, same)
+    z_scaled = np.einsum("ij,ij->i", d1, scaled)
+    assert np.all(z_scaled > 0.97)
+    assert np.all(z_scaled > z_same)
+
+
+def test_extract_features_bundles_everything():
+    img = (band_noise((120, 150)) * 255).astype(np.uint8)
+    f = extract_features(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), patch_size=9)
+    assert isinstance(f, Features)
+    n = len(f)
+    assert n > 0
+    assert f.points.shape == (n, 2) and f.desc.shape == (n, 81) and f.valid.shape == (n,)
+    assert f.response.shape == (n,) and f.image_shape == (120, 150) and f.patch_size == 9
+    assert f.gray is not None and f.gray.shape == (120, 150)
+    assert f.valid.mean() > 0.9
+
+
+# --- robustness ------------------------------------------------------------------------------
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    image=hnp.arrays(
+        dtype=np.float32,
+        shape=st.tuples(st.integers(0, 48), st.integers(0, 48)),
+        elements=st.floats(0, 1, width=32),
+    ),
+    as_uint8=st.booleans(),
+    max_corners=st.integers(1, 200),
+    border=st.integers(0, 12),
+    window=st.integers(0, 6),
+)
+def test_extract_features_never_crashes(image, as_uint8, max_corners, border, window):
+    if as_uint8:
+        image = (image * 255).astype(np.uint8)
+    cfg = FeatureConfig(
+        max_corners=max_corners, border=border, subpixel_window=window, min_distance=2.0
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        f = extract_features(image, cfg, patch_size=5)
+    n = len(f)
+    assert f.points.shape == (n, 2) and f.desc.shape == (n, 25) and n <= max_corners
+    assert np.all(np.isfinite(f.points)) and np.all(np.isfinite(f.desc))
+    if n:
+        h, w = image.shape
+        assert np.all((f.points >= 0) & (f.points <= np.array([w - 1, h - 1])))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    points=hnp.arrays(
+        np.float64,
+        st.tuples(st.integers(0, 30), st.just(2)),
+        elements=st.floats(-50, 150) | st.just(np.nan) | st.just(np.inf),
+    ),
+    patch=st.sampled_from([3, 5, 11]),
+)
+def test_describe_never_crashes_on_any_points(points, patch):
+    gray = band_noise((64, 96), seed=2)
+    desc, valid = describe(gray, points, patch)
+    assert desc.shape == (len(points), patch * patch) and valid.shape == (len(points),)
+    assert np.all(np.isfinite(desc))
+    if valid.any():
+        np.testing.assert_allclose(np.linalg.norm(desc[valid], axis=1), 1, atol=1e-4)
