@@ -26,6 +26,12 @@ def _corner_rms(recon, scene):
     return rms_3d(X, scene.corners[seen]), len(seen)
 
 
+def _corner_rms_with_true_cameras(recon, scene):
+    X, seen = reconstruct_corners(list(scene.P), [v.features for v in recon.views], scene.corners, scene.P,
+                                  [scene.corner_visibility(i) for i in range(scene.n_images)])
+    return rms_3d(X, scene.corners[seen])
+
+
 def oracle_limit(scene, mode="paper"):
     """The chain's own drift: the same pipeline fed with exact correspondences (+0.1 px noise,
     300 matches per pair). Returns per-image centre errors (m) of images 2..n-1."""
@@ -60,7 +66,13 @@ def test_real_matching_stays_near_the_exact_match_limit(box_scene, paper_oracle,
     assert np.all(errors <= 1.5 * envelope + 1e-4), (errors, envelope)
     rms, n = _corner_rms(recon, box_scene)
     assert n >= 150
-    assert rms < (0.01 if mode == "paper" else 0.001), rms
+    # The corners are triangulated from their Harris detections, which on this scene sit 0.3 px
+    # (median) from the truth: that alone gives ~1.4 mm with the *true* cameras. The estimated
+    # cameras may add little to it.
+    detector_limit = _corner_rms_with_true_cameras(recon, box_scene)
+    assert rms < 1.15 * detector_limit, (rms, detector_limit)
+    if mode == "accurate":
+        assert errors.mean() < 0.0015, errors
     assert report["reprojection"]["rms_px"] < 0.5
 
 
@@ -70,12 +82,15 @@ def test_noisy_images_register_every_camera(box_scene_noisy):
     assert _centre_errors(recon, box_scene_noisy).mean() < 0.0015
 
 
-@pytest.mark.parametrize("mode", ["paper", "accurate"])
-def test_plain_box_squares_only_registers_every_camera(plain_box_scene, mode):
-    recon, report = _run(plain_box_scene, mode)
+def test_plain_box_squares_only_registers_every_camera(plain_box_scene):
+    # No robust F exists between these views (repeated squares): the motion prior and the
+    # three-view check carry the insertions.
+    recon, report = _run(plain_box_scene, "accurate")
     assert report["registered"] == plain_box_scene.n_images, [r.get("reason") for r in report["per_image"]]
+    assert all("motion_prior_correspondences" in r for r in report["per_image"][2:])
     rms, n = _corner_rms(recon, plain_box_scene)
-    assert rms < (0.01 if mode == "paper" else 0.0015)
+    assert n >= 200
+    assert rms < 0.0015, rms
 
 
 def test_a_bad_image_is_reported_and_skipped(box_scene, tmp_path):

@@ -100,6 +100,24 @@ class TrueCorrespondences:
             ia, ib = ia[keep], ib[keep]
         return Matches(ia, ib, np.ones(len(ia)))
 
+    def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
+              predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """The exact (noisy) image in view ``target`` of the surface points behind ``ref_idx``."""
+        ids = self._ids[ref]
+        ref_idx = np.asarray(ref_idx)
+        appended = ref_idx >= len(ids)
+        if appended.any():  # features the pipeline added by tracking sit on an original one
+            from scipy.spatial import cKDTree
+            ref_idx = ref_idx.copy()
+            ref_idx[appended] = cKDTree(f_ref.points[:len(ids)]).query(f_ref.points[ref_idx[appended]])[1]
+        wanted = ids[ref_idx]
+        order = np.argsort(self._ids[target])
+        pos = np.clip(np.searchsorted(self._ids[target], wanted, sorter=order), 0, len(order) - 1)
+        hit = self._ids[target][order[pos]] == wanted
+        xy = f_target.points[order[pos]]
+        ok = hit & (np.linalg.norm(xy - predicted, axis=1) <= max_shift_px)
+        return xy, ok
+
 
 def surface_distance(points: np.ndarray, half: float = 0.17, height: float = 0.44) -> np.ndarray:
     """Distance (m) of each point (N, 3) to the synthetic scene's surfaces: the box

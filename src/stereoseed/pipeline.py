@@ -57,8 +57,8 @@ class HarrisZncc:
         (measured on the box ring: paper-mode drift 4.1 cm -> 0.4 cm)."""
         return refine_features(fa, fb, m)
 
-    def track(self, f_ref: Features, ref_idx: np.ndarray, f_target: Features, predicted: np.ndarray,
-              max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
+    def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
+              predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Find interest points ``ref_idx`` (K,) of a reference view in a target view, starting at
         their predicted pixels (K, 2): affine alignment of the reference patch (no detector
         involved, so a track survives where Harris does not fire again). Returns (xy (K, 2), ok (K,))."""
@@ -152,16 +152,20 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     pid = vp.point_of_feature[m.idx1]
     chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
     report: dict[str, Any] = {"image": view.name, "matches": len(m), "chained_points": int(chained.sum())}
-    if chained.sum() < pc.min_chained_points:
-        raise StereoseedError(f"{view.name}: only {int(chained.sum())} matches with already reconstructed points "
+    X3, x2, scores = recon.points[pid[chained]], view.features.points[m.idx2[chained]], m.score[chained]
+    if chained.sum() < cfg.resection.min_inliers:
+        # The epipolar geometry could not be found (repeated patterns, little texture): predict
+        # the camera from the previous motion and match the points of I_{k-1} by projection.
+        X3, x2, scores = _correspondences_by_motion_prior(recon, prev, k, cfg)
+        report["motion_prior_correspondences"] = len(X3)
+    if len(X3) < pc.min_chained_points:
+        raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
                               f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
     # 3. resection: robust DLT then LM under the camera model
     t = time.perf_counter()
-    X3 = recon.points[pid[chained]]
-    x2 = view.features.points[m.idx2[chained]]
     model = pc.resolved_model()
     ref_K = decompose_projection(recon.views[1].P)[0]
-    res = resect(X3, x2, cfg.resection, scores=m.score[chained], image_size=view.image.shape[1::-1],
+    res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
                  model=model, reference_K=ref_K, what=view.name)
     view.P = res.P
     timing["resection"] = time.perf_counter() - t
@@ -194,6 +198,13 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     ids = recon.add_points(X, _colors(view.image, view.features.points[kept.idx2]))
     recon.add_observations(prev, kept.idx1, ids, link=pc.mode != "paper")
     recon.add_observations(k, kept.idx2, ids)
+    if "motion_prior_correspondences" in report:
+        # repeated patterns defeated two-view matching: let a third view decide
+        before = _previous_registered(recon, prev, 1)
+        if before:
+            more = _new_points_three_view(recon, prev, k, before[0], cfg)
+            ids = np.concatenate([ids, more])
+            report["three_view_points"] = int(len(more))
     grown = chain_pids
     if pc.mode != "paper":
         older = _previous_registered(recon, k, pc.resolved_window() + 1)
@@ -224,12 +235,141 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     return report
 
 
+def predict_camera(P_before: np.ndarray, P_last: np.ndarray) -> np.ndarray:
+    """Constant-motion prediction of the next camera: the rigid motion from ``P_before`` to
+    ``P_last`` (both (3, 4)) applied once more to ``P_last``, with ``P_last``'s intrinsics. -> (3, 4)."""
+    def pose(P):
+        K, R, t = decompose_projection(P)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return K, T
+    _, T_before = pose(P_before)
+    K, T_last = pose(P_last)
+    T_next = T_last @ np.linalg.inv(T_before) @ T_last
+    return K @ T_next[:3]
+
+
+def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, cfg: Config,
+                                     radius_fraction: float = 0.08, min_zncc: float = 0.7,
+                                     per_point: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """3D-2D correspondences for view k without epipolar geometry: the points seen in the last
+    registered views are projected with the predicted camera (:func:`predict_camera`); every
+    interest point of k within ``radius_fraction`` of the image width whose patch matches (ZNCC
+    >= ``min_zncc``, the best ``per_point``) is a hypothesis, and a robust 2D similarity between
+    predicted and found positions keeps the consistent ones (the resection's RANSAC follows).
+    Returns (points3d (N, 3), points2d (N, 2), scores (N,)), empty when nothing holds."""
+    import cv2
+
+    empty = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+    before = _previous_registered(recon, prev, 1)
+    if not before:
+        return empty
+    vp, vk = recon.views[prev], recon.views[k]
+    P_pred = predict_camera(recon.views[before[0]].P, vp.P)
+    # every live point seen in the last three registered views, described by its latest image
+    recent = [prev] + _previous_registered(recon, prev, 2)
+    sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]
+    order = np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")]
+    pids, first = np.unique(recon.obs_point[order], return_index=True)
+    obs = order[first]
+    if len(pids) < 4 or len(vk.features) == 0:
+        return empty
+    desc = np.empty((len(obs), vk.features.desc.shape[1]), np.float32)
+    for v in np.unique(recon.obs_view[obs]):
+        here = recon.obs_view[obs] == v
+        desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
+    pred = project(P_pred, recon.points[pids])
+    width = vk.features.image_shape[1]
+    d = np.linalg.norm(pred[:, None, :] - vk.features.points[None, :, :], axis=2)
+    zncc = desc @ vk.features.desc.T
+    zncc[(d > radius_fraction * width) | ~vk.features.valid[None, :]] = -np.inf
+    best = np.argsort(-zncc, axis=1)[:, :per_point]
+    rows = np.repeat(np.arange(len(pids)), best.shape[1])
+    cols = best.ravel()
+    ok = zncc[rows, cols] >= min_zncc
+    rows, cols = rows[ok], cols[ok]
+    if len(rows) < 6:
+        return empty
+    # The prediction misses mostly by a zoom about the principal point and a shift (a changed
+    # focal length, a different step): a 4-DOF similarity fitted robustly to the hypotheses
+    # (2-point samples, so a low inlier ratio is fine) says which of them are consistent.
+    x = vk.features.points[cols]
+    cv2.setRNGSeed(int(cfg.resection.seed))
+    S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
+                                         ransacReprojThreshold=0.015 * width, maxIters=5000,
+                                         confidence=cfg.resection.ransac_confidence)
+    if S is None or inl is None or inl.sum() < 6:
+        return empty
+    inl = np.flatnonzero(inl.ravel())
+    err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
+    order = inl[np.argsort(err)]
+    _, first = np.unique(rows[order], return_index=True)
+    sel = order[first]
+    X = recon.points[pids[rows]]
+    return X[sel], x[sel], zncc[rows[sel], cols[sel]]
+
+
+def _new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Config,
+                           min_zncc: float = 0.7, max_px: float = 1.5) -> np.ndarray:
+    """New points from the interest points of views a, b that stand for none yet, when ZNCC
+    cannot choose between repeated patterns: every pair within the epipolar band with ZNCC >=
+    ``min_zncc`` is triangulated, and kept when a third registered view c has an interest point
+    within ``max_px`` of its projection whose patch matches too; each interest point is used
+    once (best score first). Returns the new point ids (observed in a, b and c)."""
+    from .matching import _epipolar_band_mask
+
+    va, vb, vc = recon.views[a], recon.views[b], recon.views[c]
+    fa = np.flatnonzero((va.point_of_feature < 0) & va.features.valid)
+    fb = np.flatnonzero((vb.point_of_feature < 0) & vb.features.valid)
+    fc = np.flatnonzero(vc.features.valid)
+    if min(len(fa), len(fb), len(fc)) == 0:
+        return np.zeros(0, np.int64)
+    band = _epipolar_band_mask(fundamental_from_projections(va.P, vb.P), va.features.points[fa],
+                               vb.features.points[fb], cfg.matching.epipolar_band_px)
+    zab = va.features.desc[fa] @ vb.features.desc[fb].T
+    ia, ib = np.nonzero(band & (zab >= min_zncc))
+    if len(ia) == 0:
+        return np.zeros(0, np.int64)
+    ia, ib = fa[ia], fb[ib]
+    res = triangulate(np.stack([va.P, vb.P]), np.stack([va.features.points[ia], vb.features.points[ib]]),
+                      iterations=cfg.triangulation.lm_iterations)
+    ok = res.valid(cfg.triangulation.max_reprojection_px, cfg.triangulation.min_angle_deg)
+    ia, ib, X = ia[ok], ib[ok], res.points[ok]
+    if len(ia) == 0:
+        return np.zeros(0, np.int64)
+    from scipy.spatial import cKDTree
+    dist, nearest = cKDTree(vc.features.points[fc]).query(project(vc.P, X))
+    ic = fc[np.minimum(nearest, len(fc) - 1)]
+    score = np.minimum(np.einsum("ij,ij->i", va.features.desc[ia], vc.features.desc[ic]),
+                       np.einsum("ij,ij->i", va.features.desc[ia], vb.features.desc[ib]))
+    ok = (dist <= max_px) & (score >= min_zncc)
+    order = np.flatnonzero(ok)[np.argsort(-score[ok])]
+    used_a, used_b, used_c, keep = set(), set(), set(), []
+    for o in order:  # greedy one-to-one, best first (a few hundred candidates at most)
+        if ia[o] in used_a or ib[o] in used_b or ic[o] in used_c:
+            continue
+        used_a.add(ia[o]); used_b.add(ib[o]); used_c.add(ic[o]); keep.append(o)
+    keep = np.array(keep, np.int64)
+    if len(keep) == 0:
+        return np.zeros(0, np.int64)
+    c_free = vc.point_of_feature[ic[keep]] < 0
+    keep = keep[c_free]
+    ids = recon.add_points(X[keep], _colors(vb.image, vb.features.points[ib[keep]]))
+    recon.add_observations(a, ia[keep], ids)
+    recon.add_observations(b, ib[keep], ids)
+    recon.add_observations(c, ic[keep], ids)
+    return ids
+
+
 def _append_features(recon: Reconstruction, v: int, xy: np.ndarray) -> np.ndarray:
     """Add interest points at pixels xy (K, 2) to view v (found by tracking, not detection);
     returns their feature indices (K,)."""
     view = recon.views[v]
     f = view.features
-    desc, valid = describe(f.gray, xy, f.patch_size)
+    if f.gray is not None:
+        desc, valid = describe(f.gray, xy, f.patch_size)
+    else:
+        desc, valid = np.zeros((len(xy), f.desc.shape[1]), np.float32), np.ones(len(xy), bool)
     start = len(f)
     view.features = Features(np.vstack([f.points, xy]), np.vstack([f.desc, desc]), np.concatenate([f.valid, valid]),
                              np.concatenate([f.response, np.zeros(len(xy))]), f.image_shape, f.gray)
@@ -246,7 +386,7 @@ def _track_by_projection(recon: Reconstruction, target: int, refs: list[int], cf
     point's interest point. Returns the ids of the points whose track grew."""
     track = getattr(recon.source, "track", None)
     vt = recon.views[target]
-    if track is None or vt.features is None or vt.features.gray is None:
+    if track is None or vt.features is None:
         return np.zeros(0, np.int64)
     thr = cfg.resection.ransac_threshold_px
     h, w = vt.features.image_shape
@@ -268,7 +408,7 @@ def _track_by_projection(recon: Reconstruction, target: int, refs: list[int], cf
         pids, feats, xy = pids[inside], feats[inside], xy[inside]
         if len(pids) == 0:
             continue
-        found, ok = track(recon.views[j].features, feats, vt.features, xy, thr)
+        found, ok = track(j, target, recon.views[j].features, feats, vt.features, xy, thr)
         # an interest point of the target already standing for another point: not this one
         near = _nearest_linked(vt, found)
         ok &= near > 1.0
