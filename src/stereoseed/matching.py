@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+from numba import njit
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -407,6 +408,169 @@ def _singular_values_2x2(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.sqrt((f + disc) / 2.0), np.sqrt(np.maximum((f - disc) / 2.0, 0.0))
 
 
+@njit(cache=True)
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """Bilinear sample of img at (x, y), edges replicated (pixel centres at integers)."""
+    h, w = img.shape
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0 = min(int(x), w - 2) if w > 1 else 0
+    y0 = min(int(y), h - 2) if h > 1 else 0
+    fx, fy = x - x0, y - y0
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+@njit(cache=True)
+def _sample_normalised(img, A, t, r, out):
+    """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
+    every sample lies inside the image."""
+    h, w = img.shape
+    n = 0
+    inside = True
+    total = 0.0
+    for iy in range(-r, r + 1):
+        for ix in range(-r, r + 1):
+            x = t[0] + A[0, 0] * ix + A[0, 1] * iy
+            y = t[1] + A[1, 0] * ix + A[1, 1] * iy
+            if x < 0.0 or x > w - 1.0 or y < 0.0 or y > h - 1.0:
+                inside = False
+            v = _bilinear(img, x, y)
+            out[n] = v
+            total += v
+            n += 1
+    mean = total / n
+    norm = 0.0
+    for i in range(n):
+        out[i] -= mean
+        norm += out[i] * out[i]
+    return np.sqrt(norm), inside
+
+
+@njit(cache=True)
+def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
+    """Inverse-compositional affine Lucas-Kanade for every match; see :func:`align_matches`."""
+    m = x1.shape[0]
+    npx = (2 * r + 1) ** 2
+    t_out = x2.copy()
+    A_out = np.zeros((m, 2, 2))
+    zncc = np.full(m, -1.0)
+    converged = np.zeros(m, np.bool_)
+    ux = np.empty(npx)
+    uy = np.empty(npx)
+    k = 0
+    for iy in range(-r, r + 1):
+        for ix in range(-r, r + 1):
+            ux[k] = ix
+            uy[k] = iy
+            k += 1
+    h1, w1 = g1.shape
+    tmpl = np.empty(npx)
+    img = np.empty(npx)
+    jac = np.empty((npx, 6))
+    eye = np.eye(2)
+    for i in range(m):
+        A_out[i] = eye
+        if not (r <= x1[i, 0] <= w1 - 1 - r and r <= x1[i, 1] <= h1 - 1 - r):
+            continue
+        tnorm, _ = _sample_normalised(g1, eye, x1[i], r, tmpl)
+        if not tnorm > min_norm:
+            continue
+        tmpl /= tnorm
+        # Jacobian of the normalised template w.r.t. (tx, ty, a11, a12, a21, a22) at identity
+        for p in range(npx):
+            jx = _bilinear(gx, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
+            jy = _bilinear(gy, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
+            jac[p, 0] = jx
+            jac[p, 1] = jy
+            jac[p, 2] = jx * ux[p]
+            jac[p, 3] = jx * uy[p]
+            jac[p, 4] = jy * ux[p]
+            jac[p, 5] = jy * uy[p]
+        for c in range(6):
+            jac[:, c] -= jac[:, c].mean()
+        hess = np.ascontiguousarray(jac.T) @ jac
+        # damping of the linear part: the corner of a square leaves A undetermined along its edges
+        lam = 0.01 * (hess[2, 2] + hess[3, 3] + hess[4, 4] + hess[5, 5]) / 4.0
+        for c in range(2, 6):
+            hess[c, c] += lam
+        tiny = 1e-9 * np.trace(hess) + 1e-12
+        for c in range(6):
+            hess[c, c] += tiny
+        hess_inv = np.linalg.inv(hess)
+        ht_inv = np.linalg.inv(hess[:2, :2].copy())
+        a11, a12, a21, a22 = 1.0, 0.0, 0.0, 1.0
+        tx, ty = x2[i, 0], x2[i, 1]
+        ok = True
+        A = np.empty((2, 2))
+        t = np.empty(2)
+        b = np.empty(6)
+        dp = np.empty(6)
+        for it in range(max_iters):
+            A[0, 0], A[0, 1], A[1, 0], A[1, 1] = a11, a12, a21, a22
+            t[0], t[1] = tx, ty
+            norm, _ = _sample_normalised(g2, A, t, r, img)
+            inv_norm = 1.0 / max(norm, 1e-12)
+            b[:] = 0.0
+            for p in range(npx):
+                e = img[p] * inv_norm - tmpl[p]
+                for c in range(6):
+                    b[c] += jac[p, c] * e
+            if it < 3:  # translation first
+                dp[:] = 0.0
+                dp[0] = ht_inv[0, 0] * b[0] + ht_inv[0, 1] * b[1]
+                dp[1] = ht_inv[1, 0] * b[0] + ht_inv[1, 1] * b[1]
+            else:
+                for c in range(6):
+                    acc = 0.0
+                    for q in range(6):
+                        acc += hess_inv[c, q] * b[q]
+                    dp[c] = acc
+            cap_t = 1.0 / max(max(abs(dp[0]), abs(dp[1])), 1e-12)
+            cap_a = 0.1 / max(max(max(abs(dp[2]), abs(dp[3])), max(abs(dp[4]), abs(dp[5]))), 1e-12)
+            scale = min(min(cap_t, cap_a), 1.0)
+            # inverse composition: W <- W o W(dp)^-1, W(dp): u -> (I + D) u + d
+            d11, d12, d21, d22 = 1.0 + dp[2] * scale, dp[3] * scale, dp[4] * scale, 1.0 + dp[5] * scale
+            det_d = d11 * d22 - d12 * d21
+            i11, i12, i21, i22 = d22 / det_d, -d12 / det_d, -d21 / det_d, d11 / det_d
+            n11 = a11 * i11 + a12 * i21
+            n12 = a11 * i12 + a12 * i22
+            n21 = a21 * i11 + a22 * i21
+            n22 = a21 * i12 + a22 * i22
+            a11, a12, a21, a22 = n11, n12, n21, n22
+            ntx = tx - (a11 * dp[0] + a12 * dp[1]) * scale
+            nty = ty - (a21 * dp[0] + a22 * dp[1]) * scale
+            moved = max(abs(ntx - tx), abs(nty - ty))
+            tx, ty = ntx, nty
+            f = a11 * a11 + a12 * a12 + a21 * a21 + a22 * a22
+            det = a11 * a22 - a12 * a21
+            disc = np.sqrt(max(f * f - 4.0 * det * det, 0.0))
+            s_max, s_min = np.sqrt((f + disc) / 2.0), np.sqrt(max((f - disc) / 2.0, 0.0))
+            if (s_max > 4.0 or s_min < 0.25 or max(abs(tx - x2[i, 0]), abs(ty - x2[i, 1])) > r
+                    or not (np.isfinite(tx) and np.isfinite(ty))):
+                ok = False
+                break
+            if moved <= tol and it >= 3:
+                break
+        A[0, 0], A[0, 1], A[1, 0], A[1, 1] = a11, a12, a21, a22
+        t[0], t[1] = tx, ty
+        if not ok:
+            continue
+        norm, inside = _sample_normalised(g2, A, t, r, img)
+        if not inside or not norm > min_norm:
+            continue
+        z = 0.0
+        for p in range(npx):
+            z += img[p] * tmpl[p]
+        zncc[i] = z / max(norm, 1e-12)
+        converged[i] = True
+        t_out[i] = t
+        A_out[i] = A
+    return t_out, A_out, zncc, converged
+
+
 def align_matches(
     f1: Features,
     f2: Features,
@@ -441,14 +605,15 @@ def align_matches(
         raise StereoseedError(
             "align_matches needs the grey images: build the Features with extract_features"
         )
-    m = len(matches)
     x1, x2 = matches.points(f1, f2)
-    A = np.tile(np.eye(2), (m, 1, 1))
-    t = x2.copy()
-    zncc = np.full(m, -1.0)
-    converged = np.zeros(m, bool)
-    if m == 0:
-        return Alignment(t, A, zncc, converged)
+    g1 = np.ascontiguousarray(f1.gray, np.float32)
+    g2 = np.ascontiguousarray(f2.gray, np.float32)
+    gx = cv2.Sobel(g1, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(g1, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    t, A, zncc, converged = _align_kernel(
+        g1, gx, gy, g2, np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+        patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
+    return Alignment(t, A, zncc, converged)
     g1 = np.ascontiguousarray(f1.gray, np.float32)
     g2 = np.ascontiguousarray(f2.gray, np.float32)
     (h1, w1), (h2, w2) = g1.shape, g2.shape
