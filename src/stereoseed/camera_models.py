@@ -7,6 +7,8 @@ intrinsics are free:
 * ``zero-skew`` - square pixels and no skew, principal point free: f, cx, cy (3) + 6.
 * ``focal``     - a zoom lens: only the focal length varies; aspect ratio, skew and principal
                   point are those of a reference camera (the calibrated second camera): 1 + 6.
+* ``fixed``     - the reference camera's intrinsics, only the pose is estimated: 6 (a fallback
+                  when the points are too flat for the focal length to be observable).
 """
 from __future__ import annotations
 
@@ -15,8 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from .camera import compose_projection, decompose_projection
 
-MODELS = ("free", "zero-skew", "focal")
-N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1}
+MODELS = ("free", "zero-skew", "focal", "fixed")
+N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
 __all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection",
            "krt_from_params", "projection_from_params", "project_to_model"]
@@ -38,6 +40,8 @@ def _intrinsics_from_K(K: np.ndarray, model: str, reference_K: np.ndarray | None
     if model == "zero-skew":
         return np.array([0.5 * (K[0, 0] + K[1, 1]), K[0, 2], K[1, 2]])
     ref = _require_reference(reference_K)
+    if model == "fixed":
+        return np.zeros(0)
     # least-squares focal that best reproduces K's fx, fy with the reference's aspect ratio
     aspect = ref[1, 1] / ref[0, 0]
     return np.array([(K[0, 0] + aspect * K[1, 1]) / (1.0 + aspect * aspect)])
@@ -45,7 +49,7 @@ def _intrinsics_from_K(K: np.ndarray, model: str, reference_K: np.ndarray | None
 
 def _require_reference(reference_K: np.ndarray | None) -> np.ndarray:
     if reference_K is None:
-        raise ValueError("the 'focal' camera model needs the reference camera's K")
+        raise ValueError("the 'focal' and 'fixed' camera models need the reference camera's K")
     return np.asarray(reference_K, dtype=np.float64)
 
 
@@ -58,6 +62,8 @@ def K_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | No
         f, cx, cy = intr
         return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
     ref = _require_reference(reference_K)
+    if model == "fixed":
+        return ref.copy()
     scale = intr[0] / ref[0, 0]
     K = ref.copy()
     K[0, 0] *= scale

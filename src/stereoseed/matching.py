@@ -428,19 +428,34 @@ def _sample_normalised(img, A, t, r, out):
     """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
     every sample lies inside the image."""
     h, w = img.shape
-    n = 0
+    # the warped square is inside iff its four corners are (the warp is affine)
     inside = True
+    for cy in (-r, r):
+        for cx in (-r, r):
+            x = t[0] + A[0, 0] * cx + A[0, 1] * cy
+            y = t[1] + A[1, 0] * cx + A[1, 1] * cy
+            if not (0.0 <= x <= w - 2.0 and 0.0 <= y <= h - 2.0):
+                inside = False
+    n = 0
     total = 0.0
     for iy in range(-r, r + 1):
-        for ix in range(-r, r + 1):
-            x = t[0] + A[0, 0] * ix + A[0, 1] * iy
-            y = t[1] + A[1, 0] * ix + A[1, 1] * iy
-            if x < 0.0 or x > w - 1.0 or y < 0.0 or y > h - 1.0:
-                inside = False
-            v = _bilinear(img, x, y)
+        x = t[0] + A[0, 1] * iy - A[0, 0] * r
+        y = t[1] + A[1, 1] * iy - A[1, 0] * r
+        for ix in range(2 * r + 1):
+            if inside:  # fast path: no clamping
+                x0 = int(x)
+                y0 = int(y)
+                fx = x - x0
+                fy = y - y0
+                v = ((img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx) * (1.0 - fy)
+                     + (img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+            else:
+                v = _bilinear(img, x, y)
             out[n] = v
             total += v
             n += 1
+            x += A[0, 0]
+            y += A[1, 0]
     mean = total / n
     norm = 0.0
     for i in range(n):

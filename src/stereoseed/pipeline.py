@@ -42,6 +42,8 @@ class HarrisZncc:
     constraint (known F) or a robust F. Any object with the same two methods can replace it
     (tests use exact correspondences from the synthetic scene to measure the chain alone)."""
 
+    first_look_zncc = 0.3  # unaligned ZNCC a tracked point must reach before it is aligned
+
     def __init__(self, cfg: Config):
         self.cfg = cfg
 
@@ -49,7 +51,9 @@ class HarrisZncc:
         return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
-        return match_pair(fa, fb, self.cfg.matching, F=F, image_width=image_width)
+        # Without F the pipeline only needs enough matches to place the camera: it re-matches
+        # under the camera's epipolar geometry right after, so the guided second pass is skipped.
+        return match_pair(fa, fb, self.cfg.matching, F=F, image_width=image_width, guided=F is not None)
 
     def refine(self, fa: Features, fb: Features, m: Matches) -> Features:
         """fb with its matched points moved onto their partners in a (sub-pixel affine alignment):
@@ -62,12 +66,20 @@ class HarrisZncc:
         """Find interest points ``ref_idx`` (K,) of a reference view in a target view, starting at
         their predicted pixels (K, 2): affine alignment of the reference patch (no detector
         involved, so a track survives where Harris does not fire again). Returns (xy (K, 2), ok (K,))."""
-        probe = Features(np.asarray(predicted, np.float64), np.zeros((len(predicted), f_target.desc.shape[1]), np.float32),
-                         np.ones(len(predicted), bool), np.zeros(len(predicted)), f_target.image_shape, f_target.gray)
-        m = Matches(np.asarray(ref_idx, np.int64), np.arange(len(predicted)), np.ones(len(predicted)))
+        predicted = np.asarray(predicted, np.float64)
+        ref_idx = np.asarray(ref_idx, np.int64)
+        # cheap first look (unaligned ZNCC at the prediction): occluded points fail it, and
+        # the alignment, ~20x dearer, runs only on the rest
+        desc, valid = describe(f_target.gray, predicted, f_target.patch_size)
+        look = np.flatnonzero(valid & f_ref.valid[ref_idx]
+                              & (np.einsum("ij,ij->i", desc, f_ref.desc[ref_idx]) >= self.first_look_zncc))
+        xy, ok = predicted.copy(), np.zeros(len(predicted), bool)
+        probe = Features(predicted[look], desc[look], valid[look], np.zeros(len(look)), f_target.image_shape, f_target.gray)
+        m = Matches(ref_idx[look], np.arange(len(look)), np.ones(len(look)))
         al = align_matches(f_ref, probe, m)
-        ok = al.converged & (al.shift(probe, m) <= max_shift_px) & (al.zncc > DEFAULT_ALIGNED_MIN_ZNCC)
-        return al.x2, ok
+        xy[look] = al.x2
+        ok[look] = al.converged & (al.shift(probe, m) <= max_shift_px) & (al.zncc > DEFAULT_ALIGNED_MIN_ZNCC)
+        return xy, ok
 
 
 def _features(recon: Reconstruction, index: int) -> None:
@@ -166,7 +178,9 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     model = pc.resolved_model()
     ref_K = decompose_projection(recon.views[1].P)[0]
     res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
-                 model=model, reference_K=ref_K, what=view.name)
+                 model=model, reference_K=ref_K, what=view.name,
+                 fallback_K=decompose_projection(vp.P)[0] if model != "free" else None)
+    _check_camera(res.P, vp.P, view.name)
     view.P = res.P
     timing["resection"] = time.perf_counter() - t
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px)
@@ -235,9 +249,21 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     return report
 
 
-def predict_camera(P_before: np.ndarray, P_last: np.ndarray) -> np.ndarray:
-    """Constant-motion prediction of the next camera: the rigid motion from ``P_before`` to
-    ``P_last`` (both (3, 4)) applied once more to ``P_last``, with ``P_last``'s intrinsics. -> (3, 4)."""
+def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, max_zoom: float = 1.5) -> None:
+    """Refuse a resected camera whose focal length jumped by more than ``max_zoom`` (either way)
+    from the previous image's: a hand-held zoom does not, a camera fitted to the wrong
+    correspondences (repeated patterns, a near-planar set) often does."""
+    f = decompose_projection(P)[0][0, 0]
+    f_prev = decompose_projection(P_prev)[0][0, 0]
+    if not (np.isfinite(f) and f_prev / max_zoom <= f <= f_prev * max_zoom):
+        raise StereoseedError(f"{name}: the estimated camera is implausible (focal length {f:.0f} px after "
+                              f"{f_prev:.0f} px in the previous image); its matches are probably wrong")
+
+
+def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
+    """Constant-motion prediction of a later camera: the rigid motion from ``P_before`` to
+    ``P_last`` (both (3, 4)) applied ``steps`` more times to ``P_last``, with ``P_last``'s
+    intrinsics. -> (3, 4)."""
     def pose(P):
         K, R, t = decompose_projection(P)
         T = np.eye(4)
@@ -245,7 +271,9 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray) -> np.ndarray:
         return K, T
     _, T_before = pose(P_before)
     K, T_last = pose(P_last)
-    T_next = T_last @ np.linalg.inv(T_before) @ T_last
+    T_next = T_last
+    for _ in range(max(1, steps)):
+        T_next = T_last @ np.linalg.inv(T_before) @ T_next
     return K @ T_next[:3]
 
 
@@ -265,7 +293,9 @@ def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, c
     if not before:
         return empty
     vp, vk = recon.views[prev], recon.views[k]
-    P_pred = predict_camera(recon.views[before[0]].P, vp.P)
+    # images skipped since (failed insertions) count as steps of the same motion
+    steps = max(1, round((k - prev) / max(prev - before[0], 1)))
+    P_pred = predict_camera(recon.views[before[0]].P, vp.P, steps)
     # every live point seen in the last three registered views, described by its latest image
     recent = [prev] + _previous_registered(recon, prev, 2)
     sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]

@@ -12,7 +12,7 @@ import numpy as np
 
 from .calibration import (check_correspondences, dlt_projection, normalization_2d, normalization_3d,
                           refine_projection)
-from .camera import depths, normalize_projection, project
+from .camera import decompose_projection, depths, normalize_projection, project
 from .config import ResectionConfig
 from .errors import StereoseedError
 
@@ -70,9 +70,28 @@ def _draw_samples(rng: np.random.Generator, n_samples: int, weights: np.ndarray,
     return samples
 
 
+def _pnp_start(X: np.ndarray, x: np.ndarray, K: np.ndarray, config: ResectionConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """P3P RANSAC (OpenCV) with intrinsics K (3, 3): a starting camera and its inliers, or None.
+    The threshold is widened because the true focal length may differ from K's."""
+    import cv2
+
+    if len(X) < 6:
+        return None
+    cv2.setRNGSeed(int(config.seed))
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, K, None, iterationsCount=int(config.ransac_max_iters),
+                                             reprojectionError=3.0 * config.ransac_threshold_px,
+                                             confidence=config.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
+    if not ok or inl is None or len(inl) < max(config.min_points, config.min_inliers):
+        return None
+    inliers = np.zeros(len(X), bool)
+    inliers[inl.ravel()] = True
+    return K @ np.hstack([cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)]), inliers
+
+
 def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig = ResectionConfig(),
            scores: np.ndarray | None = None, image_size: tuple[int, int] | None = None,
-           model: str = "free", reference_K: np.ndarray | None = None, what: str = "resection") -> ResectionResult:
+           model: str = "free", reference_K: np.ndarray | None = None, what: str = "resection",
+           fallback_K: np.ndarray | None = None) -> ResectionResult:
     """Estimate P from 3D-2D pairs robustly.
 
     points3d: (N, 3); points2d: (N, 2); scores: (N,) NCC score of each pair's match (higher is
@@ -129,22 +148,40 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
             f"{what}: only {best_count} of {n} 3D-2D pairs agree on a camera "
             f"(need {max(config.min_points, config.min_inliers)}); too few correct matches")
 
-    inliers = best_inliers
-    P = dlt_projection(X[inliers], x[inliers])
-    for _ in range(2):  # refit, re-select inliers, refine: converges in one or two rounds
-        P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K,
-                              loss="huber", f_scale=config.ransac_threshold_px / 2)
-        err2 = np.sum((project(P, X) - x) ** 2, axis=1)
-        new_inliers = (err2 < thr2) & (depths(P, X) > 0)
-        if new_inliers.sum() < config.min_inliers:
-            break
-        if np.array_equal(new_inliers, inliers):
-            break
-        inliers = new_inliers
-    P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K)
-    P = normalize_projection(P)
-    err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
-    rms = float(np.sqrt(np.mean(err2)))
+    def polish(P: np.ndarray, inliers: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        for _ in range(2):  # refit, re-select inliers, refine: converges in one or two rounds
+            P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K,
+                                  loss="huber", f_scale=config.ransac_threshold_px / 2)
+            err2 = np.sum((project(P, X) - x) ** 2, axis=1)
+            new_inliers = (err2 < thr2) & (depths(P, X) > 0)
+            if new_inliers.sum() < config.min_inliers or np.array_equal(new_inliers, inliers):
+                break
+            inliers = new_inliers
+        P = normalize_projection(refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K))
+        err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
+        return P, inliers, float(np.sqrt(np.mean(err2)))
+
+    candidates = [polish(dlt_projection(X[best_inliers], x[best_inliers]), best_inliers)]
+    if model != "free" and reference_K is not None:
+        # The DLT is ill-conditioned when the points are nearly planar (one face of an object
+        # in view); a constrained camera can start from P3P with the reference intrinsics.
+        start = _pnp_start(X, x, reference_K, config)
+        if start is not None:
+            candidates.append(polish(*start))
+    def plausible(P: np.ndarray) -> bool:
+        # a near-planar point set lets the LM run the focal length off to infinity (an affine
+        # camera fits a plane): such a camera is no candidate
+        if reference_K is None:
+            return True
+        f, f_ref = decompose_projection(P)[0][0, 0], reference_K[0, 0]
+        return bool(np.isfinite(f) and f_ref / 3 <= f <= 3 * f_ref)
+
+    if fallback_K is not None and not any(plausible(c[0]) for c in candidates):
+        start = _pnp_start(X, x, fallback_K, config)
+        if start is not None:
+            model, reference_K = "fixed", np.asarray(fallback_K, np.float64)
+            candidates = [polish(*start)]
+    P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))
     if rms > config.max_rms_px:
         raise StereoseedError(f"{what}: the best camera reprojects its inliers with {rms:.2f} px RMS "
                               f"(limit {config.max_rms_px} px); the 3D-2D pairs are inconsistent")
