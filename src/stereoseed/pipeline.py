@@ -53,7 +53,15 @@ class HarrisZncc:
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
         # Without F the pipeline only needs enough matches to place the camera: it re-matches
         # under the camera's epipolar geometry right after, so the guided second pass is skipped.
-        return match_pair(fa, fb, self.cfg.matching, F=F, image_width=image_width, guided=F is not None)
+        mc = self.cfg.matching
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width, guided=F is not None,
+                       max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
+        if len(m) < mc.relax_below:
+            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, guided=F is not None,
+                                 max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
+            if len(relaxed) > len(m):
+                m = relaxed
+        return m
 
     def refine(self, fa: Features, fb: Features, m: Matches) -> Features:
         """fb with its matched points moved onto their partners in a (sub-pixel affine alignment):
@@ -163,7 +171,13 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     # 2. chain: interest points of I_{k-1} that stand for a 3D point (the paper's B_{k-1})
     pid = vp.point_of_feature[m.idx1]
     chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+    if chained.sum() < cfg.resection.min_inliers and isinstance(recon.source, HarrisZncc):
+        # ZNCC is not rotation invariant: a camera turned upside down since the previous image
+        # (a ring walked over the top of an object) matches only once its image is turned back
+        m, pid, chained = _try_upside_down(recon, prev, k, m, chained)
     report: dict[str, Any] = {"image": view.name, "matches": len(m), "chained_points": int(chained.sum())}
+    if view.rotated_180:
+        report["rotated_180"] = True
     X3, x2, scores = recon.points[pid[chained]], view.features.points[m.idx2[chained]], m.score[chained]
     if chained.sum() < cfg.resection.min_inliers:
         # The epipolar geometry could not be found (repeated patterns, little texture): predict
@@ -247,6 +261,27 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     report.update(ba=ba, removed_observations=removed, seconds=timing)
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
+
+
+def _try_upside_down(recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray
+                     ) -> tuple[Matches, np.ndarray, np.ndarray]:
+    """Match view k turned by 180 degrees against ``prev``; keep whichever orientation chains
+    more reconstructed points. Returns (matches, point ids of prev's matched features, chained)."""
+    import cv2
+
+    view, vp = recon.views[k], recon.views[prev]
+    kept = (view.image, view.features, view.point_of_feature, view.rotated_180)
+    view.image = cv2.rotate(view.image, cv2.ROTATE_180)
+    view.features = None
+    view.rotated_180 = not view.rotated_180
+    _features(recon, k)
+    m2 = _match(recon, prev, k)
+    pid2 = vp.point_of_feature[m2.idx1]
+    chained2 = (pid2 >= 0) & recon.alive[np.maximum(pid2, 0)]
+    if chained2.sum() > chained.sum():
+        return m2, pid2, chained2
+    view.image, view.features, view.point_of_feature, view.rotated_180 = kept
+    return m, vp.point_of_feature[m.idx1], chained
 
 
 def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, max_zoom: float = 1.5) -> None:

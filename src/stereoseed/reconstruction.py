@@ -35,10 +35,21 @@ class View:
     status: str = "pending"
     point_of_feature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     image: np.ndarray | None = None
+    rotated_180: bool = False  # the run works on the image turned upside down (camera held so)
 
     @property
     def registered(self) -> bool:
         return self.P is not None
+
+    @property
+    def P_input(self) -> np.ndarray | None:
+        """P (3, 4) in the pixel frame of the input image (P works in the frame the run used:
+        the image turned by 180 degrees when ``rotated_180``)."""
+        if self.P is None or not self.rotated_180:
+            return self.P
+        h, w = self.image.shape[:2]
+        flip = np.array([[-1.0, 0.0, w - 1.0], [0.0, -1.0, h - 1.0], [0.0, 0.0, 1.0]])
+        return flip @ self.P
 
 
 class Reconstruction:
@@ -152,7 +163,9 @@ class Reconstruction:
         for v in self.views:
             entry: dict[str, Any] = {"name": v.name, "registered": v.registered, "status": v.status}
             if v.registered:
-                entry.update(camera_entry(v.P))
+                entry.update(camera_entry(v.P_input))
+                if v.rotated_180:
+                    entry["rotated_180"] = True
             images.append(entry)
         return {"convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
                               "R, t are cam_from_world",
