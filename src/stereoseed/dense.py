@@ -7,8 +7,10 @@ so memory holds at most ``workers`` pairs' match maps at a time.
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
+from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
@@ -119,19 +121,29 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     pairs = list(zip(reg[:-1], reg[1:]))
     clouds, cols, per_pair = [], [], []
     workers = max(1, min(cfg.dense.workers, len(pairs)))
+    def collect(pair: tuple[int, int], res: dict[str, Any]) -> None:
+        clouds.append(res["points"])
+        cols.append(res["colors"])
+        per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
+
     if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            results = pool.map(_run_pair, _pair_jobs(recon, cfg))
-            for (a, b), res in zip(pairs, results):
-                clouds.append(res["points"])
-                cols.append(res["colors"])
-                per_pair.append({"pair": [recon.views[a].name, recon.views[b].name], **res["report"]})
+        # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
+        # breaks unguarded user scripts; at most 2 jobs per worker in flight bound the memory
+        methods = multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            in_flight: deque = deque()
+            for pair, job in zip(pairs, _pair_jobs(recon, cfg)):
+                in_flight.append((pair, pool.submit(_run_pair, job)))
+                if len(in_flight) >= 2 * workers:
+                    pair_done, fut = in_flight.popleft()
+                    collect(pair_done, fut.result())
+            while in_flight:
+                pair_done, fut = in_flight.popleft()
+                collect(pair_done, fut.result())
     else:
-        for (a, b), job in zip(pairs, _pair_jobs(recon, cfg)):
-            res = _run_pair(job)
-            clouds.append(res["points"])
-            cols.append(res["colors"])
-            per_pair.append({"pair": [recon.views[a].name, recon.views[b].name], **res["report"]})
+        for pair, job in zip(pairs, _pair_jobs(recon, cfg)):
+            collect(pair, _run_pair(job))
     points = np.vstack(clouds) if clouds else np.zeros((0, 3))
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     voxel = cfg.dense.fusion_voxel or _auto_voxel(recon)
