@@ -56,3 +56,16 @@ def plain_box_scene() -> SyntheticScene:
 def box_scene_noisy() -> SyntheticScene:
     """The default ring with Gaussian image noise sigma = 2 grey levels."""
     return render_scene(SceneConfig(noise_sigma=2.0))
+
+
+@pytest.fixture(scope="session")
+def temple_run(temple_dir):
+    """templeSparseRing reconstructed in ring order, seeded by the par file's first two cameras
+    (default config). Returns (reconstruction, report, true cameras in ring order)."""
+    from stereoseed.io import read_middlebury_par
+    from stereoseed.pipeline import load_sequence, reconstruct
+
+    images, names, P_pair = load_sequence(str(temple_dir / "ring_order.txt"), str(temple_dir / "templeSR_par.txt"))
+    truth = read_middlebury_par(temple_dir / "templeSR_par.txt")
+    recon, report = reconstruct(images, names, P_pair)
+    return recon, report, [truth[n] for n in names]

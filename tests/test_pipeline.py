@@ -96,8 +96,9 @@ def test_plain_box_without_epipolar_geometry_is_placed_by_the_motion_prior(plain
     assert errors.max() < 0.02, errors
 
 
-@pytest.mark.xfail(reason="known limit: past ~8 images the repeated squares alias the motion-prior "
-                          "consensus and the chain breaks (see the closing note of issue 4)", strict=False)
+@pytest.mark.xfail(reason="fragile: passes here (14/14 registered, corners 0.78 mm) but small changes "
+                          "let the repeated squares alias the motion-prior consensus and break the chain "
+                          "around image 8", strict=False)
 def test_plain_box_squares_only_registers_every_camera(plain_box_scene):
     recon, report = _run(plain_box_scene, "accurate")
     assert report["registered"] == plain_box_scene.n_images, [r.get("reason") for r in report["per_image"]]
@@ -129,3 +130,19 @@ def test_a_bad_image_is_reported_and_skipped(box_scene, tmp_path):
     assert len(pts) == report["points"] and cols.dtype == np.uint8
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["mode"] == "accurate" and rep["camera_model"] == "focal" and rep["window"] == 3
+
+
+def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
+    recon, report, truth = temple_run
+    assert report["registered"] == len(truth), [r.get("reason") for r in report["per_image"]]
+    errors = camera_errors([v.P_input for v in recon.views], truth)
+    centre = np.array(errors["center_m"][2:], dtype=float)
+    rotation = np.array(errors["rotation_deg"][2:], dtype=float)
+    # measured: median 5.6 mm, worst 19 mm, rotations <= 1.5 deg (the camera is ~0.6 m away
+    # with a 1520 px focal length: depth and focal length are hard to tell apart)
+    assert np.median(centre) < 0.008, centre
+    assert centre.max() < 0.03, centre
+    assert rotation.max() < 2.5, rotation
+    # three images were taken upside down relative to their predecessor: found and exported
+    # in the input image's frame (checked by the centre errors above)
+    assert sum(bool(v.rotated_180) for v in recon.views) >= 1

@@ -74,6 +74,25 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
     return {"points": tri.points[wide], "colors": np.ascontiguousarray(colors, dtype=np.uint8), "report": report}
 
 
+def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
+    keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
+    span = keys.max(axis=0) + 1
+    return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+
+
+def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources: int) -> np.ndarray:
+    """(N,) bool: points whose cell (side ``size``) holds points from at least ``min_sources``
+    distinct sources (pairs). A wrong propagated match lands at a random depth along its
+    epipolar line, where no other pair puts a point; a true surface point is seen by every pair
+    that sees the surface there."""
+    if len(points) == 0 or min_sources <= 1:
+        return np.ones(len(points), bool)
+    cell = _voxel_keys(points, size)
+    pairs = np.unique(np.stack([cell, sources]), axis=1)
+    cells, count = np.unique(pairs[0], return_counts=True)
+    return count[np.searchsorted(cells, cell)] >= min_sources
+
+
 def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Merge near-duplicates: points falling in the same voxel (size ``voxel``, metres) are
     replaced by their mean position and mean colour. (N, 3), (N, 3) -> (K, 3), (K, 3)."""
@@ -146,9 +165,12 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
             collect(pair, _run_pair(job))
     points = np.vstack(clouds) if clouds else np.zeros((0, 3))
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
+    sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)
     voxel = cfg.dense.fusion_voxel or _auto_voxel(recon)
-    fused, fused_colors = fuse(points, colors, voxel)
-    report = {"pairs": per_pair, "points_before_fusion": int(len(points)), "points": int(len(fused)),
+    keep = supported(points, sources, cfg.dense.support_cell_voxels * voxel, cfg.dense.min_pair_support)
+    fused, fused_colors = fuse(points[keep], colors[keep], voxel)
+    report = {"pairs": per_pair, "points_before_fusion": int(len(points)), "points_supported": int(keep.sum()),
+              "points": int(len(fused)),
               "fusion_voxel_m": voxel, "seconds": time.perf_counter() - t0}
     if out_dir is not None:
         write_ply(Path(out_dir) / "dense.ply", fused, fused_colors)
