@@ -16,44 +16,19 @@ import cv2
 import numpy as np
 
 from stereoseed.camera import (
-    camera_center,
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,
-    project,
 )
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.features import extract_features
 from stereoseed.matching import Matches, filter_epipolar, match_pair, match_zncc
-from stereoseed.synthetic import FACE_NORMALS, FACE_ORIGIN, SceneConfig, render_scene
-
-
-def surface_truth(scene, i: int, j: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact position in image j of the surface point seen at pixel x (N, 2) of image i, and
-    whether it can be evaluated (one surface in the 3x3 neighbourhood, visible in j).
-    Same definition as tests/test_matching.py::surface_truth."""
-    _, labels = scene.surface_points(i)
-    h, w = labels.shape
-    u = np.clip(np.rint(x[:, 0]).astype(int), 1, w - 2)
-    v = np.clip(np.rint(x[:, 1]).astype(int), 1, h - 2)
-    lab = labels[v, u]
-    nb = np.stack([labels[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
-    ok = np.all(nb == lab[:, None], axis=1) & (lab >= 0)
-    lab = np.where(ok, lab, 0)
-    C = camera_center(scene.P[i])
-    rays = np.hstack([x, np.ones((len(x), 1))]) @ np.linalg.inv(scene.K[i]).T @ scene.R[i]
-    n, o = FACE_NORMALS[lab], FACE_ORIGIN[lab]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.einsum("nk,nk->n", o - C, n) / np.einsum("nk,nk->n", rays, n)
-    X = C + t[:, None] * rays
-    ok &= np.isfinite(t) & (t > 0)
-    ok[ok] &= scene.is_visible(j, X[ok])
-    return project(scene.P[j], X), ok
+from stereoseed.synthetic import SceneConfig, render_scene
 
 
 def accuracy(scene, i: int, j: int, f1, f2, m: Matches) -> dict:
     x1, x2 = m.points(f1, f2)
-    xt, ok = surface_truth(scene, i, j, x1)
+    xt, ok = scene.true_match(i, j, x1)
     err = np.linalg.norm(xt - x2, axis=1)[ok]
 
     def frac(t: float) -> float | None:

@@ -1,4 +1,5 @@
 """Small random cameras and point clouds for the geometry tests (no rendering needed)."""
+import cv2
 import numpy as np
 
 from stereoseed.camera import compose_projection
@@ -31,3 +32,13 @@ def box_points(rng, n, half=0.17, height=0.44):
     pts[face == 1, 1] = half
     pts[face == 2, 2] = height
     return pts
+
+
+def band_noise(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
+    """Smooth random texture in [0, 1], blobs of a few pixels: (H, W) float32."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros(shape, np.float32)
+    for sigma, weight in ((1.2, 1.0), (2.5, 0.8), (5.0, 0.6)):
+        layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+        img += weight * layer / layer.std()
+    return (img - img.min()) / (img.max() - img.min())

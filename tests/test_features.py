@@ -22,18 +22,10 @@ from stereoseed.features import (
     to_gray,
 )
 
+from geometry_helpers import band_noise
+
 
 # --- test images with known geometry ---------------------------------------------------------
-def band_noise(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
-    """Smooth random texture in [0, 1], blobs of a few pixels: (H, W) float32."""
-    rng = np.random.default_rng(seed)
-    img = np.zeros(shape, np.float32)
-    for sigma, weight in ((1.2, 1.0), (2.5, 0.8), (5.0, 0.6)):
-        layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
-        img += weight * layer / layer.std()
-    return (img - img.min()) / (img.max() - img.min())
-
-
 def checkerboard(
     shape: tuple[int, int], H: np.ndarray, cell: float = 20.0, ss: int = 8
 ) -> np.ndarray:

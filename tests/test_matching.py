@@ -16,7 +16,6 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from stereoseed.camera import (
-    camera_center,
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,
@@ -39,19 +38,12 @@ from stereoseed.matching import (
     refine_features,
     zncc_matrix,
 )
-from stereoseed.synthetic import FACE_NORMALS, FACE_ORIGIN, SceneConfig, render_scene
+from stereoseed.synthetic import SceneConfig, render_scene
+
+from geometry_helpers import band_noise
 
 
 # --- helpers ---------------------------------------------------------------------------------
-def band_noise(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.zeros(shape, np.float32)
-    for sigma, weight in ((1.2, 1.0), (2.5, 0.8), (5.0, 0.6)):
-        layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
-        img += weight * layer / layer.std()
-    return (img - img.min()) / (img.max() - img.min())
-
-
 def warped_pair(H: np.ndarray, shape=(240, 320), seed: int = 0):
     """A texture and its copy warped by homography H (image 1 -> image 2), as uint8."""
     h, w = shape
@@ -69,36 +61,9 @@ def apply_h(H: np.ndarray, x: np.ndarray) -> np.ndarray:
     return cv2.perspectiveTransform(x.reshape(-1, 1, 2), H).reshape(-1, 2)
 
 
-def surface_truth(scene, i: int, j: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact position in image j of the surface point seen at pixel x (N, 2) of image i.
-
-    The surface label comes from the nearest pixel; points whose 3x3 neighbourhood spans two
-    surfaces (edges, occlusion boundaries) or the background are not evaluated. The world point
-    is the intersection of the ray through x with that face's plane (exact, no interpolation),
-    kept if camera j sees it. Returns (N, 2) positions and (N,) bool "evaluable".
-    """
-    _, labels = scene.surface_points(i)
-    h, w = labels.shape
-    u = np.clip(np.rint(x[:, 0]).astype(int), 1, w - 2)
-    v = np.clip(np.rint(x[:, 1]).astype(int), 1, h - 2)
-    lab = labels[v, u]
-    nb = np.stack([labels[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
-    ok = np.all(nb == lab[:, None], axis=1) & (lab >= 0)
-    lab = np.where(ok, lab, 0)
-    C = camera_center(scene.P[i])
-    rays = np.hstack([x, np.ones((len(x), 1))]) @ np.linalg.inv(scene.K[i]).T @ scene.R[i]
-    n, o = FACE_NORMALS[lab], FACE_ORIGIN[lab]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.einsum("nk,nk->n", o - C, n) / np.einsum("nk,nk->n", rays, n)
-    X = C + t[:, None] * rays
-    ok &= np.isfinite(t) & (t > 0)
-    ok[ok] &= scene.is_visible(j, X[ok])
-    return project(scene.P[j], X), ok
-
-
 def accuracy(scene, i, j, f1, f2, m: Matches) -> dict:
     x1, x2 = m.points(f1, f2)
-    xt, ok = surface_truth(scene, i, j, x1)
+    xt, ok = scene.true_match(i, j, x1)
     err = np.linalg.norm(xt - x2, axis=1)[ok]
     return {
         "kept": len(m),

@@ -547,6 +547,34 @@ class SyntheticScene:
         t, labels = _cast(C, points - C)
         return inside & ((labels < 0) | (t >= 1.0 - tol))
 
+    def true_match(self, i: int, j: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact position in image j of the surface point seen at pixels x (N, 2) of image i.
+
+        The surface label comes from the nearest pixel; points whose 3x3 neighbourhood spans two
+        surfaces (edges, occlusion boundaries) or the background are not evaluated. The world
+        point is the intersection of the ray through x with that face's plane (exact, no
+        interpolation), kept if camera j sees it. Returns (N, 2) positions and (N,) bool
+        "evaluable".
+        """
+        x = np.asarray(x, np.float64).reshape(-1, 2)
+        _, labels = self.surface_points(i)
+        h, w = labels.shape
+        u = np.clip(np.rint(x[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.rint(x[:, 1]).astype(int), 1, h - 2)
+        lab = labels[v, u]
+        nb = np.stack([labels[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+        ok = np.all(nb == lab[:, None], axis=1) & (lab >= 0)
+        lab = np.where(ok, lab, 0)
+        C = camera_center(self.P[i])
+        rays = self._rays(i, x[:, 0], x[:, 1])
+        n, o = FACE_NORMALS[lab], FACE_ORIGIN[lab]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.einsum("nk,nk->n", o - C, n) / np.einsum("nk,nk->n", rays, n)
+        X = C + t[:, None] * rays
+        ok &= np.isfinite(t) & (t > 0)
+        ok[ok] &= self.is_visible(j, X[ok])
+        return project(self.P[j], X), ok
+
     def corner_visibility(self, i: int, margin: float = 10.0) -> np.ndarray:
         """(228,) bool: corner's face turned towards camera i, unoccluded, >= margin px inside."""
         C = camera_center(self.P[i])
