@@ -249,6 +249,21 @@ def _solve3(H, g):
     return x, True
 
 
+
+@njit(cache=True, inline="always")
+def _add_row(H: np.ndarray, g: np.ndarray, a0: float, a1: float, a2: float, b: float) -> None:
+    """Accumulate one equation a . X = b into the normal equations (upper triangle of H)."""
+    H[0, 0] += a0 * a0
+    H[0, 1] += a0 * a1
+    H[0, 2] += a0 * a2
+    H[1, 1] += a1 * a1
+    H[1, 2] += a1 * a2
+    H[2, 2] += a2 * a2
+    g[0] += a0 * b
+    g[1] += a1 * b
+    g[2] += a2 * b
+
+
 @njit(cache=True)
 def _two_view_kernel(P1, P2, x1, x2, iterations, out_X, out_err):
     n = x1.shape[0]
@@ -267,15 +282,7 @@ def _two_view_kernel(P1, P2, x1, x2, iterations, out_X, out_err):
                 r1 = (x[row] * P[2, 1] - P[row, 1]) * s
                 r2 = (x[row] * P[2, 2] - P[row, 2]) * s
                 r3 = (x[row] * P[2, 3] - P[row, 3]) * s
-                H[0, 0] += r0 * r0
-                H[0, 1] += r0 * r1
-                H[0, 2] += r0 * r2
-                H[1, 1] += r1 * r1
-                H[1, 2] += r1 * r2
-                H[2, 2] += r2 * r2
-                g[0] -= r0 * r3
-                g[1] -= r1 * r3
-                g[2] -= r2 * r3
+                _add_row(H, g, r0, r1, r2, -r3)
         H[1, 0] = H[0, 1]
         H[2, 0] = H[0, 2]
         H[2, 1] = H[1, 2]
@@ -302,15 +309,7 @@ def _two_view_kernel(P1, P2, x1, x2, iterations, out_X, out_err):
                     j1 = (P[row, 1] - val * P[2, 1]) / h2
                     j2 = (P[row, 2] - val * P[2, 2]) / h2
                     r = val - x[row]
-                    H[0, 0] += j0 * j0
-                    H[0, 1] += j0 * j1
-                    H[0, 2] += j0 * j2
-                    H[1, 1] += j1 * j1
-                    H[1, 2] += j1 * j2
-                    H[2, 2] += j2 * j2
-                    g[0] -= j0 * r
-                    g[1] -= j1 * r
-                    g[2] -= j2 * r
+                    _add_row(H, g, j0, j1, j2, -r)
             H[1, 0] = H[0, 1]
             H[2, 0] = H[0, 2]
             H[2, 1] = H[1, 2]
