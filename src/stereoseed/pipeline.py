@@ -51,13 +51,11 @@ class HarrisZncc:
         return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
-        # Without F the pipeline only needs enough matches to place the camera: it re-matches
-        # under the camera's epipolar geometry right after, so the guided second pass is skipped.
         mc = self.cfg.matching
-        m = match_pair(fa, fb, mc, F=F, image_width=image_width, guided=F is not None,
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width,
                        max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
         if len(m) < mc.relax_below:
-            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, guided=F is not None,
+            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width,
                                  max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
             if len(relaxed) > len(m):
                 m = relaxed
