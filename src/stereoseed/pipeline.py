@@ -665,11 +665,13 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         try:
             rep = insert_view(recon, k, cfg)
             rep["status"] = "registered"
-        except StereoseedError as e:
+        except (StereoseedError, np.linalg.LinAlgError) as e:
+            # a degenerate configuration the checks did not foresee is still one image's failure
+            reason = str(e) if isinstance(e, StereoseedError) else f"{names[k]}: numerical failure ({e}); skipped"
             recon.views[k].P = None
-            recon.views[k].status = f"failed: {e}"
+            recon.views[k].status = f"failed: {reason}"
             _forget_view(recon, k)
-            rep = {"image": names[k], "status": "failed", "reason": str(e)}
+            rep = {"image": names[k], "status": "failed", "reason": reason}
         per_image.append(rep)
         if progress:
             progress(k + 1, n, f"{names[k]}: {rep['status']}")

@@ -161,13 +161,12 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
         return P, inliers, float(np.sqrt(np.mean(err2)))
 
-    candidates = [polish(dlt_projection(X[best_inliers], x[best_inliers]), best_inliers)]
+    starts = [(dlt_projection(X[best_inliers], x[best_inliers]), best_inliers)]
     if model != "free" and reference_K is not None:
         # The DLT is ill-conditioned when the points are nearly planar (one face of an object
         # in view); a constrained camera can start from P3P with the reference intrinsics.
-        start = _pnp_start(X, x, reference_K, config)
-        if start is not None:
-            candidates.append(polish(*start))
+        starts.append(_pnp_start(X, x, reference_K, config))
+    candidates = [polish(*s) for s in starts if s is not None and np.all(np.isfinite(s[0]))]
     def plausible(P: np.ndarray) -> bool:
         # a near-planar point set lets the LM run the focal length off to infinity (an affine
         # camera fits a plane): such a camera is no candidate
@@ -181,6 +180,8 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         if start is not None:
             model, reference_K = "fixed", np.asarray(fallback_K, np.float64)
             candidates = [polish(*start)]
+    if not candidates:
+        raise StereoseedError(f"{what}: the {best_count} agreeing 3D-2D pairs are degenerate (no finite camera)")
     P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))
     if rms > config.max_rms_px:
         raise StereoseedError(f"{what}: the best camera reprojects its inliers with {rms:.2f} px RMS "
