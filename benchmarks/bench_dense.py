@@ -27,7 +27,7 @@ def run() -> dict:
     out = {}
     for label, source in (("harris", None), ("exact-matches", TrueCorrespondences(scene))):
         recon, report = reconstruct(scene.images, scene.names, scene.P[:2], cfg, source=source)
-        centre = [e for e in camera_errors([v.P for v in recon.views], scene.P)["center_m"][2:] if e is not None]
+        centre = [e for e in camera_errors([v.P_input for v in recon.views], scene.P)["center_m"][2:] if e is not None]
         densify(recon, cfg)  # warm-up: JIT caches and worker start-up
         t = time.perf_counter()
         dense = densify(recon, cfg)

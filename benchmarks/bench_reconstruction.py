@@ -21,7 +21,7 @@ def _cfg(mode: str, **kw) -> Config:
 
 def _summary(recon, report, scene=None, truth_P=None) -> dict:
     truth_P = truth_P if truth_P is not None else scene.P
-    err = camera_errors([v.P for v in recon.views], truth_P)
+    err = camera_errors([v.P_input for v in recon.views], truth_P)
     centre = np.array([e for e in err["center_m"][2:] if e is not None])
     rot = np.array([e for e in err["rotation_deg"][2:] if e is not None])
     out = {"registered": report["registered"], "images": report["images"], "points": report["points"],

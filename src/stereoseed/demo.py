@@ -32,7 +32,7 @@ def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = Tr
 
     cfg = Config()
     recon, report = reconstruct(scene.images, scene.names, [c.P for c in cams], cfg)
-    errors = camera_errors([v.P for v in recon.views], scene.P)
+    errors = camera_errors([v.P_input for v in recon.views], scene.P)
     corners, seen = reconstruct_corners([v.P for v in recon.views], [v.features for v in recon.views],
                                         scene.corners, scene.P,
                                         [scene.corner_visibility(i) for i in range(scene.n_images)])
