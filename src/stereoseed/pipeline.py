@@ -6,6 +6,12 @@
 
 ``reconstruct`` runs all of it; every step returns a JSON-able report and an insertion that
 fails is reported with its reason and skipped: the run keeps what it has.
+
+Beyond the paper (``mode="accurate"``): points are tracked into the new view and the older views
+of the window by projection + patch alignment, re-triangulated from their whole track, and the
+last W cameras are adjusted together. In both modes, an insertion whose epipolar geometry cannot
+be found falls back on a constant-motion prediction of the camera, and a view turned upside down
+is matched turned back.
 """
 from __future__ import annotations
 
@@ -151,6 +157,9 @@ def _previous_registered(recon: Reconstruction, k: int, count: int) -> list[int]
 def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
     """Paper §4.2-4.3: register view k from the last registered view, add its points, local BA.
 
+    Steps: match I_{k-1} <-> I_k (robust F; turned by 180 degrees or by motion prior if that
+    fails), chain to the 3D points, resect (robust DLT, LM under the camera model), re-match
+    under the new epipolar geometry, triangulate the new points, track (accurate mode), BA.
     Raises :class:`StereoseedError` (the view is left unregistered) when it cannot be placed.
     """
     pc = cfg.pipeline
