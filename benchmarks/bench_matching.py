@@ -22,7 +22,8 @@ from stereoseed.camera import (
 )
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.features import extract_features
-from stereoseed.matching import Matches, filter_epipolar, match_pair, match_zncc
+from stereoseed.io import read_middlebury_par
+from stereoseed.matching import Matches, filter_epipolar, match_pair, match_turned, match_zncc
 from stereoseed.synthetic import SceneConfig, render_scene
 
 
@@ -72,23 +73,23 @@ def temple_figures(folder: Path) -> dict | None:
     if not (folder / "ring_order.txt").is_file():
         return None
     order = (folder / "ring_order.txt").read_text().split()
-    cams = {}
-    for line in next(folder.glob("*_par.txt")).read_text().splitlines()[1:]:
-        p = line.split()
-        if len(p) == 22:
-            v = np.array(p[1:], float)
-            cams[p[0]] = v[:9].reshape(3, 3) @ np.hstack([v[9:18].reshape(3, 3), v[18:21, None]])
-    feats = {n: extract_features(cv2.imread(str(folder / n))) for n in order}
+    cams = read_middlebury_par(next(folder.glob("*_par.txt")))
+    images = {n: cv2.imread(str(folder / n)) for n in order}
+    feats = {n: extract_features(images[n]) for n in order}
     rows = []
     for a, b in zip(order[:-1], order[1:]):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m = match_pair(feats[a], feats[b], MatchingConfig())
-        x1, x2 = m.points(feats[a], feats[b])
-        d = epipolar_distances(fundamental_from_projections(cams[a], cams[b]), x1, x2)
-        # Views of opposite gantry latitude are rotated 180 degrees: no ZNCC match expected.
+        # Views of opposite gantry latitude are rotated 180 degrees: matched turned back.
         R_a, R_b = decompose_projection(cams[a])[1], decompose_projection(cams[b])[1]
         upright = float(R_a[1] @ R_b[1]) > 0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            if upright:
+                m = match_pair(feats[a], feats[b], MatchingConfig())
+                x1, x2 = m.points(feats[a], feats[b])
+            else:
+                m, x2 = match_turned(feats[a], images[b], MatchingConfig())
+                x1 = feats[a].points[m.idx1]
+        d = epipolar_distances(fundamental_from_projections(cams[a], cams[b]), x1, x2)
         rows.append({"pair": f"{a}-{b}", "upright": upright, "kept": len(m),
                      "median_epipolar_px": round(float(np.median(d)), 3) if len(m) else None})
     return {"pairs": rows, "features_per_image": int(np.median([len(f) for f in feats.values()]))}

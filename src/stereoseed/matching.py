@@ -42,9 +42,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import epipolar_distances
-from .config import MatchingConfig
+from .config import FeatureConfig, MatchingConfig
 from .errors import StereoseedError
-from .features import DEFAULT_MIN_PATCH_STD, Features, describe, describe_scaled
+from .features import DEFAULT_MIN_PATCH_STD, Features, describe, describe_scaled, extract_features
 
 __all__ = [
     "Matches",
@@ -954,6 +954,21 @@ def match_pair(
         if len(mg) >= len(m):
             m = mg
     return result(m, F)
+
+
+def match_turned(f1: Features, image2: np.ndarray, config: MatchingConfig = MatchingConfig(),
+                 feature_config: FeatureConfig = FeatureConfig(), **kwargs) -> tuple[Matches, np.ndarray]:
+    """Match ``f1`` against ``image2`` turned by 180 degrees (a camera held upside down relative
+    to the first: ZNCC is not rotation invariant). kwargs go to :func:`match_pair`.
+
+    Returns (Matches into the turned image's features, (M, 2) float64 matched points of image 2
+    in its own frame: x -> (W - 1 - x, H - 1 - y) with pixel (0, 0) the top-left pixel's centre).
+    """
+    turned = cv2.rotate(np.asarray(image2), cv2.ROTATE_180)
+    f2 = extract_features(turned, feature_config, patch_size=f1.patch_size)
+    m = match_pair(f1, f2, config, **kwargs)
+    h, w = turned.shape[:2]
+    return m, np.array([w - 1.0, h - 1.0]) - f2.points[m.idx2]
 
 
 def _first_by_key(key: np.ndarray, score: np.ndarray) -> np.ndarray:
