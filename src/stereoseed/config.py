@@ -44,7 +44,7 @@ class MatchingConfig:
     # robust estimation takes care of the extra outliers.
     max_shift_px: float = 0.75
     min_aligned_zncc: float = 0.9
-    relax_below: int = 200
+    relax_below: int = 100
     relaxed_max_shift_px: float = 1.5
     relaxed_min_aligned_zncc: float = 0.8
 
