@@ -144,11 +144,11 @@ def noisy_images(images: list[np.ndarray], sigma: float, scene_seed: int) -> lis
     """The images of ``render_scene(SceneConfig(noise_sigma=sigma, seed=scene_seed, ...))`` made
     from the noise-free render of the same config: the renderer adds noise after rendering, from
     a stream of its own, so re-rendering each noise level would only repeat the ray tracing."""
-    from .synthetic import _STREAM_NOISE, add_noise
+    from .synthetic import add_noise, noise_generator
 
     if sigma <= 0:
         return list(images)
-    return [add_noise(im, sigma, np.random.default_rng([scene_seed, _STREAM_NOISE, i])) for i, im in enumerate(images)]
+    return [add_noise(im, sigma, noise_generator(scene_seed, i)) for i, im in enumerate(images)]
 
 
 @dataclass

@@ -450,6 +450,12 @@ def _snap_to_surface(points: np.ndarray, labels: np.ndarray) -> None:
         points[labels == lab, axis] = value
 
 
+def noise_generator(scene_seed: int, index: int) -> np.random.Generator:
+    """The random stream of image ``index``'s pixel noise in the scene of seed ``scene_seed``:
+    noisy variants of a rendered scene can be made without rendering again."""
+    return np.random.default_rng([scene_seed, _STREAM_NOISE, index])
+
+
 def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """Add Gaussian grey-level noise to a uint8 image, round and clip. -> uint8, same shape.
 
@@ -650,8 +656,7 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
         )
         image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
         if cfg.noise_sigma > 0:
-            rng = np.random.default_rng([cfg.seed, _STREAM_NOISE, i])
-            image = add_noise(image, cfg.noise_sigma, rng)
+            image = add_noise(image, cfg.noise_sigma, noise_generator(cfg.seed, i))
         images.append(np.ascontiguousarray(image))
         Ps.append(compose_projection(K, R, t))
     corners, labels = box_corners()
