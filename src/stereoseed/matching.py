@@ -423,7 +423,7 @@ def _bilinear(img: np.ndarray, x: float, y: float) -> float:
     return top * (1.0 - fy) + bottom * fy
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def _sample_normalised(img, A, t, r, out):
     """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
     every sample lies inside the image."""
@@ -464,7 +464,7 @@ def _sample_normalised(img, A, t, r, out):
     return np.sqrt(norm), inside
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
     """Inverse-compositional affine Lucas-Kanade for every match; see :func:`align_matches`."""
     m = x1.shape[0]
