@@ -599,6 +599,17 @@ def _figure(ncols: int = 1, width: float = 7.0, height: float = 4.6) -> tuple[An
     return fig, axes
 
 
+def _finish_rms_axes(ax: Any, xticks: np.ndarray, xlabel: str, title: str) -> None:
+    """Labels, ticks, grid and legend of a plot of the corners' 3D RMS (mm) against xticks."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("3D RMS error of the box corners (mm)")
+    ax.set_title(title)
+    ax.set_xticks(xticks)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+
+
 def _save(fig: Any, path: Path) -> None:
     from matplotlib.ticker import AutoLocator, MaxNLocator
 
@@ -614,13 +625,7 @@ def _plot_fig7(d: dict, path: Path) -> None:
     x = np.array(d["images"])
     for v, values in d["rms_3d_m"].items():
         ax.plot(x, _arr(values, 1000.0), label=LABELS[v], lw=1.8, ms=5, **STYLE[v])
-    ax.set_xlabel("number of images")
-    ax.set_ylabel("3D RMS error of the box corners (mm)")
-    ax.set_title("Fig. 7 — 3D RMS error (eq. 13) against the number of images")
-    ax.set_xticks(x)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
+    _finish_rms_axes(ax, x, "number of images", "Fig. 7 — 3D RMS error (eq. 13) against the number of images")
     _save(fig, path)
 
 
@@ -675,14 +680,9 @@ def _plot_fig9(d: dict, path: Path) -> None:
             ax.plot(np.full(len(y), sig[j] + dx), y, ls="none", marker=".", color=st["color"], alpha=0.35, ms=5)
         ax.errorbar(sig + dx, _arr(r["mean_m"], 1000.0), yerr=_arr(r["std_m"], 1000.0), label=f"{LABELS[v]} (mean ± sd)",
                     capsize=4, lw=1.8, ms=6, **st)
-    ax.set_xlabel("Gaussian image noise σ (grey levels, 0–255)")
-    ax.set_ylabel("3D RMS error of the box corners (mm)")
-    ax.set_title(f"Fig. 9 — 3D RMS error against image noise\n({len(d['seeds'])} scenes per level, "
-                 f"{d['images']} images; dots: single scenes)")
-    ax.set_xticks(sig)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
+    _finish_rms_axes(ax, sig, "Gaussian image noise σ (grey levels, 0–255)",
+                     f"Fig. 9 — 3D RMS error against image noise\n({len(d['seeds'])} scenes per level, "
+                     f"{d['images']} images; dots: single scenes)")
     _save(fig, path)
 
 
