@@ -26,7 +26,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features import Features, describe, extract_features
 from stereoseed.matching import (
     Matches,
-    _epipolar_band_mask,
+    epipolar_band_mask,
     align_matches,
     chain,
     draw_matches,
@@ -203,7 +203,7 @@ def test_band_mask_agrees_with_epipolar_distances():
     rng = np.random.default_rng(1)
     x1 = rng.random((60, 2)) * [640, 480]
     x2 = rng.random((70, 2)) * [640, 480]
-    mask = _epipolar_band_mask(F, x1, x2, 25.0)
+    mask = epipolar_band_mask(F, x1, x2, 25.0)
     ii, jj = np.meshgrid(np.arange(60), np.arange(70), indexing="ij")
     d = epipolar_distances(F, x1[ii.ravel()], x2[jj.ravel()]).reshape(60, 70)
     clear = np.abs(d - 25.0) > 1e-3  # float32 inside the mask

@@ -175,7 +175,7 @@ def _masked_scores(desc1: np.ndarray, desc2: list[np.ndarray], cand: np.ndarray)
     return dense
 
 
-def _epipolar_band_mask(
+def epipolar_band_mask(
     F: np.ndarray, x1: np.ndarray, x2: np.ndarray, band_px: float
 ) -> np.ndarray:
     """(N1, N2) bool: pairs within ``band_px`` of each other's epipolar line in both images.
@@ -309,7 +309,7 @@ def match_zncc(
     del d2
     if F is not None:
         band = float(config.epipolar_band_px if band_px is None else band_px)
-        cand &= _epipolar_band_mask(F, x1v, x2v, band)
+        cand &= epipolar_band_mask(F, x1v, x2v, band)
 
     # Zoom changes between the views (the moving camera's focal length varies): the patches of
     # image 1 are also compared with patches of image 2 resampled at other scales, and each

@@ -18,14 +18,17 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .bundle import BundleProblem, bundle_adjust
 from .camera import decompose_projection, fundamental_from_projections, project
 from .config import Config
 from .errors import StereoseedError
 from .features import Features, describe, extract_features
-from .matching import DEFAULT_ALIGNED_MIN_ZNCC, Matches, align_matches, match_pair, refine_features
+from .matching import (DEFAULT_ALIGNED_MIN_ZNCC, Matches, align_matches, epipolar_band_mask, match_pair,
+                       refine_features)
 from .reconstruction import Reconstruction, View
 from .resection import resect
 from .triangulation import triangulate, triangulate_tracks
@@ -274,8 +277,6 @@ def _try_upside_down(recon: Reconstruction, prev: int, k: int, m: Matches, chain
                      ) -> tuple[Matches, np.ndarray, np.ndarray]:
     """Match view k turned by 180 degrees against ``prev``; keep whichever orientation chains
     more reconstructed points. Returns (matches, point ids of prev's matched features, chained)."""
-    import cv2
-
     view, vp = recon.views[k], recon.views[prev]
     kept = (view.image, view.features, view.point_of_feature, view.rotated_180)
     view.image = cv2.rotate(view.image, cv2.ROTATE_180)
@@ -328,8 +329,6 @@ def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, c
     >= ``min_zncc``, the best ``per_point``) is a hypothesis, and a robust 2D similarity between
     predicted and found positions keeps the consistent ones (the resection's RANSAC follows).
     Returns (points3d (N, 3), points2d (N, 2), scores (N,)), empty when nothing holds."""
-    import cv2
-
     empty = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     before = _previous_registered(recon, prev, 1)
     if not before:
@@ -388,15 +387,13 @@ def _new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: C
     ``min_zncc`` is triangulated, and kept when a third registered view c has an interest point
     within ``max_px`` of its projection whose patch matches too; each interest point is used
     once (best score first). Returns the new point ids (observed in a, b and c)."""
-    from .matching import _epipolar_band_mask
-
     va, vb, vc = recon.views[a], recon.views[b], recon.views[c]
     fa = np.flatnonzero((va.point_of_feature < 0) & va.features.valid)
     fb = np.flatnonzero((vb.point_of_feature < 0) & vb.features.valid)
     fc = np.flatnonzero(vc.features.valid)
     if min(len(fa), len(fb), len(fc)) == 0:
         return np.zeros(0, np.int64)
-    band = _epipolar_band_mask(fundamental_from_projections(va.P, vb.P), va.features.points[fa],
+    band = epipolar_band_mask(fundamental_from_projections(va.P, vb.P), va.features.points[fa],
                                vb.features.points[fb], cfg.matching.epipolar_band_px)
     zab = va.features.desc[fa] @ vb.features.desc[fb].T
     ia, ib = np.nonzero(band & (zab >= min_zncc))
@@ -409,7 +406,6 @@ def _new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: C
     ia, ib, X = ia[ok], ib[ok], res.points[ok]
     if len(ia) == 0:
         return np.zeros(0, np.int64)
-    from scipy.spatial import cKDTree
     dist, nearest = cKDTree(vc.features.points[fc]).query(project(vc.P, X))
     ic = fc[np.minimum(nearest, len(fc) - 1)]
     score = np.minimum(np.einsum("ij,ij->i", va.features.desc[ia], vc.features.desc[ic]),
@@ -498,7 +494,6 @@ def _nearest_linked(view: View, xy: np.ndarray) -> np.ndarray:
     linked = view.features.points[view.point_of_feature >= 0]
     if len(linked) == 0 or len(xy) == 0:
         return np.full(len(xy), np.inf)
-    from scipy.spatial import cKDTree
     return cKDTree(linked).query(xy)[0]
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from .calibration import (check_correspondences, dlt_projection, normalization_2d, normalization_3d,
@@ -73,8 +74,6 @@ def _draw_samples(rng: np.random.Generator, n_samples: int, weights: np.ndarray,
 def _pnp_start(X: np.ndarray, x: np.ndarray, K: np.ndarray, config: ResectionConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """P3P RANSAC (OpenCV) with intrinsics K (3, 3): a starting camera and its inliers, or None.
     The threshold is widened because the true focal length may differ from K's."""
-    import cv2
-
     if len(X) < 6:
         return None
     cv2.setRNGSeed(int(config.seed))
