@@ -9,6 +9,7 @@ from stereoseed.config import Config, PipelineConfig
 from stereoseed.evaluation import TrueCorrespondences, camera_errors, reconstruct_corners, rms_3d
 from stereoseed.io import read_ply
 from stereoseed.pipeline import reconstruct, save_outputs
+from stereoseed.synthetic import SceneConfig, render_scene
 
 
 def _run(scene, mode, source=None, **pipeline):
@@ -96,9 +97,21 @@ def test_plain_box_without_epipolar_geometry_is_placed_by_the_motion_prior(plain
     assert errors.max() < 0.02, errors
 
 
-@pytest.mark.xfail(reason="fragile: passes here (14/14 registered, corners 0.78 mm) but small changes "
-                          "let the repeated squares alias the motion-prior consensus and break the chain "
-                          "around image 8", strict=False)
+def test_a_robust_f_locked_on_repeated_squares_is_overruled_by_the_motion_prior():
+    # In this rendering the robust F between images 10 and 11 fits 21 matches of squares shifted
+    # by one period (a camera 17 cm off); the weak chain is checked against the motion prior and
+    # the camera explaining the most points wins.
+    scene = render_scene(SceneConfig(textured=False, seed=2))
+    recon, report = _run(scene, "accurate")
+    assert report["registered"] == scene.n_images, [r.get("reason") for r in report["per_image"]]
+    overruled = [r for r in report["per_image"][2:] if r["matches"] > 0 and "motion_prior_correspondences" in r]
+    assert overruled, "no weak epipolar chain was checked"
+    assert _centre_errors(recon, scene).max() < 0.02
+
+
+@pytest.mark.xfail(reason="fragile: 7 of 10 renderings of the plain box (seeds 0-4, sigma 0 and 2) keep every "
+                          "camera within ~3 cm; in the others the repeated squares alias the motion prior "
+                          "once and the chain breaks", strict=False)
 def test_plain_box_squares_only_registers_every_camera(plain_box_scene):
     recon, report = _run(plain_box_scene, "accurate")
     assert report["registered"] == plain_box_scene.n_images, [r.get("reason") for r in report["per_image"]]

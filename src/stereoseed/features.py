@@ -32,12 +32,6 @@ __all__ = [
 # A patch whose grey-level standard deviation is below this (in [0, 1] units, ~0.25 grey level
 # of an 8-bit image) has no usable signal: its ZNCC would be driven by quantisation alone.
 DEFAULT_MIN_PATCH_STD = 1e-3
-# Sub-pixel refinement keeps cv2.cornerSubPix's position only where its model holds: at an ideal
-# junction every image gradient in the window is orthogonal to the vector joining its pixel to
-# the corner. The normalised residual of that model (see _junction_residual) is 0 for a perfect
-# junction, ~0.5 for isotropic texture and 1 for a blob centre; 0.1 allows gradient directions
-# ~18 degrees (rms) off orthogonal. Elsewhere the Harris peak is refined by a quadratic fit.
-DEFAULT_JUNCTION_TOL = 0.1
 _REMAP_ROWS = 16384
 
 
@@ -114,8 +108,6 @@ def _empty_points(reason: str) -> tuple[np.ndarray, np.ndarray]:
 def detect_corners_with_response(
     gray: np.ndarray,
     config: FeatureConfig = FeatureConfig(),
-    *,
-    junction_tol: float = DEFAULT_JUNCTION_TOL,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Harris corners with their responses; see :func:`detect_corners`.
 
@@ -158,7 +150,8 @@ def detect_corners_with_response(
         gray, int(config.block_size), int(config.aperture), float(config.harris_k)
     )
     response = harris[yi, xi].astype(np.float64)
-    pts = _refine_subpixel(gray, harris, xi, yi, int(config.subpixel_window), junction_tol)
+    pts = _refine_subpixel(gray, harris, xi, yi, int(config.subpixel_window),
+                           float(config.junction_tol))
 
     inside = (
         (pts[:, 0] >= b) & (pts[:, 0] <= w - 1 - b) & (pts[:, 1] >= b) & (pts[:, 1] <= h - 1 - b)

@@ -189,22 +189,54 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     if view.rotated_180:
         report["rotated_180"] = True
     X3, x2, scores = recon.points[pid[chained]], view.features.points[m.idx2[chained]], m.score[chained]
+    model = pc.resolved_model()
+    ref_K = decompose_projection(recon.views[1].P)[0]
+
+    def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
+        """Robust DLT then LM under the camera model; refuses an implausible camera."""
+        res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
+                     model=model, reference_K=ref_K, what=view.name,
+                     fallback_K=decompose_projection(vp.P)[0] if model != "free" else None)
+        _check_camera(res.P, vp.P, view.name)
+        return res
+
     if chained.sum() < cfg.resection.min_inliers:
         # The epipolar geometry could not be found (repeated patterns, little texture): predict
-        # the camera from the previous motion and match the points of I_{k-1} by projection.
-        X3, x2, scores = _correspondences_by_motion_prior(recon, prev, k, cfg)
+        # the camera from the previous motion, match the points of I_{k-1} by projection, and
+        # keep the hypothesis whose camera explains the most points.
+        hypotheses = _correspondences_by_motion_prior(recon, prev, k, cfg)
+        chosen = _most_explaining(recon, prev, k, hypotheses, lambda *c: resect_view(*c).P)
+        X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
         report["motion_prior_correspondences"] = len(X3)
     if len(X3) < pc.min_chained_points:
         raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
                               f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
     # 3. resection: robust DLT then LM under the camera model
     t = time.perf_counter()
-    model = pc.resolved_model()
-    ref_K = decompose_projection(recon.views[1].P)[0]
-    res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
-                 model=model, reference_K=ref_K, what=view.name,
-                 fallback_K=decompose_projection(vp.P)[0] if model != "free" else None)
-    _check_camera(res.P, vp.P, view.name)
+    by_prior = "motion_prior_correspondences" in report
+    before = _previous_registered(recon, prev, 1)
+    # the motion prior is worth a check once it extrapolates the moving camera's own motion
+    # (not the stereo pair's baseline, which says little about the walk)
+    prior_known = bool(before) and before[0] >= 1
+    try:
+        res = resect_view(X3, x2, scores)
+    except StereoseedError:
+        if by_prior or not prior_known:
+            raise
+        res = None
+    if not by_prior and prior_known and (res is None or res.inliers.sum() < 2 * cfg.resection.min_inliers):
+        # A weak epipolar chain: on repeated patterns the robust F may be the pattern shifted by
+        # one period (measured on the plain box: 19 chained points, a camera 17 cm off). Let the
+        # camera that explains the most points decide between it and the motion prior.
+        hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(recon, prev, k, cfg)
+        chosen = _most_explaining(recon, prev, k, hypotheses, lambda *c: resect_view(*c).P)
+        if chosen is None:
+            raise StereoseedError(f"{view.name}: neither its matches with {vp.name} nor the motion prior give "
+                                  "a plausible camera; the view is too far or too poorly textured")
+        if res is None or chosen > 0:
+            X3, x2, scores = hypotheses[chosen]
+            res = resect_view(X3, x2, scores)
+            report["motion_prior_correspondences"] = len(X3)
     view.P = res.P
     timing["resection"] = time.perf_counter() - t
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px)
@@ -322,33 +354,29 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
 
 def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, cfg: Config,
                                      radius_fraction: float = 0.08, min_zncc: float = 0.7,
-                                     per_point: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                                     per_point: int = 3, n_hypotheses: int = 3
+                                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """3D-2D correspondences for view k without epipolar geometry: the points seen in the last
     registered views are projected with the predicted camera (:func:`predict_camera`); every
     interest point of k within ``radius_fraction`` of the image width whose patch matches (ZNCC
-    >= ``min_zncc``, the best ``per_point``) is a hypothesis, and a robust 2D similarity between
+    >= ``min_zncc``, the best ``per_point``) is a pairing, and a robust 2D similarity between
     predicted and found positions keeps the consistent ones (the resection's RANSAC follows).
-    Returns (points3d (N, 3), points2d (N, 2), scores (N,)), empty when nothing holds."""
-    empty = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+
+    A repeated pattern offers several consistent similarities (the prediction shifted by one
+    period of the pattern), so up to ``n_hypotheses`` are returned, found one after another
+    on the pairings the previous ones left, best supported first; :func:`_most_explaining`
+    decides between them. Each is (points3d (N, 3), points2d (N, 2), scores (N,)).
+    """
     before = _previous_registered(recon, prev, 1)
     if not before:
-        return empty
+        return []
     vp, vk = recon.views[prev], recon.views[k]
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
     P_pred = predict_camera(recon.views[before[0]].P, vp.P, steps)
-    # every live point seen in the last three registered views, described by its latest image
-    recent = [prev] + _previous_registered(recon, prev, 2)
-    sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]
-    order = np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")]
-    pids, first = np.unique(recon.obs_point[order], return_index=True)
-    obs = order[first]
+    pids, desc = _recent_points(recon, prev)
     if len(pids) < 4 or len(vk.features) == 0:
-        return empty
-    desc = np.empty((len(obs), vk.features.desc.shape[1]), np.float32)
-    for v in np.unique(recon.obs_view[obs]):
-        here = recon.obs_view[obs] == v
-        desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
+        return []
     pred = project(P_pred, recon.points[pids])
     width = vk.features.image_shape[1]
     d = np.linalg.norm(pred[:, None, :] - vk.features.points[None, :, :], axis=2)
@@ -359,25 +387,72 @@ def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, c
     cols = best.ravel()
     ok = zncc[rows, cols] >= min_zncc
     rows, cols = rows[ok], cols[ok]
-    if len(rows) < 6:
-        return empty
     # The prediction misses mostly by a zoom about the principal point and a shift (a changed
-    # focal length, a different step): a 4-DOF similarity fitted robustly to the hypotheses
+    # focal length, a different step): a 4-DOF similarity fitted robustly to the pairings
     # (2-point samples, so a low inlier ratio is fine) says which of them are consistent.
-    x = vk.features.points[cols]
     cv2.setRNGSeed(int(cfg.resection.seed))
-    S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
-                                         ransacReprojThreshold=0.015 * width, maxIters=5000,
-                                         confidence=cfg.resection.ransac_confidence)
-    if S is None or inl is None or inl.sum() < 6:
-        return empty
-    inl = np.flatnonzero(inl.ravel())
-    err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
-    order = inl[np.argsort(err)]
-    _, first = np.unique(rows[order], return_index=True)
-    sel = order[first]
-    X = recon.points[pids[rows]]
-    return X[sel], x[sel], zncc[rows[sel], cols[sel]]
+    hypotheses = []
+    while len(rows) >= 6 and len(hypotheses) < n_hypotheses:
+        x = vk.features.points[cols]
+        S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
+                                             ransacReprojThreshold=0.015 * width, maxIters=5000,
+                                             confidence=cfg.resection.ransac_confidence)
+        if S is None or inl is None or inl.sum() < 6:
+            break
+        inl = np.flatnonzero(inl.ravel())
+        err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
+        order = inl[np.argsort(err)]
+        _, first = np.unique(rows[order], return_index=True)
+        sel = order[first]
+        hypotheses.append((recon.points[pids[rows[sel]]], x[sel], zncc[rows[sel], cols[sel]]))
+        rest = np.ones(len(rows), bool)
+        rest[inl] = False
+        rows, cols = rows[rest], cols[rest]
+    return hypotheses
+
+
+def _recent_points(recon: Reconstruction, prev: int) -> tuple[np.ndarray, np.ndarray]:
+    """Live points seen in the last three registered views up to ``prev``, each described by
+    its patch in the latest of them: (point ids (N,), descriptors (N, D) float32)."""
+    recent = [prev] + _previous_registered(recon, prev, 2)
+    sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]
+    order = np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")]
+    pids, first = np.unique(recon.obs_point[order], return_index=True)
+    obs = order[first]
+    desc = np.zeros((len(obs), recon.views[prev].features.desc.shape[1]), np.float32)
+    for v in np.unique(recon.obs_view[obs]):
+        here = recon.obs_view[obs] == v
+        desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
+    return pids, desc
+
+
+def _most_explaining(recon: Reconstruction, prev: int, k: int,
+                     hypotheses: list[tuple[np.ndarray, np.ndarray, np.ndarray]], resect_view,
+                     max_px: float = 3.0, min_zncc: float = 0.7) -> int | None:
+    """Index of the 3D-2D hypothesis for view k whose camera explains most of the recent points
+    (:func:`_recent_points`): a point counts when an interest point of k within ``max_px`` of
+    its projection matches its patch (ZNCC >= ``min_zncc``). A camera shifted by one period of
+    a repeated pattern explains its own correspondences as well as the true one, but loses the
+    points at the pattern's ends and everything else in view. ``resect_view(X3, x2, scores)``
+    -> P, or raises when the hypothesis gives no plausible camera. None if none does."""
+    if len(hypotheses) <= 1:
+        return 0 if hypotheses else None
+    vk = recon.views[k]
+    pids, desc = _recent_points(recon, prev)
+    best, best_score = None, -1
+    for i, hyp in enumerate(hypotheses):
+        try:
+            P = resect_view(*hyp)
+        except (StereoseedError, np.linalg.LinAlgError):
+            continue
+        x = project(P, recon.points[pids])
+        d = np.linalg.norm(x[:, None, :] - vk.features.points[None, :, :], axis=2)
+        nearest = np.argmin(d, axis=1)
+        close = d[np.arange(len(pids)), nearest] <= max_px
+        score = int(np.sum(close & (np.einsum("nd,nd->n", desc, vk.features.desc[nearest]) >= min_zncc)))
+        if score > best_score:
+            best, best_score = i, score
+    return best
 
 
 def _new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Config,
