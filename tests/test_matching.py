@@ -26,6 +26,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features import Features, describe, extract_features
 from stereoseed.matching import (
     Matches,
+    PairCache,
     epipolar_band_mask,
     align_matches,
     chain,
@@ -332,6 +333,25 @@ def test_refine_features_moves_matched_points_onto_the_truth(textured):
     desc, _ = describe(feats[1].gray, refined.points[m.idx2[:5]], feats[1].patch_size)
     np.testing.assert_allclose(refined.desc[m.idx2[:5]], desc, atol=1e-6)
     assert feats[1].points is not refined.points
+
+
+def test_a_pair_cache_changes_nothing_but_the_work(textured):
+    """Robust F, then known F, then refinement through one PairCache: the same matches and
+    positions as without it, and the second round aligns (almost) nothing new."""
+    scene, feats = textured
+    F = fundamental_from_projections(scene.P[0], scene.P[1])
+    cache = PairCache(feats[0], feats[1])
+    for known in (None, F):
+        plain = match_pair(feats[0], feats[1], MatchingConfig(), F=known)
+        cached = match_pair(feats[0], feats[1], MatchingConfig(), F=known, pair_cache=cache)
+        np.testing.assert_array_equal(plain.idx1, cached.idx1)
+        np.testing.assert_array_equal(plain.idx2, cached.idx2)
+        np.testing.assert_allclose(plain.score, cached.score, atol=1e-5)
+    aligned = len(cache.codes)
+    refined = refine_features(feats[0], feats[1], cached, cache=cache)
+    assert len(cache.codes) == aligned  # every kept match was aligned while matching
+    np.testing.assert_array_equal(refined.points, refine_features(feats[0], feats[1], cached).points)
+    assert not PairCache(feats[1], feats[0]).covers(feats[0], feats[1])
 
 
 def test_guided_matching_beats_the_papers_recipe(textured):

@@ -52,6 +52,7 @@ __all__ = [
     "match_zncc",
     "Alignment",
     "align_matches",
+    "PairCache",
     "filter_localization",
     "refine_features",
     "filter_epipolar",
@@ -243,6 +244,21 @@ def _competitor(
     return comp
 
 
+def _scaled_descriptors(f2: Features, v2: np.ndarray, scales: tuple[float, ...]) -> list[np.ndarray]:
+    """Descriptors of the points ``v2`` of image 2 at scale 1 and at ``scales``: zoom changes
+    between the views (the moving camera's focal length varies), so the patches of image 1 are
+    also compared with patches of image 2 resampled at other scales, and each pair keeps its
+    best score. NaN rows: not available at that scale."""
+    desc2 = [f2.desc[v2]]
+    if f2.gray is not None:
+        for sc in scales:
+            if sc != 1.0:
+                d2s, ok2 = describe_scaled(f2.gray, f2.points[v2], f2.patch_size, sc)
+                d2s[~ok2] = np.nan  # never a candidate at that scale
+                desc2.append(d2s)
+    return desc2
+
+
 def match_zncc(
     f1: Features,
     f2: Features,
@@ -256,6 +272,7 @@ def match_zncc(
     max_ratio: float | None = DEFAULT_MAX_RATIO,
     unique_exclusion_px: float | None = None,
     scales: tuple[float, ...] = (),
+    cache: PairCache | None = None,
 ) -> Matches:
     """Match two feature sets by ZNCC.
 
@@ -270,7 +287,8 @@ def match_zncc(
     passes the uniqueness test in both directions: ``sqrt(1 - best) < max_ratio *
     sqrt(1 - competitor)``, where the competitor is the best other candidate farther than
     ``unique_exclusion_px`` (default ``config.patch_size / 2``) from the winner. ``max_ratio``
-    None (or >= 1) disables it.
+    None (or >= 1) disables it. A ``cache`` (:class:`PairCache` for (f1, f2)) keeps the scores
+    of all pairs for the next call on the same features.
     Returns Matches sorted by decreasing score; empty (with a warning) if either set is empty.
     """
     x1 = _as_points(f1)
@@ -311,17 +329,14 @@ def match_zncc(
         band = float(config.epipolar_band_px if band_px is None else band_px)
         cand &= epipolar_band_mask(F, x1v, x2v, band)
 
-    # Zoom changes between the views (the moving camera's focal length varies): the patches of
-    # image 1 are also compared with patches of image 2 resampled at other scales, and each
-    # pair keeps its best score.
-    desc2 = [f2.desc[v2]]
-    if f2.gray is not None:
-        for sc in scales:
-            if sc != 1.0:
-                d2s, ok2 = describe_scaled(f2.gray, x2v, f2.patch_size, sc)
-                d2s[~ok2] = np.nan  # never a candidate at that scale
-                desc2.append(d2s)
-    s = _masked_scores(f1.desc[v1], desc2, cand)
+    if cache is not None and cache.covers(f1, f2):
+        full = cache.scores.get(tuple(scales))
+        if full is None:
+            full = _masked_scores(f1.desc[v1], _scaled_descriptors(f2, v2, scales), np.ones(cand.shape, bool))
+            cache.scores[tuple(scales)] = full
+        s = np.where(cand, full, np.float32(-np.inf))
+    else:
+        s = _masked_scores(f1.desc[v1], _scaled_descriptors(f2, v2, scales), cand)
     rows_all = np.arange(len(v1))
     best2 = np.argmax(s, axis=1)  # (N1v,) best column of every row
     score = s[rows_all, best2]
@@ -374,6 +389,38 @@ class Alignment:
     def shift(self, kp2: Features | np.ndarray, matches: Matches) -> np.ndarray:
         """(M,) distance between the aligned position and the detected point of image 2."""
         return np.linalg.norm(self.x2 - _as_points(kp2)[matches.idx2], axis=1)
+
+
+class PairCache:
+    """What matching one pair several times (robust F, guided, relaxed, known F, then the
+    sub-pixel refinement) would otherwise compute again: the ZNCC scores of all valid pairs
+    (per set of scales) and the alignment of each (idx1, idx2) pair. Valid for the two Features
+    objects it was made for (identity).
+    """
+
+    def __init__(self, f1: Features, f2: Features):
+        self.f1, self.f2 = f1, f2
+        self.scores: dict[tuple, np.ndarray] = {}
+        self.params: tuple | None = None
+        self.codes = np.zeros(0, np.int64)
+        self.rows = Alignment(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, bool))
+
+    def covers(self, f1: Features, f2: Features) -> bool:
+        return f1 is self.f1 and f2 is self.f2
+
+    def lookup(self, codes: np.ndarray) -> np.ndarray:
+        """(M,) row of each code in the cache, -1 where absent."""
+        pos = np.minimum(np.searchsorted(self.codes, codes), max(len(self.codes) - 1, 0))
+        hit = (self.codes[pos] == codes) if len(self.codes) else np.zeros(len(codes), bool)
+        return np.where(hit, pos, -1)
+
+    def add(self, codes: np.ndarray, al: Alignment) -> None:
+        codes = np.concatenate([self.codes, codes])
+        order = np.argsort(codes, kind="stable")
+        r = self.rows
+        self.codes = codes[order]
+        self.rows = Alignment(np.concatenate([r.x2, al.x2])[order], np.concatenate([r.affine, al.affine])[order],
+                              np.concatenate([r.zncc, al.zncc])[order], np.concatenate([r.converged, al.converged])[order])
 
 
 def _patch_offsets(patch_size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -594,6 +641,7 @@ def align_matches(
     patch_size: int = DEFAULT_ALIGN_PATCH,
     max_iters: int = 30,
     tol_px: float = 0.01,
+    cache: PairCache | None = None,
 ) -> Alignment:
     """Align the patch of every match by affine Lucas-Kanade on normalised patches.
 
@@ -614,12 +662,23 @@ def align_matches(
 
     Returns an :class:`Alignment` (M rows). A match does not converge if a patch leaves its
     image, is flat, or the warp degenerates (singular values outside [1/4, 4], drift beyond
-    P/2 px).
+    P/2 px). With a ``cache`` made for (f1, f2), pairs aligned before are not aligned again.
     """
     if f1.gray is None or f2.gray is None:
         raise StereoseedError(
             "align_matches needs the grey images: build the Features with extract_features"
         )
+    params = (patch_size, max_iters, tol_px)
+    if cache is not None and cache.covers(f1, f2) and cache.params in (None, params):
+        cache.params = params
+        codes = matches.idx1.astype(np.int64) * max(len(f2), 1) + matches.idx2
+        missing = np.unique(codes[cache.lookup(codes) < 0])
+        if len(missing):
+            todo = Matches(missing // max(len(f2), 1), missing % max(len(f2), 1), np.zeros(len(missing)))
+            cache.add(missing, align_matches(f1, f2, todo, patch_size=patch_size, max_iters=max_iters, tol_px=tol_px))
+        rows = cache.lookup(codes)
+        r = cache.rows
+        return Alignment(r.x2[rows], r.affine[rows], r.zncc[rows], r.converged[rows])
     x1, x2 = matches.points(f1, f2)
     g1 = np.ascontiguousarray(f1.gray, np.float32)
     g2 = np.ascontiguousarray(f2.gray, np.float32)
@@ -726,6 +785,7 @@ def filter_localization(
     max_shift_px: float = DEFAULT_MAX_SHIFT_PX,
     min_zncc: float = DEFAULT_ALIGNED_MIN_ZNCC,
     patch_size: int = DEFAULT_ALIGN_PATCH,
+    cache: PairCache | None = None,
 ) -> Matches:
     """Keep the matches whose two detections are the same point, scored by aligned ZNCC.
 
@@ -735,7 +795,7 @@ def filter_localization(
     """
     if len(matches) == 0:
         return matches
-    al = align_matches(f1, f2, matches, patch_size=patch_size)
+    al = align_matches(f1, f2, matches, patch_size=patch_size, cache=cache)
     keep = al.converged & (al.shift(f2, matches) <= max_shift_px) & (al.zncc > min_zncc)
     return Matches(matches.idx1[keep], matches.idx2[keep], al.zncc[keep]).sorted_by_score()
 
@@ -746,6 +806,7 @@ def refine_features(
     matches: Matches,
     *,
     patch_size: int = DEFAULT_ALIGN_PATCH,
+    cache: PairCache | None = None,
 ) -> Features:
     """Copy of ``f2`` whose matched points sit where their partners of image 1 are, sub-pixel.
 
@@ -761,7 +822,7 @@ def refine_features(
     """
     if len(matches) == 0:
         return f2
-    al = align_matches(f1, f2, matches, patch_size=patch_size)
+    al = align_matches(f1, f2, matches, patch_size=patch_size, cache=cache)
     counts = np.bincount(matches.idx2, minlength=len(f2))
     move = al.converged & (counts[matches.idx2] == 1)
     points = f2.points.copy()
@@ -873,6 +934,7 @@ def match_pair(
     guided: bool = True,
     return_F: bool = False,
     return_stats: bool = False,
+    pair_cache: PairCache | None = None,
 ) -> Matches | tuple:
     """Match two images: ZNCC candidates, epipolar geometry, localisation check.
 
@@ -907,7 +969,9 @@ def match_pair(
     when the robust estimate failed: the Matches are then empty and a warning says why); with
     ``return_stats`` also a JSON-able dict of counts per stage ("features", "candidates",
     "localized", "ransac_inliers", "guided_candidates", "kept") and "geometry". Order:
-    ``m``, ``(m, F)``, ``(m, stats)`` or ``(m, F, stats)``.
+    ``m``, ``(m, F)``, ``(m, stats)`` or ``(m, F, stats)``. ``pair_cache``
+    (:class:`PairCache` for (f1, f2)) spares the scores and alignments already computed
+    for this pair.
     """
     cand = config if min_zncc is None else dataclasses.replace(config, min_zncc=float(min_zncc))
     if localize and (f1.gray is None or f2.gray is None):
@@ -920,7 +984,7 @@ def match_pair(
             return m
         return filter_localization(
             m, f1, f2, max_shift_px=max_shift_px, min_zncc=min_aligned_zncc,
-            patch_size=align_patch_size,
+            patch_size=align_patch_size, cache=pair_cache,
         )
 
     def result(m: Matches, F: np.ndarray | None):
@@ -933,11 +997,12 @@ def match_pair(
         band = float(config.epipolar_band_px)
         stats["geometry"] = "known F"
         m = match_zncc(f1, f2, cand, image_width, F=F, band_px=band, max_ratio=max_ratio,
-                       scales=scales)
+                       scales=scales, cache=pair_cache)
         stats["candidates"] = len(m)
         return result(check(filter_epipolar(m, f1, f2, F, band)), F)
 
-    m = match_zncc(f1, f2, cand, image_width, max_ratio=first_pass_ratio, scales=scales)
+    m = match_zncc(f1, f2, cand, image_width, max_ratio=first_pass_ratio, scales=scales,
+                   cache=pair_cache)
     stats["candidates"] = len(m)
     m = check(m)
     stats["localized"] = len(m)
@@ -947,7 +1012,7 @@ def match_pair(
     if F is not None and guided:
         band = float(config.ransac_threshold_px)
         mg = match_zncc(f1, f2, cand, image_width, F=F, band_px=band, max_ratio=max_ratio,
-                        scales=scales)
+                        scales=scales, cache=pair_cache)
         stats["guided_candidates"] = len(mg)
         mg = check(filter_epipolar(mg, f1, f2, F, band))
         # Guided matching should only add matches; if it does not, keep the RANSAC inliers.

@@ -27,7 +27,7 @@ from .camera import decompose_projection, fundamental_from_projections, project
 from .config import Config
 from .errors import StereoseedError
 from .features import Features, describe, extract_features
-from .matching import (DEFAULT_ALIGNED_MIN_ZNCC, Matches, align_matches, epipolar_band_mask, match_pair,
+from .matching import (DEFAULT_ALIGNED_MIN_ZNCC, PairCache, Matches, align_matches, epipolar_band_mask, match_pair,
                        refine_features)
 from .reconstruction import Reconstruction, View
 from .resection import resect
@@ -55,16 +55,27 @@ class HarrisZncc:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg
+        self._pair_caches: list[PairCache] = []
+
+    def _cache(self, fa: Features, fb: Features) -> PairCache:
+        """The cache of the pair (fa, fb): an insertion matches its pair up to four times and
+        then refines it, over largely the same candidates. The last few pairs only."""
+        for c in self._pair_caches:
+            if c.covers(fa, fb):
+                return c
+        self._pair_caches = self._pair_caches[-3:] + [PairCache(fa, fb)]
+        return self._pair_caches[-1]
 
     def features(self, index: int, image: np.ndarray) -> Features:
         return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
         mc = self.cfg.matching
-        m = match_pair(fa, fb, mc, F=F, image_width=image_width,
+        cache = self._cache(fa, fb)
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
                        max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
         if len(m) < mc.relax_below:
-            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width,
+            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
                                  max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
             if len(relaxed) > len(m):
                 m = relaxed
@@ -74,7 +85,7 @@ class HarrisZncc:
         """fb with its matched points moved onto their partners in a (sub-pixel affine alignment):
         a track followed pair after pair then carries one physical point, not detector noise
         (measured on the box ring: paper-mode drift 4.1 cm -> 0.4 cm)."""
-        return refine_features(fa, fb, m)
+        return refine_features(fa, fb, m, cache=self._cache(fa, fb))
 
     def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
               predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
