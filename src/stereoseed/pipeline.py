@@ -199,55 +199,10 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     report: dict[str, Any] = {"image": view.name, "matches": len(m), "chained_points": int(chained.sum())}
     if view.rotated_180:
         report["rotated_180"] = True
-    X3, x2, scores = recon.points[pid[chained]], view.features.points[m.idx2[chained]], m.score[chained]
-    model = pc.resolved_model()
-    ref_K = decompose_projection(recon.views[1].P)[0]
-
-    def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
-        """Robust DLT then LM under the camera model; refuses an implausible camera."""
-        res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
-                     model=model, reference_K=ref_K, what=view.name,
-                     fallback_K=decompose_projection(vp.P)[0] if model != "free" else None)
-        _check_camera(res.P, vp.P, view.name)
-        return res
-
-    if chained.sum() < cfg.resection.min_inliers:
-        # The epipolar geometry could not be found (repeated patterns, little texture): predict
-        # the camera from the previous motion, match the points of I_{k-1} by projection, and
-        # keep the hypothesis whose camera explains the most points.
-        hypotheses = _correspondences_by_motion_prior(recon, prev, k, cfg)
-        chosen = _most_explaining(recon, prev, k, hypotheses, lambda *c: resect_view(*c).P)
-        X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
-        report["motion_prior_correspondences"] = len(X3)
-    if len(X3) < pc.min_chained_points:
-        raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
-                              f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
     # 3. resection: robust DLT then LM under the camera model
     t = time.perf_counter()
-    by_prior = "motion_prior_correspondences" in report
-    before = _previous_registered(recon, prev, 1)
-    # the motion prior is worth a check once it extrapolates the moving camera's own motion
-    # (not the stereo pair's baseline, which says little about the walk)
-    prior_known = bool(before) and before[0] >= 1
-    try:
-        res = resect_view(X3, x2, scores)
-    except StereoseedError:
-        if by_prior or not prior_known:
-            raise
-        res = None
-    if not by_prior and prior_known and (res is None or res.inliers.sum() < 2 * cfg.resection.min_inliers):
-        # A weak epipolar chain: on repeated patterns the robust F may be the pattern shifted by
-        # one period (measured on the plain box: 19 chained points, a camera 17 cm off). Let the
-        # camera that explains the most points decide between it and the motion prior.
-        hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(recon, prev, k, cfg)
-        chosen = _most_explaining(recon, prev, k, hypotheses, lambda *c: resect_view(*c).P)
-        if chosen is None:
-            raise StereoseedError(f"{view.name}: neither its matches with {vp.name} nor the motion prior give "
-                                  "a plausible camera; the view is too far or too poorly textured")
-        if res is None or chosen > 0:
-            X3, x2, scores = hypotheses[chosen]
-            res = resect_view(X3, x2, scores)
-            report["motion_prior_correspondences"] = len(X3)
+    res = _resect_view(recon, prev, k, recon.points[pid[chained]], view.features.points[m.idx2[chained]],
+                       m.score[chained], cfg, report)
     view.P = res.P
     timing["resection"] = time.perf_counter() - t
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px)
@@ -314,6 +269,65 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     report.update(ba=ba, removed_observations=removed, seconds=timing)
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
+
+
+def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
+                 cfg: Config, report: dict[str, Any]) -> Any:
+    """Camera of view k from its chained 3D-2D correspondences (points3d (N, 3), points2d (N, 2),
+    ZNCC scores (N,)): robust DLT then LM under the camera model. When the chain is missing or
+    weak, hypotheses from the motion prior compete with it (:func:`_most_explaining`); the
+    report gets "motion_prior_correspondences" when one of them wins. Returns the
+    :class:`~stereoseed.resection.ResectionResult`; raises :class:`StereoseedError`."""
+    pc = cfg.pipeline
+    view, vp = recon.views[k], recon.views[prev]
+    model = pc.resolved_model()
+    ref_K = decompose_projection(recon.views[1].P)[0]
+    fallback_K = decompose_projection(vp.P)[0] if model != "free" else None
+
+    def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
+        res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
+                     model=model, reference_K=ref_K, what=view.name, fallback_K=fallback_K)
+        _check_camera(res.P, vp.P, view.name)
+        return res
+
+    def camera(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        return resect_view(X3, x2, scores).P
+
+    if len(X3) < cfg.resection.min_inliers:
+        # The epipolar geometry could not be found (repeated patterns, little texture): predict
+        # the camera from the previous motion, match the points of I_{k-1} by projection, and
+        # keep the hypothesis whose camera explains the most points.
+        hypotheses = _correspondences_by_motion_prior(recon, prev, k, cfg)
+        chosen = _most_explaining(recon, prev, k, hypotheses, camera)
+        X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
+        report["motion_prior_correspondences"] = len(X3)
+        if len(X3) < pc.min_chained_points:
+            raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
+                                  f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
+        return resect_view(X3, x2, scores)
+    before = _previous_registered(recon, prev, 1)
+    # the motion prior is worth a check once it extrapolates the moving camera's own motion
+    # (not the stereo pair's baseline, which says little about the walk)
+    if not (before and before[0] >= 1):
+        return resect_view(X3, x2, scores)
+    try:
+        res = resect_view(X3, x2, scores)
+    except StereoseedError:
+        res = None
+    if res is not None and res.inliers.sum() >= 2 * cfg.resection.min_inliers:
+        return res
+    # A weak epipolar chain: on repeated patterns the robust F may be the pattern shifted by one
+    # period (measured on the plain box: 19 chained points, a camera 17 cm off). The camera that
+    # explains the most points decides between it and the motion prior.
+    hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(recon, prev, k, cfg)
+    chosen = _most_explaining(recon, prev, k, hypotheses, camera)
+    if chosen is None:
+        raise StereoseedError(f"{view.name}: neither its matches with {vp.name} nor the motion prior give "
+                              "a plausible camera; the view is too far or too poorly textured")
+    if res is not None and chosen == 0:
+        return res
+    report["motion_prior_correspondences"] = len(hypotheses[chosen][0])
+    return resect_view(*hypotheses[chosen])
 
 
 def _try_upside_down(recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray
