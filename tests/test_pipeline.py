@@ -73,14 +73,15 @@ def test_real_matching_stays_near_the_exact_match_limit(box_scene, paper_oracle,
     detector_limit = _corner_rms_with_true_cameras(recon, box_scene)
     assert rms < 1.15 * detector_limit, (rms, detector_limit)
     if mode == "accurate":
-        assert errors.mean() < 0.0015, errors
+        # measured 0.24 mm mean, 0.58 mm max (the paper's chain: 1.7 mm mean)
+        assert errors.mean() < 0.0006, errors
     assert report["reprojection"]["rms_px"] < 0.5
 
 
 def test_noisy_images_register_every_camera(box_scene_noisy):
     recon, report = _run(box_scene_noisy, "accurate")
     assert report["registered"] == box_scene_noisy.n_images
-    assert _centre_errors(recon, box_scene_noisy).mean() < 0.0015
+    assert _centre_errors(recon, box_scene_noisy).mean() < 0.0008  # measured 0.32 mm
 
 
 def test_plain_box_without_epipolar_geometry_is_placed_by_the_motion_prior(plain_box_scene):
@@ -109,7 +110,7 @@ def test_a_robust_f_locked_on_repeated_squares_is_overruled_by_the_motion_prior(
     assert _centre_errors(recon, scene).max() < 0.02
 
 
-@pytest.mark.xfail(reason="fragile: 7 of 10 renderings of the plain box (seeds 0-4, sigma 0 and 2) keep every "
+@pytest.mark.xfail(reason="fragile: 6 of 10 renderings of the plain box (seeds 0-4, sigma 0 and 2) keep every "
                           "camera within ~3 cm; in the others the repeated squares alias the motion prior "
                           "once and the chain breaks", strict=False)
 def test_plain_box_squares_only_registers_every_camera(plain_box_scene):
@@ -153,7 +154,7 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
     rotation = np.array(errors["rotation_deg"][2:], dtype=float)
     # measured: median 4.4 mm, worst 18 mm, rotations <= 1.5 deg (the camera is ~0.6 m away
     # with a 1520 px focal length: depth and focal length are hard to tell apart)
-    assert np.median(centre) < 0.008, centre
+    assert np.median(centre) < 0.005, centre  # issue 7; measured 2.7 mm (2.9-3.3 over RANSAC seeds)
     assert centre.max() < 0.05, centre
     assert rotation.max() < 2.5, rotation
     # three images were taken upside down relative to their predecessor: found and exported

@@ -129,12 +129,25 @@ class PipelineConfig:
     min_chained_points: int = 6  # paper: N >= 6 3D-2D pairs for the DLT
     retriangulate: bool = True  # accurate mode: re-triangulate a point from its whole track when it grows
     loop_closure: bool = True  # accurate mode: match the last images against the first ones
+    # After each BA, observations reprojecting beyond outlier_factor x the median reprojection
+    # error of all observations (~3.4 sigma: the norm of 2-D Gaussian noise has median 1.18
+    # sigma), never below outlier_floor_px, are dropped. Long tracks collect a few wrong
+    # observations (patches straddling an occlusion edge) that pull the chain one way; measured:
+    # box ring sigma 0 mean centre error 0.109 -> 0.024 cm, templeSparseRing median 4.4 -> 2.7 mm.
+    # None: off in paper mode (only 2 x triangulation.max_reprojection_px), 4.0 in accurate mode.
+    outlier_factor: float | None = None
+    outlier_floor_px: float = 0.25
 
     def resolved_model(self) -> str:
         return self.camera_model or ("free" if self.mode == "paper" else "focal")
 
     def resolved_window(self) -> int:
         return self.window or (1 if self.mode == "paper" else 3)
+
+    def resolved_outlier_factor(self) -> float | None:
+        if self.outlier_factor is not None:
+            return self.outlier_factor if self.outlier_factor > 0 else None
+        return None if self.mode == "paper" else 4.0
 
 
 @dataclass(frozen=True)

@@ -662,10 +662,18 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
 
 
 def _drop_outliers(recon: Reconstruction, cfg: Config) -> int:
-    """Remove observations reprojecting beyond the threshold, then points seen fewer than twice."""
+    """Remove observations reprojecting beyond the threshold (fixed, or relative to the median
+    error: ``PipelineConfig.outlier_factor``), then points seen fewer than twice."""
     if len(recon.obs_view) == 0:
         return 0
-    bad = recon.observation_errors() > 2.0 * cfg.triangulation.max_reprojection_px
+    err = recon.observation_errors()
+    threshold = 2.0 * cfg.triangulation.max_reprojection_px
+    factor = cfg.pipeline.resolved_outlier_factor()
+    counted = np.isfinite(err) & recon.alive[recon.obs_point]
+    if factor is not None and counted.any():
+        relative = max(cfg.pipeline.outlier_floor_px, factor * float(np.median(err[counted])))
+        threshold = min(threshold, relative)
+    bad = err > threshold
     recon.remove_observations(bad)
     lonely = np.flatnonzero(recon.alive & (recon.track_lengths() < 2))
     recon.remove_points(lonely)
