@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center, normalize_projection, project
+from stereoseed.camera import camera_center, decompose_projection, normalize_projection, project
 from stereoseed.config import ResectionConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.resection import resect
@@ -58,3 +58,21 @@ def test_too_few_and_degenerate():
         resect(flat, project(P, flat))
     with pytest.raises(StereoseedError, match="agree"):
         resect(X, rng.uniform(0, 640, (40, 2)), ResectionConfig(min_inliers=12))
+
+
+@pytest.mark.parametrize("zoom", [1.0, 1.1])
+def test_focal_model_keeps_the_previous_zoom_unless_the_data_pay_for_a_new_one(zoom):
+    """A focal-only camera against 'the zoom did not move' (BIC): with an unchanged focal length
+    the previous intrinsics are kept exactly; a 10 % zoom is found."""
+    rng = np.random.default_rng(3)
+    prev_K = ring_camera(0.0, f=800.0)[0]
+    P = ring_camera(40.0, f=800.0 * zoom)[3]
+    X = box_points(rng, 40)
+    x = project(P, X) + rng.normal(0, 0.3, (40, 2))
+    res = resect(X, x, model="focal", reference_K=prev_K, fallback_K=prev_K)
+    K = decompose_projection(res.P)[0]
+    if zoom == 1.0:
+        assert K[0, 0] == pytest.approx(800.0, rel=1e-9)
+    else:
+        assert K[0, 0] == pytest.approx(880.0, rel=0.01)
+    assert np.linalg.norm(camera_center(res.P) - camera_center(P)) < 0.01

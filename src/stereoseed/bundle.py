@@ -27,7 +27,9 @@ class BundleProblem:
     """What a bundle adjustment sees.
 
     Ps: (C, 3, 4) all cameras involved; free_cameras: (C,) bool; model: the camera model of the
-    free cameras (they share one); reference_K: K of the reference camera for the 'focal' model.
+    free cameras (they share one); reference_K: K of the reference camera for the 'focal' model,
+    (3, 3), or (C, 3, 3) one per camera (a camera whose image was turned sees the reference
+    principal point elsewhere).
     points: (M, 3); free_points: (M,) bool. obs_camera, obs_point: (O,) int indices into Ps and
     points; obs_xy: (O, 2) measured pixels.
     """
@@ -136,7 +138,12 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     xy = np.asarray(problem.obs_xy, dtype=np.float64)
     free_cams = np.flatnonzero(problem.free_cameras)
     free_pts = np.asarray(problem.free_points, dtype=bool)
-    model, ref_K = problem.model, problem.reference_K
+    model = problem.model
+    ref_Ks = None if problem.reference_K is None else np.asarray(problem.reference_K, np.float64)
+
+    def ref_K(c: int) -> np.ndarray | None:
+        return ref_Ks if ref_Ks is None or ref_Ks.ndim == 2 else ref_Ks[c]
+
     delta = config.huber_px
 
     all_oc, all_op, all_xy = oc, op, xy
@@ -155,9 +162,9 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     n = camera_models.n_params(model) if len(free_cams) else 0
     cam_slot = np.full(len(Ps), -1, dtype=np.int64)
     cam_slot[free_cams] = np.arange(len(free_cams))
-    params = [camera_models.params_from_projection(Ps[c], model, ref_K)[0] for c in free_cams]
+    params = [camera_models.params_from_projection(Ps[c], model, ref_K(c))[0] for c in free_cams]
     for c, p in zip(free_cams, params):  # start from the model's closest camera
-        Ps[c] = camera_models.projection_from_params(p, model, ref_K)
+        Ps[c] = camera_models.projection_from_params(p, model, ref_K(c))
     free_pt_idx = np.flatnonzero(free_pts)
     pt_slot = np.full(len(X), -1, dtype=np.int64)
     pt_slot[free_pt_idx] = np.arange(len(free_pt_idx))
@@ -210,7 +217,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         for c in free_cams:
             sel = oc == c
             if sel.any():
-                dP = _projection_derivatives(params[cam_slot[c]], model, ref_K)
+                dP = _projection_derivatives(params[cam_slot[c]], model, ref_K(c))
                 Jc[sel] = _camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
         wJcT = np.swapaxes(Jc, 1, 2) * w[:, None, None]  # (O, n, 2)
         wJpT = np.swapaxes(Jp, 1, 2) * w[:, None, None]  # (O, 3, 2)
@@ -249,7 +256,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             new_params = [params[i] + dc[i] for i in range(nC)]
             Ps_new = Ps.copy()
             for i, c in enumerate(free_cams):
-                Ps_new[c] = camera_models.projection_from_params(new_params[i], model, ref_K)
+                Ps_new[c] = camera_models.projection_from_params(new_params[i], model, ref_K(c))
             X_new = X.copy()
             X_new[free_pt_idx] += dp
             with np.errstate(all="ignore"):
