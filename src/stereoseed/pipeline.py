@@ -483,17 +483,20 @@ def _most_explaining(recon: Reconstruction, prev: int, k: int,
         return 0 if hypotheses else None
     vk = recon.views[k]
     pids, desc = _recent_points(recon, prev)
+    tree = cKDTree(vk.features.points)
     best, best_score = None, -1
     for i, hyp in enumerate(hypotheses):
         try:
             P = resect_view(*hyp)
         except (StereoseedError, np.linalg.LinAlgError):
             continue
-        x = project(P, recon.points[pids])
-        d = np.linalg.norm(x[:, None, :] - vk.features.points[None, :, :], axis=2)
-        nearest = np.argmin(d, axis=1)
-        close = d[np.arange(len(pids)), nearest] <= max_px
-        score = int(np.sum(close & (np.einsum("nd,nd->n", desc, vk.features.desc[nearest]) >= min_zncc)))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = project(P, recon.points[pids])
+        seen = np.flatnonzero(np.all(np.isfinite(x), axis=1))
+        dist, nearest = tree.query(x[seen], distance_upper_bound=max_px)
+        close = np.isfinite(dist)
+        zncc = np.einsum("nd,nd->n", desc[seen[close]], vk.features.desc[nearest[close]])
+        score = int(np.sum(zncc >= min_zncc))
         if score > best_score:
             best, best_score = i, score
     return best
