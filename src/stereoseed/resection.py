@@ -97,10 +97,9 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
     position); the extra parameter must then pay for itself. BIC on the focal camera's inliers
     (Schwarz 1978; Torr's GRIC makes the same choice here): n ln(RSS / n) + k ln(n), k = 7 or 6.
     """
-    start = _pnp_start(X, x, fallback_K, config)
-    if start is None:
-        return P, inliers, rms
-    P_fixed, inl_fixed, rms_fixed = polish(*start, model="fixed", reference_K=fallback_K)
+    _, R, t = decompose_projection(P)  # the focal camera's pose is a close start
+    P_fixed, inl_fixed, rms_fixed = polish(fallback_K @ np.hstack([R, t.reshape(3, 1)]), inliers,
+                                           model="fixed", reference_K=fallback_K)
     if rms_fixed > config.max_rms_px or inl_fixed.sum() < config.min_inliers:
         return P, inliers, rms
     n = 2 * int(inliers.sum())
