@@ -72,7 +72,7 @@ def test_focal_model_keeps_the_previous_zoom_unless_the_data_pay_for_a_new_one(z
     res = resect(X, x, model="focal", reference_K=prev_K, fallback_K=prev_K)
     K = decompose_projection(res.P)[0]
     if zoom == 1.0:
-        assert K[0, 0] == pytest.approx(800.0, rel=1e-9)
+        assert K[0, 0] == pytest.approx(800.0, rel=1e-9) and res.info["model"] == "fixed"
     else:
-        assert K[0, 0] == pytest.approx(880.0, rel=0.01)
+        assert K[0, 0] == pytest.approx(880.0, rel=0.01) and res.info["model"] == "focal"
     assert np.linalg.norm(camera_center(res.P) - camera_center(P)) < 0.01

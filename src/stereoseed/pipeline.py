@@ -205,7 +205,8 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
                        m.score[chained], cfg, report)
     view.P = res.P
     timing["resection"] = time.perf_counter() - t
-    report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px)
+    report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px,
+                  resection_model=res.info.get("model"))
 
     # 4. re-match under the now-known epipolar geometry, then chain and triangulate
     t = time.perf_counter()

@@ -22,7 +22,9 @@ __all__ = ["ResectionResult", "resect"]
 
 @dataclass
 class ResectionResult:
-    """P (3, 4); inliers (N,) bool; rms_px over inliers; n_hypotheses tried."""
+    """P (3, 4); inliers (N,) bool; rms_px over inliers; n_hypotheses tried; info: n_pairs,
+    n_inliers, model (the camera model of P: the one asked for, or "fixed" when the previous
+    image's intrinsics were kept)."""
 
     P: np.ndarray
     inliers: np.ndarray
@@ -89,7 +91,7 @@ def _pnp_start(X: np.ndarray, x: np.ndarray, K: np.ndarray, config: ResectionCon
 
 def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, X: np.ndarray, x: np.ndarray,
                                 fallback_K: np.ndarray, config: ResectionConfig, polish
-                                ) -> tuple[np.ndarray, np.ndarray, float]:
+                                ) -> tuple[np.ndarray, np.ndarray, float, str]:
     """Model selection between a focal-only camera (P, inliers, rms) and the previous image's
     intrinsics (``fallback_K``: the zoom did not move). With a narrow field of view and few
     points the focal length trades against the depth and one image cannot tell them apart
@@ -101,7 +103,7 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
     P_fixed, inl_fixed, rms_fixed = polish(fallback_K @ np.hstack([R, t.reshape(3, 1)]), inliers,
                                            model="fixed", reference_K=fallback_K)
     if rms_fixed > config.max_rms_px or inl_fixed.sum() < config.min_inliers:
-        return P, inliers, rms
+        return P, inliers, rms, "focal"
     n = 2 * int(inliers.sum())
 
     def bic(Pc: np.ndarray, k: int) -> float:
@@ -109,8 +111,8 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
         return n * np.log(max(rss, 1e-12) / n) + k * np.log(n)
 
     if bic(P_fixed, 6) <= bic(P, 7):
-        return P_fixed, inl_fixed, rms_fixed
-    return P, inliers, rms
+        return P_fixed, inl_fixed, rms_fixed, "fixed"
+    return P, inliers, rms, "focal"
 
 
 def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig = ResectionConfig(),
@@ -210,10 +212,10 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         raise StereoseedError(f"{what}: the {best_count} agreeing 3D-2D pairs are degenerate (no finite camera)")
     P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))
     if model == "focal" and fallback_K is not None:
-        P, inliers, rms = _unless_unchanged_zoom_fits(P, inliers, rms, X, x, np.asarray(fallback_K, np.float64),
-                                                      config, polish)
+        P, inliers, rms, model = _unless_unchanged_zoom_fits(P, inliers, rms, X, x, np.asarray(fallback_K, np.float64),
+                                                             config, polish)
     if rms > config.max_rms_px:
         raise StereoseedError(f"{what}: the best camera reprojects its inliers with {rms:.2f} px RMS "
                               f"(limit {config.max_rms_px} px); the 3D-2D pairs are inconsistent")
     return ResectionResult(P=P, inliers=inliers, rms_px=rms, n_hypotheses=tried,
-                           info={"n_pairs": n, "n_inliers": int(inliers.sum())})
+                           info={"n_pairs": n, "n_inliers": int(inliers.sum()), "model": model})
