@@ -16,6 +16,7 @@ is matched turned back.
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Any, Callable
 
 import cv2
@@ -874,7 +875,11 @@ def reconstruct_cli(args: Any) -> int:
             bar.refresh()
 
     try:
-        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress)
+        with warnings.catch_warnings():
+            # Matching warns when a pair gives no robust F; the pipeline then tries the turned image
+            # and the motion prior, and report.json says per image what held. Not for the terminal.
+            warnings.simplefilter("ignore", RuntimeWarning)
+            recon, report = reconstruct(images, names, P_pair, cfg, progress=progress)
     finally:
         if bar is not None:
             bar.close()
