@@ -63,6 +63,21 @@ def test_reconstruct_bad_inputs(tmp_path, capsys, scene_files):
     assert "two cameras" in capsys.readouterr().err
 
 
+def test_match_on_a_textureless_image_warns_in_one_line(tmp_path, capsys, scene_files):
+    import cv2
+    import warnings
+
+    paths, _ = scene_files
+    flat = tmp_path / "flat.png"
+    cv2.imwrite(str(flat), np.full((480, 640, 3), 128, np.uint8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code = main(["match", str(paths["images"][0]), str(flat), "-o", str(tmp_path / "m.png")])
+    err = capsys.readouterr().err
+    assert code == 0 and (tmp_path / "m.png").exists()
+    assert err and all(line.startswith("stereoseed: warning: ") for line in err.strip().splitlines()), err
+
+
 def test_demo_runs_end_to_end_and_reports_against_the_truth(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--images", "4"]) == 0
