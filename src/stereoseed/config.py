@@ -28,9 +28,12 @@ class FeatureConfig:
     # 0 for a perfect junction, ~0.5 for isotropic texture and 1 for a blob centre; elsewhere the
     # Harris peak (biased ~1.4 px into an L-corner) is refined by a quadratic fit. 0.1 allows
     # gradient directions ~18 degrees rms off orthogonal. Measured trade-off: 0.2 finds 128
-    # instead of 94 of the synthetic box's square corners within 1.5 px (corners 3D RMS 0.09
-    # instead of 0.15 cm) but places templeSparseRing's cameras worse (median centre error 6.4-9.4
-    # instead of 3.0-6.7 mm over three RANSAC seeds): on real texture the Harris peak is better.
+    # instead of 94 of the synthetic box's square corners within 1.5 px (corners 3D RMS 0.085
+    # instead of 0.143 cm) but localises templeSparseRing's matches worse (mean epipolar distance
+    # 0.337 instead of 0.292 px) and its chain becomes unstable (median centre error 1.6 mm,
+    # 126 mm, 5 of 16 images over three RANSAC seeds, against 2.1 mm for each at 0.1): on real
+    # texture the Harris peak is the better position. Weighting the residual towards strong
+    # gradients or a smaller window trades the same way.
     junction_tol: float = 0.1
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 
