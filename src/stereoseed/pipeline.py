@@ -60,11 +60,12 @@ class HarrisZncc:
 
     def _cache(self, fa: Features, fb: Features) -> PairCache:
         """The cache of the pair (fa, fb): an insertion matches its pair up to four times and
-        then refines it, over largely the same candidates. The last few pairs only."""
+        then refines it, over largely the same candidates. The last two pairs only: a cache
+        holds both feature sets (with their grey images) and a scores matrix."""
         for c in self._pair_caches:
             if c.covers(fa, fb):
                 return c
-        self._pair_caches = self._pair_caches[-3:] + [PairCache(fa, fb)]
+        self._pair_caches = self._pair_caches[-1:] + [PairCache(fa, fb)]
         return self._pair_caches[-1]
 
     def features(self, index: int, image: np.ndarray) -> Features:
