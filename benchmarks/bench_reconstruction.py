@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.config import Config, PipelineConfig
-from stereoseed.evaluation import TrueCorrespondences, camera_errors, reconstruct_corners, rms_3d
+from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
+                                  reconstruct_corners, rms_3d)
 from stereoseed.pipeline import load_sequence, reconstruct
 from stereoseed.synthetic import SceneConfig, render_scene
 
@@ -39,6 +40,9 @@ def _summary(recon, report, scene=None, truth_P=None) -> dict:
                                       scene.P, [scene.corner_visibility(i) for i in range(scene.n_images)])
         out["corners_rms_cm"] = rms_3d(X, scene.corners[seen]) * 100 if len(seen) else None
         out["corners_reconstructed"] = int(len(seen))
+        X, seen = corners_from_exact_pixels([v.P for v in recon.views], scene.corners, scene.P,
+                                            [scene.corner_visibility(i) for i in range(scene.n_images)])
+        out["corners_rms_exact_pixels_cm"] = rms_3d(X, scene.corners[seen]) * 100 if len(seen) else None
     ba = [r.get("ba", {}).get("seconds") for r in report["per_image"] if isinstance(r.get("ba"), dict)]
     ba = [b for b in ba if b is not None]
     ins = [r["seconds"]["total"] for r in report["per_image"][2:] if "seconds" in r]

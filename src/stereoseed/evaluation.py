@@ -11,7 +11,8 @@ from .features import Features
 from .matching import Matches
 from .triangulation import triangulate_tracks
 
-__all__ = ["rms_3d", "camera_errors", "reconstruct_corners", "TrueCorrespondences", "surface_distance"]
+__all__ = ["rms_3d", "camera_errors", "reconstruct_corners", "corners_from_exact_pixels", "TrueCorrespondences",
+           "surface_distance"]
 
 
 def rms_3d(points: np.ndarray, truth: np.ndarray) -> float:
@@ -61,6 +62,31 @@ def reconstruct_corners(Ps_est: list[np.ndarray | None], images_features: list[F
     local = np.searchsorted(seen, idx)
     X = triangulate_tracks(np.stack(P_obs), np.array(xy), local, len(seen))
     ok = np.all(np.isfinite(X), axis=1)
+    return X[ok], seen[ok]
+
+
+def corners_from_exact_pixels(Ps_est: list[np.ndarray | None], corners: np.ndarray, Ps_true: list[np.ndarray],
+                              visibility: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The pattern corners triangulated from their exact pixels (true projections) with the
+    *estimated* cameras: eq. 13 without the detector's share, i.e. what the cameras alone cost.
+    :func:`reconstruct_corners` is the same with the detected interest points.
+
+    Returns (points (K, 3), indices (K,) of the corners seen in >= 2 registered images).
+    """
+    P_obs, xy, idx = [], [], []
+    for Pe, Pt, vis in zip(Ps_est, Ps_true, visibility):
+        if Pe is None:
+            continue
+        seen = np.flatnonzero(vis)
+        P_obs += [Pe] * len(seen)
+        xy.append(project(Pt, corners[seen]))
+        idx.append(seen)
+    if not idx:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    idx = np.concatenate(idx)
+    seen, counts = np.unique(idx, return_counts=True)
+    X = triangulate_tracks(np.stack(P_obs), np.concatenate(xy), np.searchsorted(seen, idx), len(seen))
+    ok = np.all(np.isfinite(X), axis=1) & (counts >= 2)
     return X[ok], seen[ok]
 
 
