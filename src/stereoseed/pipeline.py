@@ -296,41 +296,35 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     def camera(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> np.ndarray:
         return resect_view(X3, x2, scores).P
 
-    if len(X3) < cfg.resection.min_inliers:
-        # The epipolar geometry could not be found (repeated patterns, little texture): predict
-        # the camera from the previous motion, match the points of I_{k-1} by projection, and
-        # keep the hypothesis whose camera explains the most points.
-        hypotheses = _correspondences_by_motion_prior(recon, prev, k, cfg)
-        chosen = _most_explaining(recon, prev, k, hypotheses, camera)
-        X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
-        report["motion_prior_correspondences"] = len(X3)
-        if len(X3) < pc.min_chained_points:
-            raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
-                                  f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
-        return resect_view(X3, x2, scores)
-    before = _previous_registered(recon, prev, 1)
-    # the motion prior is worth a check once it extrapolates the moving camera's own motion
-    # (not the stereo pair's baseline, which says little about the walk)
-    if not (before and before[0] >= 1):
-        return resect_view(X3, x2, scores)
-    try:
-        res = resect_view(X3, x2, scores)
-    except StereoseedError:
-        res = None
-    if res is not None and res.inliers.sum() >= 2 * cfg.resection.min_inliers:
-        return res
-    # A weak epipolar chain: on repeated patterns the robust F may be the pattern shifted by one
-    # period (measured on the plain box: 19 chained points, a camera 17 cm off). The camera that
-    # explains the most points decides between it and the motion prior.
-    hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(recon, prev, k, cfg)
-    chosen = _most_explaining(recon, prev, k, hypotheses, camera)
-    if chosen is None:
-        raise StereoseedError(f"{view.name}: neither its matches with {vp.name} nor the motion prior give "
-                              "a plausible camera; the view is too far or too poorly textured")
+    res = None
+    if len(X3) >= cfg.resection.min_inliers:
+        before = _previous_registered(recon, prev, 1)
+        # the motion prior is worth a check once it extrapolates the moving camera's own motion
+        # (not the stereo pair's baseline, which says little about the walk)
+        if not (before and before[0] >= 1):
+            return resect_view(X3, x2, scores)
+        try:
+            res = resect_view(X3, x2, scores)
+        except StereoseedError:
+            res = None
+        if res is not None and res.inliers.sum() >= 2 * cfg.resection.min_inliers:
+            return res
+    # No epipolar chain (repeated patterns, little texture), or a weak one: on repeated patterns
+    # the robust F may be the pattern shifted by one period (measured on the plain box: 19
+    # chained points, a camera 17 cm off). Predict the camera from the previous motion, match
+    # the recent points by projection, and let the camera that explains the most points decide.
+    recent = _recent_points(recon, prev)
+    hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(
+        recon, prev, k, cfg, recent)
+    chosen = _most_explaining(recon, k, hypotheses, camera, recent)
     if res is not None and chosen == 0:
         return res
-    report["motion_prior_correspondences"] = len(hypotheses[chosen][0])
-    return resect_view(*hypotheses[chosen])
+    X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
+    report["motion_prior_correspondences"] = len(X3)
+    if len(X3) < pc.min_chained_points:
+        raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
+                              f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
+    return resect_view(X3, x2, scores)
 
 
 def _in_frame_of(K: np.ndarray, source: View, target: View) -> np.ndarray:
@@ -400,6 +394,7 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
 
 
 def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, cfg: Config,
+                                     recent: tuple[np.ndarray, np.ndarray],
                                      radius_fraction: float = 0.08, min_zncc: float = 0.7,
                                      per_point: int = 3, n_hypotheses: int = 3
                                      ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -412,7 +407,8 @@ def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, c
     A repeated pattern offers several consistent similarities (the prediction shifted by one
     period of the pattern), so up to ``n_hypotheses`` are returned, found one after another
     on the pairings the previous ones left, best supported first; :func:`_most_explaining`
-    decides between them. Each is (points3d (N, 3), points2d (N, 2), scores (N,)).
+    decides between them. Each is (points3d (N, 3), points2d (N, 2), scores (N,)). ``recent``:
+    the points to project and their patches, from :func:`_recent_points`.
     """
     before = _previous_registered(recon, prev, 1)
     if not before:
@@ -421,7 +417,7 @@ def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, c
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
     P_pred = predict_camera(recon.views[before[0]].P, vp.P, steps)
-    pids, desc = _recent_points(recon, prev)
+    pids, desc = recent
     if len(pids) < 4 or len(vk.features) == 0:
         return []
     pred = project(P_pred, recon.points[pids])
@@ -473,19 +469,21 @@ def _recent_points(recon: Reconstruction, prev: int) -> tuple[np.ndarray, np.nda
     return pids, desc
 
 
-def _most_explaining(recon: Reconstruction, prev: int, k: int,
+def _most_explaining(recon: Reconstruction, k: int,
                      hypotheses: list[tuple[np.ndarray, np.ndarray, np.ndarray]], resect_view,
+                     recent: tuple[np.ndarray, np.ndarray],
                      max_px: float = 3.0, min_zncc: float = 0.7) -> int | None:
     """Index of the 3D-2D hypothesis for view k whose camera explains most of the recent points
     (:func:`_recent_points`): a point counts when an interest point of k within ``max_px`` of
     its projection matches its patch (ZNCC >= ``min_zncc``). A camera shifted by one period of
     a repeated pattern explains its own correspondences as well as the true one, but loses the
     points at the pattern's ends and everything else in view. ``resect_view(X3, x2, scores)``
-    -> P, or raises when the hypothesis gives no plausible camera. None if none does."""
+    -> P, or raises when the hypothesis gives no plausible camera; ``recent``: from
+    :func:`_recent_points`. None if no hypothesis gives a camera."""
     if len(hypotheses) <= 1:
         return 0 if hypotheses else None
     vk = recon.views[k]
-    pids, desc = _recent_points(recon, prev)
+    pids, desc = recent
     tree = cKDTree(vk.features.points)
     best, best_score = None, -1
     for i, hyp in enumerate(hypotheses):
