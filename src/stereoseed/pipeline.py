@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .bundle import BundleProblem, bundle_adjust
-from .camera import decompose_projection, fundamental_from_projections, project
+from .camera import camera_center, decompose_projection, depths, fundamental_from_projections, project
 from .config import Config
 from .errors import StereoseedError
 from .features import Features, describe, extract_features
@@ -290,7 +290,7 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
         res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
                      model=model, reference_K=ref_K, what=view.name, fallback_K=fallback_K)
-        _check_camera(res.P, vp.P, view.name)
+        _check_camera(res.P, vp.P, view.name, X3, steps=k - prev)
         return res
 
     def camera(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -301,30 +301,38 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
         before = _previous_registered(recon, prev, 1)
         # the motion prior is worth a check once it extrapolates the moving camera's own motion
         # (not the stereo pair's baseline, which says little about the walk)
-        if not (before and before[0] >= 1):
-            return resect_view(X3, x2, scores)
+        prior_known = bool(before) and before[0] >= 1
         try:
             res = resect_view(X3, x2, scores)
         except StereoseedError:
             res = None
-        if res is not None and res.inliers.sum() >= 2 * cfg.resection.min_inliers:
+        if res is not None and (not prior_known or res.inliers.sum() >= 2 * cfg.resection.min_inliers):
             return res
     # No epipolar chain (repeated patterns, little texture), or a weak one: on repeated patterns
     # the robust F may be the pattern shifted by one period (measured on the plain box: 19
     # chained points, a camera 17 cm off). Predict the camera from the previous motion, match
     # the recent points by projection, and let the camera that explains the most points decide.
     recent = _recent_points(recon, prev)
-    hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(
-        recon, prev, k, cfg, recent)
-    chosen = _most_explaining(recon, k, hypotheses, camera, recent)
-    if res is not None and chosen == 0:
-        return res
-    X3, x2, scores = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)) if chosen is None else hypotheses[chosen]
-    report["motion_prior_correspondences"] = len(X3)
-    if len(X3) < pc.min_chained_points:
-        raise StereoseedError(f"{view.name}: only {len(X3)} matches with already reconstructed points "
-                              f"(need {pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
-    return resect_view(X3, x2, scores)
+    error = None
+    # the prediction misses by more where the motion changed (the first step after the stereo
+    # pair, a skipped image): if nothing holds near it, search twice as far
+    for radius_fraction in (0.08, 0.16):
+        hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(
+            recon, prev, k, cfg, recent, radius_fraction=radius_fraction)
+        chosen = _most_explaining(recon, k, hypotheses, camera, recent)
+        if res is not None and chosen == 0:
+            return res
+        found = 0 if chosen is None else len(hypotheses[chosen][0])
+        report["motion_prior_correspondences"] = found
+        if found < pc.min_chained_points:
+            error = StereoseedError(f"{view.name}: only {found} matches with already reconstructed points (need "
+                                    f"{pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
+            continue
+        try:
+            return resect_view(*hypotheses[chosen])
+        except StereoseedError as e:
+            error = e
+    raise error
 
 
 def _in_frame_of(K: np.ndarray, source: View, target: View) -> np.ndarray:
@@ -365,15 +373,24 @@ def _try_upside_down(recon: Reconstruction, prev: int, k: int, m: Matches, chain
     return m, vp.point_of_feature[m.idx1], chained
 
 
-def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, max_zoom: float = 1.5) -> None:
-    """Refuse a resected camera whose focal length jumped by more than ``max_zoom`` (either way)
-    from the previous image's: a hand-held zoom does not, a camera fitted to the wrong
-    correspondences (repeated patterns, a near-planar set) often does."""
+def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, points: np.ndarray, steps: int = 1,
+                  max_zoom: float = 1.5) -> None:
+    """Refuse an implausible resected camera: its focal length jumped by more than ``max_zoom``
+    (either way) from the previous image's, or its centre moved farther than the median depth
+    of ``points`` (N, 3) (the 3D points it was resected from) in the previous camera, per image
+    ``steps`` since. A hand-held zoom and a walk around the object (10-20 degrees, a third of
+    the object's distance) do neither; a camera fitted to wrong correspondences (repeated
+    patterns, a near-planar set) often does (measured on a plain-box rendering: 2 m off)."""
     f = decompose_projection(P)[0][0, 0]
     f_prev = decompose_projection(P_prev)[0][0, 0]
     if not (np.isfinite(f) and f_prev / max_zoom <= f <= f_prev * max_zoom):
         raise StereoseedError(f"{name}: the estimated camera is implausible (focal length {f:.0f} px after "
                               f"{f_prev:.0f} px in the previous image); its matches are probably wrong")
+    depth = np.median(depths(P_prev, points)) if len(points) else np.inf
+    step = float(np.linalg.norm(camera_center(P) - camera_center(P_prev)))
+    if not step <= depth * max(steps, 1):
+        raise StereoseedError(f"{name}: the estimated camera is implausible (it moved {step:.3g} from the previous "
+                              f"image, which sees the points {depth:.3g} away); its matches are probably wrong")
 
 
 def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
