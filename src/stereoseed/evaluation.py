@@ -55,13 +55,17 @@ def reconstruct_corners(Ps_est: list[np.ndarray | None], images_features: list[F
             P_obs.append(Pe)
             xy.append(feats.points[nearest[c]])
             idx.append(c)
-    if not idx:
+    return _triangulate_corners(P_obs, np.array(xy).reshape(-1, 2), np.array(idx, np.int64))
+
+
+def _triangulate_corners(P_obs: list[np.ndarray], xy: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corners from their observations (camera (3, 4), pixel (2,), corner index), each over all
+    its views: (points (K, 3), indices (K,)); corners seen once are left out."""
+    if len(idx) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    idx = np.array(idx)
     seen = np.unique(idx)
-    local = np.searchsorted(seen, idx)
-    X = triangulate_tracks(np.stack(P_obs), np.array(xy), local, len(seen))
-    ok = np.all(np.isfinite(X), axis=1)
+    X = triangulate_tracks(np.stack(P_obs), xy, np.searchsorted(seen, idx), len(seen))
+    ok = np.all(np.isfinite(X), axis=1)  # NaN: seen in fewer than two views
     return X[ok], seen[ok]
 
 
@@ -83,11 +87,7 @@ def corners_from_exact_pixels(Ps_est: list[np.ndarray | None], corners: np.ndarr
         idx.append(seen)
     if not idx:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    idx = np.concatenate(idx)
-    seen, counts = np.unique(idx, return_counts=True)
-    X = triangulate_tracks(np.stack(P_obs), np.concatenate(xy), np.searchsorted(seen, idx), len(seen))
-    ok = np.all(np.isfinite(X), axis=1) & (counts >= 2)
-    return X[ok], seen[ok]
+    return _triangulate_corners(P_obs, np.concatenate(xy), np.concatenate(idx))
 
 
 class TrueCorrespondences:
