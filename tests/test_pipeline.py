@@ -164,11 +164,12 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
     errors = camera_errors([v.P_input for v in recon.views], truth)
     centre = np.array(errors["center_m"][2:], dtype=float)
     rotation = np.array(errors["rotation_deg"][2:], dtype=float)
-    # measured: median 4.4 mm, worst 18 mm, rotations <= 1.5 deg (the camera is ~0.6 m away
-    # with a 1520 px focal length: depth and focal length are hard to tell apart)
-    assert np.median(centre) < 0.005, centre  # issue 7; measured 2.7 mm (2.9-3.3 over RANSAC seeds)
-    assert centre.max() < 0.05, centre
-    assert rotation.max() < 2.5, rotation
+    # measured: median 2.1 mm, worst 7.1 mm, rotations <= 0.4 deg, the same over RANSAC seeds
+    # 0-2 (the camera is ~0.6 m away with a 1520 px focal length: depth and focal length are hard
+    # to tell apart, and the turned views need the reference principal point in their frame)
+    assert np.median(centre) < 0.005, centre  # issue 7
+    assert centre.max() < 0.02, centre
+    assert rotation.max() < 1.0, rotation
     # three images were taken upside down relative to their predecessor: found and exported
     # in the input image's frame (checked by the centre errors above)
     assert sum(bool(v.rotated_180) for v in recon.views) >= 1
