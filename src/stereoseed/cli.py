@@ -161,7 +161,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    warnings.showwarning = _show_warning
+    shown_before, warnings.showwarning = warnings.showwarning, _show_warning
     try:
         return int(args.func(args) or 0)
     except StereoseedError as e:
@@ -173,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # e.g. an output folder that cannot be created
         print(f"stereoseed: error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = shown_before  # main() is also called in-process (tests, notebooks)
 
 
 if __name__ == "__main__":

@@ -514,7 +514,7 @@ def _sample_normalised(img, A, t, r, out):
 @njit(cache=True, fastmath=True)
 def _invert(a, out, work):
     """Inverse of the small (n, n) matrix a into out (Gauss-Jordan, partial pivoting); work is
-    (n, 2n) scratch. Allocation-free, so the alignment can run in threads."""
+    (n, 2n) scratch. Allocation-free, like the rest of the per-match alignment work."""
     n = a.shape[0]
     for i in range(n):
         for j in range(n):

@@ -293,9 +293,6 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
         _check_camera(res.P, vp.P, view.name, X3, steps=k - prev)
         return res
 
-    def camera(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> np.ndarray:
-        return resect_view(X3, x2, scores).P
-
     res = None
     if len(X3) >= cfg.resection.min_inliers:
         before = _previous_registered(recon, prev, 1)
@@ -317,22 +314,25 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     # the prediction misses by more where the motion changed (the first step after the stereo
     # pair, a skipped image): if nothing holds near it, search twice as far
     for radius_fraction in (0.08, 0.16):
-        hypotheses = ([(X3, x2, scores)] if res is not None else []) + _correspondences_by_motion_prior(
-            recon, prev, k, cfg, recent, radius_fraction=radius_fraction)
-        chosen = _most_explaining(recon, k, hypotheses, camera, recent)
-        if res is not None and chosen == 0:
-            return res
-        found = 0 if chosen is None else len(hypotheses[chosen][0])
-        report["motion_prior_correspondences"] = found
-        if found < pc.min_chained_points:
-            error = StereoseedError(f"{view.name}: only {found} matches with already reconstructed points (need "
-                                    f"{pc.min_chained_points}); the view is too far from {vp.name} or too poorly textured")
+        cameras, sizes = ([res], [0]) if res is not None else ([], [])
+        for hyp in _correspondences_by_motion_prior(recon, prev, k, cfg, recent, radius_fraction=radius_fraction):
+            if len(hyp[0]) < pc.min_chained_points:
+                continue
+            try:
+                cameras.append(resect_view(*hyp))
+                sizes.append(len(hyp[0]))
+            except (StereoseedError, np.linalg.LinAlgError) as e:
+                error = e
+        if not cameras:
+            report["motion_prior_correspondences"] = 0
             continue
-        try:
-            return resect_view(*hypotheses[chosen])
-        except StereoseedError as e:
-            error = e
-    raise error
+        chosen = _most_explaining(recon, k, [c.P for c in cameras], recent)
+        if sizes[chosen]:
+            report["motion_prior_correspondences"] = sizes[chosen]
+        return cameras[chosen]
+    raise error or StereoseedError(
+        f"{view.name}: only 0 matches with already reconstructed points (need {pc.min_chained_points}); the view "
+        f"is too far from {vp.name} or too poorly textured")
 
 
 def _in_frame_of(K: np.ndarray, source: View, target: View) -> np.ndarray:
@@ -486,38 +486,28 @@ def _recent_points(recon: Reconstruction, prev: int) -> tuple[np.ndarray, np.nda
     return pids, desc
 
 
-def _most_explaining(recon: Reconstruction, k: int,
-                     hypotheses: list[tuple[np.ndarray, np.ndarray, np.ndarray]], resect_view,
-                     recent: tuple[np.ndarray, np.ndarray],
-                     max_px: float = 3.0, min_zncc: float = 0.7) -> int | None:
-    """Index of the 3D-2D hypothesis for view k whose camera explains most of the recent points
-    (:func:`_recent_points`): a point counts when an interest point of k within ``max_px`` of
-    its projection matches its patch (ZNCC >= ``min_zncc``). A camera shifted by one period of
-    a repeated pattern explains its own correspondences as well as the true one, but loses the
-    points at the pattern's ends and everything else in view. ``resect_view(X3, x2, scores)``
-    -> P, or raises when the hypothesis gives no plausible camera; ``recent``: from
-    :func:`_recent_points`. None if no hypothesis gives a camera."""
-    if len(hypotheses) <= 1:
-        return 0 if hypotheses else None
+def _most_explaining(recon: Reconstruction, k: int, cameras: list[np.ndarray],
+                     recent: tuple[np.ndarray, np.ndarray], max_px: float = 3.0, min_zncc: float = 0.7) -> int:
+    """Index of the camera (3, 4) for view k that explains most of the recent points (``recent``
+    from :func:`_recent_points`): a point counts when an interest point of k within ``max_px``
+    of its projection matches its patch (ZNCC >= ``min_zncc``). A camera shifted by one period
+    of a repeated pattern explains its own correspondences as well as the true one, but loses
+    the points at the pattern's ends and everything else in view. Ties: the first."""
+    if len(cameras) == 1:
+        return 0
     vk = recon.views[k]
     pids, desc = recent
     tree = cKDTree(vk.features.points)
-    best, best_score = None, -1
-    for i, hyp in enumerate(hypotheses):
-        try:
-            P = resect_view(*hyp)
-        except (StereoseedError, np.linalg.LinAlgError):
-            continue
+    scores = []
+    for P in cameras:
         with np.errstate(invalid="ignore", divide="ignore"):
             x = project(P, recon.points[pids])
         seen = np.flatnonzero(np.all(np.isfinite(x), axis=1))
         dist, nearest = tree.query(x[seen], distance_upper_bound=max_px)
         close = np.isfinite(dist)
         zncc = np.einsum("nd,nd->n", desc[seen[close]], vk.features.desc[nearest[close]])
-        score = int(np.sum(zncc >= min_zncc))
-        if score > best_score:
-            best, best_score = i, score
-    return best
+        scores.append(int(np.sum(zncc >= min_zncc)))
+    return int(np.argmax(scores))
 
 
 def _new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Config,
