@@ -65,6 +65,30 @@ def board_corners(H: np.ndarray, shape: tuple[int, int], cell: float = 20.0) -> 
     return xy[inside]
 
 
+def dark_squares_on_texture(shape: tuple[int, int] = (240, 320), side: float = 16.0, pitch: float = 36.0,
+                            angle_deg: float = 12.0, ss: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Dark squares on a strong smooth texture (the synthetic box's pattern, in 2-D), anti-aliased
+    by ss x ss supersampling in the package's pixel convention: (image (H, W) float32, true
+    square corners (K, 2) well inside the image)."""
+    h, w = shape
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    cover = np.zeros(shape)
+    for dy in o:
+        for dx in o:
+            x, y = u + dx - 20.0, v + dy - 20.0
+            bx, by = c * x + s * y, -s * x + c * y  # board frame
+            cover += (np.mod(bx, pitch) < side) & (np.mod(by, pitch) < side) & (bx > 0) & (by > 0)
+    cover /= ss * ss
+    img = (0.3 + 0.7 * band_noise(shape)) * (1 - cover) + 0.06 * cover
+    g = np.arange(12) * pitch
+    bx, by = np.meshgrid(np.concatenate([g, g + side]), np.concatenate([g, g + side]))
+    corners = np.stack([c * bx - s * by + 20.0, s * bx + c * by + 20.0], axis=-1).reshape(-1, 2)
+    inside = (corners[:, 0] > 15) & (corners[:, 0] < w - 16) & (corners[:, 1] > 15) & (corners[:, 1] < h - 16)
+    return img.astype(np.float32), corners[inside]
+
+
 # --- to_gray ---------------------------------------------------------------------------------
 def test_to_gray_dtypes_and_channels():
     rng = np.random.default_rng(1)
@@ -125,6 +149,19 @@ def test_detect_corners_subpixel_on_junctions():
     peak_only = detect_corners(img, FeatureConfig(min_distance=8.0, subpixel_window=0))
     d_peak = np.linalg.norm(truth[:, None] - peak_only[None], axis=2).min(axis=1)
     assert np.median(d_peak) > 3 * np.median(nearest)
+
+
+def test_detect_corners_subpixel_on_square_corners_over_texture():
+    """A dark square's corner on a strong texture: the window as a whole fits the junction model
+    loosely, its strong edges tightly; cornerSubPix is kept there (the Harris peak sits ~1 px
+    inside the corner). Measured: 93 % within 0.5 px, median 0.25 px (55 % and 0.38 px when the
+    whole window alone decides)."""
+    img, truth = dark_squares_on_texture()
+    pts = detect_corners(img, FeatureConfig())
+    nearest = np.linalg.norm(truth[:, None] - pts[None], axis=2).min(axis=1)
+    assert len(truth) > 100
+    assert np.mean(nearest < 0.5) > 0.85
+    assert np.median(nearest) < 0.3
 
 
 def test_detect_corners_repeatable_under_subpixel_shift():

@@ -249,6 +249,23 @@ def test_filter_fundamental_ransac_recovers_geometry_deterministically():
     assert F3 is not None and np.mean(truly[inl3.idx1]) > 0.97
 
 
+def test_filter_fundamental_ransac_keeps_the_best_supported_run():
+    """Several robust runs, the F with the most inliers kept: never fewer inliers than the first
+    run alone, whatever the seed."""
+    P1, P2 = two_cameras()
+    rng = np.random.default_rng(5)
+    X = rng.uniform([-1.5, -1, 4], [1.5, 1, 7], (120, 3))
+    x1 = project(P1, X) + rng.normal(0, 0.3, (120, 2))
+    x2 = project(P2, X) + rng.normal(0, 0.3, (120, 2))
+    x2[:70] = rng.random((70, 2)) * [640, 480]  # a weak pair: 58 % gross outliers
+    m = Matches(np.arange(120), np.arange(120), np.linspace(1, 0.8, 120))
+    for seed in range(4):
+        one, _ = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=1))
+        best, F = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=3))
+        assert len(best) >= len(one)
+        assert np.mean(best.idx1 >= 70) > 0.9
+
+
 def test_filter_fundamental_ransac_too_few_matches_warns():
     m = Matches(np.arange(5), np.arange(5), np.ones(5))
     pts = np.random.default_rng(0).random((5, 2)) * 100

