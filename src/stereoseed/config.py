@@ -50,6 +50,7 @@ class MatchingConfig:
     ransac_max_iters: int = 5000
     seed: int = 0  # RANSAC randomness, for deterministic runs
     ransac_runs: int = 3  # robust F runs per pair, the best supported kept (ours: weak pairs vary by seed)
+    ransac_enough_inliers: int = 100  # a run with this many inliers ends the search (not a weak pair)
     # Localisation check (ours): the two detections of a match must align (affine) within
     # max_shift_px with aligned ZNCC > min_aligned_zncc. Strict values keep >= 95 % of matches
     # within 1 px on the synthetic box; when they keep fewer than relax_below matches (real

@@ -932,8 +932,8 @@ def filter_fundamental_ransac(
     method: an OpenCV robust method (``cv2.USAC_MAGSAC`` default, or ``cv2.FM_RANSAC``); threshold
     ``config.ransac_threshold_px``, confidence and iterations from ``config``; deterministic for a
     fixed ``config.seed`` (the USAC generator state, or cv2.setRNGSeed for the other
-    methods); ``config.ransac_runs`` runs (seeds seed, seed + 1, ...), the F with the most
-    inliers kept. Inliers are the matches within the threshold of their epipolar lines in both
+    methods); up to ``config.ransac_runs`` runs (seeds seed, seed + 1, ...) until one has
+    ``config.ransac_enough_inliers``, the F with the most inliers kept. Inliers are the matches within the threshold of their epipolar lines in both
     images (:func:`stereoseed.camera.epipolar_distances`), recomputed from the returned F.
     Returns (inlier Matches, F (3, 3) float64 of unit norm) or, with a RuntimeWarning, (empty
     Matches, None) when there are fewer than 8 matches, no estimate, or fewer than
@@ -945,9 +945,12 @@ def filter_fundamental_ransac(
     x1, x2 = matches.points(kp1, kp2)
     # One robust run on a weak pair (a few dozen inliers among many candidates) depends on its
     # random samples: templeSparseRing's turned 14 -> 2 pair keeps 18 to 31 matches by seed.
-    # The best-supported of a few runs takes most of the luck out for a few milliseconds.
+    # The best-supported of a few runs takes most of the luck out; a pair whose best run
+    # already has many inliers is not weak and needs no more.
     best, best_support, error = None, -1, None
     for run in range(max(int(config.ransac_runs), 1)):
+        if best_support >= config.ransac_enough_inliers:
+            break
         try:
             F = _robust_fundamental(x1, x2, config, method, int(config.seed) + run)
         except cv2.error as exc:  # degenerate configurations make some estimators throw
