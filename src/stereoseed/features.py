@@ -260,7 +260,8 @@ def _refine_subpixel(
     textured scene; on the plain box's square corners cornerSubPix 119 / 111 but the peak only
     104 / 70. Every point gets the quadratic Harris peak; cv2.cornerSubPix (window
     (2 win + 1)^2, started from the peak) replaces it where the junction model fits
-    (residual < junction_tol) and the refinement stayed inside its window.
+    (:func:`_is_junction`) and the refinement stayed inside its window; where it does not,
+    a window half as wide is tried the same way.
     """
     peak = _quadratic_peak(harris, xi, yi)
     if win <= 0 or len(peak) == 0:
