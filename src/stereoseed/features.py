@@ -277,9 +277,10 @@ def _refine_subpixel(
     # A square's corner on a textured face often fails the model in the full window (the texture
     # around it) but holds in a smaller one: on the synthetic box a (2 * 3 + 1)^2 window admits a
     # third of the corners the 11 x 11 one refused, and 0.4 % of templeSparseRing's points.
-    for size in (win, (win + 1) // 2):
+    smaller = (win + 1) // 2
+    for size in (win, smaller) if 2 <= smaller < win else (win,):
         rest = np.flatnonzero(~ok)
-        if size < 2 or len(rest) == 0:
+        if len(rest) == 0:
             break
         refined[rest], ok[rest] = _junction_refinement(gray, gx, gy, peak[rest], size, junction_tol)
     return np.where(ok[:, None], refined, peak)

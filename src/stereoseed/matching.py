@@ -947,27 +947,25 @@ def filter_fundamental_ransac(
     # random samples: templeSparseRing's turned 14 -> 2 pair keeps 18 to 31 matches by seed.
     # The best-supported of a few runs takes most of the luck out; a pair whose best run
     # already has many inliers is not weak and needs no more.
-    best, best_support, error = None, -1, None
+    F, inl, error = None, np.zeros(len(matches), bool), None
     for run in range(max(int(config.ransac_runs), 1)):
-        if best_support >= config.ransac_enough_inliers:
+        if inl.sum() >= config.ransac_enough_inliers:
             break
         try:
-            F = _robust_fundamental(x1, x2, config, method, int(config.seed) + run)
+            F_run = _robust_fundamental(x1, x2, config, method, int(config.seed) + run)
         except cv2.error as exc:  # degenerate configurations make some estimators throw
             error = exc
             continue
-        if F is None or F.shape[0] < 3 or not np.all(np.isfinite(F)) or np.linalg.norm(F[:3]) == 0:
+        if F_run is None or F_run.shape[0] < 3 or not np.all(np.isfinite(F_run)) or np.linalg.norm(F_run[:3]) == 0:
             continue
-        F = np.asarray(F[:3], np.float64) / np.linalg.norm(F[:3])
-        support = int(np.count_nonzero(epipolar_distances(F, x1, x2) <= config.ransac_threshold_px))
-        if support > best_support:
-            best, best_support = F, support
-    if best is None:
+        F_run = np.asarray(F_run[:3], np.float64) / np.linalg.norm(F_run[:3])
+        d = epipolar_distances(F_run, x1, x2)
+        inl_run = np.isfinite(d) & (d <= config.ransac_threshold_px)
+        if F is None or inl_run.sum() > inl.sum():
+            F, inl = F_run, inl_run
+    if F is None:
         _warn(f"robust F failed: {error}" if error is not None else "robust F found no model")
         return Matches.empty(), None
-    F = best
-    d = epipolar_distances(F, x1, x2)
-    inl = np.isfinite(d) & (d <= config.ransac_threshold_px)
     if inl.sum() < min_inliers:
         _warn(f"robust F has only {int(inl.sum())} inliers (< {min_inliers}): rejected")
         return Matches.empty(), None

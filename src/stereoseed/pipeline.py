@@ -293,7 +293,7 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
         _check_camera(res.P, vp.P, view.name, X3, steps=k - prev)
         return res
 
-    res = None
+    res, error = None, None
     if len(X3) >= cfg.resection.min_inliers:
         before = _previous_registered(recon, prev, 1)
         # the motion prior is worth a check once it extrapolates the moving camera's own motion
@@ -301,8 +301,8 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
         prior_known = bool(before) and before[0] >= 1
         try:
             res = resect_view(X3, x2, scores)
-        except StereoseedError:
-            res = None
+        except StereoseedError as e:
+            error = e
         if res is not None and (not prior_known or res.inliers.sum() >= 2 * cfg.resection.min_inliers):
             return res
     # No epipolar chain (repeated patterns, little texture), or a weak one: on repeated patterns
@@ -310,7 +310,6 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     # chained points, a camera 17 cm off). Predict the camera from the previous motion, match
     # the recent points by projection, and let the camera that explains the most points decide.
     recent = _recent_points(recon, prev)
-    error = None
     # the prediction misses by more where the motion changed (the first step after the stereo
     # pair, a skipped image): if nothing holds near it, search twice as far
     for radius_fraction in (0.08, 0.16):
@@ -331,8 +330,8 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
             report["motion_prior_correspondences"] = sizes[chosen]
         return cameras[chosen]
     raise error or StereoseedError(
-        f"{view.name}: only 0 matches with already reconstructed points (need {pc.min_chained_points}); the view "
-        f"is too far from {vp.name} or too poorly textured")
+        f"{view.name}: only {len(X3)} matches with already reconstructed points (need {pc.min_chained_points}); "
+        f"the view is too far from {vp.name} or too poorly textured")
 
 
 def _in_frame_of(K: np.ndarray, source: View, target: View) -> np.ndarray:
