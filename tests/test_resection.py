@@ -4,7 +4,7 @@ import pytest
 from stereoseed.camera import camera_center, decompose_projection, normalize_projection, project
 from stereoseed.config import ResectionConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.resection import resect
+from stereoseed.resection import implausible_intrinsics, resect
 from geometry_helpers import box_points, ring_camera
 
 
@@ -76,3 +76,18 @@ def test_focal_model_keeps_the_previous_zoom_unless_the_data_pay_for_a_new_one(z
     else:
         assert K[0, 0] == pytest.approx(880.0, rel=0.01) and res.info["model"] == "focal"
     assert np.linalg.norm(camera_center(res.P) - camera_center(P)) < 0.01
+
+
+def test_implausible_intrinsics_names_what_no_physical_camera_does():
+    ref_K = ring_camera(0.0, f=800.0)[0]
+    size = (640, 480)
+    assert implausible_intrinsics(ring_camera(40.0, f=880.0)[3], ref_K, size) is None  # a zoom is fine
+    assert "principal point" in implausible_intrinsics(ring_camera(40.0, pp=(320.0, 40.0))[3], ref_K, size)
+    assert "aspect" in implausible_intrinsics(ring_camera(40.0, aspect=1.1)[3], ref_K, size)
+    assert "skew" in implausible_intrinsics(ring_camera(40.0, skew=40.0)[3], ref_K, size)
+    # a free resection from well-spread points with detector noise stays within the bounds
+    rng = np.random.default_rng(4)
+    P = ring_camera(40.0, f=880.0)[3]
+    X = box_points(rng, 80)
+    res = resect(X, project(P, X) + rng.normal(0, 0.3, (80, 2)), image_size=size)
+    assert implausible_intrinsics(res.P, ref_K, size) is None

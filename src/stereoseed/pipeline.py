@@ -31,7 +31,7 @@ from .features import Features, describe, extract_features
 from .matching import (DEFAULT_ALIGNED_MIN_ZNCC, PairCache, Matches, align_matches, epipolar_band_mask, match_pair,
                        refine_features)
 from .reconstruction import Reconstruction, View
-from .resection import resect
+from .resection import implausible_intrinsics, resect
 from .triangulation import triangulate, triangulate_tracks
 
 __all__ = ["initialise", "insert_view", "finish", "reconstruct", "adjust"]
@@ -209,6 +209,9 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     timing["resection"] = time.perf_counter() - t
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px,
                   resection_model=res.info.get("model"))
+    if "fallback_from_free" in res.info:
+        report["free_camera_refused"] = res.info["fallback_from_free"]
+        view.camera_model = "focal"
 
     # 4. re-match under the now-known epipolar geometry, then chain and triangulate
     t = time.perf_counter()
@@ -263,7 +266,15 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
         ba = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
     elif pc.mode == "paper":
         window_views = [k] + _previous_registered(recon, k, 2)
+        P_resected, X_new = view.P.copy(), recon.points[ids].copy()
         ba = adjust(recon, cfg, free_views=[k], free_points=ids, views_in_cost=window_views)
+        try:
+            # with few chained points the new camera and its two-view points can slide together
+            # (measured on the plain box: 9 chained observations, the camera 680 m away after BA)
+            _check_camera(view.P, vp.P, view.name, recon.points[chain_pids], steps=k - prev)
+        except StereoseedError as e:
+            view.P, recon.points[ids] = P_resected, X_new
+            ba["refused"] = str(e)
     else:
         ba = adjust(recon, cfg, free_views=[i for i in _last_registered(recon, pc.resolved_window()) if i > 1])
     timing["bundle"] = time.perf_counter() - t
@@ -287,11 +298,33 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     ref_K = _reference_K(recon, k)
     fallback_K = _in_frame_of(decompose_projection(vp.P)[0], vp, view) if model != "free" else None
 
-    def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
+    def resect_as(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray, model: str, fallback_K: np.ndarray | None) -> Any:
         res = resect(X3, x2, cfg.resection, scores=scores, image_size=view.image.shape[1::-1],
                      model=model, reference_K=ref_K, what=view.name, fallback_K=fallback_K)
         _check_camera(res.P, vp.P, view.name, X3, steps=k - prev)
+        if model == "free":
+            why = implausible_intrinsics(res.P, ref_K, view.image.shape[1::-1], cfg.resection)
+            if why:
+                raise StereoseedError(f"{view.name}: the 11-DOF camera is ill-conditioned ({why})")
         return res
+
+    def resect_view(X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> Any:
+        try:
+            return resect_as(X3, x2, scores, model, fallback_K)
+        except StereoseedError as free_error:
+            if model != "free":
+                raise
+            # 11 DOF from points on a few faces of a small object far away: the focal length
+            # trades against the distance (measured on the plain box: 68 correct pairs, the
+            # best 11-DOF camera 76 cm off with a third of the true focal length, 0.28 px RMS).
+            # Such a camera is refused; the calibrated camera's intrinsics with a free zoom
+            # (the "focal" model) take its place rather than losing the rest of the sequence.
+            try:
+                res = resect_as(X3, x2, scores, "focal", _in_frame_of(decompose_projection(vp.P)[0], vp, view))
+            except StereoseedError:
+                raise free_error from None
+            res.info["fallback_from_free"] = str(free_error)
+            return res
 
     res, error = None, None
     if len(X3) >= cfg.resection.min_inliers:
@@ -673,7 +706,9 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
         obs_camera=np.searchsorted(cams, recon.obs_view[involved]),
         obs_point=np.searchsorted(pts, recon.obs_point[involved]),
         obs_xy=recon.observation_xy(involved),
-        model=pc.resolved_model(),
+        # a view whose 11-DOF camera was refused keeps the constrained model in the BA too
+        model=next((recon.views[v].camera_model for v in free_views if recon.views[v].camera_model),
+                   pc.resolved_model()),
         reference_K=np.stack([_reference_K(recon, v) for v in cams]),
     )
     result = bundle_adjust(problem, cfg.bundle)
@@ -809,7 +844,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         except (StereoseedError, np.linalg.LinAlgError) as e:
             # a degenerate configuration the checks did not foresee is still one image's failure
             reason = str(e) if isinstance(e, StereoseedError) else f"{names[k]}: numerical failure ({e}); skipped"
-            recon.views[k].P = None
+            recon.views[k].P, recon.views[k].camera_model = None, None
             recon.views[k].status = f"failed: {reason}"
             _forget_view(recon, k)
             rep = {"image": names[k], "status": "failed", "reason": reason}

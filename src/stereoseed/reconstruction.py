@@ -36,6 +36,7 @@ class View:
     point_of_feature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     image: np.ndarray | None = None
     rotated_180: bool = False  # the run works on the image turned upside down (camera held so)
+    camera_model: str | None = None  # set when the view needed another model than the run's
 
     @property
     def registered(self) -> bool:

@@ -17,7 +17,7 @@ from .camera import decompose_projection, depths, normalize_projection, project
 from .config import ResectionConfig
 from .errors import StereoseedError
 
-__all__ = ["ResectionResult", "resect"]
+__all__ = ["ResectionResult", "implausible_intrinsics", "resect"]
 
 
 @dataclass
@@ -219,3 +219,27 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
                               f"(limit {config.max_rms_px} px); the 3D-2D pairs are inconsistent")
     return ResectionResult(P=P, inliers=inliers, rms_px=rms, n_hypotheses=tried,
                            info={"n_pairs": n, "n_inliers": int(inliers.sum()), "model": model})
+
+
+def implausible_intrinsics(P: np.ndarray, reference_K: np.ndarray, image_size: tuple[int, int],
+                           config: ResectionConfig = ResectionConfig()) -> str | None:
+    """Why the intrinsics of camera P (3, 4) cannot be a physical camera's, or None when they
+    can: compared with ``reference_K`` (3, 3), the calibrated camera of the same sequence, its
+    principal point moved by more than ``max_principal_point_shift`` of the image diagonal
+    (``image_size`` = (width, height)), or its pixel aspect or skew left their bounds. A free
+    (11-DOF) resection from a weak point set trades the focal length against the distance and
+    the principal point against the orientation, and lands on such cameras."""
+    K = decompose_projection(P)[0]
+    K = K / K[2, 2]
+    ref = reference_K / reference_K[2, 2]
+    shift = float(np.hypot(K[0, 2] - ref[0, 2], K[1, 2] - ref[1, 2]))
+    diagonal = float(np.hypot(*image_size))
+    if not shift <= config.max_principal_point_shift * diagonal:
+        return f"principal point {shift:.0f} px from the calibrated camera's"
+    aspect = (K[1, 1] / K[0, 0]) / (ref[1, 1] / ref[0, 0])
+    if not abs(aspect - 1.0) <= config.max_aspect_change:
+        return f"pixel aspect ratio {100 * (aspect - 1):+.1f} % off the calibrated camera's"
+    skew = K[0, 1] / K[0, 0] - ref[0, 1] / ref[0, 0]
+    if not abs(skew) <= config.max_skew:
+        return f"skew {skew:+.3f} (relative to the focal length)"
+    return None
