@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.config import Config, PipelineConfig
+from stereoseed.config import Config, PipelineConfig, ResectionConfig
 from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
 from stereoseed.io import read_ply
@@ -136,9 +136,10 @@ def test_paper_mode_on_the_plain_box_refuses_ill_conditioned_11_dof_cameras(plai
                            for r in refused)
     assert all(r["resection_model"] in ("focal", "fixed") for r in refused)
     ref_K = decompose_projection(plain_box_scene.P[1])[0]
+    twice_the_bounds = ResectionConfig(max_principal_point_shift=0.2, max_aspect_change=0.06, max_skew=0.02)
     for v in recon.views[2:]:
-        if v.camera_model is None:  # kept its 11-DOF camera: a physical one
-            assert implausible_intrinsics(v.P, ref_K, (640, 480)) is None, v.name
+        if v.camera_model is None:  # kept its 11-DOF camera: a physical one (the BA may nudge it)
+            assert implausible_intrinsics(v.P, ref_K, (640, 480), twice_the_bounds) is None, v.name
     # the two-view chain on ~60 points per pair still drifts: measured 1.1-3.8 cm over the first
     # five insertions, 2-24 cm after (the accurate mode: 0.8 cm mean)
     assert _centre_errors(recon, plain_box_scene)[:5].max() < 0.05
@@ -285,5 +286,5 @@ def test_global_adjust_drops_outliers_and_adjusts_again():
     centre = [np.linalg.norm(camera_center(v.P) - camera_center(P)) for v, P in zip(views[2:], cams[2:])]
     # the refit without the mismatches: 0.24 px for 0.2 px noise (one round ends at 3.9 px with
     # the cameras up to 6 mm off, and the mismatches it could not see yet still in)
-    assert ba["rms_final_px"] < 0.3
+    assert ba["rms_after_px"] < 0.3 < ba["rms_first_round_before_px"]
     assert max(centre) < 0.005, centre

@@ -209,9 +209,9 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     timing["resection"] = time.perf_counter() - t
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px,
                   resection_model=res.info.get("model"))
-    if "fallback_from_free" in res.info:
+    view.camera_model = "focal" if "fallback_from_free" in res.info else None
+    if view.camera_model:
         report["free_camera_refused"] = res.info["fallback_from_free"]
-        view.camera_model = "focal"
 
     # 4. re-match under the now-known epipolar geometry, then chain and triangulate
     t = time.perf_counter()
@@ -271,6 +271,8 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
         try:
             # with few chained points the new camera and its two-view points can slide together
             # (measured on the plain box: 9 chained observations, the camera 680 m away after BA)
+            # (the intrinsics bounds are not applied again here: measured on the plain box, an
+            # adjusted camera just past them was still better than its resection)
             _check_camera(view.P, vp.P, view.name, recon.points[chain_pids], steps=k - prev)
         except StereoseedError as e:
             view.P, recon.points[ids] = P_resected, X_new
@@ -325,7 +327,11 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
             # Such a camera is refused; the calibrated camera's intrinsics with a free zoom
             # (the "focal" model) take its place rather than losing the rest of the sequence.
             try:
-                res = resect_as(X3, x2, scores, "focal", _in_frame_of(decompose_projection(vp.P)[0], vp, view))
+                # "no zoom" means the previous focal length on the calibrated camera's principal
+                # point and aspect (the previous 11-DOF K may carry its own ill-conditioning)
+                unchanged_zoom = ref_K.copy()
+                unchanged_zoom[:2, :2] *= _focal(vp.P) / ref_K[0, 0]
+                res = resect_as(X3, x2, scores, "focal", unchanged_zoom)
             except StereoseedError:
                 raise free_error from None
             res.info["fallback_from_free"] = str(free_error)
@@ -369,7 +375,7 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
             continue
         counts = _explained_points(recon, k, [c.P for c in cameras], recent)
         best = int(np.argmax(counts))  # ties: the first (the epipolar chain's, the nearest search's)
-        if chosen is None or counts[best] >= _WIDER_SEARCH_MARGIN * explained:
+        if chosen is None or (counts[best] > 0 and counts[best] >= _WIDER_SEARCH_MARGIN * explained):
             chosen, explained, chosen_size = cameras[best], counts[best], sizes[best]
     if chosen is not None:
         if chosen_size:
@@ -419,6 +425,11 @@ def _try_upside_down(recon: Reconstruction, prev: int, k: int, m: Matches, chain
     return m, vp.point_of_feature[m.idx1], chained
 
 
+def _focal(P: np.ndarray) -> float:
+    """Focal length (px, along x) of camera P (3, 4)."""
+    return float(decompose_projection(P)[0][0, 0])
+
+
 def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, points: np.ndarray, steps: int = 1,
                   max_zoom: float = 1.5) -> None:
     """Refuse an implausible resected camera: its focal length jumped by more than ``max_zoom``
@@ -427,8 +438,7 @@ def _check_camera(P: np.ndarray, P_prev: np.ndarray, name: str, points: np.ndarr
     ``steps`` since. A hand-held zoom and a walk around the object (10-20 degrees, a third of
     the object's distance) do neither; a camera fitted to wrong correspondences (repeated
     patterns, a near-planar set) often does (measured on a plain-box rendering: 2 m off)."""
-    f = decompose_projection(P)[0][0, 0]
-    f_prev = decompose_projection(P_prev)[0][0, 0]
+    f, f_prev = _focal(P), _focal(P_prev)
     if not (np.isfinite(f) and f_prev / max_zoom <= f <= f_prev * max_zoom):
         raise StereoseedError(f"{name}: the estimated camera is implausible (focal length {f:.0f} px after "
                               f"{f_prev:.0f} px in the previous image); its matches are probably wrong")
@@ -707,9 +717,15 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
     involved &= recon.alive[recon.obs_point]
     if not involved.any():
         return {"skipped": True}
+    pc = cfg.pipeline
+    # One model for every free camera of a BA: a view that needed a constrained model (its
+    # 11-DOF camera was refused) is adjusted with it when it is free alone, and held fixed when
+    # it is free together with cameras of the run's model.
+    models = {recon.views[v].camera_model or pc.resolved_model() for v in free_views}
+    model = models.pop() if len(models) == 1 else pc.resolved_model()
+    free_views = [v for v in free_views if (recon.views[v].camera_model or pc.resolved_model()) == model]
     cams = np.unique(recon.obs_view[involved])
     pts = np.unique(recon.obs_point[involved])
-    pc = cfg.pipeline
     problem = BundleProblem(
         Ps=np.stack([recon.views[v].P for v in cams]),
         free_cameras=np.isin(cams, free_views),
@@ -718,9 +734,7 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
         obs_camera=np.searchsorted(cams, recon.obs_view[involved]),
         obs_point=np.searchsorted(pts, recon.obs_point[involved]),
         obs_xy=recon.observation_xy(involved),
-        # a view whose 11-DOF camera was refused keeps the constrained model in the BA too
-        model=next((recon.views[v].camera_model for v in free_views if recon.views[v].camera_model),
-                   pc.resolved_model()),
+        model=model,
         reference_K=np.stack([_reference_K(recon, v) for v in cams]),
     )
     result = bundle_adjust(problem, cfg.bundle)
@@ -827,18 +841,19 @@ def global_adjust(recon: Reconstruction, cfg: Config, max_rounds: int = 4) -> tu
     the last round removed any (at most ``max_rounds``), as COLMAP's global BA does: the wrong
     observations left by drift hold the first solution away from the right one (measured on
     templeSparseRing: one image 22 mm off after one round, 12 mm after three; median 5.1 ->
-    3.9 mm). Returns (the first round's BA report with "rounds" added, observations removed)."""
-    first, removed_total = None, 0
-    for round_ in range(1, max_rounds + 1):
+    3.9 mm). Returns (the last round's BA report with "rounds" and the first round's starting
+    RMS added, observations removed)."""
+    removed_total, rounds, rms_first = 0, 0, None
+    while True:
         ba = adjust(recon, cfg, free_views=[i for i in recon.registered_views if i > 1])
         removed = _drop_outliers(recon, cfg)
-        first = first or ba
+        rounds += 1
         removed_total += removed
-        if removed == 0:
+        rms_first = ba.get("rms_before_px") if rms_first is None else rms_first
+        if removed == 0 or rounds >= max_rounds:
             break
-    first["rounds"] = round_
-    first["rms_final_px"] = ba.get("rms_after_px")
-    return first, removed_total
+    ba.update(rounds=rounds, rms_first_round_before_px=rms_first)
+    return ba, removed_total
 
 
 def finish(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
