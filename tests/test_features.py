@@ -164,6 +164,26 @@ def test_detect_corners_subpixel_on_square_corners_over_texture():
     assert np.median(nearest) < 0.3
 
 
+def test_square_corners_meet_where_their_edges_do():
+    """The same squares: moved to the intersection of their two edges, the corners land within
+    0.2 px of the truth for 97 % of them, median 0.06 px (cornerSubPix alone: 37 %, 0.25 px)."""
+    img, truth = dark_squares_on_texture()
+    errors = {}
+    for edge_corners in (False, True):
+        pts = detect_corners(img, FeatureConfig(edge_corners=edge_corners))
+        errors[edge_corners] = np.linalg.norm(truth[:, None] - pts[None], axis=2).min(axis=1)
+    assert np.mean(errors[True] < 0.2) > 0.9
+    assert np.median(errors[True]) < 0.1 < np.median(errors[False])
+
+
+def test_one_interest_point_per_position():
+    # two Harris maxima of one corner (its two arms) refine to the same point: kept once
+    img, _ = dark_squares_on_texture()
+    pts = detect_corners(img)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
+    assert d.min() >= 0.5
+
+
 def test_detect_corners_repeatable_under_subpixel_shift():
     """On texture (no junctions) the Harris-peak refinement follows a sub-pixel translation."""
     big = band_noise((260, 340), seed=3)

@@ -35,6 +35,10 @@ class FeatureConfig:
     # window is tried where the full one fails (features._is_junction, _refine_subpixel): box
     # corners 0.093 cm, temple epipolar distances unchanged.
     junction_tol: float = 0.1
+    # A junction then moves to the intersection of its two edges, each located by sub-pixel
+    # profiles away from the blurred apex (features._edge_corners): on the synthetic box the
+    # square corners' median error drops from 0.22-0.34 px (cornerSubPix) to 0.11-0.19 px.
+    edge_corners: bool = True
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 
 
