@@ -164,16 +164,20 @@ def test_detect_corners_subpixel_on_square_corners_over_texture():
     assert np.median(nearest) < 0.3
 
 
-def test_square_corners_meet_where_their_edges_do():
+@pytest.mark.parametrize("blur, within", [(0.0, 0.9), (0.7, 0.75)])
+def test_square_corners_meet_where_their_edges_do(blur, within):
     """The same squares: moved to the intersection of their two edges, the corners land within
-    0.2 px of the truth for 97 % of them, median 0.06 px (cornerSubPix alone: 37 %, 0.25 px)."""
+    0.2 px of the truth for 98 % of them, median 0.06 px (cornerSubPix alone: 37 %, 0.25 px);
+    blurred by a 0.7 px Gaussian (a real lens): 85 %, 0.11 px (cornerSubPix: 30 %, 0.30 px)."""
     img, truth = dark_squares_on_texture()
+    if blur:
+        img = cv2.GaussianBlur(img, (0, 0), blur)
     errors = {}
     for edge_corners in (False, True):
         pts = detect_corners(img, FeatureConfig(edge_corners=edge_corners))
         errors[edge_corners] = np.linalg.norm(truth[:, None] - pts[None], axis=2).min(axis=1)
-    assert np.mean(errors[True] < 0.2) > 0.9
-    assert np.median(errors[True]) < 0.1 < np.median(errors[False])
+    assert np.mean(errors[True] < 0.2) > within
+    assert np.median(errors[True]) < 0.15 < np.median(errors[False])
 
 
 def test_one_interest_point_per_position():

@@ -368,17 +368,22 @@ def _edge_line(gray, cx, cy, nx, ny, sides, half, s_from, s_to, s_step, max_scat
                 d = abs(vals[k + 1] - vals[k])
                 if d > best:
                     best, k0 = d, k
-            if hi - lo <= 0.0 or best < 0.125 * (hi - lo):
+            if hi - lo <= 0.0 or best <= 0.0:
                 continue
-            # centroid of the derivative's main lobe (within 1.25 px of its peak)
-            num, den = 0.0, 0.0
+            # centroid of the derivative's main lobe (within 1.25 px of its peak); a step holds
+            # most of the profile's variation there, blurred or not (texture or a second edge
+            # spreads it)
+            num, den, total = 0.0, 0.0, 0.0
             t0 = -half + 0.25 * (k0 + 0.5)
             for k in range(n_t - 1):
                 t = -half + 0.25 * (k + 0.5)
+                d = abs(vals[k + 1] - vals[k])
+                total += d
                 if abs(t - t0) <= 1.25:
-                    d = abs(vals[k + 1] - vals[k])
                     num += d * t
                     den += d
+            if den < 0.6 * total:
+                continue
             off = num / den
             px[count] = bx + off * nx
             py[count] = by + off * ny
@@ -478,24 +483,44 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
                 good = False
                 break
             la, lb = np.hypot(sax, say), np.hypot(sbx, sby)
+            if la == 0.0 or lb == 0.0:
+                good = False
+                break
             ax, ay, bx, by = sax / la, say / la, sbx / lb, sby / lb
         if not good or ax * bx + ay * by > cos_sep:
             continue
-        lines = np.empty((2, 3))
+        normals = np.empty((2, 2))
+        sides = np.zeros(2, np.int64)
         for e in range(2):
             vx, vy = (ax, ay) if e == 0 else (bx, by)
             th = 0.5 * np.arctan2(vy, vx)
-            nx, ny = np.cos(th), np.sin(th)
+            normals[e, 0], normals[e, 1] = np.cos(th), np.sin(th)
             # which way the edge leaves the corner (an L corner: one side; an X junction: both)
             side, total = 0.0, 0.0
             for j in range(n):
                 mine = (ax * c2[j] + ay * s2[j] >= bx * c2[j] + by * s2[j]) == (e == 0)
                 if mine:
-                    along = (xs[j] - cx) * (-ny) + (ys[j] - cy) * nx
+                    along = (xs[j] - cx) * (-normals[e, 1]) + (ys[j] - cy) * normals[e, 0]
                     side += ms[j] * along
                     total += ms[j] * abs(along)
-            sides = 0 if abs(side) < 0.5 * total else (1 if side > 0 else -1)
-            fit, lx, ly, lc = _edge_line(gray, cx, cy, nx, ny, sides, half, s_from, s_to, s_step, max_scatter)
+            sides[e] = 0 if abs(side) < 0.5 * total else (1 if side > 0 else -1)
+        # Where the edges leaving the corner make an acute angle, a profile across one of them
+        # s px out meets the other at t = s / tan(angle): start where the profile's lobe stays
+        # clear of it (an obtuse L corner has no such crossing; an X junction always has one).
+        cos_rays = normals[0, 1] * normals[1, 1] + normals[0, 0] * normals[1, 0]  # = d0 . d1
+        if sides[0] != 0 and sides[1] != 0:
+            cos_rays *= sides[0] * sides[1]
+        else:
+            cos_rays = abs(cos_rays)
+        start = s_from
+        if cos_rays > 0.0:
+            start = max(s_from, (half + 1.25) * cos_rays / np.sqrt(max(1.0 - cos_rays * cos_rays, 1e-12)))
+        if s_to - start < 2.0:
+            continue
+        lines = np.empty((2, 3))
+        for e in range(2):
+            fit, lx, ly, lc = _edge_line(gray, cx, cy, normals[e, 0], normals[e, 1], sides[e], half, start, s_to,
+                                         s_step, max_scatter)
             if not fit:
                 good = False
                 break
