@@ -37,8 +37,8 @@ class FeatureConfig:
     junction_tol: float = 0.1
     # A junction then moves to the intersection of its two edges, each located by sub-pixel
     # profiles away from the blurred apex (features._edge_corners): on the synthetic box the
-    # square corners' median error drops from 0.22-0.34 px (cornerSubPix) to 0.11-0.19 px, the
-    # box corners' 3D RMS from 0.093 to 0.066 cm (accurate) and from 0.118 to 0.073 cm (paper).
+    # square corners' median error drops from 0.22-0.34 px (cornerSubPix) to 0.11-0.20 px, the
+    # box corners' 3D RMS from 0.093 to 0.065 cm (accurate) and from 0.118 to 0.075 cm (paper).
     edge_corners: bool = True
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 

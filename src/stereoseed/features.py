@@ -310,7 +310,7 @@ def _refine_subpixel(
 # corner, a straight line is fitted to those edge points, and the lines are intersected. Away from
 # the apex an edge is a clean step, so its line does not carry cornerSubPix's bias at a blurred L
 # corner (measured on the synthetic box, started 0.4 px off: median distance to the true corner
-# 0.22 -> 0.11 px on the plain box, 0.34 -> 0.19 px on the textured one).
+# 0.22 -> 0.11 px on the plain box, 0.34 -> 0.20 px on the textured one).
 _EDGE_WINDOW = 6
 _EDGE_APEX = 1.5  # px around the corner whose gradients mix both edges
 _EDGE_FROM, _EDGE_TO, _EDGE_STEP = 2.0, 10.0, 0.5  # profile positions along an edge (px)
