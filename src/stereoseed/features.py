@@ -505,7 +505,7 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
                     total += ms[j] * abs(along)
             sides[e] = 0 if abs(side) < 0.5 * total else (1 if side > 0 else -1)
         # Where the edges leaving the corner make an acute angle, a profile across one of them
-        # s px out meets the other at t = s / tan(angle): start where the profile's lobe stays
+        # s px out meets the other at t = s tan(angle): start where the profile's lobe stays
         # clear of it (an obtuse L corner has no such crossing; an X junction always has one).
         cos_rays = normals[0, 1] * normals[1, 1] + normals[0, 0] * normals[1, 0]  # = d0 . d1
         if sides[0] != 0 and sides[1] != 0:
