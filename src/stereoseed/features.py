@@ -321,13 +321,17 @@ _EDGE_MAX_SHIFT = 1.0  # px from the junction's position: farther is another str
 
 
 @njit(cache=True)
-def _bilinear_at(img, x, y):
-    x0 = int(np.floor(x))
-    y0 = int(np.floor(y))
-    fx = x - x0
-    fy = y - y0
-    top = img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx
-    bottom = img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx
+def sample_bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """Bilinear sample of img at (x, y), edges replicated (pixel centres at integers)."""
+    h, w = img.shape
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0 = min(int(x), w - 2) if w > 1 else 0
+    y0 = min(int(y), h - 2) if h > 1 else 0
+    fx, fy = x - x0, y - y0
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
     return top * (1.0 - fy) + bottom * fy
 
 
@@ -357,18 +361,16 @@ def _edge_line(gray, cx, cy, nx, ny, sides, half, s_from, s_to, s_step, max_scat
                 if x < 0.0 or y < 0.0 or x >= w - 1.0 or y >= h - 1.0:
                     inside = False
                     break
-                vals[k] = _bilinear_at(gray, x, y)
+                vals[k] = sample_bilinear(gray, x, y)
             s += s_step
             if not inside:
                 continue
-            lo = vals.min()
-            hi = vals.max()
             best, k0 = 0.0, 0
             for k in range(n_t - 1):
                 d = abs(vals[k + 1] - vals[k])
                 if d > best:
                     best, k0 = d, k
-            if hi - lo <= 0.0 or best <= 0.0:
+            if best <= 0.0:  # a flat profile
                 continue
             # centroid of the derivative's main lobe (within 1.25 px of its peak); a step holds
             # most of the profile's variation there, blurred or not (texture or a second edge
@@ -429,6 +431,7 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
     ms = np.empty(size)
     c2 = np.empty(size)
     s2 = np.empty(size)
+    in_a = np.empty(size, np.bool_)  # which of the two edge orientations a gradient belongs to
     cos_sep = np.cos(np.radians(2.0 * min_angle_deg))
     for i in range(pts.shape[0]):
         cx, cy = pts[i, 0], pts[i, 1]
@@ -489,6 +492,8 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
             ax, ay, bx, by = sax / la, say / la, sbx / lb, sby / lb
         if not good or ax * bx + ay * by > cos_sep:
             continue
+        for j in range(n):
+            in_a[j] = ax * c2[j] + ay * s2[j] >= bx * c2[j] + by * s2[j]
         normals = np.empty((2, 2))
         sides = np.zeros(2, np.int64)
         for e in range(2):
@@ -498,8 +503,7 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
             # which way the edge leaves the corner (an L corner: one side; an X junction: both)
             side, total = 0.0, 0.0
             for j in range(n):
-                mine = (ax * c2[j] + ay * s2[j] >= bx * c2[j] + by * s2[j]) == (e == 0)
-                if mine:
+                if in_a[j] == (e == 0):
                     along = (xs[j] - cx) * (-normals[e, 1]) + (ys[j] - cy) * normals[e, 0]
                     side += ms[j] * along
                     total += ms[j] * abs(along)

@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from .camera import epipolar_distances
 from .config import FeatureConfig, MatchingConfig
 from .errors import StereoseedError
-from .features import DEFAULT_MIN_PATCH_STD, Features, describe, describe_scaled, extract_features
+from .features import DEFAULT_MIN_PATCH_STD, Features, describe, describe_scaled, extract_features, sample_bilinear
 
 __all__ = [
     "Matches",
@@ -457,21 +457,6 @@ def _singular_values_2x2(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.sqrt((f + disc) / 2.0), np.sqrt(np.maximum((f - disc) / 2.0, 0.0))
 
 
-@njit(cache=True)
-def _bilinear(img: np.ndarray, x: float, y: float) -> float:
-    """Bilinear sample of img at (x, y), edges replicated (pixel centres at integers)."""
-    h, w = img.shape
-    x = min(max(x, 0.0), w - 1.0)
-    y = min(max(y, 0.0), h - 1.0)
-    x0 = min(int(x), w - 2) if w > 1 else 0
-    y0 = min(int(y), h - 2) if h > 1 else 0
-    fx, fy = x - x0, y - y0
-    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
-    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
-    return top * (1.0 - fy) + bottom * fy
-
-
 @njit(cache=True, fastmath=True)
 def _sample_normalised(img, A, t, r, out):
     """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
@@ -499,7 +484,7 @@ def _sample_normalised(img, A, t, r, out):
                 v = ((img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx) * (1.0 - fy)
                      + (img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
             else:
-                v = _bilinear(img, x, y)
+                v = sample_bilinear(img, x, y)
             out[n] = v
             total += v
             n += 1
@@ -565,8 +550,8 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
         tmpl[p] /= tnorm
     # Jacobian of the normalised template w.r.t. (tx, ty, a11, a12, a21, a22) at identity
     for p in range(npx):
-        jx = _bilinear(gx, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
-        jy = _bilinear(gy, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
+        jx = sample_bilinear(gx, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
+        jy = sample_bilinear(gy, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
         jac[p, 0] = jx
         jac[p, 1] = jy
         jac[p, 2] = jx * ux[p]
@@ -739,10 +724,11 @@ def align_matches(
     params = (patch_size, max_iters, tol_px)
     if cache is not None and cache.covers(f1, f2) and cache.params in (None, params):
         cache.params = params
-        codes = matches.idx1.astype(np.int64) * max(len(f2), 1) + matches.idx2
+        stride = max(len(f2), 1)  # a pair (idx1, idx2) is coded idx1 * stride + idx2
+        codes = matches.idx1.astype(np.int64) * stride + matches.idx2
         missing = np.unique(codes[cache.lookup(codes) < 0])
         if len(missing):
-            todo = Matches(missing // max(len(f2), 1), missing % max(len(f2), 1), np.zeros(len(missing)))
+            todo = Matches(missing // stride, missing % stride, np.zeros(len(missing)))
             cache.add(missing, align_matches(f1, f2, todo, patch_size=patch_size, max_iters=max_iters, tol_px=tol_px))
         rows = cache.lookup(codes)
         r = cache.rows

@@ -339,17 +339,17 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
 
     res, error = None, None
     if len(X3) >= cfg.resection.min_inliers:
-        before = _previous_registered(recon, prev, 1)
-        # A weak chain is checked against the motion prior, even at the first insertion, where
-        # the prediction only extrapolates the stereo pair's baseline (the wider search covers
-        # the walk): on the plain box a robust F fitted to 23 period-shifted matches placed the
-        # first insertion 18 cm off, and everything after it followed.
-        prior_known = bool(before)
         try:
             res = resect_view(X3, x2, scores)
         except StereoseedError as e:
             error = e
-        if res is not None and (not prior_known or res.inliers.sum() >= 2 * cfg.resection.min_inliers):
+        # A weak chain is checked against the motion prior, even at the first insertion, where
+        # the prediction only extrapolates the stereo pair's baseline (the wider search covers
+        # the walk): on the plain box a robust F fitted to 23 period-shifted matches placed the
+        # first insertion 18 cm off, and everything after it followed. Without a view before
+        # ``prev`` there is no motion to extrapolate.
+        prior_exists = bool(_previous_registered(recon, prev, 1))
+        if res is not None and (not prior_exists or res.inliers.sum() >= 2 * cfg.resection.min_inliers):
             return res
     # No epipolar chain (repeated patterns, little texture), or a weak one: on repeated patterns
     # the robust F may be the pattern shifted by one period (measured on the plain box: 19
@@ -367,9 +367,9 @@ def _resect_view(recon: Reconstruction, prev: int, k: int, X3: np.ndarray, x2: n
     # scatter more (plain box, paper mode: all 14 images registered in 10 of 10 renderings when
     # explaining within 3 px, in 9 within 1.5 px)
     explain_px = 3.0 if pc.mode == "paper" else 1.5
-    for radius_fraction in (0.08, 0.16):
+    for hypotheses in _correspondences_by_motion_prior(recon, prev, k, cfg, recent, radius_fractions=(0.08, 0.16)):
         cameras, sizes = ([res], [0]) if res is not None and chosen is None else ([], [])
-        for hyp in _correspondences_by_motion_prior(recon, prev, k, cfg, recent, radius_fraction=radius_fraction):
+        for hyp in hypotheses:
             if len(hyp[0]) < pc.min_chained_points:
                 continue
             try:
@@ -474,63 +474,70 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
 
 def _correspondences_by_motion_prior(recon: Reconstruction, prev: int, k: int, cfg: Config,
                                      recent: tuple[np.ndarray, np.ndarray],
-                                     radius_fraction: float = 0.08, min_zncc: float = 0.7,
+                                     radius_fractions: tuple[float, ...] = (0.08,), min_zncc: float = 0.7,
                                      per_point: int = 3, n_hypotheses: int = 3
-                                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                                     ) -> list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
     """3D-2D correspondences for view k without epipolar geometry: the points seen in the last
     registered views are projected with the predicted camera (:func:`predict_camera`); every
-    interest point of k within ``radius_fraction`` of the image width whose patch matches (ZNCC
-    >= ``min_zncc``, the best ``per_point``) is a pairing, and a robust 2D similarity between
-    predicted and found positions keeps the consistent ones (the resection's RANSAC follows).
+    interest point of k within a radius (a fraction of the image width, for each of
+    ``radius_fractions``) whose patch matches (ZNCC >= ``min_zncc``, the best ``per_point``) is
+    a pairing, and a robust 2D similarity between predicted and found positions keeps the
+    consistent ones (the resection's RANSAC follows).
 
     A repeated pattern offers several consistent similarities (the prediction shifted by one
     period of the pattern), so up to ``n_hypotheses`` are returned, found one after another
     on the pairings the previous ones left, best supported first; :func:`_explained_points`
     decides between them. Each is (points3d (N, 3), points2d (N, 2), scores (N,)). ``recent``:
-    the points to project and their patches, from :func:`_recent_points`.
+    the points to project and their patches, from :func:`_recent_points`. Returns one list of
+    hypotheses per radius (the prediction and the patch scores are computed once for all).
     """
+    none: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in radius_fractions]
     before = _previous_registered(recon, prev, 1)
     if not before:
-        return []
+        return none
     vp, vk = recon.views[prev], recon.views[k]
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
     P_pred = predict_camera(recon.views[before[0]].P, vp.P, steps)
     pids, desc = recent
     if len(pids) < 4 or len(vk.features) == 0:
-        return []
+        return none
     pred = project(P_pred, recon.points[pids])
     width = vk.features.image_shape[1]
     d = np.linalg.norm(pred[:, None, :] - vk.features.points[None, :, :], axis=2)
-    zncc = desc @ vk.features.desc.T
-    zncc[(d > radius_fraction * width) | ~vk.features.valid[None, :]] = -np.inf
-    best = np.argsort(-zncc, axis=1)[:, :per_point]
-    rows = np.repeat(np.arange(len(pids)), best.shape[1])
-    cols = best.ravel()
-    ok = zncc[rows, cols] >= min_zncc
-    rows, cols = rows[ok], cols[ok]
-    # The prediction misses mostly by a zoom about the principal point and a shift (a changed
-    # focal length, a different step): a 4-DOF similarity fitted robustly to the pairings
-    # (2-point samples, so a low inlier ratio is fine) says which of them are consistent.
-    cv2.setRNGSeed(int(cfg.resection.seed))
-    hypotheses = []
-    while len(rows) >= 6 and len(hypotheses) < n_hypotheses:
-        x = vk.features.points[cols]
-        S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
-                                             ransacReprojThreshold=0.015 * width, maxIters=5000,
-                                             confidence=cfg.resection.ransac_confidence)
-        if S is None or inl is None or inl.sum() < 6:
-            break
-        inl = np.flatnonzero(inl.ravel())
-        err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
-        order = inl[np.argsort(err)]
-        _, first = np.unique(rows[order], return_index=True)
-        sel = order[first]
-        hypotheses.append((recon.points[pids[rows[sel]]], x[sel], zncc[rows[sel], cols[sel]]))
-        rest = np.ones(len(rows), bool)
-        rest[inl] = False
-        rows, cols = rows[rest], cols[rest]
-    return hypotheses
+    zncc_all = desc @ vk.features.desc.T
+    zncc_all[:, ~vk.features.valid] = -np.inf
+    out = []
+    for radius_fraction in radius_fractions:
+        zncc = np.where(d > radius_fraction * width, -np.inf, zncc_all)
+        best = np.argsort(-zncc, axis=1)[:, :per_point]
+        rows = np.repeat(np.arange(len(pids)), best.shape[1])
+        cols = best.ravel()
+        ok = zncc[rows, cols] >= min_zncc
+        rows, cols = rows[ok], cols[ok]
+        # The prediction misses mostly by a zoom about the principal point and a shift (a changed
+        # focal length, a different step): a 4-DOF similarity fitted robustly to the pairings
+        # (2-point samples, so a low inlier ratio is fine) says which of them are consistent.
+        cv2.setRNGSeed(int(cfg.resection.seed))
+        hypotheses = []
+        while len(rows) >= 6 and len(hypotheses) < n_hypotheses:
+            x = vk.features.points[cols]
+            S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
+                                                 ransacReprojThreshold=0.015 * width, maxIters=5000,
+                                                 confidence=cfg.resection.ransac_confidence)
+            if S is None or inl is None or inl.sum() < 6:
+                break
+            inl = np.flatnonzero(inl.ravel())
+            err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
+            order = inl[np.argsort(err)]
+            _, first = np.unique(rows[order], return_index=True)
+            sel = order[first]
+            hypotheses.append((recon.points[pids[rows[sel]]], x[sel], zncc[rows[sel], cols[sel]]))
+            rest = np.ones(len(rows), bool)
+            rest[inl] = False
+            rows, cols = rows[rest], cols[rest]
+        out.append(hypotheses)
+    return out
 
 
 def _recent_points(recon: Reconstruction, prev: int) -> tuple[np.ndarray, np.ndarray]:
@@ -730,9 +737,10 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
     # One model for every free camera of a BA: a view that needed a constrained model (its
     # 11-DOF camera was refused) is adjusted with it when it is free alone, and held fixed when
     # it is free together with cameras of the run's model.
-    models = {recon.views[v].camera_model or pc.resolved_model() for v in free_views}
+    model_of = {v: recon.views[v].camera_model or pc.resolved_model() for v in free_views}
+    models = set(model_of.values())
     model = models.pop() if len(models) == 1 else pc.resolved_model()
-    free_views = [v for v in free_views if (recon.views[v].camera_model or pc.resolved_model()) == model]
+    free_views = [v for v in free_views if model_of[v] == model]
     cams = np.unique(recon.obs_view[involved])
     pts = np.unique(recon.obs_point[involved])
     problem = BundleProblem(
