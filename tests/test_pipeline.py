@@ -5,11 +5,11 @@ import cv2
 import numpy as np
 import pytest
 
+from stereoseed.camera import camera_center, decompose_projection, project
 from stereoseed.config import Config, PipelineConfig, ResectionConfig
 from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
 from stereoseed.io import read_ply
-from stereoseed.camera import camera_center, decompose_projection, project
 from stereoseed.pipeline import reconstruct, save_outputs
 from stereoseed.resection import implausible_intrinsics
 from stereoseed.synthetic import SceneConfig, render_scene
@@ -140,8 +140,8 @@ def test_paper_mode_on_the_plain_box_refuses_ill_conditioned_11_dof_cameras(plai
     for v in recon.views[2:]:
         if v.camera_model is None:  # kept its 11-DOF camera: a physical one (the BA may nudge it)
             assert implausible_intrinsics(v.P, ref_K, (640, 480), twice_the_bounds) is None, v.name
-    # the two-view chain on ~60 points per pair still drifts: measured 1.1-3.8 cm over the first
-    # five insertions, 2-24 cm after (the accurate mode: 0.8 cm mean)
+    # the two-view chain on ~60 points per pair still drifts: measured 0.3-2.6 cm over the first
+    # five insertions, up to 7.6 cm after (the accurate mode: 0.9 cm mean)
     assert _centre_errors(recon, plain_box_scene)[:5].max() < 0.05
 
 
@@ -158,9 +158,9 @@ def test_a_robust_f_locked_on_repeated_squares_is_overruled_by_the_motion_prior(
 
 
 def test_plain_box_squares_only_registers_every_camera(plain_box_scene):
-    # Over ten renderings (seeds 0-4, sigma 0 and 2) every camera is registered; in six every
-    # centre stays within 4 cm, in the others the repeated squares mislead one image by up to
-    # 18 cm. This rendering: corners 1.06 mm.
+    # Over ten renderings (seeds 0-4, sigma 0 and 2) every camera is registered; in nine the mean
+    # centre error is 0.3-1.1 cm, in one the last image is 10 cm off. This rendering: corners
+    # 0.60 mm.
     recon, report = _run(plain_box_scene, "accurate")
     assert report["registered"] == plain_box_scene.n_images, [r.get("reason") for r in report["per_image"]]
     rms, n = _corner_rms(recon, plain_box_scene)
@@ -200,8 +200,9 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
     centre = np.array(errors["center_m"][2:], dtype=float)
     rotation = np.array(errors["rotation_deg"][2:], dtype=float)
     # measured: median 2.3 mm, worst 7.7 mm, rotations <= 0.4 deg; RANSAC seeds 0-2: median
-    # 2.3 / 2.3 / 3.2 mm (the camera is ~0.6 m away with a 1520 px focal length: depth and focal length are hard
-    # to tell apart, and the turned views need the reference principal point in their frame)
+    # 2.3 / 2.3 / 3.2 mm (the camera is ~0.6 m away with a 1520 px focal length: depth and focal
+    # length are hard to tell apart, and the turned views need the reference principal point in
+    # their frame)
     assert np.median(centre) < 0.005, centre  # issue 7
     assert centre.max() < 0.02, centre
     assert rotation.max() < 1.0, rotation
@@ -213,7 +214,7 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
 def test_reference_intrinsics_follow_an_image_turned_upside_down():
     # The constrained camera models share the calibrated camera's principal point; in an image
     # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
-    from stereoseed.camera import compose_projection, decompose_projection
+    from stereoseed.camera import compose_projection
     from stereoseed.pipeline import _in_frame_of
     from stereoseed.reconstruction import View
 
