@@ -425,38 +425,6 @@ class PairCache:
                               np.concatenate([r.zncc, al.zncc])[order], np.concatenate([r.converged, al.converged])[order])
 
 
-def _patch_offsets(patch_size: int) -> tuple[np.ndarray, np.ndarray]:
-    r = patch_size // 2
-    d = np.arange(-r, r + 1, dtype=np.float32)
-    uy, ux = np.meshgrid(d, d, indexing="ij")
-    return ux.reshape(1, -1), uy.reshape(1, -1)
-
-
-def _normalise_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-mean rows and their norms: (N, K) -> (N, K), (N, 1)."""
-    a = a - a.mean(axis=1, keepdims=True)
-    return a, np.linalg.norm(a, axis=1, keepdims=True)
-
-
-def _warp_grid(
-    A: np.ndarray, t: np.ndarray, ux: np.ndarray, uy: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sampling maps (N, P*P) float32 of the warps u -> A u + t; A (N, 2, 2), t (N, 2)."""
-    A = A.astype(np.float32)
-    t = t.astype(np.float32)
-    xs = t[:, :1] + A[:, 0, 0:1] * ux + A[:, 0, 1:2] * uy
-    ys = t[:, 1:] + A[:, 1, 0:1] * ux + A[:, 1, 1:2] * uy
-    return xs, ys
-
-
-def _singular_values_2x2(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Largest and smallest singular values of (N, 2, 2) matrices, in closed form."""
-    f = (A**2).sum(axis=(1, 2))
-    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    disc = np.sqrt(np.maximum(f**2 - 4.0 * det**2, 0.0))
-    return np.sqrt((f + disc) / 2.0), np.sqrt(np.maximum((f - disc) / 2.0, 0.0))
-
-
 @njit(cache=True, fastmath=True)
 def _sample_normalised(img, A, t, r, out):
     """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
@@ -741,93 +709,6 @@ def align_matches(
     t, A, zncc, converged = _align_kernel(
         g1, gx, gy, g2, np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
         patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
-    return Alignment(t, A, zncc, converged)
-    g1 = np.ascontiguousarray(f1.gray, np.float32)
-    g2 = np.ascontiguousarray(f2.gray, np.float32)
-    (h1, w1), (h2, w2) = g1.shape, g2.shape
-    ux, uy = _patch_offsets(patch_size)
-    r = patch_size // 2
-    min_norm = DEFAULT_MIN_PATCH_STD * patch_size
-
-    # Template and its gradients, sampled in one remap (cv2.remap quantises to 1/32 px).
-    gx = cv2.Sobel(g1, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(g1, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    sampled = cv2.remap(cv2.merge([g1, gx, gy]), (x1[:, :1] + ux).astype(np.float32),
-                        (x1[:, 1:] + uy).astype(np.float32), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REPLICATE)
-    tmpl, tnorm = _normalise_rows(sampled[..., 0])
-    tnorm = np.maximum(tnorm, 1e-12)
-    tmpl /= tnorm
-    ok = (
-        (x1[:, 0] >= r) & (x1[:, 0] <= w1 - 1 - r) & (x1[:, 1] >= r) & (x1[:, 1] <= h1 - 1 - r)
-        & (tnorm[:, 0] > min_norm)
-    )
-    # Jacobian of the normalised template w.r.t. (tx, ty, a11, a12, a21, a22) at the identity;
-    # the mean removal is exact, the norm is held fixed (second order at the optimum).
-    jx, jy = sampled[..., 1] / tnorm, sampled[..., 2] / tnorm
-    jac = np.stack([jx, jy, jx * ux, jx * uy, jy * ux, jy * uy], axis=2)  # (M, P*P, 6)
-    jac -= jac.mean(axis=1, keepdims=True)
-    jt = np.ascontiguousarray(jac.transpose(0, 2, 1))
-    hess = (jt @ jac).astype(np.float64)
-    # Damping of the linear part (1 % of its mean curvature): the corner of a square is
-    # invariant to scalings along its two edges, which leaves A undetermined there; where A is
-    # observable the damping is negligible. A tiny overall term keeps edges solvable.
-    lam = 0.01 * np.trace(hess[:, 2:, 2:], axis1=1, axis2=2) / 4.0
-    hess[:, 2:, 2:] += lam[:, None, None] * np.eye(4)
-    hess += (1e-9 * np.trace(hess, axis1=1, axis2=2) + 1e-12)[:, None, None] * np.eye(6)
-    hess_inv = np.linalg.inv(hess)
-    hess_t_inv = np.linalg.inv(hess[:, :2, :2])
-
-    translation_iters = 3
-    active = ok.copy()
-    for it in range(max_iters):
-        act = np.flatnonzero(active)
-        if len(act) == 0:
-            break
-        xs, ys = _warp_grid(A[act], t[act], ux, uy)
-        img = cv2.remap(g2, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        img, norm = _normalise_rows(img)
-        err = img / np.maximum(norm, 1e-12) - tmpl[act]
-        b = (jt[act] @ err[..., None])[..., 0].astype(np.float64)  # (K, 6)
-        if it < translation_iters:
-            dp = np.zeros((len(act), 6))
-            dp[:, :2] = (hess_t_inv[act] @ b[:, :2, None])[..., 0]
-        else:
-            dp = (hess_inv[act] @ b[..., None])[..., 0]
-        cap = np.minimum(
-            1.0 / np.maximum(np.abs(dp[:, :2]).max(axis=1), 1e-12),
-            0.1 / np.maximum(np.abs(dp[:, 2:]).max(axis=1), 1e-12),
-        )
-        dp *= np.minimum(cap, 1.0)[:, None]
-        # Inverse composition: W <- W o W(dp)^-1, with W(dp): u -> (I + D) u + d.
-        d_inv = np.linalg.inv(dp[:, 2:].reshape(-1, 2, 2) + np.eye(2))
-        A_new = A[act] @ d_inv
-        t_new = t[act] - (A_new @ dp[:, :2, None])[..., 0]
-        moved = np.abs(t_new - t[act]).max(axis=1)
-        A[act], t[act] = A_new, t_new
-        s_max, s_min = _singular_values_2x2(A_new)
-        bad = (
-            (s_max > 4.0) | (s_min < 0.25) | (np.abs(t_new - x2[act]).max(axis=1) > r)
-            | ~np.all(np.isfinite(t_new), axis=1)
-        )
-        ok[act[bad]] = False
-        active[act] = ~bad & ((moved > tol_px) | (it < translation_iters))
-
-    # Final score at the final warp; the warped patch must lie inside image 2.
-    idx = np.flatnonzero(ok)
-    if len(idx):
-        xs, ys = _warp_grid(A[idx], t[idx], ux, uy)
-        inside2 = (
-            (xs.min(1) >= 0) & (xs.max(1) <= w2 - 1) & (ys.min(1) >= 0) & (ys.max(1) <= h2 - 1)
-        )
-        img = cv2.remap(g2, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        img, norm = _normalise_rows(img)
-        z = (img * tmpl[idx]).sum(axis=1) / np.maximum(norm[:, 0], 1e-12)
-        good = inside2 & (norm[:, 0] > min_norm)
-        zncc[idx[good]] = z[good]
-        converged[idx[good]] = True
-    t[~converged] = x2[~converged]
-    A[~converged] = np.eye(2)
     return Alignment(t, A, zncc, converged)
 
 
