@@ -212,6 +212,28 @@ def test_band_mask_agrees_with_epipolar_distances():
     assert mask.any() and not mask.all()
 
 
+def test_candidates_and_best_scores_agree_with_numpy():
+    from stereoseed.matching import _best_per_row_and_column, _candidate_mask
+
+    P1, P2 = two_cameras()
+    F = fundamental_from_projections(P1, P2)
+    rng = np.random.default_rng(2)
+    x1 = rng.random((80, 2)) * [640, 480]
+    centre = x1 + rng.normal(0, 30, x1.shape)  # a motion prediction
+    x2 = rng.random((90, 2)) * [640, 480]
+    near = np.linalg.norm(centre[:, None] - x2[None], axis=2) <= 150.0
+    np.testing.assert_array_equal(_candidate_mask(centre, x2, 150.0), near)
+    banded = _candidate_mask(centre, x2, 150.0, F, 25.0, x1=x1)
+    np.testing.assert_array_equal(banded, near & epipolar_band_mask(F, x1, x2, 25.0))
+    assert banded.any() and (near & ~banded).any()
+    # ties and rows without a candidate resolve as np.argmax does
+    s = np.where(banded, np.round(rng.random(banded.shape), 1), -np.inf).astype(np.float32)
+    best_col, best_score, best_row = _best_per_row_and_column(s)
+    np.testing.assert_array_equal(best_col, np.argmax(s, axis=1))
+    np.testing.assert_array_equal(best_row, np.argmax(s, axis=0))
+    np.testing.assert_array_equal(best_score, s.max(axis=1))
+
+
 def test_filter_epipolar_keeps_the_band():
     P1, P2 = two_cameras()
     F = fundamental_from_projections(P1, P2)

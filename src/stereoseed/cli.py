@@ -122,10 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
                         "'accurate': multi-view tracks, constrained camera, wider window (default)")
     p.add_argument("--camera-model", choices=["free", "zero-skew", "focal"], default=None,
-                   help="moving camera model (default: free in paper mode, zero-skew in accurate mode)")
+                   help="moving camera model (default: free in paper mode, focal in accurate mode)")
     p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
-    p.add_argument("--ba", choices=["local", "global", "final"], default="local",
-                   help="local BA after each insertion (default), global BA after each insertion, or local + one final global BA")
+    p.add_argument("--ba", choices=["local", "global", "final"], default=None,
+                   help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
+                        "(default: local in paper mode, final in accurate mode)")
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_reconstruct)

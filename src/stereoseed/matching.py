@@ -185,25 +185,72 @@ def epipolar_band_mask(
     distances), for all pairs at once: the numerator |x2^T F x1| is shared, so the max distance
     is that numerator over the smaller of the two line normals.
     """
-    F = np.asarray(F, np.float64)
-    h1 = np.hstack([x1, np.ones((len(x1), 1))])
-    h2 = np.hstack([x2, np.ones((len(x2), 1))])
-    l2 = h1 @ F.T  # (N1, 3) epipolar lines in image 2
-    l1 = h2 @ F  # (N2, 3) epipolar lines in image 1
-    n2 = np.hypot(l2[:, 0], l2[:, 1])
-    n1 = np.hypot(l1[:, 0], l1[:, 1])
-    # Lines normalised in image 2 turn the numerator into the distance d2 in image 2 (a float32
-    # product, accurate to ~1e-4 px); d1 = d2 * n2 / n1 is then checked only where d2 passes
-    # (a band keeps ~1 % of the pairs), without dividing by zero norms.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        l2n = (l2 / n2[:, None]).astype(np.float32)
-    d2 = l2n @ h2.T.astype(np.float32)
-    np.abs(d2, out=d2)
-    mask = d2 <= np.float32(band_px)
-    ii, jj = np.nonzero(mask)
-    far_in_image_1 = d2[ii, jj] * n2[ii] > band_px * n1[jj]
-    mask[ii[far_in_image_1], jj[far_in_image_1]] = False
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    return _candidate_mask(x1, x2, np.inf, F, band_px)
+
+
+def _candidate_mask(centre: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarray | None = None,
+                   band_px: float = np.inf, x1: np.ndarray | None = None) -> np.ndarray:
+    """(N1, N2) bool: pairs with x2[j] (N2, 2) within ``radius_px`` of centre[i] (N1, 2) and,
+    with F (3, 3), within ``band_px`` of the epipolar lines of x1[i] (N1, 2; default centre) in
+    both images (:func:`epipolar_band_mask`). One pass over the pairs, no (N1, N2) temporaries."""
+    centre = np.ascontiguousarray(centre, np.float64).reshape(-1, 2)
+    x2 = np.ascontiguousarray(x2, np.float64).reshape(-1, 2)
+    x1 = centre if x1 is None else np.ascontiguousarray(x1, np.float64).reshape(-1, 2)
+    if F is None:
+        lines2, norm2, norm1 = np.zeros((len(x1), 3)), np.ones(len(x1)), np.ones(len(x2))
+        band_px = np.inf
+    else:
+        F = np.asarray(F, np.float64)
+        lines2 = np.hstack([x1, np.ones((len(x1), 1))]) @ F.T  # (N1, 3) epipolar lines in image 2
+        lines1 = np.hstack([x2, np.ones((len(x2), 1))]) @ F  # (N2, 3) epipolar lines in image 1
+        norm2 = np.hypot(lines2[:, 0], lines2[:, 1])
+        norm1 = np.hypot(lines1[:, 0], lines1[:, 1])
+    return _candidate_kernel(centre, x2, float(radius_px) ** 2, np.ascontiguousarray(lines2), norm2, norm1,
+                             float(band_px))
+
+
+@njit(cache=True)
+def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
+    n1, n2 = centre.shape[0], x2.shape[0]
+    mask = np.zeros((n1, n2), np.bool_)
+    check_band = band < np.inf
+    for i in range(n1):
+        cx, cy = centre[i, 0], centre[i, 1]
+        a, b, c = lines2[i, 0], lines2[i, 1], lines2[i, 2]
+        # |x2^T F x1| / norm is the distance in the image of that norm's line: the pair passes
+        # when the numerator is within band times the smaller norm (no division by a zero norm)
+        for j in range(n2):
+            dx, dy = x2[j, 0] - cx, x2[j, 1] - cy
+            if dx * dx + dy * dy > radius2:
+                continue
+            if check_band:
+                num = abs(a * x2[j, 0] + b * x2[j, 1] + c)
+                if num > band * norm2[i] or num > band * norm1[j]:
+                    continue
+            mask[i, j] = True
     return mask
+
+
+@njit(cache=True)
+def _best_per_row_and_column(s):
+    """(N1, N2) scores -> best column of each row (N1,), its score (N1,), best row of each
+    column (N2,); the first of equal maxima, as np.argmax. One pass."""
+    n1, n2 = s.shape
+    best_col = np.zeros(n1, np.int64)
+    best_score = np.full(n1, -np.inf, np.float32)
+    best_row = np.zeros(n2, np.int64)
+    col_score = np.full(n2, -np.inf, np.float32)
+    for i in range(n1):
+        for j in range(n2):
+            v = s[i, j]
+            if v > best_score[i]:
+                best_score[i] = v
+                best_col[i] = j
+            if v > col_score[j]:
+                col_score[j] = v
+                best_row[j] = i
+    return best_col, best_score, best_row
 
 
 def _neighbours(pts: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -320,16 +367,8 @@ def match_zncc(
             raise StereoseedError(f"predicted has {len(predicted)} rows, f1 has {n1} points")
         centre = predicted[v1]
         radius = float(prior_radius_px) if prior_radius_px is not None else radius
-    # Squared distances via |a|^2 + |b|^2 - 2ab: one (N1, N2) matrix product, no (N1, N2, 2)
-    # array; float32 is ample for a radius test.
-    c32, x32 = centre.astype(np.float32), x2v.astype(np.float32)
-    d2 = (c32**2).sum(1)[:, None] - 2.0 * (c32 @ x32.T)
-    d2 += (x32**2).sum(1)[None, :]
-    cand = d2 <= np.float32(radius**2)
-    del d2
-    if F is not None:
-        band = float(config.epipolar_band_px if band_px is None else band_px)
-        cand &= epipolar_band_mask(F, x1v, x2v, band)
+    band = float(config.epipolar_band_px if band_px is None else band_px)
+    cand = _candidate_mask(centre, x2v, radius, F, band, x1=x1v)
 
     if cache is not None and cache.covers(f1, f2):
         full = cache.scores.get(tuple(scales))
@@ -339,13 +378,10 @@ def match_zncc(
         s = np.where(cand, full, np.float32(-np.inf))
     else:
         s = _masked_scores(f1.desc[v1], _scaled_descriptors(f2, v2, scales), cand)
-    rows_all = np.arange(len(v1))
-    best2 = np.argmax(s, axis=1)  # (N1v,) best column of every row
-    score = s[rows_all, best2]
+    best2, score, best1 = _best_per_row_and_column(s)
     keep = score > config.min_zncc
     if config.mutual:
-        best1 = np.argmax(s, axis=0)  # (N2v,) best row of every column
-        keep &= best1[best2] == rows_all
+        keep &= best1[best2] == np.arange(len(v1))
 
     if max_ratio is not None and max_ratio < 1.0:
         excl = float(config.patch_size) / 2.0
