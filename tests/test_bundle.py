@@ -97,3 +97,26 @@ def test_constrained_models(model):
     res = bundle_adjust(BundleProblem(P0, free_c, X, np.ones(len(X), bool), oc, op, xy, model=model,
                                       reference_K=ref_K), BundleConfig(max_iterations=50))
     assert res.rms_after < 1e-5
+
+
+def test_reduced_camera_matrix_is_w_vinv_wt():
+    from stereoseed.bundle import _reduced_camera_matrix
+
+    rng = np.random.default_rng(3)
+    n_cams, n_points, n = 4, 30, 7
+    cams = rng.integers(0, n_cams, 150)
+    points = rng.integers(0, n_points, 150)
+    W = rng.normal(size=(150, n, 3))
+    V = rng.normal(size=(n_points, 3, 3))
+    V = V @ np.swapaxes(V, 1, 2) + np.eye(3)  # symmetric positive definite
+    Vinv = np.linalg.inv(V)
+    dense_W = np.zeros((n_cams * n, n_points * 3))
+    for o in range(150):  # a camera seeing a point twice adds its blocks
+        dense_W[cams[o] * n:(cams[o] + 1) * n, points[o] * 3:(points[o] + 1) * 3] += W[o]
+    dense_Vinv = np.zeros((n_points * 3, n_points * 3))
+    for p in range(n_points):
+        dense_Vinv[p * 3:(p + 1) * 3, p * 3:(p + 1) * 3] = Vinv[p]
+    order = np.argsort(points, kind="stable")
+    starts = np.searchsorted(points[order], np.arange(n_points + 1))
+    S = _reduced_camera_matrix(order, starts, cams, W, W @ Vinv[points], n_cams)
+    np.testing.assert_allclose(S, -dense_W @ dense_Vinv @ dense_W.T, atol=1e-9)

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from . import camera_models
 from .config import BundleConfig
@@ -124,6 +125,27 @@ class _Segments:
         return out
 
 
+@njit(cache=True)
+def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
+    """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n): every pair of
+    observations (i, j) of one point adds -Y_i W_j^T (n, n) at cameras (cams[i], cams[j]).
+    order: observations grouped by point, starts: (points + 1,) offsets into it; W, Y: (O, n, 3)
+    with Y_i = W_i V_p^-1."""
+    n = W.shape[1]
+    S = np.zeros((n_cams * n, n_cams * n))
+    for p in range(len(starts) - 1):
+        for a in range(starts[p], starts[p + 1]):
+            i = order[a]
+            ri = cams[i] * n
+            for b in range(starts[p], starts[p + 1]):
+                j = order[b]
+                rj = cams[j] * n
+                for u in range(n):
+                    for v in range(n):
+                        S[ri + u, rj + v] -= Y[i, u, 0] * W[j, v, 0] + Y[i, u, 1] * W[j, v, 1] + Y[i, u, 2] * W[j, v, 2]
+    return S
+
+
 def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:
     """Minimise the robust reprojection error over the free cameras and free points.
 
@@ -175,33 +197,15 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     both = has_c & has_p
     nC, nP = len(free_cams), len(free_pt_idx)
 
-    # observation pairs sharing a free point, both by free cameras: they fill S's off-diagonal
-    order = np.argsort(slot_p[both], kind="stable")
-    both_idx = np.flatnonzero(both)[order]
-    pts_sorted = slot_p[both_idx]
-    pair_a, pair_b = [], []
-    d = 0
-    while d < len(both_idx):
-        same = pts_sorted[d:] == pts_sorted[:len(pts_sorted) - d]
-        if not same.any():
-            break
-        pair_a.append(both_idx[:len(both_idx) - d][same])
-        pair_b.append(both_idx[d:][same])
-        d += 1
-    pair_a = np.concatenate(pair_a) if pair_a else np.zeros(0, np.int64)
-    pair_b = np.concatenate(pair_b) if pair_b else np.zeros(0, np.int64)
-
-    # sums over observations grouped by point / by camera / by camera pair, precomputed once
+    # sums over observations grouped by point / by camera, precomputed once
     by_point = _Segments(slot_p[has_p], nP)
     by_camera = _Segments(slot_c[has_c], nC)
     both_idx_all = np.flatnonzero(both)
     both_by_camera = _Segments(slot_c[both], nC)
-    off = pair_a != pair_b
-    # S's off-diagonal blocks: each pair (o, o') of one point adds W_o V^-1 W_o'^T at (c_o, c_o')
-    # and, for o != o', its transpose at (c_o', c_o)
-    pair_keys = np.concatenate([slot_c[pair_a] * nC + slot_c[pair_b], slot_c[pair_b[off]] * nC + slot_c[pair_a[off]]])
-    by_pair = _Segments(pair_keys, nC * nC)
     by_point_both = _Segments(slot_p[both_idx_all], nP)
+    # the observations of free points by free cameras grouped by point, for S's off-diagonal
+    by_point_order = np.argsort(slot_p[both_idx_all], kind="stable")
+    point_starts = np.searchsorted(slot_p[both_idx_all][by_point_order], np.arange(nP + 1))
     eye_n, eye_3 = np.eye(n), np.eye(3)
 
     lam = 1e-3
@@ -234,14 +238,10 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             if nC:
                 Wb = Wo[both_idx_all]
                 Y = Wb @ Vinv[slot_p[both_idx_all]]  # (Ob, n, 3)
-                Yfull = np.zeros((len(oc), n, 3))
-                Yfull[both_idx_all] = Y
-                contrib = Yfull[pair_a] @ np.swapaxes(Wo[pair_b], 1, 2)  # (pairs, n, n)
-                contrib = np.concatenate([contrib, np.swapaxes(contrib[off], 1, 2)])
-                S = -by_pair.sum(contrib).reshape(nC, nC, n, n)
-                S[np.arange(nC), np.arange(nC)] += Ud
+                S2 = _reduced_camera_matrix(by_point_order, point_starts, slot_c[both_idx_all], Wb, Y, nC)
+                for i in range(nC):
+                    S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
                 rhs = -gc + both_by_camera.sum((Y @ gp[slot_p[both_idx_all]][:, :, None])[:, :, 0])
-                S2 = S.transpose(0, 2, 1, 3).reshape(nC * n, nC * n)
                 try:
                     dc = np.linalg.solve(S2, rhs.ravel()).reshape(nC, n)
                 except np.linalg.LinAlgError:
