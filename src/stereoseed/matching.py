@@ -197,7 +197,7 @@ def _candidate_mask(centre: np.ndarray, x2: np.ndarray, radius_px: float, F: np.
     centre = np.ascontiguousarray(centre, np.float64).reshape(-1, 2)
     x2 = np.ascontiguousarray(x2, np.float64).reshape(-1, 2)
     x1 = centre if x1 is None else np.ascontiguousarray(x1, np.float64).reshape(-1, 2)
-    if F is None:
+    if F is None:  # every pair inside the band: 0 <= inf
         lines2, norm2, norm1 = np.zeros((len(x1), 3)), np.ones(len(x1)), np.ones(len(x2))
         band_px = np.inf
     else:
@@ -213,22 +213,20 @@ def _candidate_mask(centre: np.ndarray, x2: np.ndarray, radius_px: float, F: np.
 @njit(cache=True)
 def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
     n1, n2 = centre.shape[0], x2.shape[0]
-    mask = np.zeros((n1, n2), np.bool_)
-    check_band = band < np.inf
+    mask = np.empty((n1, n2), np.bool_)
+    xs, ys = x2[:, 0].copy(), x2[:, 1].copy()
+    limit1 = band * norm1
     for i in range(n1):
         cx, cy = centre[i, 0], centre[i, 1]
         a, b, c = lines2[i, 0], lines2[i, 1], lines2[i, 2]
+        limit2 = band * norm2[i]
         # |x2^T F x1| / norm is the distance in the image of that norm's line: the pair passes
-        # when the numerator is within band times the smaller norm (no division by a zero norm)
+        # when the numerator is within band times the smaller norm (no division by a zero
+        # norm); without branches, so the loop vectorises
         for j in range(n2):
-            dx, dy = x2[j, 0] - cx, x2[j, 1] - cy
-            if dx * dx + dy * dy > radius2:
-                continue
-            if check_band:
-                num = abs(a * x2[j, 0] + b * x2[j, 1] + c)
-                if num > band * norm2[i] or num > band * norm1[j]:
-                    continue
-            mask[i, j] = True
+            dx, dy = xs[j] - cx, ys[j] - cy
+            num = abs(a * xs[j] + b * ys[j] + c)
+            mask[i, j] = (dx * dx + dy * dy <= radius2) & (num <= limit2) & (num <= limit1[j])
     return mask
 
 
