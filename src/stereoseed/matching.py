@@ -554,24 +554,24 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
     for p in range(npx):
         jx = sample_bilinear(gx, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
         jy = sample_bilinear(gy, x1[i, 0] + ux[p], x1[i, 1] + uy[p]) / tnorm
-        jac[p, 0] = jx
-        jac[p, 1] = jy
-        jac[p, 2] = jx * ux[p]
-        jac[p, 3] = jx * uy[p]
-        jac[p, 4] = jy * ux[p]
-        jac[p, 5] = jy * uy[p]
+        jac[0, p] = jx
+        jac[1, p] = jy
+        jac[2, p] = jx * ux[p]
+        jac[3, p] = jx * uy[p]
+        jac[4, p] = jy * ux[p]
+        jac[5, p] = jy * uy[p]
     for c in range(6):
         mean = 0.0
         for p in range(npx):
-            mean += jac[p, c]
+            mean += jac[c, p]
         mean /= npx
         for p in range(npx):
-            jac[p, c] -= mean
+            jac[c, p] -= mean
     for c in range(6):
         for q in range(c, 6):
             acc = 0.0
             for p in range(npx):
-                acc += jac[p, c] * jac[p, q]
+                acc += jac[c, p] * jac[q, p]
             hess[c, q] = acc
             hess[q, c] = acc
     # damping of the linear part: the corner of a square leaves A undetermined along its edges
@@ -592,12 +592,13 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
         t[0], t[1] = tx, ty
         norm, _ = _sample_normalised(g2, A, t, r, img)
         inv_norm = 1.0 / max(norm, 1e-12)
-        for c in range(6):
-            b[c] = 0.0
         for p in range(npx):
-            e = img[p] * inv_norm - tmpl[p]
-            for c in range(6):
-                b[c] += jac[p, c] * e
+            img[p] = img[p] * inv_norm - tmpl[p]  # the residual
+        for c in range(6):
+            acc = 0.0
+            for p in range(npx):
+                acc += jac[c, p] * img[p]
+            b[c] = acc
         if it < 3:  # translation first
             for c in range(6):
                 dp[c] = 0.0
@@ -674,7 +675,7 @@ def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
             k += 1
     tmpl = np.empty(npx)
     img = np.empty(npx)
-    jac = np.empty((npx, 6))
+    jac = np.empty((6, npx))  # one row per parameter: the sums over pixels run contiguously
     hess = np.empty((6, 6))
     hess_inv = np.empty((6, 6))
     work = np.empty((6, 12))
