@@ -197,6 +197,8 @@ def _candidate_mask(centre: np.ndarray, x2: np.ndarray, radius_px: float, F: np.
     centre = np.ascontiguousarray(centre, np.float64).reshape(-1, 2)
     x2 = np.ascontiguousarray(x2, np.float64).reshape(-1, 2)
     x1 = centre if x1 is None else np.ascontiguousarray(x1, np.float64).reshape(-1, 2)
+    if len(x1) != len(centre):
+        raise StereoseedError(f"x1 has {len(x1)} points, centre {len(centre)}: one centre per point")
     if F is None:  # every pair inside the band: 0 <= inf
         lines2, norm2, norm1 = np.zeros((len(x1), 3)), np.ones(len(x1)), np.ones(len(x2))
         band_px = np.inf
