@@ -137,12 +137,15 @@ def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
         for a in range(starts[p], starts[p + 1]):
             i = order[a]
             ri = cams[i] * n
-            for b in range(starts[p], starts[p + 1]):
+            for b in range(a, starts[p + 1]):  # Y_j W_i^T = (Y_i W_j^T)^T: each pair once
                 j = order[b]
                 rj = cams[j] * n
                 for u in range(n):
                     for v in range(n):
-                        S[ri + u, rj + v] -= Y[i, u, 0] * W[j, v, 0] + Y[i, u, 1] * W[j, v, 1] + Y[i, u, 2] * W[j, v, 2]
+                        x = Y[i, u, 0] * W[j, v, 0] + Y[i, u, 1] * W[j, v, 1] + Y[i, u, 2] * W[j, v, 2]
+                        S[ri + u, rj + v] -= x
+                        if b != a:
+                            S[rj + v, ri + u] -= x
     return S
 
 
