@@ -121,8 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
                    help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
                         "'accurate': multi-view tracks, constrained camera, wider window (default)")
-    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal"], default=None,
-                   help="moving camera model (default: free in paper mode, focal in accurate mode)")
+    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal", "fixed"], default=None,
+                   help="moving camera model (default: free in paper mode, focal in accurate mode; "
+                        "fixed: the lens did not zoom, every image keeps the calibrated second camera's intrinsics)")
     p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
     p.add_argument("--ba", choices=["local", "global", "final"], default=None,
                    help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
