@@ -210,6 +210,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     report.update(resection_inliers=int(res.inliers.sum()), resection_rms_px=res.rms_px,
                   resection_model=res.info.get("model"))
     view.camera_model = "focal" if "fallback_from_free" in res.info else None
+    view.zoomed = res.info.get("model") != "fixed"
     if view.camera_model:
         report["free_camera_refused"] = res.info["fallback_from_free"]
 
@@ -891,13 +892,24 @@ def global_adjust(recon: Reconstruction, cfg: Config, max_rounds: int = 4) -> tu
 
 def finish(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     """After the last insertion: loop closure (accurate mode) and/or one global BA (``ba="final"``,
-    unless closing the loop already ran it)."""
+    unless closing the loop already ran it). In the accurate mode with the "focal" model, when no
+    image's resection found a zoom (``PipelineConfig.hold_unzoomed``), the global BA at the end
+    holds every image at the calibrated camera's intrinsics ("no_zoom" in the report)."""
     t = time.perf_counter()
     out: dict[str, Any] = {}
     pc = cfg.pipeline
     if pc.mode != "paper" and pc.loop_closure:
         out["loop_closure"] = close_loop(recon, cfg)
-    if pc.resolved_ba() == "final" and not out.get("loop_closure", {}).get("closed"):  # closing ran one
+    closed = bool(out.get("loop_closure", {}).get("closed"))
+    later = [v for v in recon.registered_views if v > 1]
+    no_zoom = (pc.mode != "paper" and pc.hold_unzoomed and pc.resolved_model() == "focal" and bool(later)
+               and not any(recon.views[v].zoomed for v in later) and (closed or pc.resolved_ba() == "final"))
+    if no_zoom:
+        # every image placed without a zoom: one lens setting for the whole sequence, the
+        # calibrated one (a focal length per image only trades against the depth)
+        out["no_zoom"] = True
+        out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": "fixed"}))[0]
+    elif pc.resolved_ba() == "final" and not closed:  # closing ran one
         out["final_ba"] = global_adjust(recon, cfg)[0]
     out["seconds"] = time.perf_counter() - t
     return out
@@ -922,7 +934,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         except (StereoseedError, np.linalg.LinAlgError) as e:
             # a degenerate configuration the checks did not foresee is still one image's failure
             reason = str(e) if isinstance(e, StereoseedError) else f"{names[k]}: numerical failure ({e}); skipped"
-            recon.views[k].P, recon.views[k].camera_model = None, None
+            recon.views[k].P, recon.views[k].camera_model, recon.views[k].zoomed = None, None, False
             recon.views[k].status = f"failed: {reason}"
             _forget_view(recon, k)
             rep = {"image": names[k], "status": "failed", "reason": reason}

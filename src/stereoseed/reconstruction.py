@@ -37,6 +37,7 @@ class View:
     image: np.ndarray | None = None
     rotated_180: bool = False  # the run works on the image turned upside down (camera held so)
     camera_model: str | None = None  # set when the view needed another model than the run's
+    zoomed: bool = False  # its resection took a new focal length (rather than the previous image's)
 
     @property
     def registered(self) -> bool:

@@ -97,7 +97,8 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
     points the focal length trades against the depth and one image cannot tell them apart
     (measured on templeSparseRing: a 34-point resection 9 % off in focal length, 40 mm off in
     position); the extra parameter must then pay for itself. BIC on the focal camera's inliers
-    (Schwarz 1978; Torr's GRIC makes the same choice here): n ln(RSS / n) + k ln(n), k = 7 or 6.
+    (Schwarz 1978; Torr's GRIC makes the same choice here): n ln(RSS / n) + k ln(n), k = 7 or 6;
+    the new focal length must win by ``config.zoom_evidence_bic``.
     """
     _, R, t = decompose_projection(P)  # the focal camera's pose is a close start
     P_fixed, inl_fixed, rms_fixed = polish(fallback_K @ np.hstack([R, t.reshape(3, 1)]), inliers,
@@ -110,7 +111,7 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
         rss = float(np.sum((project(Pc, X[inliers]) - x[inliers]) ** 2))
         return n * np.log(max(rss, 1e-12) / n) + k * np.log(n)
 
-    if bic(P_fixed, 6) <= bic(P, 7):
+    if bic(P_fixed, 6) <= bic(P, 7) + config.zoom_evidence_bic:
         return P_fixed, inl_fixed, rms_fixed, "fixed"
     return P, inliers, rms, "focal"
 
