@@ -146,9 +146,8 @@ class PipelineConfig:
     mode: str = "accurate"
     camera_model: str | None = None  # None: "free" (paper) / "focal" (accurate: the moving camera is the
     #                                  calibrated second camera, only its zoom/focus changes). "fixed": no
-    #                                  zoom at all; where that holds it is ~2x more accurate (templeSparseRing
-    #                                  median 2.25 -> 1.06 mm, unzoomed plain box 0.79 -> 0.19 cm): few points
-    #                                  over a narrow view let a free focal length trade against the depth
+    #                                  zoom at all, from the first insertion on (see hold_unzoomed for the
+    #                                  accurate mode's own decision at the end)
     window: int | None = None  # free cameras in the local BA; None: 1 (paper eq. 12) / 3 (accurate)
     # "local": local BA after each insertion; "global": global BA after each insertion; "final":
     # local + one global BA at the end (None: "local" in paper mode, as in the paper; "final" in
