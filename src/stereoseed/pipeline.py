@@ -1021,6 +1021,8 @@ def reconstruct_cli(args: Any) -> int:
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     print(f"registered {report['registered']}/{report['images']} images, {report['points']} points, "
           f"reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    if report["final"].get("no_zoom"):
+        print("  no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
     for r in failed:
         print(f"  skipped: {r['reason']}")
     return 0
