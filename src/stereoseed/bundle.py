@@ -129,8 +129,8 @@ class _Segments:
 def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
     """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n): every pair of
     observations (i, j) of one point adds -Y_i W_j^T (n, n) at cameras (cams[i], cams[j]).
-    order: observations grouped by point, starts: (points + 1,) offsets into it; W, Y: (O, n, 3)
-    with Y_i = W_i V_p^-1."""
+    order: observations grouped by point, starts: (groups + 1,) offsets of the groups into it;
+    W, Y: (O, n, 3) with Y_i = W_i V_p^-1."""
     n = W.shape[1]
     S = np.zeros((n_cams * n, n_cams * n))
     for p in range(len(starts) - 1):
@@ -206,9 +206,9 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     both_idx_all = np.flatnonzero(both)
     both_by_camera = _Segments(slot_c[both], nC)
     by_point_both = _Segments(slot_p[both_idx_all], nP)
-    # the observations of free points by free cameras grouped by point, for S's off-diagonal
-    by_point_order = np.argsort(slot_p[both_idx_all], kind="stable")
-    point_starts = np.searchsorted(slot_p[both_idx_all][by_point_order], np.arange(nP + 1))
+    # the same grouping (observations of free points by free cameras, point by point) sums S's
+    # off-diagonal blocks
+    point_starts = np.r_[by_point_both.starts, len(both_idx_all)]
     eye_n, eye_3 = np.eye(n), np.eye(3)
 
     lam = 1e-3
@@ -241,7 +241,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             if nC:
                 Wb = Wo[both_idx_all]
                 Y = Wb @ Vinv[slot_p[both_idx_all]]  # (Ob, n, 3)
-                S2 = _reduced_camera_matrix(by_point_order, point_starts, slot_c[both_idx_all], Wb, Y, nC)
+                S2 = _reduced_camera_matrix(by_point_both.order, point_starts, slot_c[both_idx_all], Wb, Y, nC)
                 for i in range(nC):
                     S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
                 rhs = -gc + both_by_camera.sum((Y @ gp[slot_p[both_idx_all]][:, :, None])[:, :, 0])

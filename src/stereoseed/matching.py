@@ -185,7 +185,6 @@ def epipolar_band_mask(
     distances), for all pairs at once: the numerator |x2^T F x1| is shared, so the max distance
     is that numerator over the smaller of the two line normals.
     """
-    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
     return _candidate_mask(x1, x2, np.inf, F, band_px)
 
 
@@ -214,6 +213,8 @@ def _candidate_mask(centre: np.ndarray, x2: np.ndarray, radius_px: float, F: np.
 
 @njit(cache=True)
 def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
+    """The mask of :func:`_candidate_mask` from the epipolar lines in image 2 (N1, 3) and the
+    normals' lengths of the lines in image 2 (N1,) and image 1 (N2,)."""
     n1, n2 = centre.shape[0], x2.shape[0]
     mask = np.empty((n1, n2), np.bool_)
     xs, ys = x2[:, 0].copy(), x2[:, 1].copy()
