@@ -153,7 +153,7 @@ class PipelineConfig:
     # local + one global BA at the end (None: "local" in paper mode, as in the paper; "final" in
     # accurate mode, as COLMAP ends: an open sequence drifts slowly along the chain of windows,
     # measured on the noisy box, scene seeds 0-3, mean centre error 0.040, 0.092, 0.041, 0.048 ->
-    # 0.036, 0.028, 0.031, 0.041 cm for ~0.3 s)
+    # 0.036, 0.028, 0.031, 0.041 cm for ~0.1 s)
     ba: str | None = None
     min_chained_points: int = 6  # paper: N >= 6 3D-2D pairs for the DLT
     retriangulate: bool = True  # accurate mode: re-triangulate a point from its whole track when it grows
