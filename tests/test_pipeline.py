@@ -263,7 +263,6 @@ def test_reference_intrinsics_follow_an_image_turned_upside_down():
     # The constrained camera models share the calibrated camera's principal point; in an image
     # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
     from stereoseed.camera import compose_projection
-    from stereoseed.pipeline import _in_frame_of
     from stereoseed.reconstruction import View
 
     K = np.array([[1500.0, 0.0, 302.3], [0.0, 1498.0, 246.9], [0.0, 0.0, 1.0]])
@@ -272,10 +271,10 @@ def test_reference_intrinsics_follow_an_image_turned_upside_down():
     R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
     P_input = compose_projection(K, R, np.array([0.1, 0.0, 2.0]))
     turned.P = np.array([[-1.0, 0, 639], [0, -1.0, 479], [0, 0, 1]]) @ P_input  # the run's frame
-    np.testing.assert_allclose(decompose_projection(turned.P)[0], _in_frame_of(K, upright, turned), atol=1e-9)
+    np.testing.assert_allclose(turned.K, turned.in_frame_of(K, upright), atol=1e-9)
     np.testing.assert_allclose(turned.P_input, P_input, atol=1e-12)
-    np.testing.assert_allclose(_in_frame_of(_in_frame_of(K, upright, turned), turned, upright), K)
-    assert _in_frame_of(K, upright, upright) is K
+    np.testing.assert_allclose(upright.in_frame_of(turned.in_frame_of(K, upright), turned), K)
+    assert upright.in_frame_of(K, upright) is K
 
 
 def test_corners_from_exact_pixels_with_the_true_cameras_are_exact(box_scene):
@@ -290,25 +289,26 @@ def test_corners_from_exact_pixels_with_the_true_cameras_are_exact(box_scene):
 
 
 def test_a_camera_that_jumped_farther_than_the_object_is_refused(box_scene):
-    from stereoseed.errors import StereoseedError
-    from stereoseed.pipeline import _check_camera
+    from stereoseed.reconstruction import View
+    from stereoseed.registration import implausible_motion
 
     points = box_scene.corners  # ~1.4 m in front of every camera of the ring
-    P1, P2, P6 = box_scene.P[1], box_scene.P[2], box_scene.P[6]  # 20 and 100 degrees further
-    _check_camera(P2, P1, "img", points)  # a 20-degree step: ~0.5 m
-    with pytest.raises(StereoseedError, match="moved"):
-        _check_camera(P6, P1, "img", points)  # ~2 m in one step
-    _check_camera(P6, P1, "img", points, steps=5)  # unless images were skipped in between
+    previous = View("prev", P=box_scene.P[1])
+    P2, P6 = box_scene.P[2], box_scene.P[6]  # 20 and 100 degrees further
+    assert implausible_motion(P2, previous, points, 1, 1.5) is None  # a 20-degree step: ~0.5 m
+    assert "moved" in implausible_motion(P6, previous, points, 1, 1.5)  # ~2 m in one step
+    assert implausible_motion(P6, previous, points, 5, 1.5) is None  # unless images were skipped in between
     K, R, t = box_scene.K[2], box_scene.R[2], box_scene.t[2]
-    with pytest.raises(StereoseedError, match="focal length"):
-        _check_camera(np.diag([2.0, 2.0, 1.0]) @ K @ np.hstack([R, t[:, None]]), P1, "img", points)
+    zoomed = np.diag([2.0, 2.0, 1.0]) @ K @ np.hstack([R, t[:, None]])
+    assert "focal length" in implausible_motion(zoomed, previous, points, 1, 1.5)
+    assert implausible_motion(zoomed, previous, points, 1, 2.5) is None
 
 
 def test_global_adjust_leaves_a_lone_pair_alone():
     # nothing registered past the calibrated pair: no BA, so no residual to call an outlier
     from geometry_helpers import box_points, ring_camera
     from stereoseed.features import Features
-    from stereoseed.pipeline import global_adjust
+    from stereoseed.refinement import global_adjust
     from stereoseed.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(6)
@@ -333,7 +333,7 @@ def test_global_adjust_leaves_a_lone_pair_alone():
 def test_global_adjust_drops_outliers_and_adjusts_again():
     from geometry_helpers import box_points, ring_camera
     from stereoseed.features import Features
-    from stereoseed.pipeline import global_adjust
+    from stereoseed.refinement import global_adjust
     from stereoseed.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(5)

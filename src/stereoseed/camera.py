@@ -16,6 +16,8 @@ import numpy as np
 __all__ = [
     "to_homogeneous",
     "project",
+    "project_homogeneous",
+    "project_per_observation",
     "camera_center",
     "depths",
     "compose_projection",
@@ -25,6 +27,7 @@ __all__ = [
     "epipolar_distances",
     "skew",
     "rotation_angle_deg",
+    "intrinsics_turned_180",
 ]
 
 
@@ -40,10 +43,23 @@ def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
     P: (3, 4) float64; points: (N, 3) float64 -> (N, 2) float64 pixels.
     Points on the principal plane (zero depth) project to inf/nan.
     """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    h = points @ P[:, :3].T + P[:, 3]
+    h = project_homogeneous(P, points)
     with np.errstate(divide="ignore", invalid="ignore"):
         return h[:, :2] / h[:, 2:3]
+
+
+def project_homogeneous(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Homogeneous pixels ``P @ (X, 1)``: P (3, 4); points (N, 3) -> (N, 3). The third
+    coordinate is the depth when P is normalised (:func:`normalize_projection`)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return points @ P[:, :3].T + P[:, 3]
+
+
+def project_per_observation(P_obs: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One camera per point: P_obs (O, 3, 4), points (O, 3) -> (homogeneous (O, 3), pixels (O, 2))."""
+    h = np.einsum("oij,oj->oi", P_obs[:, :, :3], points) + P_obs[:, :, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h, h[:, :2] / h[:, 2:3]
 
 
 def camera_center(P: np.ndarray) -> np.ndarray:
@@ -145,3 +161,13 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (degrees) of the relative rotation R_a R_b^T."""
     c = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def intrinsics_turned_180(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """K (3, 3) of the same camera for its image turned by 180 degrees (``image_size`` =
+    (width, height)): pixel (x, y) goes to (W - 1 - x, H - 1 - y), which moves the principal
+    point; the focal lengths and skew stay (the roll goes into R)."""
+    w, h = image_size
+    K = np.array(K, dtype=np.float64)
+    K[0, 2], K[1, 2] = w - 1 - K[0, 2], h - 1 - K[1, 2]
+    return K

@@ -6,6 +6,7 @@ one line ``stereoseed: error: ...`` with exit code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -92,9 +93,43 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from .pipeline import reconstruct_cli
+    from tqdm import tqdm
 
-    return reconstruct_cli(args)
+    from .config import Config, PipelineConfig
+    from .pipeline import load_sequence, reconstruct, save_outputs
+
+    try:
+        cfg = Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
+                                             ba=args.ba))
+    except ValueError as e:
+        raise StereoseedError(str(e)) from None
+    images, names, P_pair = load_sequence(args.images, args.calib)
+    bar = None if args.quiet else tqdm(total=len(images), unit="image", file=sys.stderr)
+
+    def progress(done: int, total: int, message: str) -> None:
+        if bar is not None:
+            bar.n = done
+            bar.set_postfix_str(message[:40])
+            bar.refresh()
+
+    try:
+        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    if args.dense:
+        from .dense import densify
+
+        report["dense"] = densify(recon, cfg, args.out)
+    save_outputs(recon, report, args.out)
+    print(f"registered {report['registered']}/{report['images']} images, {report['points']} points, "
+          f"reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    if report["final"].get("no_zoom"):
+        print("  no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
+    for r in report["per_image"]:
+        if r.get("status") == "failed":
+            print(f"  skipped: {r['reason']}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -129,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
                         "(default: local in paper mode, final in accurate mode)")
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
+    p.add_argument("--verbose", action="store_true", help="log each step (why an image was skipped, as it happens)")
     p.set_defaults(func=_cmd_reconstruct)
 
     p = sub.add_parser("propagate", help="quasi-dense match propagation of one calibrated pair, drawn as a disparity map")
@@ -160,9 +196,25 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"stereoseed: warning: {message}", file=sys.stderr if file is None else file)
 
 
+def _configure_logging(args: argparse.Namespace) -> None:
+    """The library logs; the terminal shows warnings, or every step with --verbose, or errors
+    only with --quiet."""
+    level = (logging.DEBUG if getattr(args, "verbose", False) else
+             logging.ERROR if getattr(args, "quiet", False) else logging.WARNING)
+    logger = logging.getLogger("stereoseed")
+    logger.setLevel(level)
+    for old in [h for h in logger.handlers if getattr(h, "_stereoseed", False)]:
+        logger.removeHandler(old)  # main() may run several times in one process (tests, notebooks)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("stereoseed: %(levelname)s: %(message)s"))
+    handler._stereoseed = True
+    logger.addHandler(handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _configure_logging(args)
     shown_before, warnings.showwarning = warnings.showwarning, _show_warning
     try:
         return int(args.func(args) or 0)

@@ -12,6 +12,26 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
+def _positive(cfg: Any, *names: str) -> None:
+    for name in names:
+        value = getattr(cfg, name)
+        if not value > 0:
+            raise ValueError(f"{type(cfg).__name__}.{name} must be > 0, got {value!r}")
+
+
+def _in_range(cfg: Any, name: str, low: float, high: float) -> None:
+    value = getattr(cfg, name)
+    if not low <= value <= high:
+        raise ValueError(f"{type(cfg).__name__}.{name} must be within [{low}, {high}], got {value!r}")
+
+
+def _one_of(cfg: Any, name: str, choices: tuple[str, ...], optional: bool = False) -> None:
+    value = getattr(cfg, name)
+    if value not in choices and not (optional and value is None):
+        raise ValueError(f"{type(cfg).__name__}.{name} must be one of {', '.join(choices)}"
+                         f"{' (or None)' if optional else ''}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class FeatureConfig:
     harris_k: float = 0.04  # paper.md defaults table; Harris & Stephens 1988
@@ -41,6 +61,12 @@ class FeatureConfig:
     # box corners' 3D RMS from 0.093 to 0.065 cm (accurate) and from 0.118 to 0.075 cm (paper).
     edge_corners: bool = True
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
+
+    def __post_init__(self) -> None:
+        _positive(self, "max_corners", "min_distance", "quality_level", "subpixel_window", "junction_tol")
+        if self.block_size < 2 or self.aperture not in (1, 3, 5, 7) or self.border < 0:
+            raise ValueError(f"FeatureConfig: block_size >= 2, aperture 1/3/5/7 and border >= 0 required, got "
+                             f"{self.block_size}, {self.aperture}, {self.border}")
 
 
 @dataclass(frozen=True)
@@ -75,6 +101,11 @@ class TriangulationConfig:
     min_angle_deg: float = 1.0  # tiny triangulation angles give unbounded depth error
     lm_iterations: int = 10  # per-point Gauss-Newton/LM steps (converges in 3-5)
 
+    def __post_init__(self) -> None:
+        _positive(self, "max_reprojection_px")
+        _in_range(self, "min_angle_deg", 0.0, 90.0)
+        _in_range(self, "lm_iterations", 0, 1000)
+
 
 @dataclass(frozen=True)
 class ResectionConfig:
@@ -99,12 +130,28 @@ class ResectionConfig:
     # noisy points a difference of ~0.4 picked a 14 % zoom 80 mm off on templeSparseRing.
     zoom_evidence_bic: float = 6.0
 
+    def __post_init__(self) -> None:
+        _positive(self, "ransac_threshold_px", "ransac_max_iters", "max_rms_px", "coplanarity_tol",
+                  "max_principal_point_shift", "max_aspect_change", "max_skew")
+        _in_range(self, "ransac_confidence", 0.0, 1.0 - 1e-12)
+        if self.min_points < 6 or self.min_inliers < self.min_points:
+            raise ValueError(f"ResectionConfig: min_points >= 6 (the DLT) and min_inliers >= min_points required, "
+                             f"got {self.min_points}, {self.min_inliers}")
+
 
 @dataclass(frozen=True)
 class BundleConfig:
     huber_px: float = 1.0  # paper.md: "Huber loss ~1 px"
     max_iterations: int = 20  # paper.md: "10-20 LM iterations"
-    window: int = 1  # number of latest cameras left free; 1 is the paper's local BA (eq. 12)
+    # A global BA is repeated after dropping outliers while its round dropped more than this
+    # fraction of the observations (a smaller drop cannot move the solution measurably; see
+    # docs/mapper.md), at most global_rounds times (COLMAP's global BA also re-runs after filtering).
+    negligible_drop: float = 0.001
+    global_rounds: int = 4
+
+    def __post_init__(self) -> None:
+        _positive(self, "huber_px", "max_iterations", "global_rounds")
+        _in_range(self, "negligible_drop", 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -120,6 +167,13 @@ class PropagationConfig:
     # window's shear at wide baselines moves the plain ZNCC peak by a pixel); "quadratic": 3x3 fit
     subpixel_method: str = "affine"
 
+    def __post_init__(self) -> None:
+        if self.window < 3 or self.window % 2 == 0:
+            raise ValueError(f"PropagationConfig.window must be odd and >= 3, got {self.window}")
+        _in_range(self, "min_zncc", -1.0, 1.0)
+        _positive(self, "neighbourhood", "epipolar_band_px")
+        _one_of(self, "subpixel_method", ("affine", "quadratic"))
+
 
 @dataclass(frozen=True)
 class DenseConfig:
@@ -134,56 +188,165 @@ class DenseConfig:
     support_cell_voxels: float = 4.0
     workers: int = 2  # process pool size; the target machine has 2 cores
 
+    def __post_init__(self) -> None:
+        _positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels", "workers")
+        if self.fusion_voxel < 0:
+            raise ValueError(f"DenseConfig.fusion_voxel must be >= 0 (0: automatic), got {self.fusion_voxel}")
+
 
 MODES = ("paper", "accurate")
+BA_POLICIES = ("local", "global", "final")
+CAMERA_MODELS = ("free", "zero-skew", "focal", "fixed")  # stereoseed.camera_models
+
+
+@dataclass(frozen=True)
+class MotionPriorConfig:
+    """Registration without epipolar geometry (repeated patterns, weak texture): the camera is
+    predicted from the previous motion, the recent points are paired with the interest points
+    near their predicted pixels, and robust 2D similarities give hypotheses whose cameras
+    compete by the points they explain (docs/mapper.md)."""
+
+    # search radii around the prediction, fractions of the image width: the near search and the
+    # wide one (a prediction already a few centimetres off misses by ~55 px at 640 px)
+    radius_fractions: tuple[float, ...] = (0.08, 0.16)
+    min_zncc: float = 0.7  # a pairing's patches must still look alike (between the paper's 0.8 and 0.6)
+    # hypotheses drawn from each point's best 3 and best 6 pairings: on a repeated pattern the
+    # true pairing may rank anywhere among equally good patches
+    pairings_per_point: tuple[int, ...] = (3, 6)
+    hypotheses_per_search: int = 3  # the pattern shifted by one period either way, and the truth
+    similarity_threshold: float = 0.015  # RANSAC threshold of the 2D similarity, fraction of the width
+    similarity_max_iters: int = 5000
+    # a camera explains a recent point when an interest point within explain_px of its projection
+    # matches its patch; None: 3 px in paper mode (two-view points scatter more), 1.5 px otherwise
+    explain_px: float | None = None
+    # a camera from the wide search replaces the near one's only when it explains this many
+    # times its points (a period-shifted camera explains about as many; true winners 1.4-1.5x)
+    wider_search_margin: float = 1.2
+    # an epipolar chain with at least this many times ResectionConfig.min_inliers inliers is
+    # trusted without consulting the prior
+    trusted_chain_factor: float = 2.0
+    recent_views: int = 3  # the points of the last few registered views are the ones projected
+
+    def __post_init__(self) -> None:
+        _positive(self, "similarity_threshold", "similarity_max_iters", "wider_search_margin",
+                  "hypotheses_per_search", "recent_views", "trusted_chain_factor")
+        _in_range(self, "min_zncc", -1.0, 1.0)
+        if not self.radius_fractions or not all(0 < r <= 1 for r in self.radius_fractions):
+            raise ValueError(f"MotionPriorConfig.radius_fractions must be fractions in (0, 1], got {self.radius_fractions}")
+        if not self.pairings_per_point or not all(int(n) >= 1 for n in self.pairings_per_point):
+            raise ValueError(f"MotionPriorConfig.pairings_per_point must be >= 1, got {self.pairings_per_point}")
+        if self.explain_px is not None:
+            _positive(self, "explain_px")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Accurate mode: points followed into more views by projection + patch alignment (COLMAP
+    and ORB-SLAM search by projection), and new points checked in a third view."""
+
+    # unaligned ZNCC a tracked point must reach at its prediction before the ~20x dearer
+    # alignment runs (occluded points fail it)
+    first_look_zncc: float = 0.3
+    # a tracked position this close to an interest point standing for another 3D point is that
+    # point, not this one
+    min_distance_to_other_px: float = 1.0
+    # three-view points (repeated patterns): pairs within the epipolar band and above this ZNCC,
+    # kept when a third view has a matching interest point within max_px of the projection
+    three_view_min_zncc: float = 0.7
+    three_view_max_px: float = 1.5
+
+    def __post_init__(self) -> None:
+        _in_range(self, "first_look_zncc", -1.0, 1.0)
+        _in_range(self, "three_view_min_zncc", -1.0, 1.0)
+        _positive(self, "min_distance_to_other_px", "three_view_max_px")
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    """Accurate mode: the last views matched against the first ones, tracks linked or merged,
+    then a global BA."""
+
+    span: int = 3  # the last `span` registered views against the first `span`
+    min_matches: int = 20  # fewer matches between two views: no evidence of a shared point
+    max_axis_angle_deg: float = 60.0  # views looking more apart than this share too little to match
+    # the same physical point reconstructed twice lies within this fraction of its depth after
+    # the drift of a ring (the box ring: < 1 %)
+    merge_distance: float = 0.02
+    # a link is accepted within this multiple of ResectionConfig.ransac_threshold_px (the drift
+    # has not been adjusted away yet)
+    link_threshold_factor: float = 4.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "span", "min_matches", "merge_distance", "link_threshold_factor")
+        _in_range(self, "max_axis_angle_deg", 0.0, 180.0)
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     # "paper": 2-view points, 11-DOF moving camera, 3-image local BA (paper §4.2-4.3).
-    # "accurate": multi-view tracks, constrained moving camera, wider BA window (issue 7;
-    # Mouragnon et al. 2006 for the windowed local BA).
+    # "accurate": multi-view tracks, constrained moving camera, wider BA window (Mouragnon et al.
+    # 2006 for the windowed local BA). The two are strategies of stereoseed.modes.
     mode: str = "accurate"
-    camera_model: str | None = None  # None: "free" (paper) / "focal" (accurate: the moving camera is the
-    #                                  calibrated second camera, only its zoom/focus changes). "fixed": no
-    #                                  zoom at all, from the first insertion on (see hold_unzoomed for the
-    #                                  accurate mode's own decision at the end)
+    # None: "free" (paper) / "focal" (accurate: the calibrated second camera, only its zoom
+    # changes); "fixed": no zoom at all (see hold_unzoomed for the accurate mode's own decision)
+    camera_model: str | None = None
     window: int | None = None  # free cameras in the local BA; None: 1 (paper eq. 12) / 3 (accurate)
     # "local": local BA after each insertion; "global": global BA after each insertion; "final":
-    # local + one global BA at the end (None: "local" in paper mode, as in the paper; "final" in
-    # accurate mode, as COLMAP ends: an open sequence drifts slowly along the chain of windows,
-    # measured on the noisy box, scene seeds 0-3, mean centre error 0.040, 0.092, 0.041, 0.048 ->
-    # 0.036, 0.028, 0.031, 0.041 cm for ~0.1 s)
+    # local + one global BA at the end. None: "local" in paper mode (the paper), "final" in
+    # accurate mode (as COLMAP ends: an open sequence drifts slowly along its chain of windows)
     ba: str | None = None
     min_chained_points: int = 6  # paper: N >= 6 3D-2D pairs for the DLT
     retriangulate: bool = True  # accurate mode: re-triangulate a point from its whole track when it grows
-    # accurate mode, "focal" model: when no image's resection found a zoom, the lens is taken not to
-    # have zoomed and the final global BA holds every image at the calibrated camera's intrinsics
-    # (a free focal length per image trades against the depth: templeSparseRing median 2.25 -> 1.0 mm)
+    # accurate mode, "focal" model: when no image's resection found a zoom, the final global BA
+    # holds every image at the calibrated camera's intrinsics (a free focal length per image only
+    # trades against the depth)
     hold_unzoomed: bool = True
     loop_closure: bool = True  # accurate mode: match the last images against the first ones
-    # After each BA, observations reprojecting beyond outlier_factor x the median reprojection
-    # error of all observations (~3.4 sigma: the norm of 2-D Gaussian noise has median 1.18
-    # sigma), never below outlier_floor_px, are dropped. Long tracks collect a few wrong
-    # observations (patches straddling an occlusion edge) that pull the chain one way; measured:
-    # box ring sigma 0 mean centre error 0.109 -> 0.024 cm, templeSparseRing median 4.4 -> 2.7 mm.
-    # None: off in paper mode (only 2 x triangulation.max_reprojection_px), 4.0 in accurate mode.
+    # After each BA, observations beyond outlier_factor x the median reprojection error (~3.4
+    # sigma: the norm of 2-D Gaussian noise has median 1.18 sigma), never below outlier_floor_px,
+    # are dropped. None: 4.0 in accurate mode, 0 (off) in paper mode; always, observations
+    # beyond 2 x TriangulationConfig.max_reprojection_px go.
     outlier_factor: float | None = None
     outlier_floor_px: float = 0.25
+    # a resected camera whose focal length changed by more than this factor since the previous
+    # image is refused (a hand-held zoom between two shots does not; a camera fitted to wrong
+    # correspondences often does)
+    max_zoom_step: float = 1.5
+
+    def __post_init__(self) -> None:
+        _one_of(self, "mode", MODES)
+        _one_of(self, "camera_model", CAMERA_MODELS, optional=True)
+        _one_of(self, "ba", BA_POLICIES, optional=True)
+        if self.window is not None and (not isinstance(self.window, int) or self.window < 1):
+            raise ValueError(f"PipelineConfig.window must be a whole number >= 1 (or None), got {self.window!r}")
+        _positive(self, "min_chained_points", "max_zoom_step")
+        if self.min_chained_points < 6:
+            raise ValueError("PipelineConfig.min_chained_points must be >= 6: the DLT needs 6 points")
+        if self.outlier_factor is not None and self.outlier_factor < 0:
+            raise ValueError(f"PipelineConfig.outlier_factor must be >= 0 (0: off), got {self.outlier_factor}")
+        if self.outlier_floor_px < 0:
+            raise ValueError(f"PipelineConfig.outlier_floor_px must be >= 0, got {self.outlier_floor_px}")
+
+    def resolved(self) -> "PipelineConfig":
+        """The same configuration with every None (mode-dependent default) replaced by its value."""
+        paper = self.mode == "paper"
+        return dataclasses.replace(
+            self, camera_model=self.camera_model or ("free" if paper else "focal"),
+            window=self.window or (1 if paper else 3), ba=self.ba or ("local" if paper else "final"),
+            outlier_factor=self.outlier_factor if self.outlier_factor is not None else (0.0 if paper else 4.0))
 
     def resolved_model(self) -> str:
-        return self.camera_model or ("free" if self.mode == "paper" else "focal")
+        return self.resolved().camera_model
 
     def resolved_window(self) -> int:
-        return self.window or (1 if self.mode == "paper" else 3)
+        return self.resolved().window
 
     def resolved_ba(self) -> str:
-        return self.ba or ("local" if self.mode == "paper" else "final")
+        return self.resolved().ba
 
     def resolved_outlier_factor(self) -> float | None:
-        if self.outlier_factor is not None:
-            return self.outlier_factor if self.outlier_factor > 0 else None
-        return None if self.mode == "paper" else 4.0
+        factor = self.resolved().outlier_factor
+        return factor if factor > 0 else None
 
 
 @dataclass(frozen=True)
@@ -196,9 +359,27 @@ class Config:
     propagation: PropagationConfig = field(default_factory=PropagationConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    motion_prior: MotionPriorConfig = field(default_factory=MotionPriorConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            if not isinstance(getattr(self, f.name), f.default_factory):
+                raise ValueError(f"Config.{f.name} must be a {f.default_factory.__name__}, "
+                                 f"got {type(getattr(self, f.name)).__name__}")
+
+    def resolved(self) -> "Config":
+        """The configuration a run uses: the mode-dependent defaults (None) filled in."""
+        pipeline = self.pipeline.resolved()
+        prior = self.motion_prior
+        if prior.explain_px is None:
+            prior = dataclasses.replace(prior, explain_px=3.0 if pipeline.mode == "paper" else 1.5)
+        return dataclasses.replace(self, pipeline=pipeline, motion_prior=prior)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The resolved configuration as a JSON-able dict (what report.json records)."""
+        return dataclasses.asdict(self.resolved())
 
     def replace(self, **sections: Any) -> "Config":
         """Copy with some stages' fields replaced: ``cfg.replace(matching={"min_zncc": 0.7})``."""

@@ -1,97 +1,235 @@
-"""The reconstruction's data model: views (images with their camera and interest points), 3D
-points with colour, and observations linking an interest point of a view to a 3D point.
+"""The reconstruction's data model: views (an image, its camera and interest points), 3D points
+with colour, and the observations linking an interest point of a view to a 3D point.
 
-Modelled on COLMAP's Camera/Image/Point3D: a point's track is the list of its observations.
-Everything is kept in flat NumPy arrays so the pipeline's steps stay vectorised.
+Modelled on COLMAP's ``scene/`` (Camera, Image, Point3D and the observation manager): a point's
+track is the list of its observations, and :class:`Reconstruction` alone changes them, keeping
+its invariants:
+
+* an interest point stands for at most one 3D point (``View.point_of_feature``), and a linked
+  observation is the one it stands for;
+* the paper mode's *unlinked* observations are explicit: a chained old point observed in I_k
+  enters the cost, while the interest point keeps standing for the new two-view point;
+* removed points keep their index (``alive`` is False), so indices held elsewhere stay valid.
+
+Points and observations live in flat NumPy arrays that grow by doubling, so the pipeline's
+steps stay vectorised and appending does not copy everything each time.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .camera import project
+from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
 from .features import Features
 from .io import camera_entry, write_json, write_ply
 
-__all__ = ["View", "Reconstruction"]
+__all__ = ["View", "Reconstruction", "Checkpoint", "eq14"]
 
 
-@dataclass
+def eq14(sum_squared_px: float, n_images: int, n_points: int) -> float:
+    """The paper's eq. 14: sum of squared reprojection errors over images x points (px^2, not
+    rooted, as the paper prints it)."""
+    return float(sum_squared_px / max(1, n_images * n_points))
+
+
 class View:
-    """One input image.
+    """One input image and what the run knows of it.
 
-    name: file name; features: its interest points; P: (3, 4) or None while unregistered;
-    status: "calibrated", "registered", "pending" or "failed: <reason>";
-    point_of_feature: (N,) int64, the 3D point an interest point currently stands for (-1: none).
-    image: uint8 BGR (H, W, 3), kept while the run needs it (colours, dense stage).
+    name: file name; image: uint8 BGR (H, W, 3) as the run works on it (turned by 180 degrees
+    when ``rotated_180``); features: its interest points; P: (3, 4) camera in that image's
+    frame, None while unregistered; status: "calibrated", "registered", "pending" or
+    "failed: <reason>"; point_of_feature: (N,) int64, the 3D point each interest point stands
+    for (-1: none); camera_model: the camera model its intrinsics follow when it is not the
+    run's (an 11-DOF camera refused, the focal-only model taken instead); zoomed: its resection
+    took a new focal length rather than the previous image's.
+
+    K, R, t, center and focal are derived from P once, when P is set.
     """
 
-    name: str
-    features: Features | None = None
-    P: np.ndarray | None = None
-    status: str = "pending"
-    point_of_feature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    image: np.ndarray | None = None
-    rotated_180: bool = False  # the run works on the image turned upside down (camera held so)
-    camera_model: str | None = None  # set when the view needed another model than the run's
-    zoomed: bool = False  # its resection took a new focal length (rather than the previous image's)
+    def __init__(self, name: str, features: Features | None = None, P: np.ndarray | None = None,
+                 status: str = "pending", point_of_feature: np.ndarray | None = None,
+                 image: np.ndarray | None = None, rotated_180: bool = False, camera_model: str | None = None,
+                 zoomed: bool = False):
+        self.name = name
+        self.features = features
+        self.status = status
+        self.point_of_feature = np.zeros(0, np.int64) if point_of_feature is None else point_of_feature
+        self.image = image
+        self.rotated_180 = rotated_180
+        self.camera_model = camera_model
+        self.zoomed = zoomed
+        self.P = P
+
+    @property
+    def P(self) -> np.ndarray | None:
+        return self._P
+
+    @P.setter
+    def P(self, P: np.ndarray | None) -> None:
+        self._P = None if P is None else np.asarray(P, np.float64)
+        self._krt: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def _decomposed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._krt is None:
+            self._krt = decompose_projection(self._P)
+        return self._krt
+
+    @property
+    def K(self) -> np.ndarray:
+        return self._decomposed()[0]
+
+    @property
+    def R(self) -> np.ndarray:
+        return self._decomposed()[1]
+
+    @property
+    def center(self) -> np.ndarray:
+        return camera_center(self._P)
+
+    @property
+    def focal(self) -> float:
+        """Focal length (px, along x)."""
+        return float(self.K[0, 0])
 
     @property
     def registered(self) -> bool:
-        return self.P is not None
+        return self._P is not None
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) of the image."""
+        return self.image.shape[1], self.image.shape[0]
 
     @property
     def P_input(self) -> np.ndarray | None:
-        """P (3, 4) in the pixel frame of the input image (P works in the frame the run used:
-        the image turned by 180 degrees when ``rotated_180``)."""
-        if self.P is None or not self.rotated_180:
-            return self.P
-        h, w = self.image.shape[:2]
+        """P (3, 4) in the pixel frame of the input image (P works in the frame the run used)."""
+        if self._P is None or not self.rotated_180:
+            return self._P
+        w, h = self.image_size
         flip = np.array([[-1.0, 0.0, w - 1.0], [0.0, -1.0, h - 1.0], [0.0, 0.0, 1.0]])
-        return flip @ self.P
+        return flip @ self._P
+
+    def in_frame_of(self, K: np.ndarray, source: "View") -> np.ndarray:
+        """Intrinsics K (3, 3) of ``source``'s image expressed for this view's image: turning an
+        image by 180 degrees maps pixel (x, y) to (W - 1 - x, H - 1 - y), which moves the
+        principal point (focal lengths and skew stay, the roll goes into R)."""
+        return K if source.rotated_180 == self.rotated_180 else intrinsics_turned_180(K, self.image_size)
+
+    def append_features(self, features: Features) -> np.ndarray:
+        """Add interest points found by tracking, not detection; returns their indices (K,)."""
+        f = self.features
+        start = len(f)
+        self.features = Features(np.vstack([f.points, features.points]), np.vstack([f.desc, features.desc]),
+                                 np.concatenate([f.valid, features.valid]),
+                                 np.concatenate([f.response, features.response]), f.image_shape, f.gray)
+        self.point_of_feature = np.concatenate([self.point_of_feature, np.full(len(features), -1, np.int64)])
+        return np.arange(start, start + len(features))
+
+    def _state(self) -> tuple:
+        return (self._P, self.features, self.point_of_feature.copy(), self.image, self.status, self.rotated_180,
+                self.camera_model, self.zoomed)
+
+    def _restore(self, state: tuple) -> None:
+        (self.P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180,
+         self.camera_model, self.zoomed) = state
+
+
+class _Growing:
+    """A 1-D or 2-D array that grows by doubling: ``data`` is the used part (a view)."""
+
+    def __init__(self, dtype: Any, width: int | None = None):
+        self._buf = np.zeros((16,) if width is None else (16, width), dtype)
+        self.n = 0
+
+    @property
+    def data(self) -> np.ndarray:
+        return self._buf[:self.n]
+
+    def extend(self, values: np.ndarray) -> None:
+        k = len(values)
+        if self.n + k > len(self._buf):
+            grown = np.zeros((max(2 * len(self._buf), self.n + k),) + self._buf.shape[1:], self._buf.dtype)
+            grown[:self.n] = self._buf[:self.n]
+            self._buf = grown
+        self._buf[self.n:self.n + k] = values
+        self.n += k
+
+    def keep(self, mask: np.ndarray) -> None:
+        kept = self.data[mask]
+        self._buf[:len(kept)] = kept
+        self.n = len(kept)
+
+    def set(self, values: np.ndarray) -> None:
+        self.n = 0
+        self.extend(values)
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What :meth:`Reconstruction.restore` needs to undo everything done since
+    :meth:`Reconstruction.checkpoint`."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    alive: np.ndarray
+    observations: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    views: tuple[tuple, ...]
 
 
 class Reconstruction:
     """Views, points (M, 3) with colours (M, 3) uint8 RGB, and observations.
 
-    Observations are three parallel int64 arrays (obs_view, obs_feature, obs_point): interest
-    point ``obs_feature`` of view ``obs_view`` is an image of 3D point ``obs_point``. Removed
-    points keep their index (``alive`` is False) so indices held elsewhere stay valid.
+    Observations are parallel int64 arrays (obs_view, obs_feature, obs_point) and a bool array
+    obs_linked: interest point ``obs_feature`` of view ``obs_view`` is an image of 3D point
+    ``obs_point``. Read them through the properties; change them through the methods.
+
+    source: where correspondences come from (set by :func:`stereoseed.mapper.initialise`).
     """
 
     def __init__(self, views: list[View]):
         self.views = views
-        self.points = np.zeros((0, 3))
-        self.colors = np.zeros((0, 3), np.uint8)
-        self.alive = np.zeros(0, bool)
-        self.obs_view = np.zeros(0, np.int64)
-        self.obs_feature = np.zeros(0, np.int64)
-        self.obs_point = np.zeros(0, np.int64)
-        self.source: Any = None  # where correspondences come from (set by the pipeline)
+        self._points = _Growing(np.float64, 3)
+        self._colors = _Growing(np.uint8, 3)
+        self._alive = _Growing(bool)
+        self._obs_view = _Growing(np.int64)
+        self._obs_feature = _Growing(np.int64)
+        self._obs_point = _Growing(np.int64)
+        self._obs_linked = _Growing(bool)
+        self.source: Any = None
+
+    # ------------------------------------------------------------ arrays (views, read them)
+    points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")
+    colors = property(lambda self: self._colors.data, doc="(M, 3) uint8 RGB")
+    alive = property(lambda self: self._alive.data, doc="(M,) bool; a removed point keeps its row")
+    obs_view = property(lambda self: self._obs_view.data, doc="(O,) int64")
+    obs_feature = property(lambda self: self._obs_feature.data, doc="(O,) int64")
+    obs_point = property(lambda self: self._obs_point.data, doc="(O,) int64")
+    obs_linked = property(lambda self: self._obs_linked.data, doc="(O,) bool: the interest point stands for it")
 
     # ------------------------------------------------------------ building
     def add_points(self, points: np.ndarray, colors: np.ndarray) -> np.ndarray:
         """Append points (K, 3) with colours (K, 3); returns their ids (K,)."""
-        ids = np.arange(len(self.points), len(self.points) + len(points))
-        self.points = np.vstack([self.points, points])
-        self.colors = np.vstack([self.colors, np.asarray(colors, np.uint8).reshape(-1, 3)])
-        self.alive = np.concatenate([self.alive, np.ones(len(points), bool)])
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        ids = np.arange(self._points.n, self._points.n + len(points))
+        self._points.extend(points)
+        self._colors.extend(np.asarray(colors, np.uint8).reshape(-1, 3))
+        self._alive.extend(np.ones(len(points), bool))
         return ids
 
-    def add_observations(self, view: int, features: np.ndarray, point_ids: np.ndarray,
-                         link: bool = True) -> None:
+    def add_observations(self, view: int, features: np.ndarray, point_ids: np.ndarray, link: bool = True) -> None:
         """Record that ``features`` (K,) of ``view`` observe ``point_ids`` (K,).
 
-        link: also make those interest points stand for the points (``point_of_feature``).
-        """
+        link: the interest points now stand for those points (``point_of_feature``); False
+        records an observation for the cost only (the paper mode's chained points)."""
         features = np.asarray(features, np.int64)
         point_ids = np.asarray(point_ids, np.int64)
-        self.obs_view = np.concatenate([self.obs_view, np.full(len(features), view, np.int64)])
-        self.obs_feature = np.concatenate([self.obs_feature, features])
-        self.obs_point = np.concatenate([self.obs_point, point_ids])
+        self._obs_view.extend(np.full(len(features), view, np.int64))
+        self._obs_feature.extend(features)
+        self._obs_point.extend(point_ids)
+        self._obs_linked.extend(np.full(len(features), link, bool))
         if link:
             self.views[view].point_of_feature[features] = point_ids
 
@@ -104,8 +242,8 @@ class Reconstruction:
             linked = pof[f] == self.obs_point[sel]
             pof[f[linked]] = -1
         keep = ~mask
-        self.obs_view, self.obs_feature, self.obs_point = (self.obs_view[keep], self.obs_feature[keep],
-                                                           self.obs_point[keep])
+        for arr in (self._obs_view, self._obs_feature, self._obs_point, self._obs_linked):
+            arr.keep(keep)
 
     def remove_points(self, point_ids: np.ndarray) -> None:
         """Mark points dead and drop their observations."""
@@ -114,6 +252,62 @@ class Reconstruction:
             return
         self.alive[point_ids] = False
         self.remove_observations(~self.alive[self.obs_point])
+
+    def remove_lonely_points(self) -> None:
+        """Points seen fewer than twice are no points."""
+        self.remove_points(np.flatnonzero(self.alive & (self.track_lengths() < 2)))
+
+    def filter_observations(self, bad: np.ndarray) -> int:
+        """Drop the observations selected by ``bad`` (O,) bool (outliers), then the points seen
+        fewer than twice. Returns the number of observations dropped."""
+        self.remove_observations(bad)
+        self.remove_lonely_points()
+        return int(bad.sum())
+
+    def merge_points(self, keep: np.ndarray, drop: np.ndarray) -> int:
+        """Merge point ``drop[i]`` into ``keep[i]``: its observations move over (unless a view
+        already sees ``keep[i]``: then they are not the same point), it dies. Returns the
+        number of merges done."""
+        done = 0
+        for p, q in zip(keep, drop):
+            if p == q or not (self.alive[p] and self.alive[q]):
+                continue
+            obs_q = np.flatnonzero(self.obs_point == q)
+            if np.isin(self.obs_view[obs_q], self.obs_view[self.obs_point == p]).any():
+                continue
+            self.obs_point[obs_q] = p
+            for o in obs_q:
+                if self.obs_linked[o]:
+                    self.views[self.obs_view[o]].point_of_feature[self.obs_feature[o]] = p
+            self.alive[q] = False
+            done += 1
+        return done
+
+    def deregister(self, view: int) -> None:
+        """Forget a view's camera and observations, and the points no longer seen twice."""
+        self.remove_observations(self.obs_view == view)
+        self.remove_lonely_points()
+        v = self.views[view]
+        v.P, v.camera_model, v.zoomed = None, None, False
+        v.point_of_feature[:] = -1
+
+    def checkpoint(self) -> Checkpoint:
+        """A copy of everything an insertion may change (points, observations, views)."""
+        return Checkpoint(self.points.copy(), self.colors.copy(), self.alive.copy(),
+                          (self.obs_view.copy(), self.obs_feature.copy(), self.obs_point.copy(),
+                           self.obs_linked.copy()),
+                          tuple(v._state() for v in self.views))
+
+    def restore(self, state: Checkpoint) -> None:
+        """Back to the state of ``state`` (from :meth:`checkpoint`)."""
+        self._points.set(state.points)
+        self._colors.set(state.colors)
+        self._alive.set(state.alive)
+        for arr, values in zip((self._obs_view, self._obs_feature, self._obs_point, self._obs_linked),
+                               state.observations):
+            arr.set(values)
+        for v, s in zip(self.views, state.views):
+            v._restore(s)
 
     # ------------------------------------------------------------ queries
     def observation_xy(self, mask: np.ndarray | None = None) -> np.ndarray:
@@ -138,9 +332,24 @@ class Reconstruction:
     def track_lengths(self) -> np.ndarray:
         return np.bincount(self.obs_point, minlength=len(self.points))
 
+    def points_seen_by(self, view: int) -> np.ndarray:
+        """Ids of the live points view ``view`` observes, (K,) in observation order."""
+        sel = (self.obs_view == view) & self.alive[self.obs_point]
+        return self.obs_point[sel]
+
     @property
     def registered_views(self) -> list[int]:
         return [i for i, v in enumerate(self.views) if v.registered]
+
+    def registered_before(self, k: int, count: int) -> list[int]:
+        """The last ``count`` registered views before view k, nearest first."""
+        return [i for i in range(k - 1, -1, -1) if self.views[i].registered][:count]
+
+    def reference_K(self, view: int) -> np.ndarray:
+        """The calibrated second camera's K, the reference of the constrained camera models, in
+        view ``view``'s image frame (a view turned by 180 degrees keeps the unturned principal
+        point, now at (W - 1 - cx, H - 1 - cy))."""
+        return self.views[view].in_frame_of(self.views[1].K, self.views[1])
 
     def live_points(self) -> tuple[np.ndarray, np.ndarray]:
         """(points (K, 3), colours (K, 3)) of the points still alive and observed."""
@@ -148,15 +357,14 @@ class Reconstruction:
         return self.points[keep], self.colors[keep]
 
     def reprojection_summary(self) -> dict[str, float]:
-        """RMS (px) over observations and the paper's eq. 14: sum of squared errors / (m n),
-        m registered images, n points (reported squared, not rooted, as printed)."""
+        """RMS (px) over observations and the paper's eq. 14 over the registered images and the
+        observed points."""
         if len(self.obs_view) == 0:
             return {"rms_px": float("nan"), "eq14": float("nan"), "observations": 0}
         err = self.observation_errors()
         n_pts = int(np.sum(self.alive & (self.track_lengths() > 0)))
-        m = len(self.registered_views)
         return {"rms_px": float(np.sqrt(np.mean(err ** 2))),
-                "eq14": float(np.sum(err ** 2) / max(1, m * n_pts)),
+                "eq14": eq14(float(np.sum(err ** 2)), len(self.registered_views), n_pts),
                 "observations": int(len(err))}
 
     # ------------------------------------------------------------ output

@@ -1,0 +1,99 @@
+"""Where the mapper's correspondences come from: interest points, pair matches, sub-pixel
+refinement and tracking by patch alignment.
+
+:class:`HarrisZncc` is the paper's source (Harris interest points matched by ZNCC under the
+epipolar constraint, a known or a robust F). Any object with the methods of
+:class:`CorrespondenceSource` can replace it: the tests and benchmarks feed the same mapper
+with the exact correspondences of a synthetic scene (``evaluation.TrueCorrespondences``) to
+measure the chain alone.
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from .config import Config
+from .features import Features, describe, extract_features
+from .matching import PairCache, Matches, align_matches, match_pair, refine_features
+
+__all__ = ["CorrespondenceSource", "HarrisZncc"]
+
+
+class CorrespondenceSource(Protocol):
+    """What the mapper asks of a correspondence source. ``refine`` and ``track`` are optional
+    (without them matched points keep their detected positions and nothing is tracked);
+    ``turns_images`` says whether matching an image turned by 180 degrees can find more
+    (a rotation-sensitive matcher such as ZNCC)."""
+
+    def features(self, index: int, image: np.ndarray) -> Features:
+        """Interest points of image ``index``."""
+
+    def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
+        """Matches between views a and b; F (3, 3) when both cameras are known."""
+
+
+class HarrisZncc:
+    """The paper's correspondences: Harris interest points, ZNCC matches under the epipolar
+    constraint (known F) or a robust F, refined and tracked by affine patch alignment."""
+
+    turns_images = True  # ZNCC is not rotation invariant
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self._pair_caches: list[PairCache] = []
+
+    def _cache(self, fa: Features, fb: Features) -> PairCache:
+        """The cache of the pair (fa, fb): an insertion matches its pair up to four times and
+        then refines it, over largely the same candidates. The last two pairs only: a cache
+        holds both feature sets (with their grey images) and a scores matrix."""
+        for c in self._pair_caches:
+            if c.covers(fa, fb):
+                return c
+        self._pair_caches = self._pair_caches[-1:] + [PairCache(fa, fb)]
+        return self._pair_caches[-1]
+
+    def features(self, index: int, image: np.ndarray) -> Features:
+        return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
+
+    def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
+        """Strict localisation check first; a pair that keeps fewer than ``relax_below`` matches
+        (real images: plaster, lighting, strong foreshortening) is matched again with the
+        relaxed check and robust estimation takes care of the extra outliers."""
+        mc = self.cfg.matching
+        cache = self._cache(fa, fb)
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
+                       max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
+        if len(m) < mc.relax_below:
+            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
+                                 max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
+            if len(relaxed) > len(m):
+                m = relaxed
+        return m
+
+    def refine(self, fa: Features, fb: Features, m: Matches) -> Features:
+        """fb with its matched points moved onto their partners in fa (sub-pixel affine
+        alignment): a track followed pair after pair then carries one physical point, not
+        detector noise."""
+        return refine_features(fa, fb, m, cache=self._cache(fa, fb))
+
+    def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
+              predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Find interest points ``ref_idx`` (K,) of a reference view in a target view, starting at
+        their predicted pixels (K, 2): affine alignment of the reference patch (no detector
+        involved, so a track survives where Harris does not fire again). Returns (xy (K, 2), ok (K,))."""
+        predicted = np.asarray(predicted, np.float64)
+        ref_idx = np.asarray(ref_idx, np.int64)
+        # a cheap first look (unaligned ZNCC at the prediction) rejects occluded points before
+        # the ~20x dearer alignment
+        desc, valid = describe(f_target.gray, predicted, f_target.patch_size)
+        look = np.flatnonzero(valid & f_ref.valid[ref_idx]
+                              & (np.einsum("ij,ij->i", desc, f_ref.desc[ref_idx]) >= self.cfg.tracking.first_look_zncc))
+        xy, ok = predicted.copy(), np.zeros(len(predicted), bool)
+        probe = Features(predicted[look], desc[look], valid[look], np.zeros(len(look)), f_target.image_shape, f_target.gray)
+        m = Matches(ref_idx[look], np.arange(len(look)), np.ones(len(look)))
+        al = align_matches(f_ref, probe, m)
+        xy[look] = al.x2
+        ok[look] = (al.converged & (al.shift(probe, m) <= max_shift_px)
+                    & (al.zncc > self.cfg.matching.min_aligned_zncc))
+        return xy, ok

@@ -1,0 +1,181 @@
+"""The incremental mapper (paper §4.1-4.3): estimate, validate, then commit.
+
+    recon, report = initialise(images, names, P_pair, cfg)   # match I1-I2, triangulate, filter
+    for k in 2 .. n-1: insert_view(recon, k, cfg)           # register, then grow and adjust
+    finish(recon, cfg)                                      # loop closure / final global BA
+
+:func:`insert_view` registers view k (:func:`stereoseed.registration.register_view`, which
+changes nothing) and commits the camera at one point only; then the mode's strategy
+(:mod:`stereoseed.modes`) adds points, grows tracks and adjusts. An image that cannot be
+placed is reported (``"status": "failed"`` with the reason) and leaves the reconstruction as it
+was; so does a numerical failure after the commit (the insertion is rolled back).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from .camera import fundamental_from_projections, project
+from .config import Config
+from .correspondence import CorrespondenceSource, HarrisZncc
+from .errors import StereoseedError
+from .matching import Matches
+from .modes import mode_of
+from .reconstruction import Reconstruction, View
+from .refinement import adjust, drop_outliers
+from .registration import MOTION_PRIOR, Registration, RegistrationFailure, register_view
+from .tracks import colors_at, new_points_three_view, triangulate_matches
+
+__all__ = ["initialise", "insert_view", "finish"]
+
+log = logging.getLogger(__name__)
+
+
+def _refine(recon: Reconstruction, a: int, b: int, m: Matches) -> None:
+    """Move view b's matched interest points onto their partners in view a, if the source can."""
+    refine = getattr(recon.source, "refine", None)
+    if refine is not None and len(m):
+        recon.views[b].features = refine(recon.views[a].features, recon.views[b].features, m)
+
+
+def _match_known(recon: Reconstruction, a: int, b: int) -> Matches:
+    """Matches between registered views a and b under their epipolar geometry."""
+    va, vb = recon.views[a], recon.views[b]
+    return recon.source.match(a, b, va.features, vb.features, fundamental_from_projections(va.P, vb.P),
+                              va.image.shape[1])
+
+
+def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
+               source: CorrespondenceSource | None = None) -> tuple[Reconstruction, dict[str, Any]]:
+    """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
+    linear + LM triangulation, filtered by reprojection error, cheirality and angle.
+
+    images: the sequence (uint8 BGR); P_pair: the pair's two (3, 4) cameras; source: where
+    correspondences come from (default :class:`HarrisZncc`). Raises :class:`StereoseedError`
+    when the pair gives too few points (the calibration does not belong to these images)."""
+    t0 = time.perf_counter()
+    cfg = cfg.resolved()
+    recon = Reconstruction([View(name=n, image=img) for n, img in zip(names, images)])
+    recon.source = source or HarrisZncc(cfg)
+    for i in (0, 1):
+        view = recon.views[i]
+        view.P, view.status = np.asarray(P_pair[i], np.float64), "calibrated"
+        view.features = recon.source.features(i, view.image)
+        view.point_of_feature = np.full(len(view.features), -1, np.int64)
+    m = _match_known(recon, 0, 1)
+    _refine(recon, 0, 1, m)
+    X, kept = triangulate_matches(recon, 0, 1, m, cfg)
+    if len(X) < cfg.resection.min_inliers:
+        raise StereoseedError(f"{names[0]}, {names[1]}: only {len(X)} points triangulated from the calibrated pair "
+                              f"({len(m)} matches); check the calibration belongs to these two images")
+    first = recon.views[0]
+    ids = recon.add_points(X, colors_at(first.image, first.features.points[kept.idx1]))
+    recon.add_observations(0, kept.idx1, ids)
+    recon.add_observations(1, kept.idx2, ids)
+    return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
+                   "seconds": {"total": time.perf_counter() - t0}}
+
+
+def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
+    """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
+
+    Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
+    view leaves ``recon`` as it was (only the view's status records why)."""
+    cfg = cfg.resolved()
+    view = recon.views[k]
+    found = register_view(recon, k, cfg)
+    if isinstance(found, RegistrationFailure):
+        return _failed(view, found.reason, found)
+    state = recon.checkpoint()
+    try:
+        return _commit_and_grow(recon, k, found, cfg)
+    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
+        recon.restore(state)
+        return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
+
+
+def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
+    view.status = f"failed: {reason}"
+    log.info("%s", reason)
+    return {"image": view.name, "status": "failed", "reason": reason, "matches": found.matches,
+            "chained_points": found.chained_points,
+            "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
+
+
+def _commit(view: View, reg: Registration) -> None:
+    """The one place where a registered camera enters the reconstruction."""
+    cand = reg.candidate
+    view.image, view.features, view.rotated_180 = cand.image, cand.features, cand.rotated_180
+    view.point_of_feature = np.full(len(cand.features), -1, np.int64)
+    view.P = reg.P
+    view.camera_model = "focal" if reg.free_camera_refused else None
+    view.zoomed = reg.zoomed
+
+
+def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Config) -> dict[str, Any]:
+    """Commit view k's camera, then: re-match under the now-known epipolar geometry, extend the
+    chained tracks, triangulate the new points, grow the tracks, adjust, drop outliers."""
+    mode = mode_of(cfg)
+    view = recon.views[k]
+    prev = recon.registered_before(k, 1)[0]
+    vp = recon.views[prev]
+    _commit(view, reg)
+    report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
+                              "registered_by": reg.found_by}
+    if view.rotated_180:
+        report["rotated_180"] = True
+    if reg.found_by == MOTION_PRIOR:
+        report["motion_prior_correspondences"] = reg.prior_correspondences
+    report.update(resection_inliers=int(reg.resection.inliers.sum()), resection_rms_px=reg.resection.rms_px,
+                  resection_model=reg.model)
+    if reg.free_camera_refused:
+        report["free_camera_refused"] = reg.free_camera_refused
+    timing = dict(reg.seconds)
+
+    t = time.perf_counter()
+    m = _match_known(recon, prev, k)
+    _refine(recon, prev, k, m)
+    pid = vp.point_of_feature[m.idx1]
+    chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+    # the chained observations consistent with the camera just estimated
+    consistent = np.zeros(len(m), bool)
+    if chained.any():
+        err = np.linalg.norm(project(view.P, recon.points[pid[chained]]) - view.features.points[m.idx2[chained]], axis=1)
+        consistent[np.flatnonzero(chained)[err <= cfg.resection.ransac_threshold_px]] = True
+    chain_points = pid[consistent]
+    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
+    if reg.found_by == MOTION_PRIOR:
+        # repeated patterns defeated two-view matching: let a third view decide
+        before = recon.registered_before(prev, 1)
+        if before:
+            more = new_points_three_view(recon, prev, k, before[0], cfg)
+            ids = np.concatenate([ids, more])
+            report["three_view_points"] = int(len(more))
+    report.update(mode.grow_tracks(recon, k, chain_points, cfg))
+    timing["triangulation"] = time.perf_counter() - t
+    report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
+
+    t = time.perf_counter()
+    if cfg.pipeline.ba == "global":
+        ba = adjust(recon, cfg, free_views=recon.registered_views)
+    else:
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
+    timing["bundle"] = time.perf_counter() - t
+    removed = drop_outliers(recon, cfg)
+    view.status = "registered"
+    report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
+    report["seconds"]["total"] = float(sum(timing.values()))
+    return report
+
+
+def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
+    """After the last insertion: the mode's finishing step (accurate: loop closure, a final
+    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``)."""
+    t = time.perf_counter()
+    cfg = cfg.resolved()
+    out = mode_of(cfg).finish(recon, cfg)
+    out["seconds"] = time.perf_counter() - t
+    return out

@@ -1,0 +1,109 @@
+"""Bundle adjustment of a part of the reconstruction (paper §4.3, eq. 12) and outlier removal.
+
+:func:`adjust` builds a :class:`~stereoseed.bundle.BundleProblem` from chosen free views and
+points; :func:`drop_outliers` removes the observations the adjusted model cannot explain;
+:func:`global_adjust` alternates the two over every registered view, as COLMAP's global BA.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .bundle import BundleProblem, bundle_adjust
+from .config import Config
+from .reconstruction import Reconstruction, eq14
+
+__all__ = ["adjust", "drop_outliers", "global_adjust"]
+
+CALIBRATED = (0, 1)  # the calibrated pair fixes the frame and the scale: it never moves
+
+
+def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
+           views_in_cost: list[int] | None = None) -> dict[str, Any]:
+    """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
+    every point those views observe; the cost holds every observation of the involved points
+    (in ``views_in_cost`` only, if given). Returns a JSON-able report."""
+    free_views = [v for v in free_views if v not in CALIBRATED]
+    in_free_views = np.isin(recon.obs_view, free_views)
+    if free_points is None:
+        free_points = np.unique(recon.obs_point[in_free_views])
+    involved = np.isin(recon.obs_point, free_points) | in_free_views
+    if views_in_cost is not None:
+        involved &= np.isin(recon.obs_view, views_in_cost)
+    involved &= recon.alive[recon.obs_point]
+    if not involved.any():
+        return {"skipped": True}
+    # One model for every free camera of a BA: a view that needed a constrained model (its
+    # 11-DOF camera was refused) is adjusted with it when it is free alone, and held fixed when
+    # it is free together with cameras of the run's model.
+    run_model = cfg.pipeline.resolved_model()
+    model_of = {v: recon.views[v].camera_model or run_model for v in free_views}
+    models = set(model_of.values())
+    model = models.pop() if len(models) == 1 else run_model
+    free_views = [v for v in free_views if model_of[v] == model]
+    cams = np.unique(recon.obs_view[involved])
+    pts = np.unique(recon.obs_point[involved])
+    problem = BundleProblem(
+        Ps=np.stack([recon.views[v].P for v in cams]),
+        free_cameras=np.isin(cams, free_views),
+        points=recon.points[pts],
+        free_points=np.isin(pts, free_points),
+        obs_camera=np.searchsorted(cams, recon.obs_view[involved]),
+        obs_point=np.searchsorted(pts, recon.obs_point[involved]),
+        obs_xy=recon.observation_xy(involved),
+        model=model,
+        reference_K=np.stack([recon.reference_K(v) for v in cams]),
+    )
+    result = bundle_adjust(problem, cfg.bundle)
+    for i, v in enumerate(cams):
+        if problem.free_cameras[i]:
+            recon.views[v].P = result.Ps[i]
+    recon.points[pts] = result.points
+    o = len(problem.obs_camera)
+    rms_b, rms_a = result.rms_before, result.rms_after
+    return {"free_cameras": int(problem.free_cameras.sum()), "free_points": int(problem.free_points.sum()),
+            "observations": o, "iterations": result.iterations, "seconds": result.seconds,
+            "rms_before_px": rms_b, "rms_after_px": rms_a,
+            "eq14_before": eq14(rms_b ** 2 * o, len(cams), len(pts)),
+            "eq14_after": eq14(rms_a ** 2 * o, len(cams), len(pts))}
+
+
+def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
+    """Remove the observations reprojecting beyond 2 x the triangulation threshold and, with an
+    outlier factor (``PipelineConfig.outlier_factor``), beyond that factor times the median
+    error (never below ``outlier_floor_px``); then the points seen fewer than twice. Long
+    tracks collect a few wrong observations (patches straddling an occlusion edge) that pull
+    the chain one way. Returns the number of observations removed."""
+    if len(recon.obs_view) == 0:
+        return 0
+    err = recon.observation_errors()
+    threshold = 2.0 * cfg.triangulation.max_reprojection_px
+    factor = cfg.pipeline.resolved_outlier_factor()
+    counted = np.isfinite(err) & recon.alive[recon.obs_point]
+    if factor is not None and counted.any():
+        relative = max(cfg.pipeline.outlier_floor_px, factor * float(np.median(err[counted])))
+        threshold = min(threshold, relative)
+    return recon.filter_observations(err > threshold)
+
+
+def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], int]:
+    """Bundle-adjust every registered view (the pair fixed), drop the outliers, and again while
+    the last round removed more than ``BundleConfig.negligible_drop`` of the observations (at
+    most ``global_rounds``): the wrong observations left by drift hold the first solution away
+    from the right one. Returns (the last round's BA report with "rounds", "removed_per_round"
+    and the first round's starting RMS added, observations removed)."""
+    removed_per_round: list[int] = []
+    rms_first = None
+    while True:
+        ba = adjust(recon, cfg, free_views=recon.registered_views)
+        if ba.get("skipped"):  # nothing registered past the pair: no BA, so nothing to judge by
+            return ba, 0
+        removed = drop_outliers(recon, cfg)
+        removed_per_round.append(removed)
+        rms_first = ba.get("rms_before_px") if rms_first is None else rms_first
+        if (removed <= cfg.bundle.negligible_drop * ba.get("observations", 0)
+                or len(removed_per_round) >= cfg.bundle.global_rounds):
+            break
+    ba.update(rounds=len(removed_per_round), removed_per_round=removed_per_round, rms_first_round_before_px=rms_first)
+    return ba, sum(removed_per_round)
