@@ -1,0 +1,197 @@
+"""The mapper's operations on a small synthetic problem (exact correspondences, no images), the
+way COLMAP tests its incremental mapper: register, triangulate, merge, filter, de-register,
+close a loop, and a failed insertion leaves no trace."""
+import numpy as np
+import pytest
+
+from geometry_helpers import ring_camera
+from stereoseed.camera import camera_center, project
+from stereoseed.config import Config, PipelineConfig
+from stereoseed.features import Features
+from stereoseed.mapper import finish, initialise, insert_view
+from stereoseed.matching import Matches
+from stereoseed.registration import CHAIN, Registration, RegistrationFailure, register_view
+
+SHAPE = (480, 640)
+
+
+def box_surface(rng, n, half=0.17, height=0.44):
+    """(points (n, 3), outward normals (n, 3)) on the four sides and the top of a box."""
+    pts = rng.uniform([-half, -half, 0.0], [half, half, height], size=(n, 3))
+    normals = np.zeros((n, 3))
+    face = rng.integers(0, 5, n)
+    for f, (axis, value) in enumerate(((0, half), (0, -half), (1, half), (1, -half), (2, height))):
+        pts[face == f, axis] = value
+        normals[face == f, axis] = np.sign(value)
+    return pts, normals
+
+
+class ExactSource:
+    """Exact correspondences of known points (+ Gaussian pixel noise): interest points are the
+    visible points' projections, matches the points two views share. ``blind`` views see
+    nothing (an image that cannot be registered)."""
+
+    def __init__(self, points, normals, Ps, noise_px=0.1, seed=0, blind=()):
+        self.points, self.normals, self.Ps = points, normals, Ps
+        self.noise, self.seed, self.blind = noise_px, seed, set(blind)
+        self.ids = {}
+
+    def features(self, index, image):
+        P = self.Ps[index]
+        x = project(P, self.points)
+        facing = np.einsum("ij,ij->i", self.normals, camera_center(P) - self.points) > 0
+        inside = np.all((x > 10) & (x < np.array(SHAPE[::-1]) - 10), axis=1)
+        ids = np.flatnonzero(facing & inside) if index not in self.blind else np.zeros(0, np.int64)
+        self.ids[index] = ids
+        xy = x[ids] + np.random.default_rng([self.seed, index]).normal(0, self.noise, (len(ids), 2))
+        n = len(ids)
+        return Features(xy, np.ones((n, 1), np.float32), np.ones(n, bool), np.ones(n), SHAPE)
+
+    def match(self, a, b, fa, fb, F, image_width):
+        _, ia, ib = np.intersect1d(self.ids[a], self.ids[b], return_indices=True)
+        return Matches(ia, ib, np.ones(len(ia)))
+
+
+def ring(n_views, step_deg=20.0, seed=0, n_points=3000, blind=()):
+    rng = np.random.default_rng(seed)
+    points, normals = box_surface(rng, n_points)
+    Ps = [ring_camera(30.0 + i * step_deg, height=0.7)[3] for i in range(n_views)]
+    images = [np.zeros(SHAPE + (3,), np.uint8) for _ in Ps]
+    names = [f"v{i}.png" for i in range(n_views)]
+    return images, names, Ps, ExactSource(points, normals, Ps, blind=blind)
+
+
+def centre_errors(recon, Ps):
+    return np.array([np.linalg.norm(camera_center(v.P) - camera_center(P))
+                     for v, P in zip(recon.views[2:], Ps[2:]) if v.registered])
+
+
+def state(recon):
+    """Everything an insertion may change, as comparable arrays."""
+    views = [(v.P, v.features, v.point_of_feature.copy(), v.image, v.rotated_180, v.camera_model, v.zoomed)
+             for v in recon.views]
+    return (recon.points.copy(), recon.colors.copy(), recon.alive.copy(), recon.obs_view.copy(),
+            recon.obs_feature.copy(), recon.obs_point.copy(), recon.obs_linked.copy(), views)
+
+
+def assert_same_state(a, b):
+    for x, y in zip(a[:7], b[:7]):
+        np.testing.assert_array_equal(x, y)
+    for va, vb in zip(a[7], b[7]):
+        assert (va[0] is None) == (vb[0] is None)
+        if va[0] is not None:
+            np.testing.assert_array_equal(va[0], vb[0])
+        assert va[1] is vb[1] and va[3] is vb[3]  # the same features and image objects
+        np.testing.assert_array_equal(va[2], vb[2])
+        assert va[4:] == vb[4:]
+
+
+@pytest.fixture(scope="module")
+def started():
+    """A ring of 8 views, the pair and 2 insertions done (accurate mode)."""
+    images, names, Ps, source = ring(8)
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in (2, 3):
+        assert insert_view(recon, k, cfg)["status"] == "registered"
+    return recon, Ps, cfg
+
+
+def test_initialise_triangulates_the_shared_points_of_the_pair():
+    images, names, Ps, source = ring(3)
+    recon, report = initialise(images, names, Ps[:2], Config(), source)
+    shared = len(np.intersect1d(source.ids[0], source.ids[1]))
+    assert report["new_points"] == len(recon.points) and len(recon.points) >= 0.95 * shared
+    X_true = source.points[source.ids[0][recon.obs_feature[recon.obs_view == 0]]]
+    assert np.abs(recon.points - X_true).max() < 0.002  # 0.1 px noise at 1.4 m
+    assert np.all(recon.views[0].point_of_feature[recon.obs_feature[recon.obs_view == 0]] >= 0)
+
+
+def test_registration_finds_the_camera_and_changes_nothing(started):
+    recon, Ps, cfg = started
+    before = state(recon)
+    found = register_view(recon, 4, cfg.resolved())
+    assert isinstance(found, Registration) and found.found_by == CHAIN
+    # resection alone, before any BA: the focal length trades against the depth (measured 2.7 mm)
+    assert np.linalg.norm(camera_center(found.P) - camera_center(Ps[4])) < 0.006
+    assert found.chained_points >= 100 and found.resection.inliers.sum() >= 100
+    assert_same_state(before, state(recon))
+    assert recon.views[4].features is None and not recon.views[4].registered
+
+
+def test_an_image_that_cannot_be_registered_leaves_no_trace():
+    images, names, Ps, source = ring(6, blind=(3,))
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    insert_view(recon, 2, cfg)
+    before = state(recon)
+    report = insert_view(recon, 3, cfg)
+    assert report["status"] == "failed" and "v3.png" in report["reason"]
+    assert isinstance(register_view(recon, 3, cfg.resolved()), RegistrationFailure)
+    assert_same_state(before, state(recon))
+    assert recon.views[3].status.startswith("failed: ")
+    # the walk goes on from the last registered view, two steps away
+    assert insert_view(recon, 4, cfg)["status"] == "registered"
+    assert centre_errors(recon, Ps).max() < 0.006  # measured 0.9 and 3.0 mm (a free focal length, no final BA)
+
+
+def test_a_numerical_failure_after_the_commit_is_rolled_back(started, monkeypatch):
+    import stereoseed.modes
+
+    recon, Ps, cfg = started
+    before = state(recon)
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(stereoseed.modes, "adjust", singular)
+    report = insert_view(recon, 4, cfg)
+    assert report["status"] == "failed" and "numerical failure" in report["reason"]
+    assert_same_state(before, state(recon))
+    assert not recon.views[4].registered
+
+
+def test_the_step_by_step_api_survives_a_failing_image():
+    images, names, Ps, source = ring(7, blind=(4,))
+    cfg = Config(pipeline=PipelineConfig(mode="paper"))
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    statuses = [insert_view(recon, k, cfg)["status"] for k in range(2, 7)]
+    assert statuses == ["registered", "registered", "failed", "registered", "registered"]
+    finish(recon, cfg)
+    assert recon.registered_views == [0, 1, 2, 3, 5, 6]
+
+
+def test_the_paper_mode_keeps_two_view_points_and_unlinked_chained_observations():
+    images, names, Ps, source = ring(5)
+    cfg = Config(pipeline=PipelineConfig(mode="paper"))
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    insert_view(recon, 2, cfg)
+    unlinked = ~recon.obs_linked
+    # the chained old points are observed in view 2 for the cost only; their interest points
+    # stand for the new two-view points, through which the next insertion chains
+    assert unlinked.any() and set(recon.obs_view[unlinked]) <= {1, 2}
+    v2 = recon.views[2]
+    stands_for = v2.point_of_feature[recon.obs_feature[unlinked & (recon.obs_view == 2)]]
+    assert np.all(stands_for != recon.obs_point[unlinked & (recon.obs_view == 2)])
+    live = recon.alive & (recon.track_lengths() > 0)
+    assert np.all(recon.track_lengths()[live] >= 2)
+
+
+def test_a_closed_ring_merges_the_points_reconstructed_twice():
+    images, names, Ps, source = ring(18)  # 18 x 20 degrees: back to the start
+    recon, report = reconstruct_ring(images, names, Ps, source)
+    closure = report["loop_closure"]
+    assert closure["closed"] and closure["merges"] > 100 and closure["links"] > 0
+    pts, _ = recon.live_points()
+    # after merging, no physical point is there twice (exact correspondences: twins lie < 2 mm apart)
+    from scipy.spatial import cKDTree
+    assert len(cKDTree(pts).query_pairs(0.0005)) < 0.01 * len(pts)
+    assert centre_errors(recon, Ps).max() < 0.002
+
+
+def reconstruct_ring(images, names, Ps, source):
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in range(2, len(images)):
+        assert insert_view(recon, k, cfg)["status"] == "registered"
+    return recon, finish(recon, cfg)
