@@ -27,13 +27,14 @@ this module holds the orchestration (:func:`propagate`, :class:`PropagationResul
 
 Conventions are those of :mod:`stereoseed.camera`: pixel (0, 0) is the centre of the top-left
 pixel, x right, y down; ``x2.T @ F @ x1 = 0``. Images are grey float in [0, 1] (uint8 and BGR
-inputs are converted by :func:`stereoseed.image.to_gray` in float64).
+inputs are converted by :func:`stereoseed.image.to_gray` in float64, see :func:`_grey`).
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from .config import PropagationConfig
@@ -118,6 +119,19 @@ class PropagationResult:
 # --------------------------------------------------------------------------------------------
 
 
+def _grey(image: np.ndarray) -> np.ndarray:
+    """(H, W) float64 grey in [0, 1] by :func:`stereoseed.image.to_gray`; 8-bit colour is first
+    reduced to 8-bit grey (cv2 rounds).
+
+    Why the rounding: the dense stage's figures were measured with it; the unrounded grey
+    changes the fused dense cloud by -10.6 % of its points (docs/propagation.md).
+    """
+    img = np.asarray(image)
+    if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] in (3, 4):
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return to_gray(img, np.float64)
+
+
 def texture_mask(image: np.ndarray, min_texture: float) -> np.ndarray:
     """LQ02 texture test: s(x) = max over the 4 neighbours of |I(x+d) - I(x)| > min_texture.
 
@@ -155,8 +169,8 @@ def propagate(
 
     Args:
         img1: (H1, W1) grey float in [0, 1] (float32/float64; uint8 or BGR also accepted:
-            converted by :func:`stereoseed.image.to_gray` in float64, which keeps the 25-term
-            ZNCC sums exact enough for windows barely above the texture threshold).
+            converted by :func:`_grey`, float64 because the 25-term ZNCC sums need the
+            precision on windows barely above the texture threshold).
         img2: (H2, W2) likewise; the sizes may differ.
         seeds: (S, 4) float64 (x1, y1, x2, y2) pixel coordinates of seed matches. They are
             rounded to whole pixels and re-scored by their ZNCC there; seeds with a window
@@ -200,8 +214,8 @@ def propagate(
         raise StereoseedError("PropagationConfig.neighbourhood and disparity_gradient must be >= 0")
     half = cfg.window // 2
 
-    I1 = to_gray(img1, np.float64)
-    I2 = to_gray(img2, np.float64)
+    I1 = _grey(img1)
+    I2 = _grey(img2)
     H1, W1 = I1.shape
     H2, W2 = I2.shape
     seeds = np.asarray(seeds, dtype=np.float64)
