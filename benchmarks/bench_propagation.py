@@ -18,7 +18,8 @@ import numpy as np
 
 from stereoseed.camera import fundamental_from_projections, project
 from stereoseed.config import PropagationConfig
-from stereoseed.propagation import PropagationResult, as_grey01, propagate, texture_mask, warm_up
+from stereoseed.image import to_gray
+from stereoseed.propagation import PropagationResult, propagate, texture_mask, warm_up
 from stereoseed.synthetic import SceneConfig, render_scene
 
 N_SEEDS = 50  # the reference measurement: ~138k matches from ~50 seeds
@@ -80,7 +81,7 @@ def run() -> dict:
     warm_up()
     t_warm = time.perf_counter() - t0
 
-    I1, I2 = as_grey01(scene.images[0]), as_grey01(scene.images[1])
+    I1, I2 = to_gray(scene.images[0], np.float64), to_gray(scene.images[1], np.float64)
     gt, labels, covis = _ground_truth(scene)
     H, W = labels.shape
     target = covis & texture_mask(I1, PropagationConfig().min_texture)

@@ -15,14 +15,55 @@ def short_ring():
     return render_scene(SceneConfig(n_images=4))
 
 
-def test_fuse_merges_duplicates_and_keeps_colour():
+def test_fuse_gives_each_voxel_the_mean_of_its_members():
+    """fuse's contract: one point per occupied voxel (cells of side ``voxel`` from the cloud's
+    minimum), at the mean position of its members, with their mean colour rounded."""
     rng = np.random.default_rng(0)
     base = rng.uniform(0, 1, (1000, 3))
     pts = np.vstack([base, base + 1e-5])
-    cols = np.vstack([np.full((1000, 3), 100, np.uint8), np.full((1000, 3), 200, np.uint8)])
-    fused, fcol = fuse(pts, cols, voxel=1e-3)
-    assert 1000 <= len(fused) < 1100  # the two copies fall in one voxel (bar a few on voxel borders)
-    assert np.all(fcol[:10] == 150) or np.any(fcol == 150)
+    cols = rng.integers(0, 256, (2000, 3), dtype=np.uint8)
+    voxel = 1e-3
+    fused, fcol = fuse(pts, cols, voxel=voxel)
+    assert fcol.dtype == np.uint8
+    # the members of each voxel, found independently of fuse
+    keys = np.floor((pts - pts.min(axis=0)) / voxel).astype(np.int64)
+    groups: dict = {}
+    for i, k in enumerate(map(tuple, keys)):
+        groups.setdefault(k, []).append(i)
+    assert 1000 <= len(groups) < 1100  # the two copies share a voxel, bar a few on voxel borders
+    assert len(fused) == len(groups)
+    exp_pts = np.array([pts[m].mean(axis=0) for m in groups.values()])
+    exp_col = np.array([np.rint(cols[m].astype(np.float64).mean(axis=0)) for m in groups.values()])
+    order_exp, order_got = np.lexsort(exp_pts.T), np.lexsort(fused.T)
+    np.testing.assert_allclose(fused[order_got], exp_pts[order_exp], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(fcol[order_got], exp_col[order_exp])
+
+
+def test_pool_workers_die_with_their_parent():
+    """The pool initializer asks the kernel to kill a worker whose parent dies (Linux)."""
+    import ctypes
+    import multiprocessing
+    import os
+    import sys
+
+    from stereoseed.dense import _die_with_parent
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("PR_SET_PDEATHSIG is Linux-only")
+
+    def child(q):
+        _die_with_parent(os.getppid())
+        sig = ctypes.c_int(0)
+        ctypes.CDLL(None).prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
+        q.put(sig.value)
+
+    ctx = multiprocessing.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=child, args=(q,))
+    p.start()
+    import signal
+    assert q.get(timeout=30) == signal.SIGKILL
+    p.join()
 
 
 def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):

@@ -20,15 +20,14 @@ from hypothesis import strategies as st
 from stereoseed.camera import skew
 from stereoseed.config import PropagationConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.propagation import (
-    PropagationResult,
-    as_grey01,
-    disparity_image,
-    propagate,
-    save_propagation_png,
-    texture_mask,
-    warm_up,
-)
+from stereoseed.image import to_gray
+from stereoseed.propagation import PropagationResult, propagate, texture_mask, warm_up
+from stereoseed.visualize import disparity_image, save_propagation_png
+
+
+def as_grey01(image: np.ndarray) -> np.ndarray:
+    """The propagation's own conversion: float64 grey in [0, 1]."""
+    return to_gray(image, np.float64)
 
 
 # --------------------------------------------------------------------------------------------
@@ -379,7 +378,8 @@ def test_kernel_matches_reference(seed, shift, use_f):
     I1 = multiscale_texture(22, 26, rng)
     I1[14:20, 3:9] = 0.5  # a flat patch
     dx, dy = shift
-    I2 = np.roll(I1, (dy, dx), axis=(0, 1)) + rng.normal(0.0, 0.03, I1.shape)
+    # clipped: grey images are in [0, 1] (a float image above 1 would be read as 0..255)
+    I2 = np.clip(np.roll(I1, (dy, dx), axis=(0, 1)) + rng.normal(0.0, 0.03, I1.shape), 0.0, 1.0)
     F = None
     if use_f and (dx, dy) != (0, 0):
         F = skew(np.array([dx, dy, 0.0]))  # lines through x1 along the displacement

@@ -66,7 +66,8 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     from .features import extract_features
     from .io import read_calibration, read_image
     from .matching import match_pair
-    from .propagation import propagate, save_propagation_png
+    from .propagation import propagate
+    from .visualize import save_propagation_png
 
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)

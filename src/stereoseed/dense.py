@@ -3,12 +3,16 @@ pair, seeded by its sparse matches and restricted by its known epipolar geometry
 triangulation with filters; fusion of the pairs' clouds into one model.
 
 Pairs are independent and run in a process pool; each worker returns only its filtered cloud,
-so memory holds at most ``workers`` pairs' match maps at a time.
+so memory holds at most ``workers`` pairs' match maps at a time. On Linux a worker is killed by
+the kernel when the process that started it dies (``prctl(PR_SET_PDEATHSIG)``), so a killed
+caller leaves no orphaned workers behind.
 """
 from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import sys
 import time
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -120,6 +124,26 @@ def _auto_voxel(recon: Reconstruction) -> float:
     return float(np.median(feet))
 
 
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Pool initializer: have the kernel SIGKILL this worker when its parent dies (Linux only;
+    elsewhere a no-op). The signal follows the thread that started the worker, which is the one
+    running :func:`densify` and outlives the pool."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):  # no libc prctl: keep the worker, as before
+        return
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
+
+
 def _run_pair(args: tuple) -> dict[str, Any]:
     return densify_pair(*args)
 
@@ -150,7 +174,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         # breaks unguarded user scripts; at most 2 jobs per worker in flight bound the memory
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             in_flight: deque = deque()
             for pair, job in zip(pairs, _pair_jobs(recon, cfg)):
                 in_flight.append((pair, pool.submit(_run_pair, job)))

@@ -1,0 +1,157 @@
+"""The synthetic scene's Numba renderer: ray casting against the box and the ground, shading,
+box-filtered supersampling.
+
+World frame and face labels are those of :mod:`stereoseed.synthetic`, which sets the scene up
+(cameras, textures, constants) and calls these kernels; every kernel takes the geometry and the
+appearance as arguments. Rays are ``o + t d`` with o, d (3,) float64; textures are label-indexed
+(n, T, T) float32 arrays of unit-variance noise sampled in texel coordinates.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .image import sample_bilinear
+
+@njit(cache=True)
+def _intersect(ox, oy, oz, dx, dy, dz, half, height):
+    """First hit of the ray o + t d (t > 0) with the box or the ground: (t, label), (inf, -1)."""
+    tnear = -np.inf
+    tfar = np.inf
+    label = -1
+    hit_box = True
+    # Slab method; the entering face is the slab whose entry parameter is the largest.
+    if dx != 0.0:
+        t1 = (-half - ox) / dx
+        t2 = (half - ox) / dx
+        if dx > 0.0:
+            enter, leave, lab = t1, t2, 3
+        else:
+            enter, leave, lab = t2, t1, 1
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif ox < -half or ox > half:
+        hit_box = False
+    if dy != 0.0:
+        t1 = (-half - oy) / dy
+        t2 = (half - oy) / dy
+        if dy > 0.0:
+            enter, leave, lab = t1, t2, 4
+        else:
+            enter, leave, lab = t2, t1, 2
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif oy < -half or oy > half:
+        hit_box = False
+    if dz != 0.0:
+        t1 = (0.0 - oz) / dz
+        t2 = (height - oz) / dz
+        if dz > 0.0:
+            enter, leave, lab = t1, t2, 0  # bottom face: only reachable from under the ground
+        else:
+            enter, leave, lab = t2, t1, 5
+        if enter > tnear:
+            tnear, label = enter, lab
+        tfar = min(tfar, leave)
+    elif oz < 0.0 or oz > height:
+        hit_box = False
+    if hit_box and tnear <= tfar and tnear > 0.0:
+        return tnear, label
+    # The box stands on the ground, so a ray that misses it can only meet the ground plane.
+    if dz < 0.0 and oz > 0.0:
+        return -oz / dz, 0
+    return np.inf, -1
+
+
+
+@njit(cache=True)
+def _in_grid(s, n, size, gap):
+    """True if local coordinate s falls inside one of n intervals [gap + k(size+gap), +size)."""
+    q = s - gap
+    if q < 0.0:
+        return False
+    k = int(q // (size + gap))
+    return k < n and q - k * (size + gap) < size
+
+
+@njit(cache=True)
+def _shade_sample(ox, oy, oz, dx, dy, dz, half, height, face_o, face_u, face_v, grid, sq_size,
+                  sq_gap, tex_faces, face_texel, tex_ground, ground_texel, ground_radius, albedo,
+                  shade, tints, sky, far_ground):
+    """Linear RGB colour seen along one ray. Returns (r, g, b)."""
+    t, label = _intersect(ox, oy, oz, dx, dy, dz, half, height)
+    if label < 0:
+        return sky[0], sky[1], sky[2]
+    x = ox + t * dx
+    y = oy + t * dy
+    z = oz + t * dz
+    if label == 0:
+        if x * x + y * y > ground_radius * ground_radius:
+            a = far_ground * shade[0]
+            return a * tints[2, 0], a * tints[2, 1], a * tints[2, 2]
+        zt = sample_bilinear(tex_ground[0], (x + ground_radius) / ground_texel - 0.5,
+                            (y + ground_radius) / ground_texel - 0.5)
+        row = 2
+        tint = 1
+    else:
+        px = x - face_o[label, 0]
+        py = y - face_o[label, 1]
+        pz = z - face_o[label, 2]
+        s = px * face_u[label, 0] + py * face_u[label, 1] + pz * face_u[label, 2]
+        r = px * face_v[label, 0] + py * face_v[label, 1] + pz * face_v[label, 2]
+        zt = sample_bilinear(tex_faces[label], s / face_texel - 0.5, r / face_texel - 0.5)
+        # Squares are tested analytically, not painted in the texture, so their edges are exact.
+        dark = (_in_grid(s, grid[label, 0], sq_size, sq_gap)
+                and _in_grid(r, grid[label, 1], sq_size, sq_gap))
+        row = 1 if dark else 0
+        tint = 0
+    a = min(max(albedo[row, 0] + albedo[row, 1] * zt, albedo[row, 2]), albedo[row, 3])
+    a *= shade[label]
+    return a * tints[tint, 0], a * tints[tint, 1], a * tints[tint, 2]
+
+
+@njit(parallel=True, cache=True)
+def _render_kernel(Minv, C, height_px, width_px, ss, half, height, face_o, face_u, face_v, grid,
+                   sq_size, sq_gap, tex_faces, face_texel, tex_ground, ground_texel, ground_radius,
+                   albedo, shade, tints, sky, far_ground):
+    """Box-filtered supersampled render. Minv = R^T K^-1 (3, 3), C (3,) -> (H, W, 3) linear RGB."""
+    out = np.empty((height_px, width_px, 3), dtype=np.float64)
+    inv = 1.0 / (ss * ss)
+    for v in prange(height_px):
+        for u in range(width_px):
+            acc_r = 0.0
+            acc_g = 0.0
+            acc_b = 0.0
+            for j in range(ss):
+                vs = v + (j + 0.5) / ss - 0.5
+                for i in range(ss):
+                    us = u + (i + 0.5) / ss - 0.5
+                    dx = Minv[0, 0] * us + Minv[0, 1] * vs + Minv[0, 2]
+                    dy = Minv[1, 0] * us + Minv[1, 1] * vs + Minv[1, 2]
+                    dz = Minv[2, 0] * us + Minv[2, 1] * vs + Minv[2, 2]
+                    r, g, b = _shade_sample(C[0], C[1], C[2], dx, dy, dz, half, height, face_o,
+                                            face_u, face_v, grid, sq_size, sq_gap, tex_faces,
+                                            face_texel, tex_ground, ground_texel, ground_radius,
+                                            albedo, shade, tints, sky, far_ground)
+                    acc_r += r
+                    acc_g += g
+                    acc_b += b
+            out[v, u, 0] = acc_r * inv
+            out[v, u, 1] = acc_g * inv
+            out[v, u, 2] = acc_b * inv
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _cast_kernel(C, dirs, half, height):
+    """First hits of rays C + t dirs[n]: t (N,) float64 (inf if none), labels (N,) int8."""
+    n = dirs.shape[0]
+    ts = np.empty(n, dtype=np.float64)
+    labels = np.empty(n, dtype=np.int8)
+    for k in prange(n):
+        t, lab = _intersect(C[0], C[1], C[2], dirs[k, 0], dirs[k, 1], dirs[k, 2], half, height)
+        ts[k] = t
+        labels[k] = lab
+    return ts, labels
