@@ -10,7 +10,7 @@ from stereoseed.config import Config, PipelineConfig
 from stereoseed.features import Features
 from stereoseed.mapper import finish, initialise, insert_view
 from stereoseed.matching import Matches
-from stereoseed.registration import CHAIN, Registration, RegistrationFailure, register_view
+from stereoseed.registration import CHAIN, MOTION_PRIOR, Registration, RegistrationFailure, register_view
 
 SHAPE = (480, 640)
 
@@ -31,10 +31,13 @@ class ExactSource:
     visible points' projections, matches the points two views share. ``blind`` views see
     nothing (an image that cannot be registered)."""
 
-    def __init__(self, points, normals, Ps, noise_px=0.1, seed=0, blind=()):
+    def __init__(self, points, normals, Ps, noise_px=0.1, seed=0, blind=(), no_epipolar=()):
         self.points, self.normals, self.Ps = points, normals, Ps
-        self.noise, self.seed, self.blind = noise_px, seed, set(blind)
+        self.noise, self.seed, self.blind, self.no_epipolar = noise_px, seed, set(blind), set(no_epipolar)
         self.ids = {}
+        # a distinct patch per physical point: the same point scores 1, others ~N(0, 1/64)
+        desc = np.random.default_rng(seed).normal(size=(len(points), 64)).astype(np.float32)
+        self.desc = desc / np.linalg.norm(desc, axis=1, keepdims=True)
 
     def features(self, index, image):
         P = self.Ps[index]
@@ -45,20 +48,24 @@ class ExactSource:
         self.ids[index] = ids
         xy = x[ids] + np.random.default_rng([self.seed, index]).normal(0, self.noise, (len(ids), 2))
         n = len(ids)
-        return Features(xy, np.ones((n, 1), np.float32), np.ones(n, bool), np.ones(n), SHAPE)
+        return Features(xy, self.desc[ids], np.ones(n, bool), np.ones(n), SHAPE)
 
     def match(self, a, b, fa, fb, F, image_width):
+        if F is None and b in self.no_epipolar:  # as on repeated patterns: no robust F
+            return Matches.empty()
         _, ia, ib = np.intersect1d(self.ids[a], self.ids[b], return_indices=True)
         return Matches(ia, ib, np.ones(len(ia)))
 
 
-def ring(n_views, step_deg=20.0, seed=0, n_points=3000, blind=()):
+def ring(n_views, step_deg=20.0, seed=0, n_points=3000, blind=(), no_epipolar=(), targets=None):
     rng = np.random.default_rng(seed)
     points, normals = box_surface(rng, n_points)
-    Ps = [ring_camera(30.0 + i * step_deg, height=0.7)[3] for i in range(n_views)]
+    targets = targets or {}
+    Ps = [ring_camera(30.0 + i * step_deg, height=0.7, target=targets.get(i, (0.0, 0.0, 0.2)))[3]
+          for i in range(n_views)]
     images = [np.zeros(SHAPE + (3,), np.uint8) for _ in Ps]
     names = [f"v{i}.png" for i in range(n_views)]
-    return images, names, Ps, ExactSource(points, normals, Ps, blind=blind)
+    return images, names, Ps, ExactSource(points, normals, Ps, blind=blind, no_epipolar=no_epipolar)
 
 
 def centre_errors(recon, Ps):
@@ -195,3 +202,25 @@ def reconstruct_ring(images, names, Ps, source):
     for k in range(2, len(images)):
         assert insert_view(recon, k, cfg)["status"] == "registered"
     return recon, finish(recon, cfg)
+
+
+def test_without_epipolar_geometry_the_motion_prior_places_the_camera():
+    images, names, Ps, source = ring(6, step_deg=10.0, no_epipolar=(4,))
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    reports = [insert_view(recon, k, cfg) for k in range(2, 6)]
+    assert reports[2]["matches"] == 0 and reports[2]["registered_by"] == MOTION_PRIOR
+    assert reports[2]["motion_prior_search"]["radius_fraction"] == min(cfg.motion_prior.radius_fractions)
+    assert centre_errors(recon, Ps).max() < 0.003
+
+
+def test_the_wide_search_finds_a_camera_the_prediction_misses():
+    # image 4 looks 12 cm to the side of the others' target: every point lands ~70 px from its
+    # predicted pixel, beyond the near search (8 % of 640 px), within the wide one (16 %)
+    images, names, Ps, source = ring(6, step_deg=10.0, no_epipolar=(4,), targets={4: (0.12, -0.05, 0.2)})
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    reports = [insert_view(recon, k, cfg) for k in range(2, 6)]
+    assert reports[2]["registered_by"] == MOTION_PRIOR, reports[2]
+    assert reports[2]["motion_prior_search"]["radius_fraction"] == max(cfg.motion_prior.radius_fractions)
+    assert centre_errors(recon, Ps).max() < 0.003

@@ -134,6 +134,8 @@ def test_plain_box_hypotheses_reach_past_the_three_best_pairings():
     scene = render_scene(SceneConfig(textured=False, seed=3))
     recon, report = _run(scene, "accurate")
     assert report["registered"] == scene.n_images
+    searches = [r["motion_prior_search"] for r in report["per_image"][2:] if "motion_prior_search" in r]
+    assert any(s["pairings_per_point"] == 6 for s in searches), searches  # the scenario happened
     errors = _centre_errors(recon, scene)
     assert errors.max() < 0.04, errors
 
@@ -163,6 +165,9 @@ def test_noisy_plain_box_searches_wider_when_the_prediction_misses():
     scene = render_scene(SceneConfig(textured=False, noise_sigma=2.0))
     recon, report = _run(scene, "accurate")
     assert report["registered"] == scene.n_images, [r.get("reason") for r in report["per_image"]]
+    wide = max(Config().motion_prior.radius_fractions)
+    searches = [r["motion_prior_search"] for r in report["per_image"][2:] if "motion_prior_search" in r]
+    assert any(s["radius_fraction"] == wide for s in searches), searches  # the scenario happened
     rms, n = _corner_rms(recon, scene)
     assert rms < 0.005, rms
     assert _centre_errors(recon, scene).mean() < 0.04

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from . import camera_models
+from .camera import project_per_observation
 from .config import BundleConfig
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
@@ -55,12 +56,6 @@ class BundleResult:
     iterations: int
     seconds: float
     info: dict = field(default_factory=dict)
-
-
-def _project(Ps_obs: np.ndarray, X_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-observation projection. Ps_obs: (O, 3, 4), X_obs: (O, 3) -> h (O, 3), uv (O, 2)."""
-    h = np.einsum("oij,oj->oi", Ps_obs[:, :, :3], X_obs) + Ps_obs[:, :, 3]
-    return h, h[:, :2] / h[:, 2:3]
 
 
 def _point_jacobian(Ps_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -174,7 +169,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     all_oc, all_op, all_xy = oc, op, xy
 
     def residuals(Ps_: np.ndarray, X_: np.ndarray) -> np.ndarray:
-        return _project(Ps_[all_oc], X_[all_op])[1] - all_xy
+        return project_per_observation(Ps_[all_oc], X_[all_op])[1] - all_xy
 
     r = residuals(Ps, X)
     rms_before = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else 0.0
@@ -212,10 +207,10 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     eye_n, eye_3 = np.eye(n), np.eye(3)
 
     lam = 1e-3
-    cost = _robust_cost(_project(Ps[oc], X[op])[1] - xy, delta)
+    cost = _robust_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
-        h, uv = _project(Ps[oc], X[op])
+        h, uv = project_per_observation(Ps[oc], X[op])
         r = uv - xy
         w = _huber_weights(r, delta)
         Jp = _point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
@@ -263,7 +258,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             X_new = X.copy()
             X_new[free_pt_idx] += dp
             with np.errstate(all="ignore"):
-                new_cost = _robust_cost(_project(Ps_new[oc], X_new[op])[1] - xy, delta)
+                new_cost = _robust_cost(project_per_observation(Ps_new[oc], X_new[op])[1] - xy, delta)
             if np.isfinite(new_cost) and new_cost < cost:
                 improvement = (cost - new_cost) / max(cost, 1e-300)
                 params, Ps, X, cost = new_params, Ps_new, X_new, new_cost

@@ -127,8 +127,10 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
                               "registered_by": reg.found_by}
     if view.rotated_180:
         report["rotated_180"] = True
-    if reg.found_by == MOTION_PRIOR:
-        report["motion_prior_correspondences"] = reg.prior_correspondences
+    if reg.hypothesis is not None:
+        report["motion_prior_correspondences"] = len(reg.hypothesis)
+        report["motion_prior_search"] = {"radius_fraction": reg.hypothesis.radius_fraction,
+                                         "pairings_per_point": reg.hypothesis.pairings_per_point}
     report.update(resection_inliers=int(reg.resection.inliers.sum()), resection_rms_px=reg.resection.rms_px,
                   resection_model=reg.model)
     if reg.free_camera_refused:

@@ -8,6 +8,8 @@ resects each and keeps the camera that explains the most recent points (:func:`e
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
@@ -19,8 +21,22 @@ from .reconstruction import Reconstruction
 
 __all__ = ["predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
 
-# (points3d (N, 3), points2d (N, 2), ZNCC scores (N,)): one set of 3D-2D correspondences
-Hypothesis = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One consistent set of 3D-2D correspondences: points3d (N, 3), points2d (N, 2), their
+    ZNCC scores (N,), and where it came from: the search radius (fraction of the image width)
+    and the number of best pairings per point it was drawn from."""
+
+    points3d: np.ndarray
+    points2d: np.ndarray
+    scores: np.ndarray
+    radius_fraction: float
+    pairings_per_point: int
+
+    def __len__(self) -> int:
+        return len(self.points3d)
 
 
 def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
@@ -94,18 +110,19 @@ def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, feature
             rows = np.repeat(np.arange(len(pids)), min(depth, ranked.shape[1]))
             cols = ranked[:, :depth].ravel()
             ok = zncc[rows, cols] >= mp.min_zncc
-            hypotheses += _similarities(pred, features.points, rows[ok], cols[ok], zncc, recon.points[pids],
-                                        mp, cfg.resection.ransac_confidence, width)
+            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, cfg.resection.ransac_confidence,
+                                  width)
+            hypotheses += [Hypothesis(recon.points[pids[r]], x, z, radius_fraction, depth) for r, x, z in found]
         out.append(hypotheses)
     return out
 
 
 def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.ndarray, zncc: np.ndarray,
-                  points: np.ndarray, mp: MotionPriorConfig, confidence: float, width: int) -> list[Hypothesis]:
+                  mp: MotionPriorConfig, confidence: float, width: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Robust 4-DOF similarities (2-point samples, so a low inlier ratio is fine) between the
     predicted pixels ``pred[rows]`` and the paired interest points ``xy[cols]``, one after
-    another on what the previous ones left; each hypothesis keeps one pairing per point (the
-    closest to the similarity)."""
+    another on what the previous ones left; each keeps one pairing per point (the closest to
+    the similarity). Returns (rows (K,) into pred, pixels (K, 2), scores (K,)) per similarity."""
     hypotheses = []
     while len(rows) >= 6 and len(hypotheses) < mp.hypotheses_per_search:
         x = xy[cols]
@@ -120,7 +137,7 @@ def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.n
         order = inl[np.argsort(err)]
         _, first = np.unique(rows[order], return_index=True)
         sel = order[first]
-        hypotheses.append((points[rows[sel]], x[sel], zncc[rows[sel], cols[sel]]))
+        hypotheses.append((rows[sel], x[sel], zncc[rows[sel], cols[sel]]))
         rest = np.ones(len(rows), bool)
         rest[inl] = False
         rows, cols = rows[rest], cols[rest]

@@ -20,7 +20,7 @@ from .config import Config
 from .errors import StereoseedError
 from .features import Features
 from .matching import Matches
-from .motion_prior import explained_points, hypotheses_by_motion_prior, recent_points
+from .motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from .reconstruction import Reconstruction, View
 from .resection import ResectionResult, implausible_intrinsics, resect
 
@@ -55,7 +55,7 @@ class Registration:
 
     candidate: the image as registered (turned or not) with its interest points; P (3, 4) in
     its frame; resection: the estimate (inliers, RMS, model); found_by: ``"epipolar chain"``
-    or ``"motion prior"``; prior_correspondences: the winning hypothesis' size (0 when the
+    or ``"motion prior"``; hypothesis: the motion prior's winning hypothesis (None when the
     chain won); free_camera_refused: why the 11-DOF camera was refused (the focal-only model
     took its place), else None; matches, chained_points: of the robust-F matching; seconds:
     time per step."""
@@ -65,7 +65,7 @@ class Registration:
     found_by: str
     matches: int
     chained_points: int
-    prior_correspondences: int = 0
+    hypothesis: Hypothesis | None = None
     free_camera_refused: str | None = None
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, resection
 
@@ -198,15 +198,15 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, str):
         return RegistrationFailure(found, n_matches, n_chained, seconds)
-    (res, refused), found_by, prior_size = found
-    return Registration(cand, res, found_by, n_matches, n_chained, prior_size, refused, seconds)
+    (res, refused), found_by, hypothesis = found
+    return Registration(cand, res, found_by, n_matches, n_chained, hypothesis, refused, seconds)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
-            cfg: Config) -> tuple[tuple[ResectionResult, str | None], str, int] | str:
+            cfg: Config) -> tuple[tuple[ResectionResult, str | None], str, Hypothesis | None] | str:
     """The camera of ``cand`` from its chained 3D-2D correspondences (points3d (N, 3),
     points2d (N, 2), ZNCC scores (N,)), or why there is none: ((result, refusal), found_by,
-    prior hypothesis size) or the reason.
+    the motion prior's winning hypothesis or None) or the reason.
 
     A weak chain is checked against the motion prior even at the first insertion, where the
     prediction only extrapolates the stereo pair's baseline (a robust F fitted to period-
@@ -224,20 +224,20 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         prior_exists = bool(recon.registered_before(prev, 1))
         if chain is not None and (not prior_exists
                                   or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
-            return chain, CHAIN, 0
+            return chain, CHAIN, None
     recent = recent_points(recon, prev, mp.recent_views)
     chosen, explained = None, 0
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
-        # (camera, hypothesis size; 0 for the epipolar chain's, which competes in the first search)
-        cameras = [(chain, 0)] if chain is not None and chosen is None else []
+        # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
+        cameras = [(chain, None)] if chain is not None and chosen is None else []
         for hyp in hypotheses:
-            if len(hyp[0]) < pc.min_chained_points:
+            if len(hyp) < pc.min_chained_points:
                 continue
-            found = resect_with(*hyp)
+            found = resect_with(hyp.points3d, hyp.points2d, hyp.scores)
             if isinstance(found, str):
                 error = found
             else:
-                cameras.append((found, len(hyp[0])))
+                cameras.append((found, hyp))
         if not cameras:
             continue
         counts = explained_points(cand.features, [c[0][0].P for c in cameras], recon.points[recent[0]], recent[1],
@@ -246,6 +246,6 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         if chosen is None or (counts[best] > 0 and counts[best] >= mp.wider_search_margin * explained):
             chosen, explained = cameras[best], counts[best]
     if chosen is not None:
-        return chosen[0], MOTION_PRIOR if chosen[1] else CHAIN, chosen[1]
+        return chosen[0], (CHAIN if chosen[1] is None else MOTION_PRIOR), chosen[1]
     return error or (f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
                      f"{pc.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")
