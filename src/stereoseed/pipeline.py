@@ -28,8 +28,10 @@ from .camera import camera_center, decompose_projection, depths, fundamental_fro
 from .config import Config
 from .errors import StereoseedError
 from .features import Features, describe, extract_features
-from .matching import (DEFAULT_ALIGNED_MIN_ZNCC, PairCache, Matches, align_matches, epipolar_band_mask, match_pair,
-                       refine_features)
+from .matching.alignment import PairCache, align_matches, refine_features
+from .matching.containers import Matches
+from .matching.pair import match_pair
+from .matching.two_view import epipolar_band_mask
 from .reconstruction import Reconstruction, View
 from .resection import implausible_intrinsics, resect
 from .triangulation import triangulate, triangulate_tracks
@@ -74,11 +76,9 @@ class HarrisZncc:
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
         mc = self.cfg.matching
         cache = self._cache(fa, fb)
-        m = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
-                       max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width, cache=cache).matches
         if len(m) < mc.relax_below:
-            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
-                                 max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
+            relaxed = match_pair(fa, fb, mc.relaxed(), F=F, image_width=image_width, cache=cache).matches
             if len(relaxed) > len(m):
                 m = relaxed
         return m
@@ -87,7 +87,7 @@ class HarrisZncc:
         """fb with its matched points moved onto their partners in a (sub-pixel affine alignment):
         a track followed pair after pair then carries one physical point, not detector noise
         (measured on the box ring: paper-mode drift 4.1 cm -> 0.4 cm)."""
-        return refine_features(fa, fb, m, cache=self._cache(fa, fb))
+        return refine_features(fa, fb, m, self.cfg.matching, cache=self._cache(fa, fb))
 
     def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
               predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -104,9 +104,9 @@ class HarrisZncc:
         xy, ok = predicted.copy(), np.zeros(len(predicted), bool)
         probe = Features(predicted[look], desc[look], valid[look], np.zeros(len(look)), f_target.image_shape, f_target.gray)
         m = Matches(ref_idx[look], np.arange(len(look)), np.ones(len(look)))
-        al = align_matches(f_ref, probe, m)
+        al = align_matches(f_ref, probe, m, self.cfg.matching)
         xy[look] = al.x2
-        ok[look] = al.converged & (al.shift(probe, m) <= max_shift_px) & (al.zncc > DEFAULT_ALIGNED_MIN_ZNCC)
+        ok[look] = al.converged & (al.shift(probe, m) <= max_shift_px) & (al.zncc > self.cfg.matching.min_aligned_zncc)
         return xy, ok
 
 
