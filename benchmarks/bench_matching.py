@@ -6,6 +6,7 @@ noise 0 and 2 grey levels, the plain box), plus the real templeSparseRing ring i
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -23,7 +24,10 @@ from stereoseed.camera import (
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.features import extract_features
 from stereoseed.io import read_middlebury_par
-from stereoseed.matching import Matches, filter_epipolar, match_pair, match_turned, match_zncc
+from stereoseed.matching.containers import Matches
+from stereoseed.matching.pair import match_pair
+from stereoseed.matching.two_view import filter_epipolar
+from stereoseed.matching.zncc import match_zncc
 from stereoseed.synthetic import SceneConfig, render_scene
 
 
@@ -57,13 +61,14 @@ def scene_figures(scene, cfg: MatchingConfig) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         out["pair01_known_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
-                                         match_pair(feats[0], feats[1], cfg, F=F01))
+                                         match_pair(feats[0], feats[1], cfg, F=F01).matches)
         out["pair01_robust_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
-                                          match_pair(feats[0], feats[1], cfg))
+                                          match_pair(feats[0], feats[1], cfg).matches)
         out["pair12_robust_F"] = accuracy(scene, 1, 2, feats[1], feats[2],
-                                          match_pair(feats[1], feats[2], cfg))
-        # The paper's recipe for comparison: 11x11 ZNCC > 0.8, mutual best, then the 2 px band.
-        paper = filter_epipolar(match_zncc(feats[0], feats[1], cfg, max_ratio=None),
+                                          match_pair(feats[1], feats[2], cfg).matches)
+        # The paper's recipe for comparison: 11x11 ZNCC > 0.8, mutual best (no ratio test), then
+        # the 2 px band.
+        paper = filter_epipolar(match_zncc(feats[0], feats[1], dataclasses.replace(cfg, max_ratio=None)),
                                 feats[0], feats[1], F01, cfg.epipolar_band_px)
         out["pair01_paper_recipe"] = accuracy(scene, 0, 1, feats[0], feats[1], paper)
     return out
@@ -84,11 +89,15 @@ def temple_figures(folder: Path) -> dict | None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             if upright:
-                m = match_pair(feats[a], feats[b], MatchingConfig())
+                m = match_pair(feats[a], feats[b], MatchingConfig()).matches
                 x1, x2 = m.points(feats[a], feats[b])
-            else:
-                m, x2 = match_turned(feats[a], images[b], MatchingConfig())
+            else:  # ZNCC is not rotation invariant: match image b turned back by 180 degrees
+                turned = cv2.rotate(images[b], cv2.ROTATE_180)
+                f_turned = extract_features(turned, patch_size=feats[a].patch_size)
+                m = match_pair(feats[a], f_turned, MatchingConfig()).matches
                 x1 = feats[a].points[m.idx1]
+                h, w = turned.shape[:2]  # pixel (x, y) of the turned image is (w-1-x, h-1-y) of b
+                x2 = np.array([w - 1.0, h - 1.0]) - f_turned.points[m.idx2]
         d = epipolar_distances(fundamental_from_projections(cams[a], cams[b]), x1, x2)
         rows.append({"pair": f"{a}-{b}", "upright": upright, "kept": len(m),
                      "median_epipolar_px": round(float(np.median(d)), 3) if len(m) else None})
@@ -107,11 +116,11 @@ def run() -> dict:
 
     def known_F_pair():
         a, b = extract_features(img0, fcfg), extract_features(img1, fcfg)
-        return match_pair(a, b, cfg, F=F01)
+        return match_pair(a, b, cfg, F=F01).matches
 
     def robust_pair():
         a, b = extract_features(img1, fcfg), extract_features(img2, fcfg)
-        return match_pair(a, b, cfg)
+        return match_pair(a, b, cfg).matches
 
     timing = {
         "detect_describe_one_image_s": best_time(lambda: extract_features(img0, fcfg)),

@@ -9,7 +9,7 @@ from stereoseed.camera import camera_center, project
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.features import Features
 from stereoseed.mapper import finish, initialise, insert_view
-from stereoseed.matching import Matches
+from stereoseed.matching.containers import Matches
 from stereoseed.registration import CHAIN, MOTION_PRIOR, Registration, RegistrationFailure, register_view
 
 SHAPE = (480, 640)

@@ -1,10 +1,13 @@
-"""ZNCC matching, epipolar filters, robust F, localisation check, chaining (stereoseed.matching).
+"""ZNCC matching, epipolar filters, robust F, localisation check, the pair recipe and its
+configuration (stereoseed.matching, MatchingConfig).
 
 The quality tests measure kept matches against the exact correspondences of the synthetic box
 (stereoseed.synthetic): the world point seen at a keypoint of image i, projected into image j.
 """
 from __future__ import annotations
 
+import dataclasses
+import logging
 import warnings
 from pathlib import Path
 
@@ -24,22 +27,13 @@ from stereoseed.camera import (
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features import Features, describe, extract_features
-from stereoseed.matching import (
-    Matches,
-    PairCache,
-    epipolar_band_mask,
-    align_matches,
-    chain,
-    draw_matches,
-    filter_epipolar,
-    filter_fundamental_ransac,
-    filter_localization,
-    match_pair,
-    match_turned,
-    match_zncc,
-    refine_features,
-    zncc_matrix,
-)
+from stereoseed.matching import alignment
+from stereoseed.matching.alignment import PairCache, align_matches, filter_localization, refine_features
+from stereoseed.matching.containers import Matches, PairMatches
+from stereoseed.matching.pair import match_pair
+from stereoseed.matching.two_view import epipolar_band_mask, filter_epipolar, filter_fundamental_ransac
+from stereoseed.matching.zncc import match_zncc, zncc_matrix
+from stereoseed.visualize import draw_matches
 from stereoseed.synthetic import SceneConfig, render_scene
 
 from geometry_helpers import band_noise
@@ -74,6 +68,21 @@ def accuracy(scene, i, j, f1, f2, m: Matches) -> dict:
         "within_3px": float(np.mean(err < 3.0)) if len(err) else float("nan"),
         "median_px": float(np.median(err)) if len(err) else float("nan"),
     }
+
+
+def no_ratio(cfg: MatchingConfig) -> MatchingConfig:
+    """The configuration without the uniqueness test (the paper's matcher)."""
+    return dataclasses.replace(cfg, max_ratio=None)
+
+
+def match_turned(f1: Features, image2: np.ndarray, cfg: MatchingConfig) -> tuple[Matches, np.ndarray]:
+    """Match f1 against image2 turned by 180 degrees; returns the matches into the turned
+    image's features and the (M, 2) matched points of image 2 in its own frame."""
+    turned = cv2.rotate(np.asarray(image2), cv2.ROTATE_180)
+    f2 = extract_features(turned, patch_size=f1.patch_size)
+    m = match_pair(f1, f2, cfg).matches
+    h, w = turned.shape[:2]
+    return m, np.array([w - 1.0, h - 1.0]) - f2.points[m.idx2]
 
 
 def features_from(points: np.ndarray, desc: np.ndarray, shape=(100, 100)) -> Features:
@@ -137,17 +146,12 @@ def test_match_zncc_on_a_homography(warped_features):
     assert len(np.unique(m.idx1)) == len(m) == len(np.unique(m.idx2))
 
 
-def test_match_zncc_search_window_and_prior(warped_features):
+def test_match_zncc_search_window(warped_features):
     f1, f2 = warped_features
     m = match_zncc(f1, f2, MatchingConfig(search_radius=0.05), image_width=320)  # 16 px
     x1, x2 = m.points(f1, f2)
+    assert len(m) > 20
     assert np.all(np.linalg.norm(x2 - x1, axis=1) <= 16.0 + 1e-6)
-    # A predicted position (here the exact warp) with a tight window keeps correct matches only.
-    pred = apply_h(HOMOGRAPHY, f1.points)
-    mp = match_zncc(f1, f2, MatchingConfig(), predicted=pred, prior_radius_px=3.0)
-    x1, x2 = mp.points(f1, f2)
-    assert len(mp) > 100
-    assert np.all(np.linalg.norm(apply_h(HOMOGRAPHY, x1) - x2, axis=1) <= 3.0 + 1e-6)
 
 
 def test_uniqueness_rejects_repeated_patterns():
@@ -160,7 +164,7 @@ def test_uniqueness_rejects_repeated_patterns():
     f1 = extract_features(img)
     f2 = extract_features(shifted)
     cfg = MatchingConfig(search_radius=1.0)
-    loose = match_zncc(f1, f2, cfg, max_ratio=None)
+    loose = match_zncc(f1, f2, no_ratio(cfg))
     strict = match_zncc(f1, f2, cfg)  # default ratio test
     assert len(loose) > 20
     x1, x2 = loose.points(f1, f2)
@@ -170,7 +174,7 @@ def test_uniqueness_rejects_repeated_patterns():
     assert len(strict) < 0.1 * len(loose)
 
 
-def test_match_zncc_degenerate_inputs_warn():
+def test_match_zncc_degenerate_inputs_log(caplog):
     empty = Features(np.zeros((0, 2)), np.zeros((0, 121), np.float32), np.zeros(0, bool),
                      np.zeros(0), (50, 50))
     rng = np.random.default_rng(0)
@@ -178,14 +182,17 @@ def test_match_zncc_degenerate_inputs_warn():
     d -= d.mean(1, keepdims=True)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     some = features_from(rng.random((5, 2)) * 50, d, (50, 50))
-    with pytest.warns(RuntimeWarning):
-        assert len(match_zncc(empty, some)) == 0
+    cfg = MatchingConfig()
     invalid = Features(some.points, some.desc, np.zeros(5, bool), some.response, (50, 50))
-    with pytest.warns(RuntimeWarning):
-        assert len(match_zncc(some, invalid)) == 0
+    with warnings.catch_warnings(), caplog.at_level(logging.DEBUG, logger="stereoseed.matching"):
+        warnings.simplefilter("error")  # logged, never warned
+        assert len(match_zncc(empty, some, cfg)) == 0
+        assert len(match_zncc(some, invalid, cfg)) == 0
+    assert [r.getMessage() for r in caplog.records] == [
+        "no matches: 0 and 5 features", "no matches: no valid descriptor in one of the images"]
     other = features_from(rng.random((5, 2)) * 50, np.zeros((5, 49)), (50, 50))
     with pytest.raises(StereoseedError):
-        match_zncc(some, other)
+        match_zncc(some, other, cfg)
 
 
 # --- epipolar geometry -----------------------------------------------------------------------
@@ -213,23 +220,20 @@ def test_band_mask_agrees_with_epipolar_distances():
 
 
 def test_candidates_and_best_scores_agree_with_numpy():
-    from stereoseed.matching import _best_per_row_and_column, _candidate_mask
+    from stereoseed.matching.zncc import _best_per_row_and_column, candidate_mask
 
     P1, P2 = two_cameras()
     F = fundamental_from_projections(P1, P2)
     rng = np.random.default_rng(2)
     x1 = rng.random((80, 2)) * [640, 480]
-    centre = x1 + rng.normal(0, 30, x1.shape)  # a motion prediction
     x2 = rng.random((90, 2)) * [640, 480]
-    near = np.linalg.norm(centre[:, None] - x2[None], axis=2) <= 150.0
-    np.testing.assert_array_equal(_candidate_mask(centre, x2, 150.0), near)
-    banded = _candidate_mask(centre, x2, 150.0, F, 25.0, x1=x1)
+    near = np.linalg.norm(x1[:, None] - x2[None], axis=2) <= 150.0
+    np.testing.assert_array_equal(candidate_mask(x1, x2, 150.0), near)
+    banded = candidate_mask(x1, x2, 150.0, F, 25.0)
     ii, jj = np.meshgrid(np.arange(80), np.arange(90), indexing="ij")
     in_band = epipolar_distances(F, x1[ii.ravel()], x2[jj.ravel()]).reshape(80, 90) <= 25.0
-    np.testing.assert_array_equal(banded, near & in_band)  # the band around x1, the radius around centre
+    np.testing.assert_array_equal(banded, near & in_band)
     assert banded.any() and (near & ~banded).any()
-    with pytest.raises(StereoseedError, match="one centre per point"):
-        _candidate_mask(centre, x2, 150.0, F, 25.0, x1=x1[:3])
     # ties and rows without a candidate resolve as np.argmax does
     s = np.where(banded, np.round(rng.random(banded.shape), 1), -np.inf).astype(np.float32)
     best_col, best_score, best_row = _best_per_row_and_column(s)
@@ -292,19 +296,21 @@ def test_filter_fundamental_ransac_keeps_the_best_supported_run():
         assert np.mean(best.idx1 >= 70) > 0.9
 
 
-def test_filter_fundamental_ransac_too_few_matches_warns():
+def test_filter_fundamental_ransac_too_few_matches_logs(caplog):
     m = Matches(np.arange(5), np.arange(5), np.ones(5))
     pts = np.random.default_rng(0).random((5, 2)) * 100
-    with pytest.warns(RuntimeWarning, match="at least 8"):
-        out, F = filter_fundamental_ransac(m, pts, pts)
+    with warnings.catch_warnings(), caplog.at_level(logging.INFO, logger="stereoseed.matching"):
+        warnings.simplefilter("error")
+        out, F = filter_fundamental_ransac(m, pts, pts, MatchingConfig())
     assert len(out) == 0 and F is None
+    assert "at least 8" in caplog.text
 
 
 # --- localisation check ----------------------------------------------------------------------
 def test_align_matches_recovers_an_affine_warp_to_hundredths_of_a_pixel(warped_features):
     f1, f2 = warped_features
     m = match_zncc(f1, f2, MatchingConfig())
-    al = align_matches(f1, f2, m)
+    al = align_matches(f1, f2, m, MatchingConfig())
     x1, _ = m.points(f1, f2)
     truth = apply_h(HOMOGRAPHY, x1)
     ok = al.converged
@@ -317,18 +323,20 @@ def test_align_matches_recovers_an_affine_warp_to_hundredths_of_a_pixel(warped_f
     J = np.array([[0.97, -0.12], [0.09, 0.99]])
     assert np.median(np.abs(al.affine[ok] - J).max(axis=(1, 2))) < 0.1
     # filter_localization keeps the well-localised ones and scores them by aligned ZNCC.
-    kept = filter_localization(m, f1, f2)
+    kept = filter_localization(m, f1, f2, MatchingConfig())
     assert 0.5 * len(m) < len(kept) <= len(m)
     assert np.all(kept.score > 0.9)
 
 
-def test_align_matches_needs_grey_images(warped_features):
+def test_align_matches_needs_grey_images(warped_features, caplog):
     f1, f2 = warped_features
     bare = Features(f1.points, f1.desc, f1.valid, f1.response, f1.image_shape)
     with pytest.raises(StereoseedError):
-        align_matches(bare, f2, Matches([0], [0], [1.0]))
-    with pytest.warns(RuntimeWarning, match="localisation check skipped"):
-        match_pair(bare, f2, F=np.eye(3))
+        align_matches(bare, f2, Matches([0], [0], [1.0]), MatchingConfig())
+    with caplog.at_level(logging.INFO, logger="stereoseed.matching"):
+        pair = match_pair(bare, f2, MatchingConfig(), F=np.eye(3))
+    assert "localisation check skipped" in caplog.text
+    assert pair.stats["localization"].startswith("skipped")
 
 
 # --- the synthetic box: quality targets ------------------------------------------------------
@@ -350,7 +358,7 @@ def test_quality_on_the_textured_box(textured, pair, known_F):
     scene, feats = textured
     i, j = pair
     F = fundamental_from_projections(scene.P[i], scene.P[j]) if known_F else None
-    m = match_pair(feats[i], feats[j], MatchingConfig(), F=F)
+    m = match_pair(feats[i], feats[j], MatchingConfig(), F=F).matches
     acc = accuracy(scene, i, j, feats[i], feats[j], m)
     print(f"textured sigma={scene.config.noise_sigma} pair {pair} known F={known_F}: {acc}")
     assert acc["kept"] >= 300
@@ -363,8 +371,8 @@ def test_refine_features_moves_matched_points_onto_the_truth(textured):
     """Refined positions of image 2 are ~10x closer to the exact correspondence."""
     scene, feats = textured
     F = fundamental_from_projections(scene.P[0], scene.P[1])
-    m = match_pair(feats[0], feats[1], MatchingConfig(), F=F)
-    refined = refine_features(feats[0], feats[1], m)
+    m = match_pair(feats[0], feats[1], MatchingConfig(), F=F).matches
+    refined = refine_features(feats[0], feats[1], m, MatchingConfig())
     before = accuracy(scene, 0, 1, feats[0], feats[1], m)
     after = accuracy(scene, 0, 1, feats[0], refined, m)
     print(f"detected {before}\nrefined  {after}")
@@ -385,15 +393,15 @@ def test_a_pair_cache_changes_nothing_but_the_work(textured):
     F = fundamental_from_projections(scene.P[0], scene.P[1])
     cache = PairCache(feats[0], feats[1])
     for known in (None, F):
-        plain = match_pair(feats[0], feats[1], MatchingConfig(), F=known)
-        cached = match_pair(feats[0], feats[1], MatchingConfig(), F=known, pair_cache=cache)
+        plain = match_pair(feats[0], feats[1], MatchingConfig(), F=known).matches
+        cached = match_pair(feats[0], feats[1], MatchingConfig(), F=known, cache=cache).matches
         np.testing.assert_array_equal(plain.idx1, cached.idx1)
         np.testing.assert_array_equal(plain.idx2, cached.idx2)
         np.testing.assert_allclose(plain.score, cached.score, atol=1e-5)
     aligned = len(cache.codes)
-    refined = refine_features(feats[0], feats[1], cached, cache=cache)
+    refined = refine_features(feats[0], feats[1], cached, MatchingConfig(), cache=cache)
     assert len(cache.codes) == aligned  # every kept match was aligned while matching
-    np.testing.assert_array_equal(refined.points, refine_features(feats[0], feats[1], cached).points)
+    np.testing.assert_array_equal(refined.points, refine_features(feats[0], feats[1], cached, MatchingConfig()).points)
     assert not PairCache(feats[1], feats[0]).covers(feats[0], feats[1])
 
 
@@ -402,9 +410,9 @@ def test_guided_matching_beats_the_papers_recipe(textured):
     scene, feats = textured
     F = fundamental_from_projections(scene.P[0], scene.P[1])
     cfg = MatchingConfig()
-    plain_zncc = match_zncc(feats[0], feats[1], cfg, max_ratio=None)
+    plain_zncc = match_zncc(feats[0], feats[1], no_ratio(cfg))
     paper = filter_epipolar(plain_zncc, feats[0], feats[1], F, 2.0)
-    ours = match_pair(feats[0], feats[1], cfg, F=F)
+    ours = match_pair(feats[0], feats[1], cfg, F=F).matches
     acc_paper = accuracy(scene, 0, 1, feats[0], feats[1], paper)
     acc_ours = accuracy(scene, 0, 1, feats[0], feats[1], ours)
     print(f"paper recipe {acc_paper}\nmatch_pair   {acc_ours}")
@@ -422,55 +430,20 @@ def test_plain_box_the_repeated_squares(plain):
     """
     scene, feats = plain
     F = fundamental_from_projections(scene.P[0], scene.P[1])
-    m = match_pair(feats[0], feats[1], MatchingConfig(), F=F)
+    m = match_pair(feats[0], feats[1], MatchingConfig(), F=F).matches
     acc = accuracy(scene, 0, 1, feats[0], feats[1], m)
     print(f"plain box pair (0, 1), known F: {acc}")
     assert acc["kept"] >= 60
     assert acc["within_1px"] >= 0.9
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        m2, F2 = match_pair(feats[1], feats[2], MatchingConfig(), return_F=True)
+    pair = match_pair(feats[1], feats[2], MatchingConfig())
+    m2, F2 = pair.matches, pair.F
+    assert (F2 is None) == (len(m2) == 0) == pair.stats["geometry"].startswith("robust F failed")
     acc2 = accuracy(scene, 1, 2, feats[1], feats[2], m2)
     print(f"plain box pair (1, 2), robust F: {acc2}")
     assert len(m2) == 0 or acc2["within_1px"] >= 0.9
 
 
-# --- chaining and drawing --------------------------------------------------------------------
-def test_chain_by_hand():
-    m_ab = Matches([0, 1, 2, 3], [10, 11, 12, 13], [0.9, 0.9, 0.9, 0.9])
-    m_bc = Matches([13, 11, 14], [5, 6, 7], [0.9, 0.8, 0.7])
-    ia, ib, ic = chain(m_ab, m_bc)
-    np.testing.assert_array_equal(ib, [11, 13])
-    np.testing.assert_array_equal(ia, [1, 3])
-    np.testing.assert_array_equal(ic, [6, 5])
-    # Non-unique matches of b: the best-scoring one is used.
-    m_bc2 = Matches([11, 11], [8, 9], [0.7, 0.95])
-    ia, ib, ic = chain(m_ab, m_bc2)
-    np.testing.assert_array_equal(ic, [9])
-    e = chain(m_ab, Matches.empty())
-    assert all(len(a) == 0 and a.dtype == np.int64 for a in e)
-
-
-@settings(max_examples=50, deadline=None)
-@given(
-    n_b=st.integers(1, 60),
-    data=st.data(),
-)
-def test_chain_is_the_composition(n_b, data):
-    perm_ab = data.draw(st.permutations(range(n_b)))
-    perm_bc = data.draw(st.permutations(range(n_b)))
-    k_ab = data.draw(st.integers(0, n_b))
-    k_bc = data.draw(st.integers(0, n_b))
-    ib_ab = np.array(perm_ab[:k_ab], dtype=np.int64)
-    ib_bc = np.array(perm_bc[:k_bc], dtype=np.int64)
-    m_ab = Matches(ib_ab + 1000, ib_ab, np.ones(k_ab))
-    m_bc = Matches(ib_bc, ib_bc + 2000, np.ones(k_bc))
-    ia, ib, ic = chain(m_ab, m_bc)
-    np.testing.assert_array_equal(ib, np.sort(np.intersect1d(ib_ab, ib_bc)))
-    np.testing.assert_array_equal(ia, ib + 1000)
-    np.testing.assert_array_equal(ic, ib + 2000)
-
-
+# --- drawing ----------------------------------------------------------------------------------
 def test_draw_matches_writes_a_side_by_side_png(tmp_path: Path, warped_features):
     f1, f2 = warped_features
     m = match_zncc(f1, f2, MatchingConfig())
@@ -513,15 +486,13 @@ def test_temple_ring_epipolar_accuracy(temple_dir):
         F_true = fundamental_from_projections(cams[a], cams[b])
         R_a, R_b = decompose_projection(cams[a])[1], decompose_projection(cams[b])[1]
         upright = float(R_a[1] @ R_b[1]) > 0  # image "down" axes agree
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m = match_pair(feats[a], feats[b], MatchingConfig())
-            if upright:
-                x1, x2 = m.points(feats[a], feats[b])
-            else:  # the plain match must not invent a geometry; turned back, it must match
-                assert len(m) < 15, (a, b, len(m))
-                m, x2 = match_turned(feats[a], images[b], MatchingConfig())
-                x1 = feats[a].points[m.idx1]
+        m = match_pair(feats[a], feats[b], MatchingConfig()).matches
+        if upright:
+            x1, x2 = m.points(feats[a], feats[b])
+        else:  # the plain match must not invent a geometry; turned back, it must match
+            assert len(m) < 15, (a, b, len(m))
+            m, x2 = match_turned(feats[a], images[b], MatchingConfig())
+            x1 = feats[a].points[m.idx1]
         med = float(np.median(epipolar_distances(F_true, x1, x2))) if len(m) else float("nan")
         report.append((a, b, upright, len(m), med))
         assert len(m) >= 20, (a, b, upright, len(m))
@@ -552,12 +523,12 @@ def test_matching_never_crashes_on_random_points(n1, n2, seed, known_F, mutual):
     d2, v2 = describe(gray, p2, 11)
     f1 = Features(p1, d1, v1, np.ones(n1), (60, 80), gray)
     f2 = Features(p2, d2, v2, np.ones(n2), (60, 80), gray)
-    cfg = MatchingConfig(mutual=mutual, min_zncc=-1.0)
+    cfg = MatchingConfig(mutual=mutual, min_zncc=-1.0, candidate_min_zncc=-1.0)
     F = rng.standard_normal((3, 3)) if known_F else None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        m = match_pair(f1, f2, cfg, F=F, min_zncc=None)
-        z = match_zncc(f1, f2, cfg, max_ratio=None)
+    pair = match_pair(f1, f2, cfg, F=F)
+    assert isinstance(pair, PairMatches)
+    m = pair.matches
+    z = match_zncc(f1, f2, no_ratio(cfg))
     for mm in (m, z):
         assert np.all((mm.idx1 >= 0) & (mm.idx1 < n1)) and np.all((mm.idx2 >= 0) & (mm.idx2 < n2))
         assert np.all(v1[mm.idx1]) and np.all(v2[mm.idx2])
@@ -577,6 +548,110 @@ def test_pipeline_never_crashes_on_random_images(image, constant):
         warnings.simplefilter("ignore", RuntimeWarning)
         f1 = extract_features(image, FeatureConfig(border=4))
         f2 = extract_features(np.ascontiguousarray(image[::-1]), FeatureConfig(border=4))
-        m, F = match_pair(f1, f2, MatchingConfig(), return_F=True)
+        pair = match_pair(f1, f2, MatchingConfig())
+    m, F = pair.matches, pair.F
     assert len(m) <= min(len(f1), len(f2))
     assert F is None or F.shape == (3, 3)
+
+
+# --- the configuration and the pair recipe's API ------------------------------------------------
+@pytest.mark.parametrize("field,value", [
+    ("patch_size", 10), ("patch_size", 0), ("patch_size", -3), ("align_patch_size", 14),
+    ("min_zncc", 1.5), ("candidate_min_zncc", -1.2), ("min_aligned_zncc", 2.0),
+    ("relaxed_min_aligned_zncc", -3.0), ("max_ratio", 0.0), ("guided_max_ratio", 1.5),
+    ("first_pass_ratio", -0.1), ("search_radius", 0.0), ("epipolar_band_px", -1.0),
+    ("ransac_threshold_px", 0.0), ("ransac_confidence", 1.0), ("ransac_runs", 0),
+    ("ransac_max_iters", 0), ("min_f_inliers", -1), ("max_shift_px", 0.0),
+    ("relaxed_max_shift_px", -0.5), ("scales", (1.2, 0.0)), ("align_max_iters", 0), ("align_tol_px", 0.0),
+])
+def test_a_bad_matching_config_raises_a_one_line_value_error(field, value):
+    with pytest.raises(ValueError, match=field) as info:
+        MatchingConfig(**{field: value})
+    assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=field):  # replace() validates too
+        dataclasses.replace(MatchingConfig(), **{field: value})
+
+
+def test_the_matching_config_stays_frozen_and_plain_data():
+    cfg = MatchingConfig(scales=[0.9, 1.1], max_ratio=None)
+    assert cfg.scales == (0.9, 1.1) and hash(cfg) == hash(MatchingConfig(scales=(0.9, 1.1), max_ratio=None))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.min_zncc = 0.5  # type: ignore[misc]
+    d = dataclasses.asdict(cfg)
+    assert d["scales"] == (0.9, 1.1) and MatchingConfig(**d) == cfg
+    # the paper's threshold for plain ZNCC matching, the looser one for the recipe's candidates
+    assert MatchingConfig().min_zncc == 0.8 and MatchingConfig().candidate_min_zncc == 0.6
+
+
+def test_relaxed_changes_only_the_localisation_thresholds():
+    cfg = MatchingConfig(max_shift_px=0.5, min_aligned_zncc=0.95, relaxed_max_shift_px=2.0,
+                         relaxed_min_aligned_zncc=0.7, seed=4)
+    relaxed = cfg.relaxed()
+    before, after = dataclasses.asdict(cfg), dataclasses.asdict(relaxed)
+    changed = {k for k in before if before[k] != after[k]}
+    assert changed == {"max_shift_px", "min_aligned_zncc"}
+    assert relaxed.max_shift_px == 2.0 and relaxed.min_aligned_zncc == 0.7
+    assert cfg.max_shift_px == 0.5 and cfg.min_aligned_zncc == 0.95  # a copy
+
+
+def test_match_pair_always_returns_pair_matches(textured):
+    scene, feats = textured
+    F = fundamental_from_projections(scene.P[0], scene.P[1])
+    known = match_pair(feats[0], feats[1], MatchingConfig(), F=F)
+    assert isinstance(known, PairMatches) and isinstance(known.matches, Matches)
+    np.testing.assert_array_equal(known.F, F)
+    assert known.stats["geometry"] == "known F" and known.stats["kept"] == len(known.matches) > 0
+    robust = match_pair(feats[0], feats[1], MatchingConfig())
+    assert isinstance(robust, PairMatches) and len(robust.matches) > 0
+    assert robust.F.shape == (3, 3) and np.isclose(np.linalg.norm(robust.F), 1.0)
+    assert robust.stats["geometry"] == "robust F"
+    assert robust.stats["kept"] == len(robust.matches) >= robust.stats["ransac_inliers"] >= 15
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        robust.F = None  # type: ignore[misc]
+
+
+def test_match_pair_without_a_robust_f_is_empty_and_says_why(caplog):
+    """Two unrelated textures: no F, no matches, the reason in the stats and in the log (not a
+    warning: a pair without F is normal and the pipeline reports it)."""
+    f1 = extract_features(warped_pair(np.eye(3), seed=0)[0])
+    f2 = extract_features(warped_pair(np.eye(3), seed=1)[0])
+    with warnings.catch_warnings(), caplog.at_level(logging.DEBUG, logger="stereoseed.matching"):
+        warnings.simplefilter("error")
+        pair = match_pair(f1, f2, MatchingConfig())
+    assert isinstance(pair, PairMatches)
+    assert len(pair.matches) == 0 and pair.F is None and pair.stats["kept"] == 0
+    assert pair.stats["candidates"] > 0
+    assert pair.stats["geometry"].startswith("robust F failed: ")
+    assert "at least 8 matches" in pair.stats["geometry"]
+    assert "at least 8 matches" in caplog.text
+
+
+def test_the_relaxed_match_reuses_the_pair_cache(textured, monkeypatch):
+    """The pipeline matches a weak pair again with config.relaxed(): the alignment parameters
+    are the same, so the alignments made by the first match come from the cache (with a known F
+    the candidates are the same: nothing is aligned again), and the results are those of an
+    uncached relaxed match."""
+    scene, feats = textured
+    cfg = MatchingConfig()
+    F = fundamental_from_projections(scene.P[0], scene.P[1])
+    kernel = alignment._align_kernel
+    aligned: list[int] = []
+    monkeypatch.setattr(alignment, "_align_kernel", lambda *a: aligned.append(len(a[4])) or kernel(*a))
+
+    def relaxed_rows(known, cache):
+        match_pair(feats[0], feats[1], cfg, F=known, cache=cache)
+        aligned.clear()
+        m = match_pair(feats[0], feats[1], cfg.relaxed(), F=known, cache=cache).matches
+        return m, sum(aligned)
+
+    for known in (F, None):
+        cache = PairCache(feats[0], feats[1])
+        cached, rows_cached = relaxed_rows(known, cache)
+        alone, rows_alone = relaxed_rows(known, None)
+        np.testing.assert_array_equal(cached.idx1, alone.idx1)
+        np.testing.assert_array_equal(cached.idx2, alone.idx2)
+        assert len(cache.scores) == 1 and rows_alone > 100
+        if known is not None:
+            assert rows_cached == 0
+        else:  # a new robust F guides a few new candidates
+            assert rows_cached < 0.25 * rows_alone

@@ -46,12 +46,14 @@ def _cmd_match(args: argparse.Namespace) -> int:
     from .config import Config
     from .features import extract_features
     from .io import read_image
-    from .matching import draw_matches, match_pair
+    from .matching.pair import match_pair
+    from .visualize import draw_matches
 
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
-    matches, stats = match_pair(f1, f2, cfg.matching, image_width=img1.shape[1], return_stats=True)
+    pair = match_pair(f1, f2, cfg.matching, image_width=img1.shape[1])
+    matches, stats = pair.matches, pair.stats
     print(f"{len(f1.points)} / {len(f2.points)} interest points; "
           + ", ".join(f"{k}: {v}" for k, v in stats.items()))
     if args.output:
@@ -65,7 +67,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     from .config import Config
     from .features import extract_features
     from .io import read_calibration, read_image
-    from .matching import match_pair
+    from .matching.pair import match_pair
     from .propagation import propagate
     from .visualize import save_propagation_png
 
@@ -74,7 +76,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     P1, P2 = read_calibration(args.calib, [Path(args.image1).name, Path(args.image2).name])
     F = fundamental_from_projections(P1, P2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
-    seeds = match_pair(f1, f2, cfg.matching, F=F, image_width=img1.shape[1])
+    seeds = match_pair(f1, f2, cfg.matching, F=F, image_width=img1.shape[1]).matches
     x1, x2 = seeds.points(f1, f2)
     result = propagate(img1, img2, np.hstack([x1, x2]), F, cfg.propagation,
                        subpixel_method=cfg.propagation.subpixel_method)

@@ -15,7 +15,9 @@ import numpy as np
 
 from .config import Config
 from .features import Features, describe, extract_features
-from .matching import PairCache, Matches, align_matches, match_pair, refine_features
+from .matching.alignment import PairCache, align_matches, refine_features
+from .matching.containers import Matches
+from .matching.pair import match_pair
 
 __all__ = ["CorrespondenceSource", "HarrisZncc"]
 
@@ -62,11 +64,9 @@ class HarrisZncc:
         relaxed check and robust estimation takes care of the extra outliers."""
         mc = self.cfg.matching
         cache = self._cache(fa, fb)
-        m = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
-                       max_shift_px=mc.max_shift_px, min_aligned_zncc=mc.min_aligned_zncc)
+        m = match_pair(fa, fb, mc, F=F, image_width=image_width, cache=cache).matches
         if len(m) < mc.relax_below:
-            relaxed = match_pair(fa, fb, mc, F=F, image_width=image_width, pair_cache=cache,
-                                 max_shift_px=mc.relaxed_max_shift_px, min_aligned_zncc=mc.relaxed_min_aligned_zncc)
+            relaxed = match_pair(fa, fb, mc.relaxed(), F=F, image_width=image_width, cache=cache).matches
             if len(relaxed) > len(m):
                 m = relaxed
         return m
@@ -75,7 +75,7 @@ class HarrisZncc:
         """fb with its matched points moved onto their partners in fa (sub-pixel affine
         alignment): a track followed pair after pair then carries one physical point, not
         detector noise."""
-        return refine_features(fa, fb, m, cache=self._cache(fa, fb))
+        return refine_features(fa, fb, m, self.cfg.matching, cache=self._cache(fa, fb))
 
     def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
               predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,7 +92,7 @@ class HarrisZncc:
         xy, ok = predicted.copy(), np.zeros(len(predicted), bool)
         probe = Features(predicted[look], desc[look], valid[look], np.zeros(len(look)), f_target.image_shape, f_target.gray)
         m = Matches(ref_idx[look], np.arange(len(look)), np.ones(len(look)))
-        al = align_matches(f_ref, probe, m)
+        al = align_matches(f_ref, probe, m, self.cfg.matching)
         xy[look] = al.x2
         ok[look] = (al.converged & (al.shift(probe, m) <= max_shift_px)
                     & (al.zncc > self.cfg.matching.min_aligned_zncc))

@@ -8,7 +8,7 @@ import numpy as np
 
 from .camera import camera_center, decompose_projection, project, rotation_angle_deg
 from .features import Features
-from .matching import Matches
+from .matching.containers import Matches
 from .triangulation import triangulate_tracks
 
 __all__ = ["rms_3d", "camera_errors", "reconstruct_corners", "corners_from_exact_pixels", "TrueCorrespondences",

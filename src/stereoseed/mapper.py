@@ -22,7 +22,7 @@ from .camera import fundamental_from_projections, project
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
-from .matching import Matches
+from .matching.containers import Matches
 from .modes import mode_of
 from .reconstruction import Reconstruction, View
 from .refinement import adjust, drop_outliers

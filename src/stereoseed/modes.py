@@ -18,7 +18,7 @@ import numpy as np
 
 from .config import Config
 from .loop_closure import close_loop
-from .matching import Matches
+from .matching.containers import Matches
 from .reconstruction import Reconstruction
 from .refinement import adjust, global_adjust
 from .registration import implausible_motion

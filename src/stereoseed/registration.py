@@ -19,7 +19,7 @@ from .camera import camera_center, decompose_projection, depths, intrinsics_turn
 from .config import Config
 from .errors import StereoseedError
 from .features import Features
-from .matching import Matches
+from .matching.containers import Matches
 from .motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from .reconstruction import Reconstruction, View
 from .resection import ResectionResult, implausible_intrinsics, resect

@@ -10,7 +10,8 @@ from scipy.spatial import cKDTree
 from .camera import fundamental_from_projections, project, project_homogeneous, project_per_observation
 from .config import Config
 from .features import Features, describe
-from .matching import Matches, epipolar_band_mask
+from .matching.containers import Matches
+from .matching.two_view import epipolar_band_mask
 from .reconstruction import Reconstruction, View
 from .triangulation import triangulate, triangulate_tracks
 

@@ -1,4 +1,5 @@
-"""Drawings of the stages' results: the propagation's colour-coded disparity (paper Fig. 10d)."""
+"""Drawings of intermediate results, for people: matches between two images side by side
+(paper Fig. 10b) and the propagation's colour-coded disparity (paper Fig. 10d)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,9 +8,72 @@ import cv2
 import numpy as np
 
 from .errors import StereoseedError
+from .features import Features
+from .matching.containers import Matches
 from .propagation import PropagationResult
 
-__all__ = ["disparity_image", "save_propagation_png"]
+__all__ = ["draw_matches", "disparity_image", "save_propagation_png"]
+
+
+def _to_bgr_u8(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        f = np.nan_to_num(img.astype(np.float64))
+        scale = 255.0 if f.size and f.max() <= 1.0 else 1.0  # [0, 1] floats or 0..255 values
+        img = np.clip(f * scale, 0, 255).astype(np.uint8)
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+def draw_matches(
+    img1: np.ndarray,
+    kp1: Features | np.ndarray,
+    img2: np.ndarray,
+    kp2: Features | np.ndarray,
+    matches: Matches,
+    path: str | Path | None = None,
+    *,
+    max_lines: int | None = None,
+) -> np.ndarray:
+    """Side-by-side image with a line per match (paper Fig. 10b), written as PNG if ``path``.
+
+    img1, img2: grey or BGR images (uint8 or float in [0, 1]); kp1, kp2: Features or (N, 2).
+    Line colour goes from red (lowest ZNCC) to green (highest). ``max_lines`` keeps the best.
+    Returns the (max(H1, H2), W1 + W2, 3) uint8 BGR canvas.
+    """
+    a, b = _to_bgr_u8(img1), _to_bgr_u8(img2)
+    h = max(a.shape[0], b.shape[0])
+    canvas = np.zeros((h, a.shape[1] + b.shape[1], 3), np.uint8)
+    canvas[: a.shape[0], : a.shape[1]] = a
+    canvas[: b.shape[0], a.shape[1] :] = b
+    m = matches.sorted_by_score()
+    if max_lines is not None:
+        m = m.subset(slice(0, max_lines))
+    if len(m):
+        x1, x2 = m.points(kp1, kp2)
+        x2 = x2 + np.array([a.shape[1], 0.0])
+        lo, hi = float(m.score.min()), float(m.score.max())
+        t = (m.score - lo) / (hi - lo) if hi > lo else np.ones(len(m))
+        shift = 4  # draw at 1/16 px so sub-pixel positions are honoured
+        p1 = np.round(x1 * (1 << shift)).astype(np.int64)
+        p2 = np.round(x2 * (1 << shift)).astype(np.int64)
+        # Draw the weakest first so the best matches stay on top.
+        for k in np.argsort(m.score):
+            colour = (0, int(255 * t[k]), int(255 * (1 - t[k])))
+            q1 = (int(p1[k, 0]), int(p1[k, 1]))
+            q2 = (int(p2[k, 0]), int(p2[k, 1]))
+            cv2.line(canvas, q1, q2, colour, 1, cv2.LINE_AA, shift)
+            cv2.circle(canvas, q1, 2 << shift, colour, 1, cv2.LINE_AA, shift)
+            cv2.circle(canvas, q2, 2 << shift, colour, 1, cv2.LINE_AA, shift)
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(path), canvas):
+            raise StereoseedError(f"could not write {path}")
+    return canvas
 
 
 def disparity_image(result: PropagationResult, shape: tuple[int, ...]) -> np.ndarray:
@@ -56,11 +120,7 @@ def save_propagation_png(img1: np.ndarray, result: PropagationResult, path: str 
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    img = np.asarray(img1)
-    if img.dtype != np.uint8:
-        img = np.clip(np.rint(np.asarray(img, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    img = _to_bgr_u8(img1)
     disp = disparity_image(result, img.shape)
     if not cv2.imwrite(str(path), np.hstack([img, disp])):
         raise StereoseedError(f"could not write {path}")
