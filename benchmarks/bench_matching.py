@@ -10,7 +10,6 @@ import dataclasses
 import json
 import os
 import time
-import warnings
 from pathlib import Path
 
 import cv2
@@ -58,19 +57,17 @@ def scene_figures(scene, cfg: MatchingConfig) -> dict:
     feats = [extract_features(im) for im in scene.images[:3]]
     F01 = fundamental_from_projections(scene.P[0], scene.P[1])
     out = {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        out["pair01_known_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
-                                         match_pair(feats[0], feats[1], cfg, F=F01).matches)
-        out["pair01_robust_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
-                                          match_pair(feats[0], feats[1], cfg).matches)
-        out["pair12_robust_F"] = accuracy(scene, 1, 2, feats[1], feats[2],
-                                          match_pair(feats[1], feats[2], cfg).matches)
-        # The paper's recipe for comparison: 11x11 ZNCC > 0.8, mutual best (no ratio test), then
-        # the 2 px band.
-        paper = filter_epipolar(match_zncc(feats[0], feats[1], dataclasses.replace(cfg, max_ratio=None)),
-                                feats[0], feats[1], F01, cfg.epipolar_band_px)
-        out["pair01_paper_recipe"] = accuracy(scene, 0, 1, feats[0], feats[1], paper)
+    out["pair01_known_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
+                                     match_pair(feats[0], feats[1], cfg, F=F01).matches)
+    out["pair01_robust_F"] = accuracy(scene, 0, 1, feats[0], feats[1],
+                                      match_pair(feats[0], feats[1], cfg).matches)
+    out["pair12_robust_F"] = accuracy(scene, 1, 2, feats[1], feats[2],
+                                      match_pair(feats[1], feats[2], cfg).matches)
+    # The paper's recipe for comparison: 11x11 ZNCC > 0.8, mutual best (no ratio test), then
+    # the 2 px band.
+    paper = filter_epipolar(match_zncc(feats[0], feats[1], dataclasses.replace(cfg, max_ratio=None)),
+                            feats[0], feats[1], F01, cfg.epipolar_band_px)
+    out["pair01_paper_recipe"] = accuracy(scene, 0, 1, feats[0], feats[1], paper)
     return out
 
 
@@ -86,18 +83,16 @@ def temple_figures(folder: Path) -> dict | None:
         # Views of opposite gantry latitude are rotated 180 degrees: matched turned back.
         R_a, R_b = decompose_projection(cams[a])[1], decompose_projection(cams[b])[1]
         upright = float(R_a[1] @ R_b[1]) > 0
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            if upright:
-                m = match_pair(feats[a], feats[b], MatchingConfig()).matches
-                x1, x2 = m.points(feats[a], feats[b])
-            else:  # ZNCC is not rotation invariant: match image b turned back by 180 degrees
-                turned = cv2.rotate(images[b], cv2.ROTATE_180)
-                f_turned = extract_features(turned, patch_size=feats[a].patch_size)
-                m = match_pair(feats[a], f_turned, MatchingConfig()).matches
-                x1 = feats[a].points[m.idx1]
-                h, w = turned.shape[:2]  # pixel (x, y) of the turned image is (w-1-x, h-1-y) of b
-                x2 = np.array([w - 1.0, h - 1.0]) - f_turned.points[m.idx2]
+        if upright:
+            m = match_pair(feats[a], feats[b], MatchingConfig()).matches
+            x1, x2 = m.points(feats[a], feats[b])
+        else:  # ZNCC is not rotation invariant: match image b turned back by 180 degrees
+            turned = cv2.rotate(images[b], cv2.ROTATE_180)
+            f_turned = extract_features(turned, patch_size=feats[a].patch_size)
+            m = match_pair(feats[a], f_turned, MatchingConfig()).matches
+            x1 = feats[a].points[m.idx1]
+            h, w = turned.shape[:2]  # pixel (x, y) of the turned image is (w-1-x, h-1-y) of b
+            x2 = np.array([w - 1.0, h - 1.0]) - f_turned.points[m.idx2]
         d = epipolar_distances(fundamental_from_projections(cams[a], cams[b]), x1, x2)
         rows.append({"pair": f"{a}-{b}", "upright": upright, "kept": len(m),
                      "median_epipolar_px": round(float(np.median(d)), 3) if len(m) else None})

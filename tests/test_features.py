@@ -202,7 +202,7 @@ def test_detect_corners_repeatable_under_subpixel_shift():
     close = nearest < 1.0
     assert close.mean() > 0.85
     # Harris at this scale on 1-2 px blobs is good to ~0.15 px; matches are then aligned to
-    # ~0.03 px by stereoseed.matching.align_matches.
+    # ~0.03 px by stereoseed.matching.alignment.align_matches.
     assert np.median(nearest[close]) < 0.2
 
 

@@ -266,16 +266,16 @@ def test_filter_fundamental_ransac_recovers_geometry_deterministically():
     x2[:45] = rng.random((45, 2)) * [640, 480]  # 30 % gross outliers
     m = Matches(np.arange(150), np.arange(150), np.linspace(1, 0.8, 150))
     cfg = MatchingConfig()
-    inl, F = filter_fundamental_ransac(m, x1, x2, cfg)
+    inl, F, _ = filter_fundamental_ransac(m, x1, x2, cfg)
     assert F is not None and F.shape == (3, 3)
     assert np.isclose(np.linalg.norm(F), 1.0)
     truly = epipolar_distances(F_true, x1, x2) < 1.5
     assert np.mean(truly[inl.idx1]) > 0.97
     assert len(inl) >= 0.9 * truly[45:].sum()
-    inl2, F2 = filter_fundamental_ransac(m, x1, x2, cfg)
+    inl2, F2, _ = filter_fundamental_ransac(m, x1, x2, cfg)
     np.testing.assert_array_equal(inl.idx1, inl2.idx1)
     np.testing.assert_array_equal(F, F2)
-    inl3, F3 = filter_fundamental_ransac(m, x1, x2, cfg, method=cv2.FM_RANSAC)
+    inl3, F3, _ = filter_fundamental_ransac(m, x1, x2, cfg, method=cv2.FM_RANSAC)
     assert F3 is not None and np.mean(truly[inl3.idx1]) > 0.97
 
 
@@ -290,20 +290,20 @@ def test_filter_fundamental_ransac_keeps_the_best_supported_run():
     x2[:70] = rng.random((70, 2)) * [640, 480]  # a weak pair: 58 % gross outliers
     m = Matches(np.arange(120), np.arange(120), np.linspace(1, 0.8, 120))
     for seed in range(4):
-        one, _ = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=1))
-        best, F = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=3))
+        one, _, _ = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=1))
+        best, F, _ = filter_fundamental_ransac(m, x1, x2, MatchingConfig(seed=seed, ransac_runs=3))
         assert len(best) >= len(one)
         assert np.mean(best.idx1 >= 70) > 0.9
 
 
-def test_filter_fundamental_ransac_too_few_matches_logs(caplog):
+def test_filter_fundamental_ransac_says_why_there_is_no_f():
     m = Matches(np.arange(5), np.arange(5), np.ones(5))
     pts = np.random.default_rng(0).random((5, 2)) * 100
-    with warnings.catch_warnings(), caplog.at_level(logging.INFO, logger="stereoseed.matching"):
+    with warnings.catch_warnings():
         warnings.simplefilter("error")
-        out, F = filter_fundamental_ransac(m, pts, pts, MatchingConfig())
+        out, F, reason = filter_fundamental_ransac(m, pts, pts, MatchingConfig())
     assert len(out) == 0 and F is None
-    assert "at least 8" in caplog.text
+    assert "at least 8" in reason
 
 
 # --- localisation check ----------------------------------------------------------------------
@@ -544,11 +544,9 @@ def test_matching_never_crashes_on_random_points(n1, n2, seed, known_F, mutual):
 def test_pipeline_never_crashes_on_random_images(image, constant):
     if constant:
         image = np.full_like(image, 77)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        f1 = extract_features(image, FeatureConfig(border=4))
-        f2 = extract_features(np.ascontiguousarray(image[::-1]), FeatureConfig(border=4))
-        pair = match_pair(f1, f2, MatchingConfig())
+    f1 = extract_features(image, FeatureConfig(border=4))
+    f2 = extract_features(np.ascontiguousarray(image[::-1]), FeatureConfig(border=4))
+    pair = match_pair(f1, f2, MatchingConfig())
     m, F = pair.matches, pair.F
     assert len(m) <= min(len(f1), len(f2))
     assert F is None or F.shape == (3, 3)

@@ -52,6 +52,10 @@ def _cmd_match(args: argparse.Namespace) -> int:
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
+    for path, f in ((args.image1, f1), (args.image2, f2)):
+        if len(f) == 0:
+            print(f"stereoseed: warning: {path}: no interest points (a flat or empty image?); no matches",
+                  file=sys.stderr)
     pair = match_pair(f1, f2, cfg.matching, image_width=img1.shape[1])
     matches, stats = pair.matches, pair.stats
     print(f"{len(f1.points)} / {len(f2.points)} interest points; "

@@ -63,10 +63,12 @@ class FeatureConfig:
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 
     def __post_init__(self) -> None:
-        _positive(self, "max_corners", "min_distance", "quality_level", "subpixel_window", "junction_tol")
-        if self.block_size < 2 or self.aperture not in (1, 3, 5, 7) or self.border < 0:
-            raise ValueError(f"FeatureConfig: block_size >= 2, aperture 1/3/5/7 and border >= 0 required, got "
-                             f"{self.block_size}, {self.aperture}, {self.border}")
+        _positive(self, "max_corners", "min_distance", "quality_level")
+        if (self.block_size < 2 or self.aperture not in (1, 3, 5, 7) or self.border < 0 or self.subpixel_window < 0
+                or self.junction_tol < 0):
+            raise ValueError(f"FeatureConfig: block_size >= 2, aperture 1/3/5/7, border, subpixel_window (0: off) "
+                             f"and junction_tol >= 0 required, got {self.block_size}, {self.aperture}, {self.border}, "
+                             f"{self.subpixel_window}, {self.junction_tol}")
 
 
 @dataclass(frozen=True)

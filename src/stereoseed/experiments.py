@@ -38,7 +38,6 @@ import multiprocessing
 import os
 import sys
 import time
-import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -211,21 +210,16 @@ def _run_job(job: _Job) -> dict[str, Any]:
     cfg = _config(job.variant, job.seed)
     out: dict[str, Any] = {"images": n, "variant": job.variant, "noise_sigma": job.noise_sigma}
     t0 = time.perf_counter()
-    # The matcher warns about every pair it rejects; a bench makes hundreds of runs, so the
-    # warnings are counted into the result instead of flooding the terminal.
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg)
-        except StereoseedError as e:
-            out.update(error=str(e), registered=0, seconds=time.perf_counter() - t0, warnings=len(caught))
-            return out
-        out.update(_sparse_summary(report), seconds=time.perf_counter() - t0)
-        if seq.corners is not None:
-            out.update(_corner_error(recon, seq, n))
-        if job.dense:
-            out.update(_dense_summary(recon, cfg, synthetic=seq.corners is not None))
-    out["warnings"] = len(caught)
+    try:
+        recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg)
+    except StereoseedError as e:
+        out.update(error=str(e), registered=0, seconds=time.perf_counter() - t0)
+        return out
+    out.update(_sparse_summary(report), seconds=time.perf_counter() - t0)
+    if seq.corners is not None:
+        out.update(_corner_error(recon, seq, n))
+    if job.dense:
+        out.update(_dense_summary(recon, cfg, synthetic=seq.corners is not None))
     return out
 
 
@@ -286,12 +280,10 @@ def _timed_run(seq: _Sequence, variant: str, seed: int) -> dict[str, Any]:
     def mark(done: int, total: int, message: str) -> None:
         stamps[done] = time.perf_counter() - t0
 
-    with warnings.catch_warnings(record=True) as caught:  # counted, as in _run_job
-        warnings.simplefilter("always")
-        try:
-            _, report = reconstruct(seq.images, seq.names, seq.P_pair, _config(variant, seed), progress=mark)
-        except StereoseedError as e:
-            return {"error": str(e), "total_s": None, "warnings": len(caught)}
+    try:
+        _, report = reconstruct(seq.images, seq.names, seq.P_pair, _config(variant, seed), progress=mark)
+    except StereoseedError as e:
+        return {"error": str(e), "total_s": None}
     total = time.perf_counter() - t0
     n = len(seq.images)
     counts = list(range(2, n + 1))
@@ -309,7 +301,6 @@ def _timed_run(seq: _Sequence, variant: str, seed: int) -> dict[str, Any]:
         else "final global BA" if "final_ba" in report["final"] else None,
         "total_s": total, "registered": report["registered"],
         "failed_images": [r["image"] for r in report["per_image"] if r.get("status") == "failed"],
-        "warnings": len(caught),
     }
 
 
@@ -548,7 +539,7 @@ def _assemble(plan: BenchPlan, seed: int, layout: dict[str, Any], fig8: dict, re
                                   "distance to the true surface exists for the synthetic scenes only",
                    "rows": table3},
         "runs": [{"sequence": list(k[:-3]), "noise_sigma": k[-3], "images": k[-2], "variant": k[-1],
-                  **{f: r.get(f) for f in ("registered", "seconds", "warnings", "error")}}
+                  **{f: r.get(f) for f in ("registered", "seconds", "error")}}
                  for k, r in results.items()],
         "temple_found": has_temple,
         "data_dir": str(shared_data_dir()),

@@ -57,7 +57,7 @@ class Features:
     response: (N,) float64 Harris response at the (integer) detection position.
     image_shape: (H, W) of the grey image the points were found in.
     gray: (H, W) float32 grey image in [0, 1], kept for the sub-pixel alignment of matches
-        (:func:`stereoseed.matching.align_matches`); None if not available.
+        (:func:`stereoseed.matching.alignment.align_matches`); None if not available.
     """
 
     points: np.ndarray

@@ -78,7 +78,7 @@ def _pnp_start(X: np.ndarray, x: np.ndarray, K: np.ndarray, config: ResectionCon
     The threshold is widened because the true focal length may differ from K's."""
     if len(X) < 6:
         return None
-    cv2.setRNGSeed(int(config.seed))
+    # OpenCV's RANSAC registrator seeds its own generator: deterministic without cv2.setRNGSeed
     ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, K, None, iterationsCount=int(config.ransac_max_iters),
                                              reprojectionError=3.0 * config.ransac_threshold_px,
                                              confidence=config.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)

@@ -16,7 +16,7 @@ from ..config import MatchingConfig
 from ..features import Features
 from .alignment import PairCache, filter_localization
 from .containers import Matches, PairMatches
-from .two_view import filter_epipolar, robust_fundamental_inliers
+from .two_view import filter_epipolar, filter_fundamental_ransac
 from .zncc import match_zncc
 
 __all__ = ["match_pair"]
@@ -90,7 +90,7 @@ def match_pair(
     stats["candidates"] = len(m)
     m = check(m)
     stats["localized"] = len(m)
-    m, F, reason = robust_fundamental_inliers(m, f1, f2, config)
+    m, F, reason = filter_fundamental_ransac(m, f1, f2, config)
     stats["ransac_inliers"] = len(m)
     if F is None:
         log.debug("pair without a robust F: %s", reason)

@@ -7,8 +7,6 @@ F is (3, 3) with ``x2^T F x1 = 0`` for pixels x1 of image 1 and x2 of image 2.
 """
 from __future__ import annotations
 
-import logging
-
 import cv2
 import numpy as np
 
@@ -18,9 +16,8 @@ from ..features import Features
 from .containers import Matches
 from .zncc import candidate_mask
 
-__all__ = ["epipolar_band_mask", "filter_epipolar", "filter_fundamental_ransac", "robust_fundamental_inliers"]
+__all__ = ["epipolar_band_mask", "filter_epipolar", "filter_fundamental_ransac"]
 
-log = logging.getLogger(__name__)
 
 
 def epipolar_band_mask(
@@ -61,7 +58,7 @@ def filter_fundamental_ransac(
     config: MatchingConfig,
     *,
     method: int = cv2.USAC_MAGSAC,
-) -> tuple[Matches, np.ndarray | None]:
+) -> tuple[Matches, np.ndarray | None, str]:
     """Estimate F robustly and keep the matches consistent with it.
 
     method: an OpenCV robust method (``cv2.USAC_MAGSAC`` default, or ``cv2.FM_RANSAC``); threshold
@@ -72,26 +69,10 @@ def filter_fundamental_ransac(
     within the threshold of their epipolar lines in both images
     (:func:`stereoseed.camera.epipolar_distances`), recomputed from the returned F.
 
-    Returns (inlier Matches, F (3, 3) float64 of unit norm) or, logged, (empty Matches, None)
+    Returns (inlier Matches, F (3, 3) float64 of unit norm, "") or (empty Matches, None, why)
     when there are fewer than 8 matches, no estimate, or fewer than ``config.min_f_inliers``
     inliers.
     """
-    kept, F, reason = robust_fundamental_inliers(matches, kp1, kp2, config, method=method)
-    if F is None:
-        log.info("no robust F: %s", reason)
-    return kept, F
-
-
-def robust_fundamental_inliers(
-    matches: Matches,
-    kp1: Features | np.ndarray,
-    kp2: Features | np.ndarray,
-    config: MatchingConfig,
-    *,
-    method: int = cv2.USAC_MAGSAC,
-) -> tuple[Matches, np.ndarray | None, str]:
-    """:func:`filter_fundamental_ransac` with, as third element, why no F was found ("" when
-    one was): the pair recipe reports it in its stats instead of logging it."""
     if len(matches) < 8:
         return Matches.empty(), None, f"robust F needs at least 8 matches, got {len(matches)}"
     x1, x2 = matches.points(kp1, kp2)
