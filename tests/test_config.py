@@ -23,6 +23,13 @@ from stereoseed.config import (BundleConfig, Config, LoopClosureConfig, MotionPr
     (lambda: MotionPriorConfig(radius_fractions=()), "radius_fractions"),
     (lambda: LoopClosureConfig(span=0), "span"),
     (lambda: Config(pipeline={"mode": "paper"}), "pipeline"),
+    (lambda: PipelineConfig(max_zoom_step=1.0), "max_zoom_step"),
+    (lambda: PipelineConfig(window=True), "window"),
+    (lambda: PipelineConfig(window=2.5), "window"),
+    (lambda: MotionPriorConfig(wider_search_margin=0.9), "wider_search_margin"),
+    (lambda: MotionPriorConfig(pairings_per_point=(3, 4.5)), "pairings_per_point"),
+    (lambda: LoopClosureConfig(span=2.5), "span"),
+    (lambda: ResectionConfig(ransac_confidence=0.0), "ransac_confidence"),
 ])
 def test_invalid_configs_are_refused_with_the_field_named(make, field):
     with pytest.raises(ValueError, match=field):
@@ -53,3 +60,12 @@ def test_replace_validates_the_new_values():
     assert cfg.pipeline.camera_model == "fixed"
     with pytest.raises(ValueError, match="window"):
         Config().replace(pipeline={"window": 0})
+
+
+def test_whole_numbers_and_sequences_are_normalised():
+    import numpy as np
+
+    assert PipelineConfig(window=np.int64(2)).window == 2
+    prior = MotionPriorConfig(radius_fractions=[0.1, 0.2], pairings_per_point=[2])
+    assert prior.radius_fractions == (0.1, 0.2) and prior.pairings_per_point == (2,)
+    hash(Config(motion_prior=prior))  # frozen and hashable: usable as a cache key

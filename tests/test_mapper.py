@@ -224,3 +224,33 @@ def test_the_wide_search_finds_a_camera_the_prediction_misses():
     assert reports[2]["registered_by"] == MOTION_PRIOR, reports[2]
     assert reports[2]["motion_prior_search"]["radius_fraction"] == max(cfg.motion_prior.radius_fractions)
     assert centre_errors(recon, Ps).max() < 0.003
+
+
+def test_a_numerical_failure_during_registration_fails_the_image_only(started, monkeypatch):
+    import stereoseed.registration
+
+    recon, Ps, cfg = started
+    before = state(recon)
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(stereoseed.registration, "implausible_motion", singular)
+    report = insert_view(recon, 4, cfg)
+    assert report["status"] == "failed" and "numerical failure" in report["reason"]
+    assert_same_state(before, state(recon))
+
+
+def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored(started, monkeypatch):
+    import stereoseed.modes
+
+    recon, Ps, cfg = started
+    before = state(recon)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(stereoseed.modes, "adjust", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        insert_view(recon, 4, cfg)
+    assert_same_state(before, state(recon))

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from . import camera_models
-from .camera import project_per_observation
+from .camera import point_jacobian, project_per_observation
 from .config import BundleConfig
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
@@ -56,14 +56,6 @@ class BundleResult:
     iterations: int
     seconds: float
     info: dict = field(default_factory=dict)
-
-
-def _point_jacobian(Ps_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """d(u, v)/dX, (O, 2, 3)."""
-    inv = 1.0 / h[:, 2]
-    Ju = (Ps_obs[:, 0, :3] - uv[:, 0:1] * Ps_obs[:, 2, :3]) * inv[:, None]
-    Jv = (Ps_obs[:, 1, :3] - uv[:, 1:2] * Ps_obs[:, 2, :3]) * inv[:, None]
-    return np.stack([Ju, Jv], axis=1)
 
 
 def _projection_derivatives(params: np.ndarray, model: str, ref_K: np.ndarray | None) -> np.ndarray:
@@ -213,7 +205,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         h, uv = project_per_observation(Ps[oc], X[op])
         r = uv - xy
         w = _huber_weights(r, delta)
-        Jp = _point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
+        Jp = point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
         Jc = np.zeros((len(oc), 2, n))
         Xh = np.hstack([X[op], np.ones((len(op), 1))])
         for c in free_cams:

@@ -18,6 +18,7 @@ __all__ = [
     "project",
     "project_homogeneous",
     "project_per_observation",
+    "point_jacobian",
     "camera_center",
     "depths",
     "compose_projection",
@@ -86,11 +87,14 @@ def compose_projection(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarra
 def normalize_projection(P: np.ndarray) -> np.ndarray:
     """Scale P so that its left 3x3 block has det > 0 and ||P[2, :3]|| = 1.
 
-    With this scale the third homogeneous coordinate of ``P @ X`` is the depth of X.
+    With this scale the third homogeneous coordinate of ``P @ X`` is the depth of X. A
+    degenerate P (zero third row, non-finite entries: a failed estimate) gives NaNs, which the
+    callers test for; it is not worth a warning.
     """
     M = P[:, :3]
-    s = np.sign(np.linalg.det(M)) / np.linalg.norm(M[2])
-    return P * s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.sign(np.linalg.det(M)) / np.linalg.norm(M[2])
+        return P * s
 
 
 def _rq3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -161,6 +165,15 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (degrees) of the relative rotation R_a R_b^T."""
     c = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def point_jacobian(P_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """d(u, v)/dX of each observation's projection: P_obs (O, 3, 4), its homogeneous pixels h
+    (O, 3) and pixels uv (O, 2) (:func:`project_per_observation`) -> (O, 2, 3)."""
+    inv = 1.0 / h[:, 2]
+    Ju = (P_obs[:, 0, :3] - uv[:, 0:1] * P_obs[:, 2, :3]) * inv[:, None]
+    Jv = (P_obs[:, 1, :3] - uv[:, 1:2] * P_obs[:, 2, :3]) * inv[:, None]
+    return np.stack([Ju, Jv], axis=1)
 
 
 def intrinsics_turned_180(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:

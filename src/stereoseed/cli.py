@@ -172,7 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: local in paper mode, final in accurate mode)")
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
-    p.add_argument("--verbose", action="store_true", help="log each step (why an image was skipped, as it happens)")
+    p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
+                        "pairs without a robust F)")
     p.set_defaults(func=_cmd_reconstruct)
 
     p = sub.add_parser("propagate", help="quasi-dense match propagation of one calibrated pair, drawn as a disparity map")

@@ -8,6 +8,7 @@ Lhuillier & Quan, "Match propagation for image-based modeling and rendering", PA
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,6 +18,18 @@ def _positive(cfg: Any, *names: str) -> None:
         value = getattr(cfg, name)
         if not value > 0:
             raise ValueError(f"{type(cfg).__name__}.{name} must be > 0, got {value!r}")
+
+
+def _whole(cfg: Any, *names: str, minimum: int = 1) -> None:
+    for name in names:
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+            raise ValueError(f"{type(cfg).__name__}.{name} must be a whole number >= {minimum}, got {value!r}")
+
+
+def _as_tuple(cfg: Any, name: str) -> None:
+    """Sequences are stored as tuples: the frozen config stays hashable."""
+    object.__setattr__(cfg, name, tuple(getattr(cfg, name)))
 
 
 def _in_range(cfg: Any, name: str, low: float, high: float) -> None:
@@ -42,23 +55,13 @@ class FeatureConfig:
     quality_level: float = 1e-5  # response floor relative to the strongest corner: low, so that
     # weakly textured images still get their ~1,500 strongest corners (max_corners decides)
     subpixel_window: int = 5  # half-size of the cornerSubPix search window
-    # Sub-pixel refinement keeps cv2.cornerSubPix's position only where its model holds: at an
-    # ideal junction every image gradient in the window is orthogonal to the vector joining its
-    # pixel to the corner. The normalised residual of that model (features._junction_residual) is
-    # 0 for a perfect junction, ~0.5 for isotropic texture and 1 for a blob centre; elsewhere the
-    # Harris peak (biased ~1.4 px into an L-corner) is refined by a quadratic fit. 0.1 allows
-    # gradient directions ~18 degrees rms off orthogonal. A plain 0.2 finds more of the synthetic
-    # box's square corners (3D RMS 0.085 instead of 0.143 cm) but localises templeSparseRing's
-    # texture worse (mean epipolar distance 0.337 instead of 0.292 px; on real texture the Harris
-    # peak is the better position). So a window between 0.1 and 0.2 passes only when its strong
-    # edges alone fit within 0.05 (a high-contrast corner on a textured face), and a smaller
-    # window is tried where the full one fails (features._is_junction, _refine_subpixel): box
-    # corners 0.093 cm, temple epipolar distances unchanged.
+    # cv2.cornerSubPix's position is kept only where its junction model holds (normalised
+    # residual: 0 at a perfect junction, ~0.5 on isotropic texture; 0.1 allows gradients ~18
+    # degrees rms off orthogonal); elsewhere the Harris peak is refined by a quadratic fit.
+    # docs/features.md has the measurements behind 0.1.
     junction_tol: float = 0.1
-    # A junction then moves to the intersection of its two edges, each located by sub-pixel
-    # profiles away from the blurred apex (features._edge_corners): on the synthetic box the
-    # square corners' median error drops from 0.22-0.34 px (cornerSubPix) to 0.11-0.20 px, the
-    # box corners' 3D RMS from 0.093 to 0.065 cm (accurate) and from 0.118 to 0.075 cm (paper).
+    # a junction moves to the intersection of its two edges, located away from the blurred apex
+    # (cornerSubPix sits 0.2-0.35 px inside a blurred L corner; docs/features.md)
     edge_corners: bool = True
     border: int = 8  # corners closer than this to the image edge cannot carry a patch
 
@@ -194,7 +197,8 @@ class ResectionConfig:
     def __post_init__(self) -> None:
         _positive(self, "ransac_threshold_px", "ransac_max_iters", "max_rms_px", "coplanarity_tol",
                   "max_principal_point_shift", "max_aspect_change", "max_skew")
-        _in_range(self, "ransac_confidence", 0.0, 1.0 - 1e-12)
+        if not 0.0 < self.ransac_confidence < 1.0:
+            raise ValueError(f"ResectionConfig.ransac_confidence must be within (0, 1), got {self.ransac_confidence!r}")
         if self.min_points < 6 or self.min_inliers < self.min_points:
             raise ValueError(f"ResectionConfig: min_points >= 6 (the DLT) and min_inliers >= min_points required, "
                              f"got {self.min_points}, {self.min_inliers}")
@@ -211,7 +215,8 @@ class BundleConfig:
     global_rounds: int = 4
 
     def __post_init__(self) -> None:
-        _positive(self, "huber_px", "max_iterations", "global_rounds")
+        _positive(self, "huber_px")
+        _whole(self, "max_iterations", "global_rounds")
         _in_range(self, "negligible_drop", 0.0, 1.0)
 
 
@@ -289,13 +294,18 @@ class MotionPriorConfig:
     recent_views: int = 3  # the points of the last few registered views are the ones projected
 
     def __post_init__(self) -> None:
-        _positive(self, "similarity_threshold", "similarity_max_iters", "wider_search_margin",
-                  "hypotheses_per_search", "recent_views", "trusted_chain_factor")
+        _as_tuple(self, "radius_fractions")
+        _as_tuple(self, "pairings_per_point")
+        _positive(self, "similarity_threshold", "trusted_chain_factor")
+        _whole(self, "similarity_max_iters", "hypotheses_per_search", "recent_views")
         _in_range(self, "min_zncc", -1.0, 1.0)
+        if not self.wider_search_margin >= 1.0:
+            raise ValueError(f"MotionPriorConfig.wider_search_margin must be >= 1, got {self.wider_search_margin!r}")
         if not self.radius_fractions or not all(0 < r <= 1 for r in self.radius_fractions):
             raise ValueError(f"MotionPriorConfig.radius_fractions must be fractions in (0, 1], got {self.radius_fractions}")
-        if not self.pairings_per_point or not all(int(n) >= 1 for n in self.pairings_per_point):
-            raise ValueError(f"MotionPriorConfig.pairings_per_point must be >= 1, got {self.pairings_per_point}")
+        if not self.pairings_per_point or not all(isinstance(n, numbers.Integral) and n >= 1
+                                                  for n in self.pairings_per_point):
+            raise ValueError(f"MotionPriorConfig.pairings_per_point must be whole numbers >= 1, got {self.pairings_per_point}")
         if self.explain_px is not None:
             _positive(self, "explain_px")
 
@@ -311,6 +321,11 @@ class TrackingConfig:
     # a tracked position this close to an interest point standing for another 3D point is that
     # point, not this one
     min_distance_to_other_px: float = 1.0
+    # a tracked position is kept when the aligned patches score above min_aligned_zncc (the
+    # matcher's localisation check) and it lies within max_shift_px of the projection (the
+    # resection's inlier threshold: the camera is that good)
+    min_aligned_zncc: float = 0.9
+    max_shift_px: float = 2.0
     # three-view points (repeated patterns): pairs within the epipolar band and above this ZNCC,
     # kept when a third view has a matching interest point within max_px of the projection
     three_view_min_zncc: float = 0.7
@@ -319,7 +334,8 @@ class TrackingConfig:
     def __post_init__(self) -> None:
         _in_range(self, "first_look_zncc", -1.0, 1.0)
         _in_range(self, "three_view_min_zncc", -1.0, 1.0)
-        _positive(self, "min_distance_to_other_px", "three_view_max_px")
+        _in_range(self, "min_aligned_zncc", -1.0, 1.0)
+        _positive(self, "min_distance_to_other_px", "three_view_max_px", "max_shift_px")
 
 
 @dataclass(frozen=True)
@@ -338,7 +354,8 @@ class LoopClosureConfig:
     link_threshold_factor: float = 4.0
 
     def __post_init__(self) -> None:
-        _positive(self, "span", "min_matches", "merge_distance", "link_threshold_factor")
+        _whole(self, "span", "min_matches")
+        _positive(self, "merge_distance", "link_threshold_factor")
         _in_range(self, "max_axis_angle_deg", 0.0, 180.0)
 
 
@@ -351,7 +368,9 @@ class PipelineConfig:
     # None: "free" (paper) / "focal" (accurate: the calibrated second camera, only its zoom
     # changes); "fixed": no zoom at all (see hold_unzoomed for the accurate mode's own decision)
     camera_model: str | None = None
-    window: int | None = None  # free cameras in the local BA; None: 1 (paper eq. 12) / 3 (accurate)
+    # the last `window` cameras are free in the accurate mode's local BA; None: 3 (accurate) / 1
+    # (paper: eq. 12 frees P_k alone, whatever the window)
+    window: int | None = None
     # "local": local BA after each insertion; "global": global BA after each insertion; "final":
     # local + one global BA at the end. None: "local" in paper mode (the paper), "final" in
     # accurate mode (as COLMAP ends: an open sequence drifts slowly along its chain of windows)
@@ -365,10 +384,11 @@ class PipelineConfig:
     loop_closure: bool = True  # accurate mode: match the last images against the first ones
     # After each BA, observations beyond outlier_factor x the median reprojection error (~3.4
     # sigma: the norm of 2-D Gaussian noise has median 1.18 sigma), never below outlier_floor_px,
-    # are dropped. None: 4.0 in accurate mode, 0 (off) in paper mode; always, observations
-    # beyond 2 x TriangulationConfig.max_reprojection_px go.
+    # are dropped. None: 4.0 in accurate mode, 0 (off) in paper mode; observations beyond
+    # outlier_max_px always go.
     outlier_factor: float | None = None
     outlier_floor_px: float = 0.25
+    outlier_max_px: float = 4.0  # always dropped: 2 x TriangulationConfig.max_reprojection_px
     # a resected camera whose focal length changed by more than this factor since the previous
     # image is refused (a hand-held zoom between two shots does not; a camera fitted to wrong
     # correspondences often does)
@@ -378,11 +398,12 @@ class PipelineConfig:
         _one_of(self, "mode", MODES)
         _one_of(self, "camera_model", CAMERA_MODELS, optional=True)
         _one_of(self, "ba", BA_POLICIES, optional=True)
-        if self.window is not None and (not isinstance(self.window, int) or self.window < 1):
-            raise ValueError(f"PipelineConfig.window must be a whole number >= 1 (or None), got {self.window!r}")
-        _positive(self, "min_chained_points", "max_zoom_step")
-        if self.min_chained_points < 6:
-            raise ValueError("PipelineConfig.min_chained_points must be >= 6: the DLT needs 6 points")
+        if self.window is not None:
+            _whole(self, "window")
+        _whole(self, "min_chained_points", minimum=6)  # the DLT needs 6 points
+        if not self.max_zoom_step > 1.0:
+            raise ValueError(f"PipelineConfig.max_zoom_step must be > 1 (a factor either way), got {self.max_zoom_step!r}")
+        _positive(self, "outlier_max_px")
         if self.outlier_factor is not None and self.outlier_factor < 0:
             raise ValueError(f"PipelineConfig.outlier_factor must be >= 0 (0: off), got {self.outlier_factor}")
         if self.outlier_floor_px < 0:

@@ -95,5 +95,5 @@ class HarrisZncc:
         al = align_matches(f_ref, probe, m, self.cfg.matching)
         xy[look] = al.x2
         ok[look] = (al.converged & (al.shift(probe, m) <= max_shift_px)
-                    & (al.zncc > self.cfg.matching.min_aligned_zncc))
+                    & (al.zncc > self.cfg.tracking.min_aligned_zncc))
         return xy, ok

@@ -16,15 +16,16 @@ from .refinement import global_adjust
 __all__ = ["close_loop"]
 
 
-def close_loop(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+def close_loop(recon: Reconstruction, cfg: Config) -> tuple[bool, dict[str, Any]]:
     """Match each of the last ``LoopClosureConfig.span`` registered views against the first
     ``span`` (those looking within ``max_axis_angle_deg`` of each other), merge the points
     reconstructed twice, link the observations a view lacks, then :func:`global_adjust`.
-    Returns a JSON-able report ("closed" False with the reason when nothing was shared)."""
+    Returns (closed, a JSON-able report: the reason when nothing was shared)."""
+    cfg = cfg.resolved()
     lc = cfg.loop_closure
     reg = recon.registered_views
     if len(reg) < 2 * lc.span + 1:
-        return {"closed": False, "reason": "sequence too short"}
+        return False, {"closed": False, "reason": "sequence too short"}
     links = merges = tried = 0
     for a in reg[-lc.span:]:
         for b in reg[:lc.span]:
@@ -41,9 +42,9 @@ def close_loop(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
             for pid, view, feats, other in ((pb, a, m.idx2, pa), (pa, b, m.idx1, pb)):
                 links += _link(recon, view, pid, feats, other, cfg)
     if links + merges == 0:
-        return {"closed": False, "reason": "no shared points between the last and first views", "matches": tried}
+        return False, {"closed": False, "reason": "no shared points between the last and first views", "matches": tried}
     ba, removed = global_adjust(recon, cfg)
-    return {"closed": True, "links": links, "merges": merges, "ba": ba, "removed_observations": removed}
+    return True, {"closed": True, "links": links, "merges": merges, "ba": ba, "removed_observations": removed}
 
 
 def _merge_twins(recon: Reconstruction, b: int, pb: np.ndarray, pa: np.ndarray, cfg: Config) -> int:

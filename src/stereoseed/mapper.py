@@ -25,7 +25,7 @@ from .errors import StereoseedError
 from .matching.containers import Matches
 from .modes import mode_of
 from .reconstruction import Reconstruction, View
-from .refinement import adjust, drop_outliers
+from .refinement import SKIPPED, adjust, drop_outliers
 from .registration import MOTION_PRIOR, Registration, RegistrationFailure, register_view
 from .tracks import colors_at, new_points_three_view, triangulate_matches
 
@@ -86,15 +86,21 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     view leaves ``recon`` as it was (only the view's status records why)."""
     cfg = cfg.resolved()
     view = recon.views[k]
-    found = register_view(recon, k, cfg)
+    try:
+        found = register_view(recon, k, cfg)
+    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
+        found = RegistrationFailure(f"{view.name}: numerical failure ({e}); skipped")
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
     state = recon.checkpoint()
     try:
         return _commit_and_grow(recon, k, found, cfg)
-    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
+    except np.linalg.LinAlgError as e:
         recon.restore(state)
         return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
+    except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
+        recon.restore(state)
+        raise
 
 
 def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
@@ -162,7 +168,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
 
     t = time.perf_counter()
     if cfg.pipeline.ba == "global":
-        ba = adjust(recon, cfg, free_views=recon.registered_views)
+        ba = adjust(recon, cfg, free_views=recon.registered_views) or dict(SKIPPED)
     else:
         ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
     timing["bundle"] = time.perf_counter() - t

@@ -20,11 +20,13 @@ from .config import Config
 from .loop_closure import close_loop
 from .matching.containers import Matches
 from .reconstruction import Reconstruction
-from .refinement import adjust, global_adjust
+from .refinement import SKIPPED, adjust, global_adjust
 from .registration import implausible_motion
 from .tracks import colors_at, retriangulate, track_by_projection, triangulate_matches
 
 __all__ = ["PaperMode", "AccurateMode", "mode_of"]
+
+PAPER_COST_IMAGES = 3  # eq. 12: the local BA's cost runs over the last three images
 
 
 class PaperMode:
@@ -55,9 +57,9 @@ class PaperMode:
         box: 9 chained observations, the camera 680 m away): an adjusted camera that could not
         follow the previous one keeps its resection."""
         view = recon.views[k]
-        window = [k] + recon.registered_before(k, 2)
+        window = [k] + recon.registered_before(k, PAPER_COST_IMAGES - 1)
         P_resected, X_new = view.P.copy(), recon.points[new_points].copy()
-        ba = adjust(recon, cfg, free_views=[k], free_points=new_points, views_in_cost=window)
+        ba = adjust(recon, cfg, free_views=[k], free_points=new_points, views_in_cost=window) or dict(SKIPPED)
         why = implausible_motion(view.P, recon.views[prev], recon.points[chain_points], k - prev,
                                  cfg.pipeline.max_zoom_step)
         if why:
@@ -100,7 +102,7 @@ class AccurateMode:
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
                      chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
         """The last W registered cameras and every point they see."""
-        return adjust(recon, cfg, free_views=recon.registered_views[-cfg.pipeline.window:])
+        return adjust(recon, cfg, free_views=recon.registered_views[-cfg.pipeline.window:]) or dict(SKIPPED)
 
     def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's
@@ -109,9 +111,9 @@ class AccurateMode:
         focal length per image only trades against the depth); "no_zoom" in the report."""
         pc = cfg.pipeline
         out: dict[str, Any] = {}
+        closed = False
         if pc.loop_closure:
-            out["loop_closure"] = close_loop(recon, cfg)
-        closed = bool(out.get("loop_closure", {}).get("closed"))
+            closed, out["loop_closure"] = close_loop(recon, cfg)
         later = [v for v in recon.registered_views if v > 1]
         if (pc.hold_unzoomed and pc.camera_model == "focal" and later and not any(recon.views[v].zoomed for v in later)
                 and (closed or pc.ba == "final")):

@@ -15,12 +15,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import decompose_projection, project
-from .config import Config, MotionPriorConfig
+from .config import Config, MotionPriorConfig, ResectionConfig
 from .features import Features
 from .reconstruction import Reconstruction
 
 __all__ = ["predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
-
 
 
 @dataclass(frozen=True)
@@ -91,7 +90,7 @@ def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, feature
     none: list[list[Hypothesis]] = [[] for _ in mp.radius_fractions]
     before = recon.registered_before(prev, 1)
     pids, desc = recent
-    if not before or len(pids) < 4 or len(features) == 0:
+    if not before or len(pids) < cfg.resection.min_points or len(features) == 0:
         return none
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
@@ -110,27 +109,28 @@ def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, feature
             rows = np.repeat(np.arange(len(pids)), min(depth, ranked.shape[1]))
             cols = ranked[:, :depth].ravel()
             ok = zncc[rows, cols] >= mp.min_zncc
-            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, cfg.resection.ransac_confidence,
-                                  width)
+            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, cfg.resection, width)
             hypotheses += [Hypothesis(recon.points[pids[r]], x, z, radius_fraction, depth) for r, x, z in found]
         out.append(hypotheses)
     return out
 
 
 def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.ndarray, zncc: np.ndarray,
-                  mp: MotionPriorConfig, confidence: float, width: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                  mp: MotionPriorConfig, rc: ResectionConfig, width: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Robust 4-DOF similarities (2-point samples, so a low inlier ratio is fine) between the
     predicted pixels ``pred[rows]`` and the paired interest points ``xy[cols]``, one after
     another on what the previous ones left; each keeps one pairing per point (the closest to
-    the similarity). Returns (rows (K,) into pred, pixels (K, 2), scores (K,)) per similarity."""
+    the similarity); a similarity supported by fewer pairings than a resection needs
+    (``ResectionConfig.min_points``) ends the search. Returns (rows (K,) into pred, pixels (K, 2),
+    scores (K,)) per similarity."""
     hypotheses = []
-    while len(rows) >= 6 and len(hypotheses) < mp.hypotheses_per_search:
+    while len(rows) >= rc.min_points and len(hypotheses) < mp.hypotheses_per_search:
         x = xy[cols]
         # OpenCV's RANSAC registrator seeds its own generator: deterministic without cv2.setRNGSeed
         S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
                                              ransacReprojThreshold=mp.similarity_threshold * width,
-                                             maxIters=mp.similarity_max_iters, confidence=confidence)
-        if S is None or inl is None or inl.sum() < 6:
+                                             maxIters=mp.similarity_max_iters, confidence=rc.ransac_confidence)
+        if S is None or inl is None or inl.sum() < rc.min_points:
             break
         inl = np.flatnonzero(inl.ravel())
         err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)

@@ -46,7 +46,8 @@ class View:
     run's (an 11-DOF camera refused, the focal-only model taken instead); zoomed: its resection
     took a new focal length rather than the previous image's.
 
-    K, R, t, center and focal are derived from P once, when P is set.
+    P is a read-only copy of what was set; K, R and focal are decomposed from it once, on first
+    use after it was set (the camera's RQ decomposition is not repeated).
     """
 
     def __init__(self, name: str, features: Features | None = None, P: np.ndarray | None = None,
@@ -69,12 +70,12 @@ class View:
 
     @P.setter
     def P(self, P: np.ndarray | None) -> None:
-        self._P = None if P is None else np.asarray(P, np.float64)
-        self._krt: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._P = None if P is None else _read_only(np.array(P, np.float64))
+        self._krt: tuple[np.ndarray, ...] | None = None
 
-    def _decomposed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _decomposed(self) -> tuple[np.ndarray, ...]:
         if self._krt is None:
-            self._krt = decompose_projection(self._P)
+            self._krt = tuple(_read_only(a) for a in decompose_projection(self._P))
         return self._krt
 
     @property
@@ -137,8 +138,14 @@ class View:
          self.camera_model, self.zoomed) = state
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
 class _Growing:
-    """A 1-D or 2-D array that grows by doubling: ``data`` is the used part (a view)."""
+    """A 1-D or 2-D array that grows by doubling: ``data`` is the used part, a view of the
+    buffer, valid until the next extend / keep / set (hold indices, not these views)."""
 
     def __init__(self, dtype: Any, width: int | None = None):
         self._buf = np.zeros((16,) if width is None else (16, width), dtype)
@@ -169,8 +176,11 @@ class _Growing:
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """What :meth:`Reconstruction.restore` needs to undo everything done since
-    :meth:`Reconstruction.checkpoint`."""
+    """What :meth:`Reconstruction.restore` needs to undo what an insertion does to the
+    reconstruction: points, colours, observations, and each view's camera, interest points (by
+    reference: Features are replaced, never changed in place), links, image and flags. The
+    correspondence source's caches are not part of it (keyed by the Features objects, they
+    cannot serve a rolled-back insertion's features again)."""
 
     points: np.ndarray
     colors: np.ndarray
@@ -184,7 +194,8 @@ class Reconstruction:
 
     Observations are parallel int64 arrays (obs_view, obs_feature, obs_point) and a bool array
     obs_linked: interest point ``obs_feature`` of view ``obs_view`` is an image of 3D point
-    ``obs_point``. Read them through the properties; change them through the methods.
+    ``obs_point``. Read them through the properties (views of growing buffers: valid until the
+    next change); change them through the methods.
 
     source: where correspondences come from (set by :func:`stereoseed.mapper.initialise`).
     """
@@ -284,11 +295,12 @@ class Reconstruction:
         return done
 
     def deregister(self, view: int) -> None:
-        """Forget a view's camera and observations, and the points no longer seen twice."""
+        """Forget a view's camera and observations, and the points no longer seen twice (its
+        interest points stay: they describe the image). The view's status becomes "pending"."""
         self.remove_observations(self.obs_view == view)
         self.remove_lonely_points()
         v = self.views[view]
-        v.P, v.camera_model, v.zoomed = None, None, False
+        v.P, v.camera_model, v.zoomed, v.status = None, None, False, "pending"
         v.point_of_feature[:] = -1
 
     def checkpoint(self) -> Checkpoint:

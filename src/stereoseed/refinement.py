@@ -14,16 +14,20 @@ from .bundle import BundleProblem, bundle_adjust
 from .config import Config
 from .reconstruction import Reconstruction, eq14
 
-__all__ = ["adjust", "drop_outliers", "global_adjust"]
+__all__ = ["adjust", "drop_outliers", "global_adjust", "SKIPPED"]
 
 CALIBRATED = (0, 1)  # the calibrated pair fixes the frame and the scale: it never moves
 
 
+SKIPPED = {"skipped": True}  # the report of a BA with nothing to adjust
+
+
 def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
-           views_in_cost: list[int] | None = None) -> dict[str, Any]:
+           views_in_cost: list[int] | None = None) -> dict[str, Any] | None:
     """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
     every point those views observe; the cost holds every observation of the involved points
-    (in ``views_in_cost`` only, if given). Returns a JSON-able report."""
+    (in ``views_in_cost`` only, if given). Returns a JSON-able report, or None when there is
+    nothing to adjust (no observation involved)."""
     free_views = [v for v in free_views if v not in CALIBRATED]
     in_free_views = np.isin(recon.obs_view, free_views)
     if free_points is None:
@@ -33,7 +37,7 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
         involved &= np.isin(recon.obs_view, views_in_cost)
     involved &= recon.alive[recon.obs_point]
     if not involved.any():
-        return {"skipped": True}
+        return None
     # One model for every free camera of a BA: a view that needed a constrained model (its
     # 11-DOF camera was refused) is adjusted with it when it is free alone, and held fixed when
     # it is free together with cameras of the run's model.
@@ -70,7 +74,7 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
 
 
 def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
-    """Remove the observations reprojecting beyond 2 x the triangulation threshold and, with an
+    """Remove the observations reprojecting beyond ``PipelineConfig.outlier_max_px`` and, with an
     outlier factor (``PipelineConfig.outlier_factor``), beyond that factor times the median
     error (never below ``outlier_floor_px``); then the points seen fewer than twice. Long
     tracks collect a few wrong observations (patches straddling an occlusion edge) that pull
@@ -78,7 +82,7 @@ def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
     if len(recon.obs_view) == 0:
         return 0
     err = recon.observation_errors()
-    threshold = 2.0 * cfg.triangulation.max_reprojection_px
+    threshold = cfg.pipeline.outlier_max_px
     factor = cfg.pipeline.resolved_outlier_factor()
     counted = np.isfinite(err) & recon.alive[recon.obs_point]
     if factor is not None and counted.any():
@@ -97,12 +101,12 @@ def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], i
     rms_first = None
     while True:
         ba = adjust(recon, cfg, free_views=recon.registered_views)
-        if ba.get("skipped"):  # nothing registered past the pair: no BA, so nothing to judge by
-            return ba, 0
+        if ba is None:  # nothing registered past the pair: no BA, so nothing to judge by
+            return dict(SKIPPED), 0
         removed = drop_outliers(recon, cfg)
         removed_per_round.append(removed)
         rms_first = ba.get("rms_before_px") if rms_first is None else rms_first
-        if (removed <= cfg.bundle.negligible_drop * ba.get("observations", 0)
+        if (removed <= cfg.bundle.negligible_drop * ba["observations"]
                 or len(removed_per_round) >= cfg.bundle.global_rounds):
             break
     ba.update(rounds=len(removed_per_round), removed_per_round=removed_per_round, rms_first_round_before_px=rms_first)

@@ -75,7 +75,8 @@ class Registration:
 
     @property
     def model(self) -> str:
-        """The camera model of P (the run's, or "fixed" when the previous zoom was kept)."""
+        """The camera model of P: the run's; "fixed" when the previous zoom was kept; "focal"
+        (or "fixed") when the run's 11-DOF camera was refused (``free_camera_refused``)."""
         return self.resection.info.get("model")
 
     @property
@@ -136,18 +137,15 @@ class _Resector:
         try:
             res = resect(X3, x2, self.cfg.resection, scores=scores, image_size=self.cand.image_size, model=model,
                          reference_K=self.ref_K, what=name, fallback_K=fallback_K)
+            why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.pipeline.max_zoom_step)
+            if not why and model == "free":
+                why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
+                why = why and f"the 11-DOF camera is ill-conditioned ({why})"
         except StereoseedError as e:
             return str(e)
         except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
             return f"{name}: numerical failure of the resection ({e})"
-        why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.pipeline.max_zoom_step)
-        if why:
-            return f"{name}: {why}"
-        if model == "free":
-            why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
-            if why:
-                return f"{name}: the 11-DOF camera is ill-conditioned ({why})"
-        return res
+        return f"{name}: {why}" if why else res
 
     def __call__(self, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> tuple[ResectionResult, str | None] | str:
         """(result, why the 11-DOF camera was refused or None), or the reason of the failure."""
@@ -170,8 +168,9 @@ def _turned(source, cand: Candidate) -> Candidate:
 
 
 def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | RegistrationFailure:
-    """A camera for view k from the last registered view before it (``cfg`` resolved:
-    :meth:`Config.resolved`). Changes nothing in ``recon``."""
+    """A camera for view k from the last registered view before it. Changes nothing in
+    ``recon``."""
+    cfg = cfg.resolved()
     prev = recon.registered_before(k, 1)[0]
     vp, view, source = recon.views[prev], recon.views[k], recon.source
     seconds = {}

@@ -119,13 +119,13 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
     first) but not yet in ``target``: project each point with the target's camera and align the
     patch of its observation in the reference view there (COLMAP and ORB-SLAM search by
     projection; here sub-pixel by alignment). An observation is kept when the alignment
-    converges within the resection threshold of the projection and does not land on another
+    converges within ``TrackingConfig.max_shift_px`` of the projection and does not land on another
     point's interest point. Returns the ids of the points whose track grew."""
     track = getattr(recon.source, "track", None)
     vt = recon.views[target]
     if track is None or vt.features is None:
         return np.zeros(0, np.int64)
-    thr = cfg.resection.ransac_threshold_px
+    thr = cfg.tracking.max_shift_px
     h, w = vt.features.image_shape
     margin = vt.features.patch_size
     taken = set(recon.obs_point[recon.obs_view == target].tolist())

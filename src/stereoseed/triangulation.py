@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .camera import camera_center, depths as camera_depths
+from .camera import camera_center, depths as camera_depths, point_jacobian, project_per_observation
 
 __all__ = ["triangulate_linear", "refine_points", "TriangulationResult", "triangulate", "triangulate_two_view",
            "triangulate_tracks",
@@ -200,12 +200,9 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
 
     def cost_and_normal(Xc):
         Xo = Xc[point_index]
-        h = np.einsum("oij,oj->oi", P_obs[:, :, :3], Xo) + P_obs[:, :, 3]
-        uv = h[:, :2] / h[:, 2:3]
+        h, uv = project_per_observation(P_obs, Xo)
         r = uv - xy
-        inv = 1.0 / h[:, 2]
-        J = np.stack([(P_obs[:, 0, :3] - uv[:, 0:1] * P_obs[:, 2, :3]) * inv[:, None],
-                      (P_obs[:, 1, :3] - uv[:, 1:2] * P_obs[:, 2, :3]) * inv[:, None]], axis=1)
+        J = point_jacobian(P_obs, h, uv)
         H = np.zeros((n_points, 3, 3))
         g = np.zeros((n_points, 3))
         np.add.at(H, point_index, np.einsum("oki,okj->oij", J, J))
