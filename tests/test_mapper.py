@@ -142,22 +142,6 @@ def test_an_image_that_cannot_be_registered_leaves_no_trace():
     assert centre_errors(recon, Ps).max() < 0.006  # measured 0.9 and 3.0 mm (a free focal length, no final BA)
 
 
-def test_a_numerical_failure_after_the_commit_is_rolled_back(started, monkeypatch):
-    import stereoseed.modes
-
-    recon, Ps, cfg = started
-    before = state(recon)
-
-    def singular(*args, **kwargs):
-        raise np.linalg.LinAlgError("Singular matrix")
-
-    monkeypatch.setattr(stereoseed.modes, "adjust", singular)
-    report = insert_view(recon, 4, cfg)
-    assert report["status"] == "failed" and "numerical failure" in report["reason"]
-    assert_same_state(before, state(recon))
-    assert not recon.views[4].registered
-
-
 def test_the_step_by_step_api_survives_a_failing_image():
     images, names, Ps, source = ring(7, blind=(4,))
     cfg = Config(pipeline=PipelineConfig(mode="paper"))
@@ -226,19 +210,25 @@ def test_the_wide_search_finds_a_camera_the_prediction_misses():
     assert centre_errors(recon, Ps).max() < 0.003
 
 
-def test_a_numerical_failure_during_registration_fails_the_image_only(started, monkeypatch):
-    import stereoseed.registration
+def _raising(error):
+    def raise_it(*args, **kwargs):
+        raise error
+    return raise_it
+
+
+@pytest.mark.parametrize("module, function", [("registration", "implausible_motion"), ("modes", "adjust")])
+def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkeypatch, module, function):
+    # during the registration (nothing committed yet) or after the commit (rolled back)
+    import importlib
 
     recon, Ps, cfg = started
     before = state(recon)
-
-    def singular(*args, **kwargs):
-        raise np.linalg.LinAlgError("Singular matrix")
-
-    monkeypatch.setattr(stereoseed.registration, "implausible_motion", singular)
+    monkeypatch.setattr(importlib.import_module(f"stereoseed.{module}"), function,
+                        _raising(np.linalg.LinAlgError("Singular matrix")))
     report = insert_view(recon, 4, cfg)
     assert report["status"] == "failed" and "numerical failure" in report["reason"]
     assert_same_state(before, state(recon))
+    assert not recon.views[4].registered
 
 
 def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored(started, monkeypatch):
@@ -246,11 +236,7 @@ def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored
 
     recon, Ps, cfg = started
     before = state(recon)
-
-    def broken(*args, **kwargs):
-        raise RuntimeError("a bug")
-
-    monkeypatch.setattr(stereoseed.modes, "adjust", broken)
+    monkeypatch.setattr(stereoseed.modes, "adjust", _raising(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):
         insert_view(recon, 4, cfg)
     assert_same_state(before, state(recon))
