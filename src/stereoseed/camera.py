@@ -15,6 +15,7 @@ import numpy as np
 
 __all__ = [
     "to_homogeneous",
+    "is_finite_camera",
     "project",
     "project_homogeneous",
     "project_per_observation",
@@ -30,6 +31,13 @@ __all__ = [
     "rotation_angle_deg",
     "intrinsics_turned_180",
 ]
+
+
+def is_finite_camera(P: np.ndarray) -> bool:
+    """Whether P (3, 4) is a finite projective camera: finite entries, a non-singular left 3x3
+    block (a camera centre that is a point, not at infinity)."""
+    P = np.asarray(P, dtype=np.float64)
+    return bool(np.all(np.isfinite(P)) and abs(np.linalg.det(P[:, :3])) > 0)
 
 
 def to_homogeneous(points: np.ndarray) -> np.ndarray:

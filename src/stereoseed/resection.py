@@ -13,7 +13,7 @@ import numpy as np
 
 from .calibration import (check_correspondences, dlt_projection, normalization_2d, normalization_3d,
                           refine_projection)
-from .camera import decompose_projection, depths, normalize_projection, project
+from .camera import decompose_projection, depths, is_finite_camera, normalize_projection, project
 from .config import ResectionConfig
 from .errors import StereoseedError
 
@@ -186,7 +186,8 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
             if new_inliers.sum() < config.min_inliers or np.array_equal(new_inliers, inliers):
                 break
             inliers = new_inliers
-        P = normalize_projection(refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K))
+        if is_finite_camera(P):  # a camera that degenerated (an affine camera fits a plane) stays as it is
+            P = normalize_projection(refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K))
         err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
         return P, inliers, float(np.sqrt(np.mean(err2)))
 
@@ -195,7 +196,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         # The DLT is ill-conditioned when the points are nearly planar (one face of an object
         # in view); a constrained camera can start from P3P with the reference intrinsics.
         starts.append(_pnp_start(X, x, reference_K, config))
-    candidates = [polish(*s) for s in starts if s is not None and np.all(np.isfinite(s[0]))]
+    candidates = [polish(*s) for s in starts if s is not None and is_finite_camera(s[0])]
     def plausible(P: np.ndarray) -> bool:
         # a near-planar point set lets the LM run the focal length off to infinity (an affine
         # camera fits a plane): such a camera is no candidate
