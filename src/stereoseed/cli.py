@@ -139,6 +139,28 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from .export import write_bundler, write_colmap, write_nvm
+    from .results import load_result
+
+    result = load_result(args.result)
+    out = Path(args.out)
+    if args.format == "colmap":
+        warnings_ = write_colmap(result, out, binary=args.binary)
+        written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+    elif args.format == "nvm":
+        warnings_ = write_nvm(result, out / "model.nvm")
+        written = [out / "model.nvm"]
+    else:
+        warnings_ = write_bundler(result, out)
+        written = [out / "bundle.out", out / "list.txt"]
+    for w in warnings_:
+        print(f"stereoseed: warning: {w}", file=sys.stderr)
+    print(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
+          + ", ".join(str(p) for p in written))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -175,6 +197,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
                         "pairs without a robust F)")
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file")
+    p.add_argument("result", help="a folder written by stereoseed reconstruct --out")
+    p.add_argument("--format", choices=["colmap", "nvm", "bundler"], default="colmap")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--binary", action="store_true", help="COLMAP's binary .bin files instead of .txt")
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("propagate", help="quasi-dense match propagation of one calibrated pair, drawn as a disparity map")
     p.add_argument("image1")

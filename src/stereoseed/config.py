@@ -393,6 +393,9 @@ class PipelineConfig:
     # image is refused (a hand-held zoom between two shots does not; a camera fitted to wrong
     # correspondences often does)
     max_zoom_step: float = 1.5
+    # exports leave out a point farther from the scene's median point than this many times the
+    # cameras' median distance to it (nearly parallel rays put points metres away from the object)
+    far_point_factor: float = 5.0
 
     def __post_init__(self) -> None:
         _one_of(self, "mode", MODES)
@@ -403,7 +406,7 @@ class PipelineConfig:
         _whole(self, "min_chained_points", minimum=6)  # the DLT needs 6 points
         if not self.max_zoom_step > 1.0:
             raise ValueError(f"PipelineConfig.max_zoom_step must be > 1 (a factor either way), got {self.max_zoom_step!r}")
-        _positive(self, "outlier_max_px")
+        _positive(self, "outlier_max_px", "far_point_factor")
         if self.outlier_factor is not None and self.outlier_factor < 0:
             raise ValueError(f"PipelineConfig.outlier_factor must be >= 0 (0: off), got {self.outlier_factor}")
         if self.outlier_floor_px < 0:

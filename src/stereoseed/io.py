@@ -15,13 +15,12 @@ from typing import Any, Iterable
 import cv2
 import numpy as np
 
-from .camera import decompose_projection
 from .errors import StereoseedError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
 __all__ = ["read_image", "list_images", "read_points_file", "read_calibration", "write_json",
-           "write_text", "write_ply", "read_ply", "atomic_path", "IMAGE_EXTENSIONS"]
+           "write_text", "write_ply", "read_ply", "read_ply_vertices", "atomic_path", "IMAGE_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- atomic writing
@@ -183,23 +182,23 @@ def read_middlebury_par(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None = None) -> list[np.ndarray]:
-    """The stereo pair's projection matrices [P1, P2] from a calib.json or a Middlebury par file.
+    """The stereo pair's projection matrices [P1, P2] from a calib.json, a Middlebury par file
+    or a COLMAP model folder.
 
     calib.json: ``{"cameras": [{"P": 3x4, ...}, {"P": 3x4, ...}]}`` (only "P" is required).
-    Middlebury ``*_par.txt``: cameras are looked up by the names of the first two images.
+    Middlebury ``*_par.txt`` and COLMAP model folders (cameras + images, .txt or .bin): cameras
+    are looked up by the names of the first two images.
     """
     path = Path(path)
+    names = list(image_names or [])
+    if path.is_dir():
+        from .export import read_colmap_cameras
+
+        return _pair_by_name(read_colmap_cameras(path), names, path, "COLMAP model")
     if not path.is_file():
         raise StereoseedError(f"{path}: calibration file not found")
-    names = list(image_names or [])
     if path.suffix.lower() == ".txt":
-        cams = read_middlebury_par(path)
-        if len(names) < 2:
-            raise StereoseedError(f"{path}: a par file needs the image names to look the pair up")
-        missing = [n for n in names[:2] if n not in cams]
-        if missing:
-            raise StereoseedError(f"{path}: no camera for image {missing[0]!r} in the par file")
-        return [cams[n] for n in names[:2]]
+        return _pair_by_name(read_middlebury_par(path), names, path, "par file")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -216,46 +215,89 @@ def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None 
     return out
 
 
-def camera_entry(P: np.ndarray) -> dict[str, Any]:
-    """JSON fields of a camera: P, K, R, t and centre (world frame)."""
-    K, R, t = decompose_projection(P)
-    return {"P": P.tolist(), "K": K.tolist(), "R": R.tolist(), "t": t.tolist(),
-            "center": (-R.T @ t).tolist()}
+def _pair_by_name(cams: dict[str, np.ndarray], names: list[str], path: Path, what: str) -> list[np.ndarray]:
+    if len(names) < 2:
+        raise StereoseedError(f"{path}: a {what} needs the image names to look the pair up")
+    missing = [n for n in names[:2] if n not in cams]
+    if missing:
+        raise StereoseedError(f"{path}: no camera for image {missing[0]!r} in the {what}")
+    return [_check_P(cams[n], f"{path}: {n}") for n in names[:2]]
 
 
 # ---------------------------------------------------------------- PLY
-def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY with x y z (float32) red green blue (uint8), atomically.
+_PLY_TYPES = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int", "u4": "uint", "i2": "short",
+              "u2": "ushort", "i1": "char"}
 
-    points: (N, 3); colors: (N, 3) uint8 RGB or None (grey).
-    """
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,
+              properties: dict[str, np.ndarray] | None = None, faces: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY, atomically: x y z (float32), red green blue (uint8), then each
+    extra per-vertex property of ``properties`` (name -> (N,) array; float32, int32 or uint8 by
+    its dtype; "nx", "ny", "nz" for normals), and triangles ``faces`` (F, 3) as a face element.
+
+    points: (N, 3); colors: (N, 3) uint8 RGB or None (grey)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if colors is None:
         colors = np.full((len(points), 3), 200, dtype=np.uint8)
-    vertex = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    columns = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    extra = {}
+    for name, values in (properties or {}).items():
+        values = np.asarray(values).reshape(-1)
+        kind = "<f4" if values.dtype.kind == "f" else "u1" if values.dtype == np.uint8 else "<i4"
+        columns.append((name, kind))
+        extra[name] = values.astype(kind)
+    vertex = np.empty(len(points), dtype=columns)
     vertex["x"], vertex["y"], vertex["z"] = points.T.astype(np.float32)
     colors = np.asarray(colors).reshape(-1, 3).astype(np.uint8)
     vertex["red"], vertex["green"], vertex["blue"] = colors.T
-    header = ("ply\nformat binary_little_endian 1.0\ncomment written by stereoseed\n"
-              f"element vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    for name, values in extra.items():
+        vertex[name] = values
+    header = ["ply", "format binary_little_endian 1.0", "comment written by stereoseed",
+              f"element vertex {len(points)}"]
+    header += [f"property {_PLY_TYPES[np.dtype(kind).str.lstrip('<|')]} {name}" for name, kind in columns]
+    face_bytes = b""
+    if faces is not None:
+        faces = np.asarray(faces, np.int32).reshape(-1, 3)
+        face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+        face["n"], face["v"] = 3, faces
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        face_bytes = face.tobytes()
+    header.append("end_header")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
+            fh.write(("\n".join(header) + "\n").encode("ascii"))
             fh.write(vertex.tobytes())
+            fh.write(face_bytes)
     return Path(path)
 
 
+def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
+    """Every vertex property of any valid PLY (ASCII or binary, via plyfile) as a structured
+    array (N,) with one field per property. Raises :class:`StereoseedError` for a file that is
+    not a PLY or has no vertex element."""
+    from plyfile import PlyData, PlyParseError
+
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: PLY file not found")
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"].data
+    except (PlyParseError, KeyError, ValueError, UnicodeDecodeError, EOFError) as e:
+        raise StereoseedError(f"{path}: not a PLY point cloud with a vertex element ({e})") from None
+    return np.asarray(vertex)
+
+
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a PLY written by :func:`write_ply` -> (points (N, 3) float64, colors (N, 3) uint8)."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii")
-    n = int(next(line.split()[2] for line in header.splitlines() if line.startswith("element vertex")))
-    vertex = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                              ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=n)
+    """Points (N, 3) float64 and colours (N, 3) uint8 (200 grey where the file has none) of any
+    PLY (:func:`read_ply_vertices`); refuses a vertex element without x, y, z."""
+    vertex = read_ply_vertices(path)
+    names = vertex.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise StereoseedError(f"{path}: the vertex element has no x, y, z properties ({', '.join(names)})")
     pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
-    cols = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
+    if {"red", "green", "blue"} <= set(names):
+        cols = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
+    else:
+        cols = np.full((len(pts), 3), 200, np.uint8)
     return pts, cols

@@ -13,9 +13,10 @@ import numpy as np
 from .config import Config
 from .correspondence import CorrespondenceSource
 from .errors import StereoseedError
-from .io import list_images, read_calibration, read_image, write_json
+from .io import list_images, read_calibration, read_image
 from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
+from .results import write_result
 
 __all__ = ["reconstruct", "load_sequence", "save_outputs"]
 
@@ -70,7 +71,8 @@ def load_sequence(images_source: str, calib_path: str) -> tuple[list[np.ndarray]
     return images, [p.name for p in paths], P_pair
 
 
-def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path) -> None:
-    """cameras.json, sparse.ply and report.json in out_dir (atomic writes)."""
-    recon.save(out_dir)
-    write_json(Path(out_dir) / "report.json", report)
+def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config()
+                 ) -> dict[str, Path]:
+    """The result folder (:func:`stereoseed.results.write_result`: cameras.json, tracks.npz,
+    sparse.ply, cameras.ply, report.json; atomic writes)."""
+    return write_result(recon, report, out_dir, cfg)

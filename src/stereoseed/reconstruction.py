@@ -24,7 +24,6 @@ import numpy as np
 
 from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
 from .features import Features
-from .io import camera_entry, write_json, write_ply
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14"]
 
@@ -380,22 +379,9 @@ class Reconstruction:
                 "observations": int(len(err))}
 
     # ------------------------------------------------------------ output
-    def cameras_dict(self) -> dict[str, Any]:
-        images = []
-        for v in self.views:
-            entry: dict[str, Any] = {"name": v.name, "registered": v.registered, "status": v.status}
-            if v.registered:
-                entry.update(camera_entry(v.P_input))
-                if v.rotated_180:
-                    entry["rotated_180"] = True
-            images.append(entry)
-        return {"convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
-                              "R, t are cam_from_world",
-                "images": images}
-
     def save(self, out_dir: str | Path) -> dict[str, Path]:
-        """Write cameras.json and sparse.ply into out_dir (atomically)."""
-        out = Path(out_dir)
-        pts, cols = self.live_points()
-        return {"cameras": write_json(out / "cameras.json", self.cameras_dict()),
-                "sparse": write_ply(out / "sparse.ply", pts, cols)}
+        """Write the result folder (cameras.json, tracks.npz, sparse.ply, cameras.ply;
+        :func:`stereoseed.results.write_result`) into out_dir."""
+        from .results import write_result
+
+        return write_result(self, None, out_dir)

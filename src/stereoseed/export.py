@@ -1,0 +1,324 @@
+"""Exports of a result folder for the field's tools: COLMAP's model (text or binary), VisualSFM's
+NVM and Bundler's bundle.out; and COLMAP's cameras + images read back as calibrated cameras.
+
+Conventions (docs/formats.md): COLMAP's pixel (0, 0) is the top-left *corner* of the top-left
+pixel (ours: its centre), so principal points and 2D points move by +0.5 px; its quaternion
+(qw, qx, qy, qz) and t are world-to-camera (ours too); one COLMAP camera per image, since the
+moving camera may zoom. Our 11-DOF cameras may have skew, which no COLMAP model has: the
+nearest zero-skew camera is written and a warning says by how much.
+"""
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .camera import compose_projection, decompose_projection
+from .errors import StereoseedError
+from .io import atomic_path, write_text
+from .results import Result
+
+__all__ = ["write_colmap", "write_nvm", "write_bundler", "read_colmap_cameras", "colmap_camera"]
+
+log = logging.getLogger(__name__)
+
+# COLMAP's camera models: name -> (id, number of parameters)
+COLMAP_MODELS = {"SIMPLE_PINHOLE": (0, 3), "PINHOLE": (1, 4), "SIMPLE_RADIAL": (2, 4), "RADIAL": (3, 5),
+                 "OPENCV": (4, 8)}
+_MODEL_NAMES = {v[0]: k for k, v in COLMAP_MODELS.items()}
+_SAME_FOCAL = 1e-9  # relative difference under which fx and fy are one focal length
+# an approximation of a camera by a simpler model (no skew, one focal length) is said when it
+# moves a pixel by more than this: a tenth of a pixel, below the matches' own error
+MAX_APPROXIMATION_PX = 0.1
+
+
+def _num(v: float) -> str:
+    """A number as text with every digit of its float64 value."""
+    return repr(float(v))
+
+
+def _moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_focal: bool = False) -> float:
+    """How far (px, at worst over the image) a pixel moves when K (3, 3) loses its skew and,
+    with ``one_focal``, takes the mean of fx and fy."""
+    w, h = size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    y = (corners[:, 1] - K[1, 2]) / K[1, 1]
+    x = (corners[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    fx, fy = (f, f) if one_focal else (K[0, 0], K[1, 1])
+    moved = np.stack([fx * x + K[0, 2], fy * y + K[1, 2]], axis=1) - corners
+    return float(np.max(np.linalg.norm(moved, axis=1)))
+
+
+def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = ""
+                  ) -> tuple[str, list[float], np.ndarray, np.ndarray, str | None]:
+    """COLMAP's view of camera P (3, 4) (ours) of an image of ``size`` (width, height): (model,
+    params in COLMAP's pixel convention, quaternion (4,) w x y z, t (3,), warning or None).
+    SIMPLE_PINHOLE when fx = fy, else PINHOLE; a skewed camera loses its skew, with a warning
+    when that moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
+    K, R, t = decompose_projection(P)
+    warning = None
+    moved = _moved_px(K, size)
+    if moved > MAX_APPROXIMATION_PX:
+        warning = (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no COLMAP model "
+                   f"has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
+    cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5
+    if abs(K[0, 0] - K[1, 1]) <= _SAME_FOCAL * K[0, 0]:
+        model, params = "SIMPLE_PINHOLE", [K[0, 0], cx, cy]
+    else:
+        model, params = "PINHOLE", [K[0, 0], K[1, 1], cx, cy]
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
+    return model, [float(p) for p in params], q, t, warning
+
+
+def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
+    """(cameras [(id, model, w, h, params)], images [(id, q, t, camera id, name, xy (K, 2), point ids (K,))],
+    warnings) with COLMAP's 1-based ids and pixel convention."""
+    tr = result.tracks
+    cameras, images, warnings = [], [], []
+    point_of = {}  # image -> (K,) point id (1-based, -1 none) per keypoint
+    for i in result.registered:
+        ids = np.full(len(result.keypoints(i)), -1, np.int64)
+        here = tr["obs_image"] == i
+        ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
+        point_of[i] = ids
+    for n, i in enumerate(result.registered, 1):
+        model, params, q, t, warning = colmap_camera(result.P[i], result.sizes[i], result.names[i])
+        if warning:
+            warnings.append(warning)
+        w, h = result.sizes[i]
+        cameras.append((n, model, w, h, params))
+        images.append((n, q, t, n, result.names[i], result.keypoints(i) + 0.5, point_of[i]))
+    return cameras, images, warnings
+
+
+def _tracks_by_point(result: Result) -> list[np.ndarray]:
+    """Per point, its track (T, 2): (COLMAP image id, 2D point index)."""
+    tr = result.tracks
+    image_id = np.zeros(len(result.names), np.int64)
+    image_id[result.registered] = np.arange(1, len(result.registered) + 1)
+    order = np.argsort(tr["obs_point"], kind="stable")
+    pairs = np.stack([image_id[tr["obs_image"][order]], tr["obs_keypoint"][order]], axis=1)
+    return np.split(pairs, np.cumsum(np.bincount(tr["obs_point"], minlength=len(tr["point_xyz"])))[:-1])
+
+
+def write_colmap(result: Result, out_dir: str | Path, binary: bool = False) -> list[str]:
+    """COLMAP's sparse model (cameras, images with every 2D point, points3D with colour, error
+    and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged)."""
+    out = Path(out_dir)
+    cameras, images, warnings = _colmap_model(result)
+    tr = result.tracks
+    tracks = _tracks_by_point(result)
+    (_write_colmap_binary if binary else _write_colmap_text)(out, cameras, images, tr, tracks)
+    for w in warnings:
+        log.info("%s", w)
+    return warnings
+
+
+def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
+    lines = ["# Camera list with one line of data per camera:",
+             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
+    lines += [f"{c} {m} {w} {h} " + " ".join(repr(p) for p in params) for c, m, w, h, params in cameras]
+    write_text(out / "cameras.txt", "\n".join(lines) + "\n")
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(images)}"]
+    for n, q, t, cam, name, xy, pid in images:
+        lines.append(f"{n} " + " ".join(repr(float(v)) for v in (*q, *t)) + f" {cam} {name}")
+        lines.append(" ".join(f"{x!r} {y!r} {p}" for (x, y), p in zip(xy.tolist(), pid.tolist())))
+    write_text(out / "images.txt", "\n".join(lines) + "\n")
+    lines = ["# 3D point list with one line of data per point:",
+             "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+             f"# Number of points: {len(tracks)}"]
+    for p, track in enumerate(tracks):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        lines.append(f"{p + 1} {_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {float(tr['point_error'][p])!r} "
+                     + " ".join(f"{i} {k}" for i, k in track.tolist()))
+    write_text(out / "points3D.txt", "\n".join(lines) + "\n")
+
+
+def _write_colmap_binary(out: Path, cameras, images, tr, tracks) -> None:
+    def write(name: str, chunks: list[bytes]) -> None:
+        with atomic_path(out / name) as tmp:
+            tmp.write_bytes(b"".join(chunks))
+
+    write("cameras.bin", [struct.pack("<Q", len(cameras))] + [
+        struct.pack("<iiQQ", c, COLMAP_MODELS[m][0], w, h) + struct.pack(f"<{len(params)}d", *params)
+        for c, m, w, h, params in cameras])
+    chunks = [struct.pack("<Q", len(images))]
+    for n, q, t, cam, name, xy, pid in images:
+        chunks.append(struct.pack("<i7di", n, *q, *t, cam) + name.encode("utf-8") + b"\0")
+        rows = np.empty(len(xy), dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+        rows["x"], rows["y"], rows["id"] = xy[:, 0], xy[:, 1], pid
+        chunks += [struct.pack("<Q", len(xy)), rows.tobytes()]
+    write("images.bin", chunks)
+    chunks = [struct.pack("<Q", len(tracks))]
+    for p, track in enumerate(tracks):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        chunks.append(struct.pack("<Q3d3Bd", p + 1, *X, *(int(c) for c in rgb), float(tr["point_error"][p]))
+                      + struct.pack("<Q", len(track)) + np.asarray(track, "<i4").tobytes())
+    write("points3D.bin", chunks)
+
+
+def write_nvm(result: Result, path: str | Path) -> list[str]:
+    """VisualSFM's NVM_V3: one focal length per camera (the mean of fx, fy), the principal
+    point assumed at the measurement origin, so measurements are written relative to each
+    camera's principal point. Returns the warnings."""
+    tr, warnings = result.tracks, []
+    index = {i: n for n, i in enumerate(result.registered)}
+    lines = ["NVM_V3", "", str(len(index))]
+    for i in result.registered:
+        K, R, t = decompose_projection(result.P[i])
+        moved = _moved_px(K, result.sizes[i], one_focal=True)
+        if moved > MAX_APPROXIMATION_PX:
+            warnings.append(f"{result.names[i]}: NVM has one focal length and no skew; fx, fy averaged "
+                            f"(pixels move by up to {moved:.2f} px)")
+        x, y, z, w = Rotation.from_matrix(R).as_quat()
+        C = -R.T @ t
+        lines.append(f"{result.names[i]} {_num(0.5 * (K[0, 0] + K[1, 1]))} " + " ".join(
+            repr(float(v)) for v in (w, x, y, z, *C)) + " 0 0")
+    lines.append(str(len(tr["point_xyz"])))
+    principal = {i: decompose_projection(result.P[i])[0][:2, 2] for i in result.registered}
+    for p, track in enumerate(_tracks_by_image_index(result)):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        meas = " ".join(f"{index[i]} {k} {_num(x - principal[i][0])} {_num(y - principal[i][1])}"
+                        for i, k, x, y in track)
+        lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {len(track)} {meas}")
+    write_text(path, "\n".join(lines) + "\n")
+    for w in warnings:
+        log.info("%s", w)
+    return warnings
+
+
+def _tracks_by_image_index(result: Result) -> list[list[tuple[int, int, float, float]]]:
+    """Per point: [(image index, keypoint index, x, y)] in our pixel convention."""
+    tr = result.tracks
+    off = tr["keypoints_offset"]
+    out: list[list] = [[] for _ in range(len(tr["point_xyz"]))]
+    for p, i, k in zip(tr["obs_point"].tolist(), tr["obs_image"].tolist(), tr["obs_keypoint"].tolist()):
+        x, y = tr["keypoints_xy"][off[i] + k]
+        out[p].append((i, k, float(x), float(y)))
+    return out
+
+
+def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
+    """Bundler's bundle.out (v0.3) and list.txt: cameras look down -z with y up, measurements
+    relative to the principal point with y up. Returns the warnings."""
+    out, tr, warnings = Path(out_dir), result.tracks, []
+    index = {i: n for n, i in enumerate(result.registered)}
+    flip = np.diag([1.0, -1.0, -1.0])
+    lines = ["# Bundle file v0.3", f"{len(index)} {len(tr['point_xyz'])}"]
+    principal = {}
+    for i in result.registered:
+        K, R, t = decompose_projection(result.P[i])
+        moved = _moved_px(K, result.sizes[i], one_focal=True)
+        if moved > MAX_APPROXIMATION_PX:
+            warnings.append(f"{result.names[i]}: Bundler has one focal length and no skew; fx, fy averaged "
+                            f"(pixels move by up to {moved:.2f} px)")
+        principal[i] = K[:2, 2]
+        lines.append(f"{_num(0.5 * (K[0, 0] + K[1, 1]))} 0 0")
+        lines += [" ".join(repr(float(v)) for v in row) for row in flip @ R]
+        lines.append(" ".join(repr(float(v)) for v in flip @ t))
+    for p, track in enumerate(_tracks_by_image_index(result)):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        lines += [" ".join(repr(float(v)) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}",
+                  f"{len(track)} " + " ".join(f"{index[i]} {k} {_num(x - principal[i][0])} {_num(principal[i][1] - y)}"
+                                              for i, k, x, y in track)]
+    write_text(out / "bundle.out", "\n".join(lines) + "\n")
+    write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
+    for w in warnings:
+        log.info("%s", w)
+    return warnings
+
+
+def read_colmap_cameras(folder: str | Path) -> dict[str, np.ndarray]:
+    """The cameras of a COLMAP model folder (cameras + images, .txt or .bin) as {image name: P
+    (3, 4) in our pixel convention}. Pinhole models only (SIMPLE_PINHOLE, PINHOLE; radial and
+    OPENCV models with zero distortion): a lens model is refused with a message."""
+    folder = Path(folder)
+    if (folder / "cameras.txt").is_file() and (folder / "images.txt").is_file():
+        cameras, images = _read_text(folder)
+    elif (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file():
+        cameras, images = _read_binary(folder)
+    else:
+        raise StereoseedError(f"{folder}: not a COLMAP model (no cameras.txt + images.txt or cameras.bin + images.bin)")
+    out = {}
+    for name, (q, t, cam) in images.items():
+        if cam not in cameras:
+            raise StereoseedError(f"{folder}: image {name!r} refers to camera {cam}, which is not in the model")
+        model, params = cameras[cam]
+        n = COLMAP_MODELS.get(model, (None, None))[1]
+        if n is None or len(params) != n:
+            raise StereoseedError(f"{folder}: camera {cam} has model {model} with {len(params)} parameters; "
+                                  f"stereoseed reads {', '.join(COLMAP_MODELS)}")
+        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+            f, cx, cy = params[:3]
+            fx = fy = f
+            distortion = params[3:]
+        else:
+            fx, fy, cx, cy = params[:4]
+            distortion = params[4:]
+        if any(abs(d) > 0 for d in distortion):
+            raise StereoseedError(f"{folder}: camera {cam} ({model}) has lens distortion {list(distortion)}, which "
+                                  f"stereoseed does not model yet; undistort the images (colmap image_undistorter)")
+        K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+        w, x, y, z = q
+        out[name] = compose_projection(K, Rotation.from_quat([x, y, z, w]).as_matrix(), np.asarray(t))
+    return out
+
+
+def _read_text(folder: Path) -> tuple[dict, dict]:
+    def lines(name: str) -> list[str]:
+        try:
+            text = (folder / name).read_text()
+        except UnicodeDecodeError:
+            raise StereoseedError(f"{folder / name}: not a text file") from None
+        return [ln for ln in text.splitlines() if not ln.lstrip().startswith("#")]
+
+    try:
+        cameras = {int(r[0]): (r[1], [float(v) for v in r[4:]])
+                   for r in (ln.split() for ln in lines("cameras.txt")) if r}
+        images = {}
+        body = lines("images.txt")
+        while body and not body[-1].strip():
+            body.pop()
+        # two lines per image: the pose, then its 2D points (possibly an empty line)
+        for pose in body[0::2]:
+            r = pose.split()
+            images[" ".join(r[9:])] = ([float(v) for v in r[1:5]], [float(v) for v in r[5:8]], int(r[8]))
+    except (ValueError, IndexError):
+        raise StereoseedError(f"{folder}: cameras.txt or images.txt is not in COLMAP's text format") from None
+    return cameras, images
+
+
+def _read_binary(folder: Path) -> tuple[dict, dict]:
+    try:
+        data = (folder / "cameras.bin").read_bytes()
+        (n,), pos, cameras = struct.unpack_from("<Q", data), 8, {}
+        for _ in range(n):
+            cam, model_id, _w, _h = struct.unpack_from("<iiQQ", data, pos)
+            pos += 24
+            model = _MODEL_NAMES.get(model_id, f"model {model_id}")
+            k = COLMAP_MODELS.get(model, (None, 0))[1]
+            if model not in COLMAP_MODELS:
+                raise StereoseedError(f"{folder}: camera {cam} has a COLMAP model stereoseed does not read ({model})")
+            cameras[cam] = (model, list(struct.unpack_from(f"<{k}d", data, pos)))
+            pos += 8 * k
+        data = (folder / "images.bin").read_bytes()
+        (n,), pos, images = struct.unpack_from("<Q", data), 8, {}
+        for _ in range(n):
+            values = struct.unpack_from("<i7di", data, pos)
+            pos += 64
+            end = data.index(b"\0", pos)
+            name = data[pos:end].decode("utf-8")
+            pos = end + 1
+            (n2d,) = struct.unpack_from("<Q", data, pos)
+            pos += 8 + 24 * n2d
+            images[name] = (list(values[1:5]), list(values[5:8]), values[8])
+    except (struct.error, ValueError, UnicodeDecodeError):
+        raise StereoseedError(f"{folder}: cameras.bin or images.bin is not in COLMAP's binary format") from None
+    return cameras, images
