@@ -6,8 +6,8 @@ import pytest
 
 from stereoseed.config import Config
 from stereoseed.dense import densify, fuse, supported
-from stereoseed.evaluation import TrueCorrespondences, surface_distance
-from stereoseed.io import read_ply
+from stereoseed.evaluation import TrueCorrespondences, surface_distance, surface_normal
+from stereoseed.io import read_ply, read_ply_vertices
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic import SceneConfig, render_scene
 
@@ -81,6 +81,15 @@ def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):
     d = surface_distance(pts)
     assert np.median(d) < 0.002
     assert np.mean(d < 0.01) > 0.95
+    # every point carries a normal towards the outside (where the cameras are) and its support
+    vertex = read_ply_vertices(tmp_path / "dense.ply")
+    normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    assert vertex["support"].min() >= 1 and vertex["support"].max() <= len(report["pairs"])
+    on_surface = d < 0.001  # measured: points farther off are the propagation's few wrong matches
+    cos = np.einsum("ij,ij->i", normals, surface_normal(pts))[on_surface]
+    assert np.mean(cos > 0) >= 0.99, np.mean(cos > 0)  # measured 99.3 %
+    assert np.degrees(np.arccos(np.median(cos))) < 8.0  # measured 3.8 degrees
 
 
 def test_support_keeps_surfaces_and_drops_isolated_points():

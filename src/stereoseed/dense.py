@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .camera import camera_center, fundamental_from_projections
 from .config import Config, DenseConfig, PropagationConfig
@@ -28,7 +29,7 @@ from .propagation import propagate
 from .reconstruction import Reconstruction
 from .triangulation import triangulate_two_view
 
-__all__ = ["pair_seeds", "densify_pair", "fuse", "densify"]
+__all__ = ["pair_seeds", "densify_pair", "fuse", "estimate_normals", "densify"]
 
 
 def pair_seeds(recon: Reconstruction, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
@@ -97,18 +98,50 @@ def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources:
     return count[np.searchsorted(cells, cell)] >= min_sources
 
 
+def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel (side ``voxel``) of each point (N, 3) as a group index (N,), and the group sizes (K,)."""
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    return inverse.reshape(-1), counts
+
+
+def _group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Mean of ``values`` (N, D) per group -> (K, D) float64."""
+    return np.stack([np.bincount(inverse, weights=values[:, i].astype(np.float64), minlength=len(counts))
+                     for i in range(values.shape[1])], axis=1) / counts[:, None]
+
+
 def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Merge near-duplicates: points falling in the same voxel (size ``voxel``, metres) are
     replaced by their mean position and mean colour. (N, 3), (N, 3) -> (K, 3), (K, 3)."""
     if len(points) == 0:
         return points, colors
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    mean = np.stack([np.bincount(inverse, weights=points[:, i]) for i in range(3)], axis=1) / counts[:, None]
-    col = np.stack([np.bincount(inverse, weights=colors[:, i].astype(np.float64)) for i in range(3)], axis=1)
-    return mean, np.rint(col / counts[:, None]).astype(np.uint8)
+    inverse, counts = _voxel_groups(points, voxel)
+    return _group_mean(points, inverse, counts), np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8)
+
+
+def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
+                     chunk: int = 200_000) -> np.ndarray:
+    """Unit normals (N, 3) of a point cloud (N, 3): the direction of least spread of each point's
+    ``neighbours`` nearest points (PCA), turned towards its ``viewpoints`` (N, 3) (where the
+    cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside."""
+    n = len(points)
+    normals = np.zeros((n, 3))
+    if n < 3:
+        normals[:, 2] = 1.0
+        return normals
+    k = min(neighbours, n)
+    _, idx = cKDTree(points).query(points, k=k, workers=-1)
+    for start in range(0, n, chunk):
+        nb = points[idx[start:start + chunk]]  # (c, k, 3)
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        _, vecs = np.linalg.eigh(np.einsum("cki,ckj->cij", centred, centred))
+        normals[start:start + chunk] = vecs[:, :, 0]  # eigenvalues ascending: least spread first
+    away = np.einsum("ij,ij->i", normals, viewpoints - points) < 0
+    normals[away] *= -1.0
+    return normals
 
 
 def _auto_voxel(recon: Reconstruction) -> float:
@@ -193,11 +226,31 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)
     voxel = cfg.dense.fusion_voxel or _auto_voxel(recon)
     keep = supported(points, sources, cfg.dense.support_cell_voxels * voxel, cfg.dense.min_pair_support)
-    fused, fused_colors = fuse(points[keep], colors[keep], voxel)
+    fused, fused_colors, normals, support = _fuse_with_normals(recon, pairs, points[keep], colors[keep],
+                                                               sources[keep], voxel)
     report = {"pairs": per_pair, "points_before_fusion": int(len(points)), "points_supported": int(keep.sum()),
               "points": int(len(fused)),
               "fusion_voxel_m": voxel, "seconds": time.perf_counter() - t0}
     if out_dir is not None:
-        write_ply(Path(out_dir) / "dense.ply", fused, fused_colors)
-    recon.dense_points, recon.dense_colors = fused, fused_colors
+        write_ply(Path(out_dir) / "dense.ply", fused, fused_colors,
+                  {"nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),
+                   "nz": normals[:, 2].astype(np.float32), "support": support.astype(np.int32)})
+    recon.dense_points, recon.dense_colors, recon.dense_normals = fused, fused_colors, normals
     return report
+
+
+def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], points: np.ndarray, colors: np.ndarray,
+                       sources: np.ndarray, voxel: float) -> tuple[np.ndarray, ...]:
+    """:func:`fuse`, plus each fused point's normal (turned towards the cameras of the pairs that
+    produced it) and its support (how many pairs put a point in its voxel)."""
+    if len(points) == 0:
+        return points, colors, np.zeros((0, 3)), np.zeros(0, np.int64)
+    inverse, counts = _voxel_groups(points, voxel)
+    fused = _group_mean(points, inverse, counts)
+    fused_colors = np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8)
+    # where the pair's two cameras stand, averaged over the voxel's points
+    stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
+    viewpoints = _group_mean(stand[sources], inverse, counts)
+    distinct = np.unique(np.stack([inverse, sources]), axis=1)
+    support = np.bincount(distinct[0], minlength=len(counts))
+    return fused, fused_colors, estimate_normals(fused, viewpoints), support

@@ -153,3 +153,17 @@ def surface_distance(points: np.ndarray, half: float = 0.17, height: float = 0.4
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
     inside = np.minimum(q.max(axis=1), 0.0)
     return np.minimum(np.abs(outside + inside), np.abs(points[:, 2]))
+
+
+def surface_normal(points: np.ndarray, half: float = 0.17, height: float = 0.44) -> np.ndarray:
+    """Outward unit normal (N, 3) of the synthetic scene's surface nearest to each point (N, 3):
+    a face of the box [-half, half]^2 x [0, height] or the ground plane z = 0 around it."""
+    x, y, z = points.T
+    over_box = (np.abs(x) <= half) & (np.abs(y) <= half)
+    beside = (z >= 0) & (z <= height)
+    dist = np.stack([np.where(over_box & (z > 0), np.inf, np.abs(z)),  # the ground, outside the box
+                     np.where(beside, np.abs(x - half), np.inf), np.where(beside, np.abs(x + half), np.inf),
+                     np.where(beside, np.abs(y - half), np.inf), np.where(beside, np.abs(y + half), np.inf),
+                     np.where(over_box, np.abs(z - height), np.inf)], axis=1)
+    faces = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    return faces[np.argmin(dist, axis=1)]
