@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -38,6 +39,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
+
+    if args.images < 2:
+        raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
+    if not args.noise >= 0:
+        raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
 
     return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse)
 
@@ -99,18 +105,26 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed
+CHECKPOINT = ".checkpoint.pkl"  # in the staging folder, kept after an interruption for --resume
+
+
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .config import Config, PipelineConfig
     from .pipeline import load_sequence, reconstruct, save_outputs
+    from .results import ResultSet
 
     try:
         cfg = Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
                                              ba=args.ba))
     except ValueError as e:
         raise StereoseedError(str(e)) from None
+    results = ResultSet(args.out)
+    results.check()  # before any work: never clobber what the user made
     images, names, P_pair = load_sequence(args.images, args.calib)
+    staging = results.open(keep=args.resume)
     bar = None if args.quiet else tqdm(total=len(images), unit="image", file=sys.stderr)
 
     def progress(done: int, total: int, message: str) -> None:
@@ -120,23 +134,38 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             bar.refresh()
 
     try:
-        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress)
+        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress, checkpoint=staging / CHECKPOINT,
+                                    resume=args.resume)
+        if bar is not None:
+            bar.close()
+            bar = None
+        if args.dense:
+            from .dense import densify
+
+            report["dense"] = densify(recon, cfg, staging)
+        save_outputs(recon, report, staging, cfg)
+        results.commit(drop=(CHECKPOINT,))
+    except KeyboardInterrupt:
+        raise  # the staging folder keeps the checkpoint: --resume continues
+    except BaseException:
+        results.abandon()
+        raise
     finally:
         if bar is not None:
             bar.close()
-    if args.dense:
-        from .dense import densify
-
-        report["dense"] = densify(recon, cfg, args.out)
-    save_outputs(recon, report, args.out)
-    print(f"registered {report['registered']}/{report['images']} images, {report['points']} points, "
-          f"reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    failed = [r for r in report["per_image"] if r.get("status") == "failed"]
+    if report.get("resumed_images"):
+        print(f"resumed after {len(report['resumed_images'])} images already placed")
     if report["final"].get("no_zoom"):
-        print("  no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
-    for r in report["per_image"]:
-        if r.get("status") == "failed":
-            print(f"  skipped: {r['reason']}")
-    return 0
+        print("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
+    for r in failed:
+        print(f"skipped: {r['reason']}")
+    if "dense" in report:
+        print(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
+                                                                     if report["dense"].get("note") else ""))
+    print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped), "
+          f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    return EXIT_SKIPPED if (args.strict and failed) else 0
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -161,8 +190,18 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("stereoseed")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("calibrate", help="calibrate the stereo pair from a 3D pattern (DLT + LM)")
@@ -193,6 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
                         "(default: local in paper mode, final in accurate mode)")
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run into the same --out from its checkpoint (same result as an "
+                        "uninterrupted run)")
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit with code {EXIT_SKIPPED} when any image could not be placed (the results are written)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
     p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
                         "pairs without a robust F)")
@@ -248,24 +292,39 @@ def _configure_logging(args: argparse.Namespace) -> None:
     logger.addHandler(handler)
 
 
+def _interrupt(signum, frame) -> None:
+    """SIGTERM ends a run as Ctrl-C does: what is written stays consistent, --resume continues."""
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _configure_logging(args)
     shown_before, warnings.showwarning = warnings.showwarning, _show_warning
+    term_before = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
     try:
         return int(args.func(args) or 0)
     except StereoseedError as e:
         print(f"stereoseed: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("stereoseed: interrupted", file=sys.stderr)
+        hint = "; run the same command with --resume to continue" if args.command == "reconstruct" else ""
+        print(f"stereoseed: interrupted{hint}", file=sys.stderr)
         return 130
     except OSError as e:  # e.g. an output folder that cannot be created
         print(f"stereoseed: error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
         return 2
     finally:
         warnings.showwarning = shown_before  # main() is also called in-process (tests, notebooks)
+        if term_before is not None:
+            signal.signal(signal.SIGTERM, term_before)
 
 
 if __name__ == "__main__":

@@ -14,18 +14,33 @@ from .dense import densify
 from .evaluation import camera_errors, reconstruct_corners, rms_3d, surface_distance
 from .io import write_json
 from .pipeline import reconstruct, save_outputs
+from .results import ResultSet
 from .synthetic import SceneConfig, render_scene, write_scene
 
 
 def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = True) -> int:
+    results = ResultSet(out)
+    results.check()
+    staging = results.open()
+    try:
+        code = _run(staging, out, n_images, noise, dense)
+        results.commit()
+    except BaseException:
+        results.abandon()
+        raise
+    return code
+
+
+def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool) -> int:
+    """The demo, writing into ``staging``, which becomes ``out`` when it is done."""
     t0 = time.perf_counter()
     scene = render_scene(SceneConfig(n_images=n_images, noise_sigma=noise))
-    paths = write_scene(scene, out / "scene")
+    write_scene(scene, staging / "scene")
     print(f"rendered {n_images} images of the 34x34x44 cm box ({time.perf_counter() - t0:.1f} s) -> {out / 'scene'}")
 
     pattern, pts1, pts2 = scene.calibration_points()
     cams = [calibrate_camera(pattern, pts, what=f"pair image {i + 1}") for i, pts in enumerate((pts1, pts2))]
-    write_json(out / "calib.json", {"cameras": [c.to_dict() for c in cams]})
+    write_json(staging / "calib.json", {"cameras": [c.to_dict() for c in cams]})
     for i, c in enumerate(cams):
         err = np.linalg.norm(camera_center(c.P) - camera_center(scene.P[i]))
         print(f"calibrated camera {i + 1} from {c.n_points} pattern corners: reprojection RMS {c.rms_px:.3f} px, "
@@ -41,10 +56,10 @@ def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = Tr
     report["ground_truth"] = {"camera_center_error_m": errors["center_m"], "rotation_error_deg": errors["rotation_deg"],
                               "corners_reconstructed": int(len(seen)), "corners_rms_3d_m": corner_rms}
     if dense:
-        report["dense"] = densify(recon, cfg, out)
+        report["dense"] = densify(recon, cfg, staging)
         distance = surface_distance(recon.dense_points)
         report["dense"]["median_surface_distance_m"] = float(np.median(distance)) if len(distance) else None
-    save_outputs(recon, report, out)
+    save_outputs(recon, report, staging, cfg)
     centre = [e for e in errors["center_m"][2:] if e is not None]
     print(f"registered {report['registered']}/{report['images']} images, {report['points']} sparse points, "
           f"reprojection RMS {report['reprojection']['rms_px']:.3f} px")

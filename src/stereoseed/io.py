@@ -24,26 +24,48 @@ __all__ = ["read_image", "list_images", "read_points_file", "read_calibration", 
 
 
 # ---------------------------------------------------------------- atomic writing
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()  # what open() would give: mkstemp's files are 0600
+
+
 class atomic_path:
-    """Context manager yielding a temporary path that replaces ``path`` on success."""
+    """Context manager yielding a temporary path that replaces ``path`` on success (created with
+    the user's umask); on failure the temporary file is removed. Errors name ``path``, never the
+    temporary file."""
 
     def __init__(self, path: str | os.PathLike, suffix: str = ""):
         self.path = Path(path)
         self.suffix = suffix or self.path.suffix
 
     def __enter__(self) -> Path:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix="." + self.path.name + ".", suffix=".tmp" + self.suffix,
-                                   dir=self.path.parent)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix="." + self.path.name + ".", suffix=".tmp" + self.suffix,
+                                       dir=self.path.parent)
+        except OSError as e:
+            raise StereoseedError(f"{self.path}: cannot write ({e.strerror or e})") from None
         os.close(fd)
         self.tmp = Path(tmp)
         return self.tmp
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is None:
-            os.replace(self.tmp, self.path)
-        else:
-            self.tmp.unlink(missing_ok=True)
+            try:
+                os.chmod(self.tmp, _FILE_MODE)
+                os.replace(self.tmp, self.path)
+                return False
+            except OSError as e:
+                self.tmp.unlink(missing_ok=True)
+                raise StereoseedError(f"{self.path}: cannot write ({e.strerror or e})") from None
+        self.tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise StereoseedError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+        return False
 
 
 def _jsonable(obj: Any) -> Any:

@@ -10,8 +10,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
 from .config import Config
-from .correspondence import CorrespondenceSource
+from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
 from .io import list_images, read_calibration, read_image
 from .mapper import finish, initialise, insert_view
@@ -27,24 +28,41 @@ Progress = Callable[[int, int, str], None]
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
-                progress: Progress | None = None, source: CorrespondenceSource | None = None
-                ) -> tuple[Reconstruction, dict[str, Any]]:
+                progress: Progress | None = None, source: CorrespondenceSource | None = None,
+                checkpoint: str | Path | None = None, resume: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
     """The incremental loop over an ordered sequence whose first two images are the calibrated
     pair (P_pair: their two (3, 4) cameras). An image that cannot be placed is reported and
     skipped; the next one is placed from the last registered images. Returns the
-    reconstruction and a JSON-able report (per image, the final step, the resolved config)."""
+    reconstruction and a JSON-able report (per image, the final step, the resolved config).
+
+    checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.checkpoint`);
+    resume: continue from it when it was written for these inputs and settings (the result is
+    the uninterrupted run's; the report lists the images that were resumed)."""
     t0 = time.perf_counter()
     n = len(images)
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolved()
-    recon, init = initialise(images, names, P_pair, cfg, source)
-    per_image: list[dict[str, Any]] = [{"image": names[0], "status": "calibrated"}, init]
+    key = inputs_key(images, names, P_pair, cfg) if checkpoint is not None else ""
+    state = None
+    if checkpoint is not None and resume:
+        state = load_checkpoint(checkpoint, images, names, key, source or HarrisZncc(cfg))
+    if state is not None:
+        recon, per_image = state
+        log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
+    else:
+        recon, init = initialise(images, names, P_pair, cfg, source)
+        per_image = [{"image": names[0], "status": "calibrated"}, init]
+        if checkpoint is not None:
+            save_checkpoint(checkpoint, recon, per_image, key)
+    resumed = [r["image"] for r in per_image] if state is not None else []
     if progress:
-        progress(2, n, f"pair: {init['new_points']} points")
-    for k in range(2, n):
+        progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
+    for k in range(len(per_image), n):
         rep = insert_view(recon, k, cfg)
         per_image.append(rep)
+        if checkpoint is not None:
+            save_checkpoint(checkpoint, recon, per_image, key)
         if progress:
             progress(k + 1, n, f"{names[k]}: {rep['status']}")
     final = finish(recon, cfg)
@@ -56,6 +74,8 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         "per_image": per_image, "final": final, "seconds": time.perf_counter() - t0,
         "config": cfg.to_dict(),
     }
+    if resumed:
+        report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
 
