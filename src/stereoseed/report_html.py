@@ -264,8 +264,9 @@ def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
     e1, e2 = frame["e1"], frame["e2"]
     data: list[dict[str, Any]] = []
     if len(sparse):
-        pts = sparse if len(sparse) <= 20_000 else sparse[np.random.default_rng(0).choice(len(sparse), 20_000, False)]
-        data.append({"type": "scattergl" if len(pts) > 5000 else "scatter", "mode": "markers", "name": "sparse points",
+        # SVG, not WebGL: the path stays drawn in a browser without WebGL; a subset suffices as a backdrop
+        pts = sparse if len(sparse) <= 4000 else sparse[np.random.default_rng(0).choice(len(sparse), 4000, False)]
+        data.append({"type": "scatter", "mode": "markers", "name": "sparse points",
                      "x": np.round(pts @ e1, 5).tolist(), "y": np.round(pts @ e2, 5).tolist(),
                      "marker": {"size": 2, "color": "rgba(120,120,120,0.35)"}, "hoverinfo": "skip"})
     if cams:
@@ -526,6 +527,8 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     matches = _optional("the weakest insertion's matches", lambda: _weakest_insertion(recon, report))
     summary = _optional("the summary", lambda: _summary(recon, report)) or ""
     table = _optional("the per-image table", lambda: _table(recon, report)) or '<p class="note">no per-image report</p>'
+    encoded = {key: _optional(f"figure {key!r}", lambda: _json_for_script(fig)) for key, fig in figures.items()}
+    figures = {key: fig for key, fig in figures.items() if encoded[key] is not None}
     plotly_js = _optional("the Plotly bundle", _plotly_js) if figures else None
     if plotly_js is None:
         figures = {}
@@ -562,7 +565,8 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
                      f'height="{matches["height"]}" src="data:image/png;base64,{matches["png"]}"></section>')
     parts.append("</main>")
     if figures:
-        parts.append(f'<script type="application/json" id="figures">{_json_for_script(figures)}</script>')
+        figures_json = "{" + ",".join(f"{json.dumps(key)}:{encoded[key]}" for key in figures) + "}"
+        parts.append(f'<script type="application/json" id="figures">{figures_json}</script>')
         parts.append(f"<script>{plotly_js}</script>")
         parts.append(f"<script>{_SCRIPT}</script>")
     parts.append("</body></html>\n")
@@ -584,7 +588,7 @@ def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path) -
     A part that cannot be built is logged and left out; only an error writing the file raises.
     """
     path = Path(out_dir) / "report.html"
-    text = render_report_html(recon, report)
+    text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}")
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
