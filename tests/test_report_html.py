@@ -226,3 +226,19 @@ def test_report_renders_in_headless_chromium(written, tmp_path):
     assert drawn.mean() > 0.002, "the WebGL canvas drew nothing"
     red = (img[..., 2] > 150) & (img[..., 1] < 90) & (img[..., 0] < 90)  # the frustums (#d62728)
     assert red.sum() > 50, "no camera frustum drawn"
+
+
+def test_far_outliers_do_not_shrink_the_3d_view(run, monkeypatch):
+    """A stray point far along a ray is left out of the drawn clouds (and counted), so the scene
+    does not shrink to a dot."""
+    import json
+
+    recon, report = run
+    pts, cols = recon.live_points()
+    far = np.vstack([pts, [[0.0, 0.0, -100.0]]])
+    monkeypatch.setattr(recon, "live_points", lambda: (far, np.vstack([cols, [[255, 0, 0]]])))
+    text = report_html.render_report_html(recon, report)
+    figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>', text, re.S).group(1))
+    sparse = next(t for t in figures["view3d"]["data"] if t["name"].startswith("sparse"))
+    assert sparse["name"] == f"sparse ({len(far)} points; 1 far outlier not shown)"
+    assert len(sparse["z"]) == len(pts) and min(sparse["z"]) > -10

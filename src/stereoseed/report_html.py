@@ -184,7 +184,21 @@ def _scene_frame(points: np.ndarray, centers: np.ndarray) -> dict[str, Any]:
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(up, e1)
         labels = ("ground axis 1", "ground axis 2")
-    return {"size": size, "target": target, "up": up, "e1": e1, "e2": e2, "labels": labels}
+    return {"size": size, "target": target, "up": up, "e1": e1, "e2": e2, "labels": labels, "lo": lo, "hi": hi}
+
+
+def _near(points: np.ndarray, frame: dict[str, Any]) -> np.ndarray:
+    """(N,) bool: the point lies within half a scene size of the scene's robust bounding box (a
+    few far outliers would otherwise shrink the scene to a dot in the 3D view)."""
+    margin = 0.5 * frame["size"]
+    return np.all((points >= frame["lo"] - margin) & (points <= frame["hi"] + margin), axis=1)
+
+
+def _shown(points: np.ndarray, colors: np.ndarray, frame: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, str]:
+    """The points near the scene, and a note of how many far ones are not shown."""
+    near = _near(points, frame)
+    far = int(len(points) - near.sum())
+    return points[near], colors[near], (f"; {far} far outlier{'s' if far > 1 else ''} not shown" if far else "")
 
 
 # ---------------------------------------------------------------- figures (Plotly JSON)
@@ -198,14 +212,16 @@ def _figure_3d(recon: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.n
     dense = _optional("the dense cloud", lambda: _finite_cloud(getattr(recon, "dense_points", None),
                                                                 getattr(recon, "dense_colors", None)))
     if dense is not None and len(dense[0]):
-        pts, cols = _subsample(*dense, MAX_DENSE_POINTS)
+        near_pts, near_cols, far = _shown(*dense, frame)
+        pts, cols = _subsample(near_pts, near_cols, MAX_DENSE_POINTS)
         n_all = len(dense[0])
-        data.append({"type": "scatter3d", "mode": "markers", "name": f"dense ({len(pts)} of {n_all} points)",
+        data.append({"type": "scatter3d", "mode": "markers", "name": f"dense ({len(pts)} of {n_all} points{far})",
                      "x": _rounded(pts[:, 0], size), "y": _rounded(pts[:, 1], size), "z": _rounded(pts[:, 2], size),
                      "marker": {"size": 1.2, "color": _hex_colors(cols)}, "hoverinfo": "skip"})
-    pts, cols = _subsample(*sparse, MAX_SPARSE_POINTS)
+    near_pts, near_cols, far = _shown(*sparse, frame)
+    pts, cols = _subsample(near_pts, near_cols, MAX_SPARSE_POINTS)
     if len(pts):
-        data.append({"type": "scatter3d", "mode": "markers", "name": f"sparse ({len(sparse[0])} points)",
+        data.append({"type": "scatter3d", "mode": "markers", "name": f"sparse ({len(sparse[0])} points{far})",
                      "x": _rounded(pts[:, 0], size), "y": _rounded(pts[:, 1], size), "z": _rounded(pts[:, 2], size),
                      "marker": {"size": 2.0 if dense is None or not len(dense[0]) else 1.5, "color": _hex_colors(cols)},
                      "hoverinfo": "skip"})
@@ -263,6 +279,7 @@ def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
                  cams: list[tuple[int, str, np.ndarray, tuple[int, int]]]) -> dict[str, Any]:
     e1, e2 = frame["e1"], frame["e2"]
     data: list[dict[str, Any]] = []
+    sparse = sparse[_near(sparse, frame)]
     if len(sparse):
         # SVG, not WebGL: the path stays drawn in a browser without WebGL; a subset suffices as a backdrop
         pts = sparse if len(sparse) <= 4000 else sparse[np.random.default_rng(0).choice(len(sparse), 4000, False)]
@@ -463,7 +480,7 @@ main{padding:14px 24px}
 section{background:#fff;border-radius:6px;box-shadow:0 1px 3px rgba(0,0,0,.12);margin:0 0 16px;padding:10px 14px}
 section h2{font-size:16px;margin:4px 0 8px}
 .grid{display:grid;grid-template-columns:repeat(auto-fit,minmax(340px,1fr));gap:16px}
-.plot{width:100%;height:360px}#view3d{height:640px}
+.plot{width:100%;height:360px}#view3d{height:600px}
 .note{color:#667;font-size:13px}
 table{border-collapse:collapse;font-size:13px;width:100%}
 th,td{border-bottom:1px solid #e3e6ec;padding:4px 6px;text-align:right;white-space:nowrap}
