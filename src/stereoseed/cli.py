@@ -190,6 +190,22 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    import webbrowser
+
+    page = Path(args.result) / "report.html"
+    if not page.is_file():
+        raise StereoseedError(f"{args.result}: no report.html; run stereoseed reconstruct --out {args.result} first")
+    uri = page.resolve().as_uri()
+    if args.print:
+        print(uri)
+    elif webbrowser.open(uri):
+        print(f"opened {uri}")
+    else:
+        print(f"stereoseed: warning: no browser to open; open {uri}", file=sys.stderr)
+    return 0
+
+
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -269,6 +285,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
     p.add_argument("--sparse", action="store_true", help="skip the dense stage")
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("view", help="open a result folder's report.html in the default browser")
+    p.add_argument("result", help="a result folder (stereoseed reconstruct --out RESULT)")
+    p.add_argument("--print", action="store_true", help="only print the report's file URI (headless machines)")
+    p.set_defaults(func=_cmd_view)
     return parser
 
 

@@ -9,6 +9,7 @@ caller leaves no orphaned workers behind.
 """
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 import signal
@@ -28,6 +29,8 @@ from .io import write_ply
 from .propagation import propagate
 from .reconstruction import Reconstruction
 from .triangulation import triangulate_two_view
+
+log = logging.getLogger(__name__)
 
 __all__ = ["pair_seeds", "densify_pair", "fuse", "estimate_normals", "densify"]
 
@@ -163,7 +166,9 @@ _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 def _die_with_parent(parent_pid: int) -> None:
     """Pool initializer: have the kernel SIGKILL this worker when its parent dies (Linux only;
     elsewhere a no-op). The signal follows the thread that started the worker, which is the one
-    running :func:`densify` and outlives the pool."""
+    running :func:`densify` and outlives the pool. Ctrl-C is the parent's to handle: a worker
+    ignores SIGINT (else every worker prints its own KeyboardInterrupt traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not sys.platform.startswith("linux"):
         return
     import ctypes
@@ -225,12 +230,18 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)
     voxel = cfg.dense.fusion_voxel or _auto_voxel(recon)
-    keep = supported(points, sources, cfg.dense.support_cell_voxels * voxel, cfg.dense.min_pair_support)
+    # a pair alone cannot be confirmed by another: its points are kept, and the report says so
+    min_support = cfg.dense.min_pair_support if len(pairs) >= cfg.dense.min_pair_support else 1
+    keep = supported(points, sources, cfg.dense.support_cell_voxels * voxel, min_support)
     fused, fused_colors, normals, support = _fuse_with_normals(recon, pairs, points[keep], colors[keep],
                                                                sources[keep], voxel)
     report = {"pairs": per_pair, "points_before_fusion": int(len(points)), "points_supported": int(keep.sum()),
               "points": int(len(fused)),
               "fusion_voxel_m": voxel, "seconds": time.perf_counter() - t0}
+    if min_support < cfg.dense.min_pair_support:
+        report["note"] = (f"{len(pairs)} image pair(s): the check that {cfg.dense.min_pair_support} pairs agree on "
+                          f"a point is off, so wrong matches are not removed")
+        log.warning("dense stage: %s", report["note"])
     if out_dir is not None:
         write_ply(Path(out_dir) / "dense.ply", fused, fused_colors,
                   {"nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),

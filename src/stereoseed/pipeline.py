@@ -17,6 +17,7 @@ from .errors import StereoseedError
 from .io import list_images, read_calibration, read_image
 from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
+from .report_html import write_report_html
 from .results import write_result
 
 __all__ = ["reconstruct", "load_sequence", "save_outputs"]
@@ -94,5 +95,8 @@ def load_sequence(images_source: str, calib_path: str) -> tuple[list[np.ndarray]
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config()
                  ) -> dict[str, Path]:
     """The result folder (:func:`stereoseed.results.write_result`: cameras.json, tracks.npz,
-    sparse.ply, cameras.ply, report.json; atomic writes)."""
-    return write_result(recon, report, out_dir, cfg)
+    sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.report_html`);
+    atomic writes."""
+    written = write_result(recon, report, out_dir, cfg)
+    written["report_html"] = write_report_html(recon, report, out_dir)
+    return written

@@ -1,0 +1,244 @@
+"""report.html: written atomically, self-contained, robust to failed images and missing parts;
+drawn in headless Chromium without console errors; `stereoseed view`."""
+from __future__ import annotations
+
+import html.parser
+import logging
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stereoseed import report_html
+from stereoseed.cli import main
+from stereoseed.config import Config
+from stereoseed.pipeline import reconstruct
+from stereoseed.report_html import write_report_html
+from stereoseed.synthetic import SceneConfig, render_scene
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 # WebGL in software (SwiftShader): without a GPU, newer Chromium builds offer it only on request
+                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+
+@pytest.fixture(scope="module")
+def run():
+    """A 6-image synthetic ring with a blank image inserted as the 4th: one image fails."""
+    scene = render_scene(SceneConfig(n_images=6))
+    images, names = list(scene.images), list(scene.names)
+    images.insert(3, np.zeros_like(images[0]))
+    names.insert(3, "blank.png")
+    recon, report = reconstruct(images, names, scene.P[:2], Config())
+    return recon, report
+
+
+@pytest.fixture(scope="module")
+def written(run, tmp_path_factory):
+    out = tmp_path_factory.mktemp("result")
+    path = write_report_html(*run, out)
+    return path, path.read_text(encoding="utf-8")
+
+
+class _Rows(html.parser.HTMLParser):
+    """The cells of each row of the per-image table's body."""
+
+    def __init__(self):
+        super().__init__()
+        self.rows: list[list[str]] = []
+        self._in_table = self._in_body = self._in_cell = False
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table" and dict(attrs).get("id") == "per-image":
+            self._in_table = True
+        elif self._in_table and tag == "tbody":
+            self._in_body = True
+        elif self._in_body and tag == "tr":
+            self.rows.append([])
+        elif self._in_body and tag == "td":
+            self._in_cell = True
+            self.rows[-1].append("")
+
+    def handle_endtag(self, tag):
+        if tag == "td":
+            self._in_cell = False
+        elif tag == "tbody":
+            self._in_body = False
+        elif tag == "table":
+            self._in_table = False
+
+    def handle_data(self, data):
+        if self._in_cell:
+            self.rows[-1][-1] += data
+
+
+def _table(text: str) -> dict[str, list[str]]:
+    parser = _Rows()
+    parser.feed(text)
+    return {row[1]: row for row in parser.rows}
+
+
+def test_report_written_with_a_row_per_image(run, written):
+    recon, report = run
+    path, text = written
+    assert path.name == "report.html" and path.is_file()
+    rows = _table(text)
+    assert list(rows) == [v.name for v in recon.views]
+    for r in report["per_image"]:
+        assert rows[r["image"]][2] == r["status"]
+    assert rows["img_000.png"][2] == "calibrated" and rows["img_001.png"][2] == "calibrated pair"
+    assert rows["img_002.png"][2] == "registered"
+    # the summary, the 3D view and its frustums, the plots and the match image are there
+    assert f"{report['registered']} / {report['images']} images" in text
+    for part in ('id="view3d"', 'id="path"', 'id="reprojection"', 'id="times"', "cameras: registered",
+                 "Matches of the weakest insertion", 'src="data:image/png;base64,'):
+        assert part in text, part
+
+
+def test_failed_image_reported_with_its_reason(run, written):
+    _, report = run
+    _, text = written
+    failed = [r for r in report["per_image"] if r["status"] == "failed"]
+    assert [r["image"] for r in failed] == ["blank.png"]
+    row = _table(text)["blank.png"]
+    assert row[2] == "failed" and row[3] == failed[0]["reason"] and row[3]
+    assert report["registered"] == report["images"] - 1
+
+
+def test_report_is_self_contained(written):
+    _, text = written
+    tags = re.findall(r"<(?:script|link|img|iframe|source)\b[^>]*>", text, flags=re.I)
+    assert tags
+    for tag in tags:
+        assert not re.search(r"\b(?:src|href)\s*=\s*[\"']?\s*(?:https?:)?//", tag, flags=re.I), tag
+    assert not re.search(r"@import\s+url\(\s*[\"']?(?:https?:)?//", text)
+    assert text.count("plotly.js v") == 1  # the bundle, inlined once
+    assert len(text) < 12e6
+
+
+def test_write_is_atomic(run, tmp_path, monkeypatch):
+    out = tmp_path / "new" / "result"
+    path = write_report_html(*run, out)
+    assert sorted(p.name for p in out.iterdir()) == ["report.html"]  # no temporary file left
+    before = path.read_bytes()
+
+    def failing_write(self, *args, **kwargs):
+        Path.write_bytes(self, b"<!DOCTYPE html><html>partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", failing_write)
+    with pytest.raises(OSError):
+        write_report_html(*run, out)
+    assert path.read_bytes() == before  # the old report stays whole
+    assert sorted(p.name for p in out.iterdir()) == ["report.html"]
+
+
+def test_a_failing_part_is_logged_and_left_out(run, tmp_path, monkeypatch, caplog):
+    def broken(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(report_html, "_weakest_insertion", broken)
+    monkeypatch.setattr(report_html, "_figure_times", broken)
+    with caplog.at_level(logging.WARNING, logger="stereoseed.report_html"):
+        text = write_report_html(*run, tmp_path).read_text(encoding="utf-8")
+    assert "Matches of the weakest insertion" not in text and 'id="times"' not in text
+    assert 'id="view3d"' in text and "blank.png" in text
+    assert any("weakest insertion" in r.getMessage() and "boom" in r.getMessage() for r in caplog.records)
+
+
+def test_report_with_missing_keys_and_no_source(run, tmp_path):
+    """An empty report dict and a reconstruction without a correspondence source or dense cloud."""
+    recon, _ = run
+    source, recon.source = recon.source, None
+    try:
+        text = write_report_html(recon, {}, tmp_path).read_text(encoding="utf-8")
+    finally:
+        recon.source = source
+    assert 'id="view3d"' in text and "Matches of the weakest insertion" not in text
+
+
+def test_view_prints_the_uri(written, capsys):
+    path, _ = written
+    assert main(["view", str(path.parent), "--print"]) == 0
+    assert capsys.readouterr().out.strip() == path.resolve().as_uri()
+
+
+def test_view_opens_the_browser(written, capsys, monkeypatch):
+    import webbrowser
+
+    path, _ = written
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", lambda uri: opened.append(uri) or True)
+    assert main(["view", str(path.parent)]) == 0
+    assert opened == [path.resolve().as_uri()]
+
+
+def test_view_without_report_is_a_one_line_error(tmp_path, capsys):
+    assert main(["view", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"stereoseed: error: {tmp_path}: no report.html; run stereoseed reconstruct --out {tmp_path} first\n"
+
+
+# ---------------------------------------------------------------- in a real browser
+def _browser():
+    if not Path(CHROMIUM).exists() and shutil.which("chromium") is None:
+        pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("no playwright (pip install -e '.[test]')")
+    return sync_playwright, Path(CHROMIUM) if Path(CHROMIUM).exists() else Path(shutil.which("chromium"))
+
+
+def test_report_renders_in_headless_chromium(written, tmp_path):
+    import cv2
+
+    sync_playwright, chromium = _browser()
+    path, _ = written
+    problems: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(chromium), args=CHROMIUM_ARGS,
+                                    env={"HOME": str(tmp_path)})
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+            page.on("request", lambda r: problems.append(f"request: {r.url}") if not r.url.startswith(("file:", "data:", "blob:")) else None)
+            page.goto(path.resolve().as_uri())
+            page.wait_for_selector("body[data-rendered]", timeout=20_000)
+            page.wait_for_selector("#view3d canvas", timeout=10_000)
+            page.wait_for_timeout(500)
+            for plot in ("view3d", "path", "reprojection", "times"):
+                assert page.locator(f"#{plot} .main-svg").count() > 0, plot  # Plotly drew it
+            shot = tmp_path / "report.png"
+            page.screenshot(path=str(shot), full_page=True)
+            view = page.locator("#view3d").screenshot(path=str(tmp_path / "view3d.png"))
+        finally:
+            browser.close()
+    assert not problems, problems
+    assert shot.stat().st_size > 0
+    img = cv2.imdecode(np.frombuffer(view, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    background = np.array([0x30, 0x24, 0x1F])  # the 3D view's background, BGR
+    drawn = np.any(np.abs(img - background) > 40, axis=2)
+    assert drawn.mean() > 0.002, "the WebGL canvas drew nothing"
+    red = (img[..., 2] > 150) & (img[..., 1] < 90) & (img[..., 0] < 90)  # the frustums (#d62728)
+    assert red.sum() > 50, "no camera frustum drawn"
+
+
+def test_far_outliers_do_not_shrink_the_3d_view(run, monkeypatch):
+    """A stray point far along a ray is left out of the drawn clouds (and counted), so the scene
+    does not shrink to a dot."""
+    import json
+
+    recon, report = run
+    pts, cols = recon.live_points()
+    far = np.vstack([pts, [[0.0, 0.0, -100.0]]])
+    monkeypatch.setattr(recon, "live_points", lambda: (far, np.vstack([cols, [[255, 0, 0]]])))
+    text = report_html.render_report_html(recon, report)
+    figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>', text, re.S).group(1))
+    sparse = next(t for t in figures["view3d"]["data"] if t["name"].startswith("sparse"))
+    assert sparse["name"] == f"sparse ({len(far)} points; 1 far outlier not shown)"
+    assert len(sparse["z"]) == len(pts) and min(sparse["z"]) > -10
