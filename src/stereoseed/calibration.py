@@ -11,7 +11,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from . import camera_models
-from .camera import decompose_projection, normalize_projection, project
+from .camera import decompose_projection, depths, normalize_projection, project
 from .errors import StereoseedError
 
 __all__ = [
@@ -144,12 +144,35 @@ class CalibrationResult:
                 "t": self.t.tolist(), "rms_px": self.rms_px, "n_points": self.n_points}
 
 
+# A calibration is refused when it cannot be a camera looking at its pattern: pixels typed or
+# detected with care reproject within a few pixels (mismatched or reordered points: ~100 px), a
+# pattern lies in front of the camera (swapped u and v mirror it behind), and a physical camera's
+# pixels are nearly square and unskewed.
+MAX_CALIBRATION_RMS_PX = 5.0
+MAX_ASPECT_CHANGE = 0.2  # |fy / fx - 1|
+MAX_SKEW = 0.05  # |K[0, 1] / fx|
+
+
 def calibrate_camera(pattern: np.ndarray, pixels: np.ndarray, what: str = "calibration") -> CalibrationResult:
     """Calibrate one camera from a non-planar pattern: normalised DLT, then LM on all 11 DOF.
 
     pattern: (N, 3) known 3D points (N >= 6, not coplanar); pixels: (N, 2) their image points.
+    Raises :class:`StereoseedError` when the result cannot be the camera that saw the pattern
+    (reprojection RMS above ``MAX_CALIBRATION_RMS_PX``, pattern points behind it, absurd pixels).
     """
     X, x = check_correspondences(pattern, pixels, what=what)
     P = refine_projection(dlt_projection(X, x), X, x, model="free")
     K, R, t = decompose_projection(P)
-    return CalibrationResult(P=P, K=K, R=R, t=t, rms_px=reprojection_rms(P, X, x), n_points=len(X))
+    result = CalibrationResult(P=P, K=K, R=R, t=t, rms_px=reprojection_rms(P, X, x), n_points=len(X))
+    behind = float(np.mean(depths(P, X) <= 0))
+    if result.rms_px > MAX_CALIBRATION_RMS_PX:
+        raise StereoseedError(f"{what}: the pattern points reproject with {result.rms_px:.1f} px RMS (limit "
+                              f"{MAX_CALIBRATION_RMS_PX:g} px); are the pixels in the same order as the pattern points?")
+    if behind > 0:
+        raise StereoseedError(f"{what}: {100 * behind:.0f} % of the pattern points would be behind the camera; "
+                              f"are u and v swapped, or the pattern's axes mirrored?")
+    aspect, skew = K[1, 1] / K[0, 0] - 1.0, K[0, 1] / K[0, 0]
+    if abs(aspect) > MAX_ASPECT_CHANGE or abs(skew) > MAX_SKEW:
+        raise StereoseedError(f"{what}: the camera's pixels come out {100 * aspect:+.0f} % taller than wide with skew "
+                              f"{skew:+.2f}; no camera is like that: check the pattern's coordinates and the pixels")
+    return result

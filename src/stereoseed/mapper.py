@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .camera import fundamental_from_projections, project
+from .camera import epipolar_distances, fundamental_from_projections, project
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
@@ -65,6 +65,10 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
         view.P, view.status = np.asarray(P_pair[i], np.float64), "calibrated"
         view.features = recon.source.features(i, view.image)
         view.point_of_feature = np.full(len(view.features), -1, np.int64)
+        if len(view.features) == 0:
+            raise StereoseedError(f"{names[i]}: no interest points (a blank or black image?); the calibrated pair "
+                                  f"must show the object")
+    _check_pair(recon, cfg)
     m = _match_known(recon, 0, 1)
     _refine(recon, 0, 1, m)
     X, kept = triangulate_matches(recon, 0, 1, m, cfg)
@@ -77,6 +81,27 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     recon.add_observations(1, kept.idx2, ids)
     return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
                    "seconds": {"total": time.perf_counter() - t0}}
+
+
+def _check_pair(recon: Reconstruction, cfg: Config) -> None:
+    """The calibration must fit its two images: their matches found without it (robust F) must
+    lie on its epipolar lines (``PipelineConfig.pair_min_consistent``). Raises
+    :class:`StereoseedError` naming the likely causes."""
+    v0, v1 = recon.views[0], recon.views[1]
+    if v0.image.shape == v1.image.shape and np.array_equal(v0.image, v1.image):
+        raise StereoseedError(f"{v0.name}, {v1.name}: the calibrated pair is the same image twice; give the two "
+                              f"images the two calibrated cameras took")
+    m = recon.source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
+    if len(m) < cfg.pipeline.pair_check_min_matches:
+        return  # repeated patterns or little texture: no robust F to judge by
+    x0, x1 = m.points(v0.features, v1.features)
+    d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
+    consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
+    if consistent < cfg.pipeline.pair_min_consistent:
+        raise StereoseedError(
+            f"{v0.name}, {v1.name}: the calibration does not fit these images: only {100 * consistent:.0f} % of "
+            f"their {len(m)} matches lie on its epipolar lines (a fitting one: ~100 %); are the two cameras "
+            f"swapped, the images in the wrong order, or the calibration another pair's?")
 
 
 def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:

@@ -173,6 +173,11 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     cfg = cfg.resolved()
     prev = recon.registered_before(k, 1)[0]
     vp, view, source = recon.views[prev], recon.views[k], recon.source
+    moving = recon.views[1]
+    if view.image.shape[:2] != moving.image.shape[:2]:
+        (h, w), (h1, w1) = view.image.shape[:2], moving.image.shape[:2]
+        return RegistrationFailure(f"{view.name}: {w}x{h} pixels, but the calibrated moving camera's images are "
+                                   f"{w1}x{h1}; give images of that size (its intrinsics are in pixels of that size)")
     seconds = {}
     t = time.perf_counter()
     cand = Candidate(k, view.name, view.image, source.features(k, view.image), view.rotated_180)
