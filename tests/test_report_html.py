@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stereoseed.errors import StereoseedError
+
 from stereoseed import report_html
 from stereoseed.cli import main
 from stereoseed.config import Config
@@ -130,7 +132,7 @@ def test_write_is_atomic(run, tmp_path, monkeypatch):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(Path, "write_text", failing_write)
-    with pytest.raises(OSError):
+    with pytest.raises(StereoseedError, match="report.html: cannot write"):  # the user's path, not the temp file
         write_report_html(*run, out)
     assert path.read_bytes() == before  # the old report stays whole
     assert sorted(p.name for p in out.iterdir()) == ["report.html"]

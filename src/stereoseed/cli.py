@@ -21,6 +21,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibration import calibrate_camera
     from .io import read_points_file, write_json
 
+    if Path(args.output).is_dir():
+        raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
     pattern = read_points_file(args.pattern, 3)
     cameras = []
     for i, path in enumerate((args.points1, args.points2), 1):
@@ -51,10 +53,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_match(args: argparse.Namespace) -> int:
     from .config import Config
     from .features import extract_features
-    from .io import read_image
+    from .io import check_image_output, read_image
     from .matching.pair import match_pair
     from .visualize import draw_matches
 
+    if args.output:
+        check_image_output(args.output)
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
@@ -75,20 +79,23 @@ def _cmd_match(args: argparse.Namespace) -> int:
 def _cmd_propagate(args: argparse.Namespace) -> int:
     from .camera import fundamental_from_projections
     from .config import Config
-    from .features import extract_features
-    from .io import read_calibration, read_image
-    from .matching.pair import match_pair
+    from .dense import pair_seeds
+    from .io import check_image_output, read_calibration, read_image
+    from .mapper import initialise
     from .propagation import propagate
     from .visualize import save_propagation_png
 
+    if args.output:
+        check_image_output(args.output)
     cfg = Config()
+    names = [Path(args.image1).name, Path(args.image2).name]
     img1, img2 = read_image(args.image1), read_image(args.image2)
-    P1, P2 = read_calibration(args.calib, [Path(args.image1).name, Path(args.image2).name])
-    F = fundamental_from_projections(P1, P2)
-    f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
-    seeds = match_pair(f1, f2, cfg.matching, F=F, image_width=img1.shape[1]).matches
-    x1, x2 = seeds.points(f1, f2)
-    result = propagate(img1, img2, np.hstack([x1, x2]), F, cfg.propagation,
+    P1, P2 = read_calibration(args.calib, names)
+    # the pair as the reconstruction starts from it: a calibration that does not fit the images
+    # is refused, and the seeds are its triangulated matches
+    recon, _ = initialise([img1, img2], names, [P1, P2], cfg)
+    seeds, _ = pair_seeds(recon, 0, 1)
+    result = propagate(img1, img2, seeds, fundamental_from_projections(P1, P2), cfg.propagation,
                        subpixel_method=cfg.propagation.subpixel_method)
     print(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")
     if args.output:

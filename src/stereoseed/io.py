@@ -134,6 +134,25 @@ def list_images(source: str | os.PathLike) -> list[Path]:
     return paths
 
 
+def check_image_output(path: str | os.PathLike) -> Path:
+    """Refuse, before any work, an output image path OpenCV cannot encode (by its extension)."""
+    path = Path(path)
+    if not path.suffix or not cv2.haveImageWriter(str(path)):
+        raise StereoseedError(f"{path}: cannot write an image with this extension; give a .png or .jpg path")
+    return path
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Encode ``image`` (uint8 grey or BGR) by the path's extension and write it atomically."""
+    path = check_image_output(path)
+    ok, data = cv2.imencode(path.suffix, image)
+    if not ok:
+        raise StereoseedError(f"{path}: OpenCV could not encode the image")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.tobytes())
+    return path
+
+
 # ---------------------------------------------------------------- point files
 def read_points_file(path: str | os.PathLike, columns: int) -> np.ndarray:
     """Read a whitespace/comma separated table with ``columns`` numbers a line -> (N, columns).

@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 
 from .camera import camera_center, compose_projection, depths, project
+from .io import write_image
 from .synthetic_render import _cast_kernel, _render_kernel
 
 __all__ = [
@@ -518,10 +519,7 @@ def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     written: dict = {"images": []}
     for name, image in zip(scene.names, scene.images):
-        path = out / name
-        if not cv2.imwrite(str(path), image):
-            raise OSError(f"could not write {path}")
-        written["images"].append(path)
+        written["images"].append(write_image(out / name, image))
     cams = [
         {"name": name, "P": P.tolist(), "K": K.tolist(), "R": R.tolist(),
          "t": np.asarray(t).tolist(), "center": camera_center(P).tolist()}

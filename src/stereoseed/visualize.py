@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import StereoseedError
+from .io import write_image
 from .features import Features
 from .matching.containers import Matches
 from .propagation import PropagationResult
@@ -69,10 +69,7 @@ def draw_matches(
             cv2.circle(canvas, q1, 2 << shift, colour, 1, cv2.LINE_AA, shift)
             cv2.circle(canvas, q2, 2 << shift, colour, 1, cv2.LINE_AA, shift)
     if path is not None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(path), canvas):
-            raise StereoseedError(f"could not write {path}")
+        write_image(path, canvas)
     return canvas
 
 
@@ -118,10 +115,5 @@ def save_propagation_png(img1: np.ndarray, result: PropagationResult, path: str 
 
     img1: (H, W) grey float in [0, 1] / uint8, or (H, W, 3) BGR uint8. Returns the path written.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     img = _to_bgr_u8(img1)
-    disp = disparity_image(result, img.shape)
-    if not cv2.imwrite(str(path), np.hstack([img, disp])):
-        raise StereoseedError(f"could not write {path}")
-    return path
+    return write_image(path, np.hstack([img, disparity_image(result, img.shape)]))
