@@ -172,11 +172,7 @@ def write_nvm(result: Result, path: str | Path) -> list[str]:
     index = {i: n for n, i in enumerate(result.registered)}
     lines = ["NVM_V3", "", str(len(index))]
     for i in result.registered:
-        K, R, t = decompose_projection(result.P[i])
-        moved = _moved_px(K, result.sizes[i], one_focal=True)
-        if moved > MAX_APPROXIMATION_PX:
-            warnings.append(f"{result.names[i]}: NVM has one focal length and no skew; fx, fy averaged "
-                            f"(pixels move by up to {moved:.2f} px)")
+        K, R, t = _one_focal_camera(result, i, "NVM", warnings)
         x, y, z, w = Rotation.from_matrix(R).as_quat()
         C = -R.T @ t
         lines.append(f"{result.names[i]} {_num(0.5 * (K[0, 0] + K[1, 1]))} " + " ".join(
@@ -192,6 +188,18 @@ def write_nvm(result: Result, path: str | Path) -> list[str]:
     for w in warnings:
         log.info("%s", w)
     return warnings
+
+
+def _one_focal_camera(result: Result, i: int, fmt: str, warnings: list[str]) -> tuple[np.ndarray, ...]:
+    """K, R, t of image i for a format with one focal length and no skew (the caller writes the
+    mean of fx and fy); a warning is added when that moves a pixel by more than
+    ``MAX_APPROXIMATION_PX``."""
+    K, R, t = decompose_projection(result.P[i])
+    moved = _moved_px(K, result.sizes[i], one_focal=True)
+    if moved > MAX_APPROXIMATION_PX:
+        warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "
+                        f"(pixels move by up to {moved:.2f} px)")
+    return K, R, t
 
 
 def _tracks_by_image_index(result: Result) -> list[list[tuple[int, int, float, float]]]:
@@ -214,11 +222,7 @@ def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
     lines = ["# Bundle file v0.3", f"{len(index)} {len(tr['point_xyz'])}"]
     principal = {}
     for i in result.registered:
-        K, R, t = decompose_projection(result.P[i])
-        moved = _moved_px(K, result.sizes[i], one_focal=True)
-        if moved > MAX_APPROXIMATION_PX:
-            warnings.append(f"{result.names[i]}: Bundler has one focal length and no skew; fx, fy averaged "
-                            f"(pixels move by up to {moved:.2f} px)")
+        K, R, t = _one_focal_camera(result, i, "Bundler", warnings)
         principal[i] = K[:2, 2]
         lines.append(f"{_num(0.5 * (K[0, 0] + K[1, 1]))} 0 0")
         lines += [" ".join(repr(float(v)) for v in row) for row in flip @ R]
