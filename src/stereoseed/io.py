@@ -83,7 +83,7 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 
 _CALIB_FORMATS = ('a calib.json ({"cameras": [{"P": 3x4}, {"P": 3x4}]}), a Middlebury *_par.txt '
                   "or a COLMAP model folder")
-_PAR_FORMAT = "a par file holds a count line, then one line per image: name, K (9 numbers), R (9), t (3)"
+_PAR_FORMAT = "give a count line, then one line per image: name, K (9 numbers, row by row), R (9), t (3)"
 _LIST_HINT = "give a folder of images or a text file listing them, one path a line"
 # extensions of files that are images (to refuse as a list of images or a table), and of videos
 _IMAGE_LIKE = IMAGE_EXTENSIONS + (".gif", ".jp2", ".j2k", ".exr", ".hdr", ".pic", ".pnm", ".pam", ".pfm",
@@ -361,8 +361,8 @@ def _check_P(P: Any, where: str) -> np.ndarray:
             got = _describe(P)
             if isinstance(P, list) and P and all(isinstance(r, list) for r in P):
                 got += " rows of " + "/".join(str(len(r)) for r in P[:5]) + (" ..." if len(P) > 5 else "") + " items"
-            raise StereoseedError(f"{where}: 'P' must be a 3x4 matrix, 3 rows of 4 numbers "
-                                  f"([[p11, p12, p13, p14], ...]), got {got}")
+            raise StereoseedError(f"{where}: 'P' is {got}, not a 3x4 matrix; give 3 rows of 4 numbers "
+                                  "([[p11, p12, p13, p14], ...])")
         for row in P:
             for v in row:
                 if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -372,7 +372,7 @@ def _check_P(P: Any, where: str) -> np.ndarray:
         P = [[float(v) for v in row] for row in P]
     P = np.array(P, dtype=np.float64)
     if P.shape != (3, 4):
-        raise StereoseedError(f"{where}: 'P' must be a 3x4 matrix, got shape {P.shape}")
+        raise StereoseedError(f"{where}: 'P' has shape {P.shape}, not (3, 4); give a 3x4 projection matrix")
     if not np.all(np.isfinite(P)):
         raise StereoseedError(f"{where}: 'P' has NaN or infinite entries; give a finite 3x4 projection matrix")
     scale = float(np.abs(P).max())
@@ -485,7 +485,8 @@ def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None 
         raise StereoseedError(f"{path}: empty file; give {_CALIB_FORMATS}")
     if start in "{[":
         return _calibration_json(text, path)
-    if len(_first_fields(text)) not in (1, 22):
+    first = _first_fields(text)
+    if not (len(first) == 22 or len(first) == 1 and re.fullmatch(r"\d+", first[0], re.ASCII)):
         raise StereoseedError(f"{path}: not a calibration stereoseed reads (neither JSON nor a Middlebury par file); "
                               f"give {_CALIB_FORMATS}")
     return _pair_by_name(_parse_par(text, path), names, path, "par file")
@@ -499,18 +500,18 @@ def _calibration_json(text: str, path: Path) -> list[np.ndarray]:
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise StereoseedError(f"{path}:{e.lineno}:{e.colno}: not valid JSON ({_show(e.msg, 60)}); "
-                              f"expected {_CALIB_JSON}") from None
+                              f"give {_CALIB_JSON}") from None
     except (ValueError, RecursionError) as e:  # an integer of > 4300 digits, nesting too deep
         raise StereoseedError(f"{path}: not a JSON stereoseed reads ({e.__class__.__name__}); "
-                              f"expected {_CALIB_JSON}") from None
+                              f"give {_CALIB_JSON}") from None
     if not isinstance(data, dict):
-        raise StereoseedError(f"{path}: the JSON is {_describe(data)}, not an object; expected {_CALIB_JSON}")
+        raise StereoseedError(f"{path}: the JSON is {_describe(data)}, not an object; give {_CALIB_JSON}")
     cams = data.get("cameras")
     if not isinstance(cams, list):
         raise StereoseedError(f'{path}: no "cameras" list' + (f" (it is {_describe(cams)})" if "cameras" in data else "")
-                              + f"; expected {_CALIB_JSON}")
+                              + f"; give {_CALIB_JSON}")
     if len(cams) < 2:
-        raise StereoseedError(f'{path}: "cameras" holds {len(cams)} camera(s); the stereo pair needs two: '
+        raise StereoseedError(f'{path}: "cameras" holds {len(cams)} camera(s); give both cameras of the pair: '
                               f"{_CALIB_JSON}")
     out = []
     for i, cam in enumerate(cams[:2]):
