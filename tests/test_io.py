@@ -325,3 +325,12 @@ def test_calibration_json_structure(tmp_path, text, fragment):
     f = tmp_path / "calib.json"
     f.write_text(text)
     refused(lambda: read_calibration(f), f, fragment)
+
+
+def test_colmap_model_that_cannot_be_read_is_one_line(tmp_path):
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 800 800 320 240\n")
+    (tmp_path / "images.txt").write_text("1 0 0 0 0 0 0 0 1 a.png\n\n2 1 0 0 0 0 0 0 1 b.png\n\n")  # zero quaternion
+    refused(lambda: read_calibration(tmp_path, ["a.png", "b.png"]), tmp_path, "cannot be read", "export it again")
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 0 0 320 240\n")  # zero focal length
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n2 1 0 0 0 0 0 0 1 b.png\n\n")
+    refused(lambda: read_calibration(tmp_path, ["a.png", "b.png"]), tmp_path, "a.png: 'P' is not a camera")
