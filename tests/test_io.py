@@ -334,3 +334,12 @@ def test_colmap_model_that_cannot_be_read_is_one_line(tmp_path):
     (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 0 0 320 240\n")  # zero focal length
     (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n2 1 0 0 0 0 0 0 1 b.png\n\n")
     refused(lambda: read_calibration(tmp_path, ["a.png", "b.png"]), tmp_path, "a.png: 'P' is not a camera")
+
+
+def test_text_starting_like_an_ascii_pnm_is_still_text(tmp_path):
+    f = tmp_path / "x_par.txt"  # an image named "P1", with integer K: not a PNM header
+    f.write_text(f"P1 {K_TXT} {R_TXT} 0 0 1\nb.png {K_TXT} {R_TXT} 1 0 1\n")
+    assert read_calibration(f, ["P1", "b.png"])[0].shape == (3, 4)
+    g = tmp_path / "frames"
+    g.write_bytes(b"P2\n4 3\n255\n" + b"0 " * 12)  # a text PGM without extension
+    refused(lambda: list_images(g), g, "PNM image")

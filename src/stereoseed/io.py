@@ -122,7 +122,9 @@ def _image_format(data: bytes) -> str | None:
         return "WebP"
     if data.startswith(b"BM") and _BINARY_BYTES.search(data[:54]):
         return "BMP"
-    if re.match(rb"P[1-6]\s+(?:#[^\n]*\n\s*)*\d+\s+\d+\s", data):
+    # binary PNM (P4-P6) with any whitespace; text PNM (P1-P3) only with the magic alone on its
+    # line, so that a par or list line "P1 800 0 ..." is not taken for an image
+    if re.match(rb"(?:P[4-6]\s+|P[1-3][ \t]*\r?\n\s*)(?:#[^\n]*\n\s*)*\d+\s+\d+\s", data):
         return "PNM"
     return None
 
