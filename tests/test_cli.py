@@ -60,7 +60,7 @@ def test_reconstruct_bad_inputs(tmp_path, capsys, scene_files):
     bad = tmp_path / "calib.json"
     bad.write_text('{"cameras": [{"P": [[1, 0, 0, 0]]}]}')
     assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(bad), "--out", str(tmp_path / "o")]) == 2
-    assert "two cameras" in capsys.readouterr().err
+    assert "give both cameras of the pair" in capsys.readouterr().err
 
 
 def test_match_on_a_textureless_image_warns_in_one_line(tmp_path, capsys, scene_files):

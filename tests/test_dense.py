@@ -7,7 +7,7 @@ import pytest
 from stereoseed.config import Config
 from stereoseed.dense import densify, fuse, supported
 from stereoseed.evaluation import TrueCorrespondences, surface_distance, surface_normal
-from stereoseed.io import read_ply, read_ply_vertices
+from stereoseed.ply import read_ply, read_ply_vertices
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic import SceneConfig, render_scene
 

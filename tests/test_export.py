@@ -9,7 +9,8 @@ from stereoseed.camera import camera_center
 from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
-from stereoseed.io import read_calibration, read_ply_vertices
+from stereoseed.io import read_calibration
+from stereoseed.ply import read_ply_vertices
 from stereoseed.pipeline import reconstruct, save_outputs
 from stereoseed.results import FORMAT_VERSION, exported_points, load_result
 

@@ -63,7 +63,7 @@ def ring(n_views, step_deg=20.0, seed=0, n_points=3000, blind=(), no_epipolar=()
     targets = targets or {}
     Ps = [ring_camera(30.0 + i * step_deg, height=0.7, target=targets.get(i, (0.0, 0.0, 0.2)))[3]
           for i in range(n_views)]
-    images = [np.zeros(SHAPE + (3,), np.uint8) for _ in Ps]
+    images = [np.full(SHAPE + (3,), i, np.uint8) for i in range(len(Ps))]  # distinct images (the pair check)
     names = [f"v{i}.png" for i in range(n_views)]
     return images, names, Ps, ExactSource(points, normals, Ps, blind=blind, no_epipolar=no_epipolar)
 

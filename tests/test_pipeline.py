@@ -9,7 +9,7 @@ from stereoseed.camera import camera_center, decompose_projection, project
 from stereoseed.config import Config, PipelineConfig, ResectionConfig
 from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
-from stereoseed.io import read_ply
+from stereoseed.ply import read_ply
 from stereoseed.pipeline import reconstruct, save_outputs
 from stereoseed.resection import implausible_intrinsics
 from stereoseed.synthetic import SceneConfig, render_scene

@@ -242,7 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("reconstruct", help="incremental reconstruction of an ordered image sequence")
     p.add_argument("images", help="a folder (images in name order) or a text file listing image paths")
-    p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed) or a Middlebury *_par.txt")
+    p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
+                        "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
                    help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from .camera import camera_center, fundamental_from_projections
 from .config import Config, DenseConfig, PropagationConfig
-from .io import write_ply
+from .ply import write_ply
 from .propagation import propagate
 from .reconstruction import Reconstruction
 from .triangulation import triangulate_two_view

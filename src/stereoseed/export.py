@@ -249,7 +249,8 @@ def read_colmap_cameras(folder: str | Path) -> dict[str, np.ndarray]:
     elif (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file():
         cameras, images = _read_binary(folder)
     else:
-        raise StereoseedError(f"{folder}: not a COLMAP model (no cameras.txt + images.txt or cameras.bin + images.bin)")
+        raise StereoseedError(f"{folder}: not a COLMAP model (no cameras.txt + images.txt or cameras.bin + images.bin); "
+                              f"give the folder holding them (e.g. sparse/0)")
     out = {}
     for name, (q, t, cam) in images.items():
         if cam not in cameras:

@@ -31,7 +31,8 @@ import numpy as np
 from .camera import camera_center, decompose_projection
 from .config import Config
 from .errors import StereoseedError
-from .io import atomic_path, write_json, write_ply
+from .io import atomic_path, write_json
+from .ply import write_ply
 from .reconstruction import Reconstruction, View
 
 __all__ = ["FORMAT_VERSION", "Result", "ResultSet", "exported_points", "write_result", "load_result", "frustum_mesh"]
