@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from .camera import compose_projection, decompose_projection
 from .errors import StereoseedError
 from .io import atomic_path, write_text
+from .lens import distort_pixels
 from .results import Result
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "read_colmap_cameras", "colmap_camera"]
@@ -27,7 +28,7 @@ log = logging.getLogger(__name__)
 
 # COLMAP's camera models: name -> (id, number of parameters)
 COLMAP_MODELS = {"SIMPLE_PINHOLE": (0, 3), "PINHOLE": (1, 4), "SIMPLE_RADIAL": (2, 4), "RADIAL": (3, 5),
-                 "OPENCV": (4, 8)}
+                 "OPENCV": (4, 8), "FULL_OPENCV": (6, 12)}
 _MODEL_NAMES = {v[0]: k for k, v in COLMAP_MODELS.items()}
 _SAME_FOCAL = 1e-9  # relative difference under which fx and fy are one focal length
 # an approximation of a camera by a simpler model (no skew, one focal length) is said when it
@@ -53,7 +54,7 @@ def _moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_
     return float(np.max(np.linalg.norm(moved, axis=1)))
 
 
-def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = ""
+def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distortion: np.ndarray | None = None
                   ) -> tuple[str, list[float], np.ndarray, np.ndarray, str | None]:
     """COLMAP's view of camera P (3, 4) (ours) of an image of ``size`` (width, height): (model,
     params in COLMAP's pixel convention, quaternion (4,) w x y z, t (3,), warning or None).
@@ -66,7 +67,11 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = ""
         warning = (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no COLMAP model "
                    f"has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
     cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5
-    if abs(K[0, 0] - K[1, 1]) <= _SAME_FOCAL * K[0, 0]:
+    if distortion is not None and np.any(distortion != 0):
+        k1, k2, p1, p2, k3 = distortion
+        model, params = ("OPENCV", [K[0, 0], K[1, 1], cx, cy, k1, k2, p1, p2]) if k3 == 0 else \
+            ("FULL_OPENCV", [K[0, 0], K[1, 1], cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0])
+    elif abs(K[0, 0] - K[1, 1]) <= _SAME_FOCAL * K[0, 0]:
         model, params = "SIMPLE_PINHOLE", [K[0, 0], cx, cy]
     else:
         model, params = "PINHOLE", [K[0, 0], K[1, 1], cx, cy]
@@ -87,12 +92,17 @@ def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
         ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
         point_of[i] = ids
     for n, i in enumerate(result.registered, 1):
-        model, params, q, t, warning = colmap_camera(result.P[i], result.sizes[i], result.names[i])
+        lens = result.distortion[i] if result.distortion else None
+        model, params, q, t, warning = colmap_camera(result.P[i], result.sizes[i], result.names[i], lens)
         if warning:
             warnings.append(warning)
         w, h = result.sizes[i]
         cameras.append((n, model, w, h, params))
-        images.append((n, q, t, n, result.names[i], result.keypoints(i) + 0.5, point_of[i]))
+        xy = result.keypoints(i)
+        if lens is not None:  # the keypoints are in the undistorted image; COLMAP's model distorts
+            K = decompose_projection(result.P[i])[0]
+            xy = distort_pixels(xy, K, lens)
+        images.append((n, q, t, n, result.names[i], xy + 0.5, point_of[i]))
     return cameras, images, warnings
 
 

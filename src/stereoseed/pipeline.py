@@ -15,6 +15,8 @@ from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
 from .io import list_images, read_calibration, read_image
+from .lens import undistort_image, undistortion_maps
+from .lens_calibration import read_lenses
 from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
 from .report_html import write_report_html
@@ -83,20 +85,39 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
 
 def load_sequence(images_source: str, calib_path: str) -> tuple[list[np.ndarray], list[str], list[np.ndarray]]:
     """Read an ordered image sequence (folder or list file) and the pair's calibration:
-    (images uint8 BGR, names, the pair's two (3, 4) cameras)."""
+    (images uint8 BGR, names, the pair's two (3, 4) cameras). When the calibration carries a
+    lens (calib.json "distortion"), every image is undistorted as it is read (one remap; image 0
+    through the first camera's lens, every later image through the second camera's: the moving
+    camera keeps its lens, so a zoom that changes the distortion is not modelled), and the
+    cameras hold for the undistorted pixels."""
     paths = list_images(images_source)
     if len(paths) < 2:
         raise StereoseedError(f"{images_source}: {len(paths)} image(s); the calibrated pair needs two")
     P_pair = read_calibration(calib_path, [p.name for p in paths])
-    images = [read_image(p) for p in paths]
+    lenses = read_lenses(calib_path)
+    maps: dict[int, Any] = {}
+    images = []
+    for i, p in enumerate(paths):
+        image = read_image(p)
+        lens = lenses[min(i, 1)]
+        if lens is not None:
+            size = image.shape[1::-1]
+            if lens.image_size is not None and tuple(size) != tuple(lens.image_size):
+                raise StereoseedError(f"{p}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
+                                      f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
+            if min(i, 1) not in maps:
+                maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
+            image = undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
+        images.append(image)
     return images, [p.name for p in paths], P_pair
 
 
-def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config()
-                 ) -> dict[str, Path]:
+def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
+                 lenses: list | None = None) -> dict[str, Path]:
     """The result folder (:func:`stereoseed.results.write_result`: cameras.json, tracks.npz,
     sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.report_html`);
-    atomic writes."""
-    written = write_result(recon, report, out_dir, cfg)
+    atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.lens_calibration.read_lenses`)
+    when the images were undistorted: cameras.json then says how to map back to the photos."""
+    written = write_result(recon, report, out_dir, cfg, lenses)
     written["report_html"] = write_report_html(recon, report, out_dir)
     return written

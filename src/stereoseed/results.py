@@ -22,7 +22,7 @@ import json
 import os
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -108,9 +108,9 @@ def frustum_mesh(P: np.ndarray, size: tuple[int, int], depth: float) -> tuple[np
     return vertices, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
 
 
-def _cameras_json(recon: Reconstruction) -> dict[str, Any]:
+def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str, Any]:
     images = []
-    for v in recon.views:
+    for i, v in enumerate(recon.views):
         w, h = v.image_size
         entry: dict[str, Any] = {"name": v.name, "width": int(w), "height": int(h), "registered": v.registered,
                                  "status": v.status}
@@ -120,6 +120,10 @@ def _cameras_json(recon: Reconstruction) -> dict[str, Any]:
                          center=v.center.tolist())
             if v.rotated_180:
                 entry["rotated_180"] = True
+        lens = lenses[min(i, 1)] if lenses else None
+        if lens is not None:
+            # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
+            entry.update(distortion=lens.distortion.tolist(), distortion_K=np.asarray(lens.K).tolist())
         images.append(entry)
     return {"format_version": FORMAT_VERSION,
             "units": "those of the calibration (the pattern's coordinates): the model is metric in them",
@@ -128,14 +132,16 @@ def _cameras_json(recon: Reconstruction) -> dict[str, Any]:
 
 
 def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: str | Path,
-                 cfg: Config = Config()) -> dict[str, Path]:
-    """Write the result folder (each file atomically); returns {what: path}."""
+                 cfg: Config = Config(), lenses: list | None = None) -> dict[str, Path]:
+    """Write the result folder (each file atomically); returns {what: path}. lenses: the
+    calibration's two lenses (image 0 through the first, every later image through the second)
+    when the run worked on undistorted images."""
     out = Path(out_dir)
     ids = exported_points(recon, cfg.pipeline.far_point_factor)
     tracks = _tracks(recon, ids)
     counts = np.bincount(tracks["obs_point"], minlength=len(ids))
     views = _views_per_point(tracks, len(ids))
-    written = {"cameras": write_json(out / "cameras.json", _cameras_json(recon))}
+    written = {"cameras": write_json(out / "cameras.json", _cameras_json(recon, lenses))}
     with atomic_path(out / "tracks.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **tracks)
@@ -184,6 +190,7 @@ class Result:
     sizes: list[tuple[int, int]]
     P: list[np.ndarray | None]
     tracks: dict[str, np.ndarray]
+    distortion: list[np.ndarray | None] = field(default_factory=list)  # the lens, where the run undistorted
 
     @property
     def registered(self) -> list[int]:
@@ -212,9 +219,10 @@ def load_result(folder: str | Path) -> Result:
         names = [im["name"] for im in images]
         sizes = [(int(im["width"]), int(im["height"])) for im in images]
         Ps = [np.asarray(im["P"], np.float64) if im.get("registered") else None for im in images]
+        lens = [np.asarray(im["distortion"], np.float64) if "distortion" in im else None for im in images]
     except (ValueError, KeyError, TypeError, OSError) as e:
         raise StereoseedError(f"{folder}: cameras.json or tracks.npz is not as stereoseed writes it ({e})") from None
-    return Result(folder, names, sizes, Ps, tracks)
+    return Result(folder, names, sizes, Ps, tracks, lens)
 
 
 # ---------------------------------------------------------------------------------------------

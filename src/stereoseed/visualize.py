@@ -117,3 +117,18 @@ def save_propagation_png(img1: np.ndarray, result: PropagationResult, path: str 
     """
     img = _to_bgr_u8(img1)
     return write_image(path, np.hstack([img, disparity_image(result, img.shape)]))
+
+
+def draw_calibration_check(image: np.ndarray, detected: np.ndarray, reprojected: np.ndarray,
+                           path: str | Path | None = None) -> np.ndarray:
+    """The calibration image with each detected target corner (green circle) and where the
+    calibrated camera and lens put it (red cross), so a user sees that it worked.
+    detected, reprojected: (N, 2) pixels. Returns the BGR canvas (written as PNG if ``path``)."""
+    canvas = _to_bgr_u8(image).copy()
+    shift = 4
+    for (x, y), (u, v) in zip(np.asarray(detected), np.asarray(reprojected)):
+        cv2.circle(canvas, (int(round(x * 16)), int(round(y * 16))), 4 << shift, (0, 200, 0), 1, cv2.LINE_AA, shift)
+        cv2.drawMarker(canvas, (int(round(u)), int(round(v))), (0, 0, 255), cv2.MARKER_CROSS, 6, 1, cv2.LINE_AA)
+    if path is not None:
+        write_image(path, canvas)
+    return canvas
