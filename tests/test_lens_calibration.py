@@ -1,0 +1,111 @@
+"""The camera and its lens from views of a 3D pattern, against exact synthetic truth and OpenCV."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from geometry_helpers import box_points, look_at_camera
+from stereoseed.errors import StereoseedError
+from stereoseed.lens_calibration import calibrate_lens, project_view, read_lenses, read_opencv_intrinsics
+
+LENS = np.array([-0.12, 0.03, 0.001, -0.0005, 0.0])
+SIZE = (640, 480)
+
+
+def _views(n_views, noise=0.1, seed=0, lens=LENS):
+    """Views of a box-shaped pattern (mm) by one camera and lens from around it: [(X, x)], K, poses."""
+    rng = np.random.default_rng(seed)
+    X = box_points(rng, 150, half=170.0, height=440.0)
+    K = look_at_camera((1.0, 0.0, 0.0), f=800.0, pp=(322.0, 238.0))[0]
+    views, poses = [], []
+    for i in range(n_views):
+        a = np.radians(30.0 + 25.0 * i)
+        # the first view looks at the pattern; the others put it in a corner of the frame
+        aim = [(0.0, 0.0, 200.0), (330.0, 330.0, 420.0), (-330.0, -330.0, -50.0), (330.0, -330.0, -50.0),
+               (-330.0, 330.0, 420.0)][i % 5]
+        _, R, t, _ = look_at_camera((1400 * np.cos(a), 1400 * np.sin(a), 700.0), target=aim, f=800.0)
+        x = project_view(K, lens, R, t, X) + rng.normal(0, noise, (len(X), 2))
+        inside = np.all((x > 0) & (x < np.array(SIZE) - 1), axis=1)
+        views.append((X[inside], x[inside]))
+        poses.append((R, t))
+    return views, K, poses
+
+
+def _frame_error(cal, K, lens, R, t):
+    """Max pixel error over the whole frame of the calibrated camera + lens for view 0: each
+    pixel's true ray, projected by the estimate."""
+    u, v = np.meshgrid(np.linspace(0, SIZE[0] - 1, 17), np.linspace(0, SIZE[1] - 1, 13))
+    px = np.c_[u.ravel(), v.ravel()]
+    # true rays: undistort with OpenCV (the oracle), put points on them at 1.5 m
+    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, lens).reshape(-1, 2)
+    Xc = np.c_[rays, np.ones(len(rays))] * 1500.0
+    X = (Xc - t) @ R  # world
+    return np.linalg.norm(project_view(cal.K, cal.distortion, cal.R[0], cal.t[0], X) - px, axis=1)
+
+
+def test_the_lens_model_is_opencvs():
+    views, K, poses = _views(1, noise=0.0)
+    X, x = views[0]
+    R, t = poses[0]
+    ocv = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, LENS)[0].reshape(-1, 2)
+    np.testing.assert_allclose(project_view(K, LENS, R, t, X), ocv, atol=1e-9)
+
+
+def test_one_view_gives_the_camera_and_the_lens_under_the_pattern():
+    views, K, poses = _views(1)
+    cal = calibrate_lens(views[:1], SIZE)
+    assert cal.rms_px[0] < 0.2  # 0.1 px noise: the model explains the points
+    C_true = -poses[0][0].T @ poses[0][1]
+    assert np.linalg.norm(-cal.R[0].T @ cal.t[0] - C_true) < 0.01 * np.linalg.norm(C_true)
+    # where the pattern was, the lens is right
+    X, x = views[0]
+    R, t = poses[0]
+    truth = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, LENS)[0].reshape(-1, 2)
+    assert np.percentile(np.linalg.norm(project_view(cal.K, cal.distortion, cal.R[0], cal.t[0], X) - truth, axis=1),
+                         95) < 0.3
+
+
+def test_more_views_pin_the_lens_over_the_whole_frame():
+    views, K, poses = _views(5)
+    one = calibrate_lens(views[:1], SIZE)
+    many = calibrate_lens(views, SIZE)
+    R, t = poses[0]
+    e1, e5 = _frame_error(one, K, LENS, R, t), _frame_error(many, K, LENS, R, t)
+    assert np.percentile(e5, 95) < 0.5 and np.percentile(e5, 95) < np.percentile(e1, 95)
+    assert abs(many.distortion[0] - LENS[0]) < 0.02  # k1; k2 trades against it, the frame error is what counts
+
+
+def test_known_intrinsics_leave_only_the_pose():
+    views, K, poses = _views(1, noise=0.05)
+    cal = calibrate_lens(views[:1], SIZE, intrinsics=(K, LENS))
+    np.testing.assert_array_equal(cal.K, K)
+    np.testing.assert_array_equal(cal.distortion, LENS)
+    assert np.linalg.norm((-cal.R[0].T @ cal.t[0]) - (-poses[0][0].T @ poses[0][1])) < 2.0  # mm at 1.5 m
+
+
+def test_a_view_of_another_camera_is_refused():
+    views, _, _ = _views(2)
+    X, x = views[1]
+    with pytest.raises(StereoseedError, match="reproject"):
+        calibrate_lens([views[0], (X, x[::-1])], SIZE, what=["a.png", "b.png"])
+
+
+def test_calib_json_and_opencv_files_give_the_lens(tmp_path):
+    views, K, _ = _views(1)
+    cal = calibrate_lens(views, SIZE)
+    calib = tmp_path / "calib.json"
+    calib.write_text(json.dumps({"cameras": [cal.to_dict(), {"P": cal.P.tolist()}]}))
+    lenses = read_lenses(calib)
+    np.testing.assert_allclose(lenses[0].distortion, cal.distortion)
+    assert lenses[0].image_size == SIZE and lenses[1] is None
+    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", LENS.reshape(1, 5))
+    fs.release()
+    K2, d2 = read_opencv_intrinsics(tmp_path / "cam.yaml")
+    np.testing.assert_allclose(K2, K)
+    np.testing.assert_allclose(d2, LENS)
+    (tmp_path / "bad.yaml").write_text("%YAML:1.0\nfoo: 1\n")
+    with pytest.raises(StereoseedError, match="camera_matrix"):
+        read_opencv_intrinsics(tmp_path / "bad.yaml")
