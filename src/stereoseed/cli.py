@@ -267,6 +267,15 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_target(args: argparse.Namespace) -> int:
+    from .target import make_target
+
+    path = make_target(Path(args.out), size=args.size, faces=args.faces)
+    names = ", ".join(f"face_{k}.png" for k in range(args.faces))
+    print(f"wrote {names} (print at 100 %), assembly.png and {path}")
+    return 0
+
+
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -295,6 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
     p.add_argument("-o", "--output", default="calib.json", help="calib.json to write (default: %(default)s)")
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("target", help="write a printable 3D calibration target (ChArUco boards for 2 or 3 faces of a box)")
+    p.add_argument("--out", required=True, help="folder for face_<k>.png, assembly.png and target.json")
+    p.add_argument("--size", choices=["A4", "A3", "letter"], default="A4", help="paper size (default: %(default)s)")
+    p.add_argument("--faces", type=int, choices=[2, 3], default=3, help="faces of the box to cover (default: 3)")
+    p.set_defaults(func=_cmd_target)
 
     p = sub.add_parser("match", help="Harris + ZNCC matches between two images, drawn side by side")
     p.add_argument("image1")
