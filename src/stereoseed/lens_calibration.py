@@ -217,7 +217,7 @@ def calibrate_from_target(target: Any, images: list[tuple[str, np.ndarray]], k3:
     the lens is then poorly determined where the target was not)."""
     from .target import detect_target
 
-    detections = [detect_target(image, target, name=name) for name, image in images]
+    detections = [detect_target(image, target, what=name) for name, image in images]
     size = images[0][1].shape[1::-1]
     for name, image in images[1:]:
         if image.shape[1::-1] != size:
