@@ -34,13 +34,11 @@ face squares row-major (row = index along ``FACE_V``, bottom to top, then column
 (min s, min r) corner: ``(s0, r0), (s1, r0), (s1, r1), (s0, r1)``. Square k owns corners
 ``4k .. 4k+3``; squares 0..47 are on the side faces (12 each), 48..56 on the top.
 
-A lens (``SceneConfig.distortion``, OpenCV's model, :mod:`stereoseed.lens`) distorts every image:
-K, R, t, P stay the pinhole cameras and the ray of the stored image's pixel x is that of the
-pinhole pixel ``undistort_pixels(x, K, distortion)``. Every method that takes or returns pixels
-(:meth:`SyntheticScene.project`, ``surface_points``, ``is_visible``, ``true_match``,
-``corner_visibility``, ``calibration_points``, ``write_scene``'s points1/points2) works in the
-pixels of the images as stored, i.e. distorted ones when a lens is set; ``P`` maps to pinhole
-(undistorted) pixels (``stereoseed.lens.undistort_image`` gives the images P explains).
+A lens (``SceneConfig.distortion``, :mod:`stereoseed.lens`) distorts every image; K, R, t, P stay
+the pinhole cameras (``lens.undistort_image`` gives the images P explains). Methods taking or
+returning pixels (``SyntheticScene.project``, ``surface_points``, ``is_visible``, ``true_match``,
+``corner_visibility``, ``calibration_points``, ``write_scene``'s points) use the stored images'
+(distorted) pixels.
 """
 from __future__ import annotations
 
@@ -335,8 +333,8 @@ class SyntheticScene:
     images: list of (H, W, 3) uint8 BGR; P: list of (3, 4) = K [R | t]; K, R: lists of (3, 3);
     t: list of (3,); corners: (228, 3) world coordinates (module docstring: order);
     corner_labels: (228,) face label of each corner; names: "img_000.png", ...
-    K, R, t, P are the pinhole cameras; with a lens (:attr:`distortion`) the images are distorted
-    and pixel-valued methods use the images' (distorted) pixels (module docstring).
+    K, R, t, P: pinhole cameras; with a lens the images and pixel methods are distorted (module
+    docstring).
     """
 
     config: SceneConfig
