@@ -157,9 +157,7 @@ class SceneConfig:
     look_at_height: float = 0.2  # roughly the box centre
     focal0_px: float = 780.0  # camera 0 is another physical camera ...
     principal_offset0_px: tuple[float, float] = (3.5, -2.5)  # ... and an off-centre principal pt
-    # The lens of every image (one physical lens): () none, else OpenCV's (k1, k2, p1, p2[, k3])
-    # on each camera's K (stereoseed.lens). The stored images are distorted; K, R, t stay pinhole.
-    distortion: tuple[float, ...] = ()
+    distortion: tuple[float, ...] = ()  # every image's lens: () or (k1, k2, p1, p2[, k3])
 
     def __post_init__(self) -> None:
         lens_coefficients(self.distortion)  # 0, 4 or 5 finite numbers, else ValueError
