@@ -1,13 +1,18 @@
 """The synthetic box scene: its geometry, its cameras, its rendering and its ground truth."""
 from __future__ import annotations
 
+import hashlib
 import json
+import time
 
 import cv2
 import numpy as np
 import pytest
 
 from stereoseed.camera import camera_center, compose_projection, project
+from stereoseed.edge_corners import _edge_corners
+from stereoseed.image import to_gray
+from stereoseed.lens import distort_pixels, undistort_image, undistort_pixels
 from stereoseed.synthetic import (
     BOX_HALF,
     BOX_HEIGHT,
@@ -370,3 +375,200 @@ def test_write_scene(box_scene, tmp_path):
     np.testing.assert_allclose(np.loadtxt(written["points2"]), p2, atol=1e-6)
     listed = written["images_txt"].read_text().split()
     assert listed == box_scene.names and all((out / name).is_file() for name in listed)
+
+
+# --- a lens ------------------------------------------------------------------------------------
+
+# sha256 of the bytes of render_scene(SceneConfig(n_images=2)).images, computed before lenses
+# existed: without a lens the renderer must not change by a single bit.
+_NO_LENS_SHA256 = "2fd51485aaf0961e96363df18809a5fb82d0bd9218143e74018cdfa8ee1cce3d"
+LENS = (-0.12, 0.03, 0.001, -0.0005)
+
+
+def _sha256(images) -> str:
+    h = hashlib.sha256()
+    for image in images:
+        h.update(np.ascontiguousarray(image).tobytes())
+    return h.hexdigest()
+
+
+def test_no_lens_render_is_bit_identical():
+    scene = render_scene(SceneConfig(n_images=2))
+    assert scene.distortion == () and not scene.has_lens
+    assert _sha256(scene.images) == _NO_LENS_SHA256
+    # All-zero coefficients are no lens either: the pinhole kernel, the same bytes.
+    zero = render_scene(SceneConfig(n_images=2, distortion=(0.0, 0.0, 0.0, 0.0)))
+    assert _sha256(zero.images) == _NO_LENS_SHA256
+
+
+def test_distortion_is_validated():
+    with pytest.raises(ValueError, match="4 or 5"):
+        SceneConfig(distortion=(0.1,))
+
+
+@pytest.fixture(scope="module")
+def plain_pair():
+    """Three plain views without and with the lens (clean square corners)."""
+    return (render_scene(SceneConfig(n_images=3, textured=False)),
+            render_scene(SceneConfig(n_images=3, textured=False, distortion=LENS)))
+
+
+def test_lens_scene_keeps_the_pinhole_cameras(plain_pair):
+    pinhole, lens = plain_pair
+    assert lens.distortion == LENS and lens.has_lens
+    for i in range(3):
+        np.testing.assert_array_equal(lens.P[i], pinhole.P[i])
+        np.testing.assert_array_equal(lens.K[i], pinhole.K[i])
+    X = lens.corners[lens.corner_visibility(0)]
+    np.testing.assert_allclose(lens.project(0, X),
+                               distort_pixels(project(lens.P[0], X), lens.K[0], LENS), atol=1e-12)
+    np.testing.assert_array_equal(pinhole.project(0, X), project(pinhole.P[0], X))
+
+
+def _corner_angles(scene, i):
+    """(228,) interior angle (degrees) of each square corner in image i (distorted pixels)."""
+    sq = scene.project(i, scene.corners).reshape(57, 4, 2)
+    a, b = np.roll(sq, -1, axis=1) - sq, np.roll(sq, 1, axis=1) - sq
+    cos = np.sum(a * b, axis=2) / np.linalg.norm(a, axis=2) / np.linalg.norm(b, axis=2)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1))).ravel()
+
+
+@pytest.mark.parametrize("i", [0, 1, 2])
+def test_lens_corners_land_on_the_rendered_corners(plain_pair, i):
+    """The square corners' distorted pixels are where the rendered corners are (edge-line
+    intersections, stereoseed.edge_corners); their pinhole pixels are not.
+
+    Only corners of 60..120 degrees: at acute ones the two edges' profiles mix and the tool
+    itself is off by up to ~0.9 px (without a lens too). On the others it is good to ~0.1 px
+    (median) and ~0.4 px (worst), with or without the lens.
+    """
+    pinhole, lens = plain_pair
+    for scene in (pinhole, lens):
+        gray = to_gray(scene.images[i])
+        gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+        angle = _corner_angles(scene, i)
+        X = scene.corners[scene.corner_visibility(i) & (angle > 60) & (angle < 120)]
+        truth = scene.project(i, X)
+        found, ok = _edge_corners(gray, gx, gy, truth)
+        assert ok.sum() >= 40
+        err = np.linalg.norm(found[ok] - truth[ok], axis=1)
+        assert np.median(err) < 0.15 and np.percentile(err, 90) < 0.3 and err.max() < 0.5, err
+    # The lens moves these corners by 0.3..1.3 px (the box is near the image centre); the
+    # rendered corners follow the distorted pixels, not the pinhole ones.
+    err_pinhole = np.linalg.norm(found[ok] - project(lens.P[i], X)[ok], axis=1)
+    assert np.median(err_pinhole) > 2 * np.median(err)
+
+
+@pytest.mark.parametrize("i", [0, 2])
+def test_lens_dark_square_centroids_match_distorted_projection(plain_pair, i):
+    """As test_dark_square_centroids_match_projection_subpixel, behind the lens: the coverage
+    centroid of each rendered square is that of the square's outline (densely sampled) projected
+    through the lens, to < 0.1 px."""
+    _, scene = plain_pair
+    grey = _grey(scene.images[i])
+    squares = scene.corners.reshape(57, 4, 3)
+    vis = scene.corner_visibility(i).reshape(57, 4).all(axis=1)
+    s = np.linspace(0.0, 1.0, 40, endpoint=False)[:, None]
+    errors, shifts = [], []
+    for sq in squares[vis]:
+        outline = np.concatenate([a + s * (b - a) for a, b in zip(sq, np.roll(sq, -1, axis=0))])
+        poly = scene.project(i, outline)
+        x, y = poly[:, 0], poly[:, 1]
+        cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+        area = cross.sum() / 2
+        if abs(area) < 150:
+            continue
+        expected = np.array([((x + np.roll(x, -1)) * cross).sum(),
+                             ((y + np.roll(y, -1)) * cross).sum()]) / (6 * area)
+        grown = expected + 1.4 * (poly - expected)
+        mask = np.zeros(grey.shape, np.uint8)
+        cv2.fillPoly(mask, [np.rint(grown).astype(np.int32)], 1)
+        vv, uu = np.nonzero(mask)
+        g = grey[vv, uu]
+        light, dark = np.percentile(g, 95), g.min()
+        w = np.clip((light - g) / (light - dark), 0.0, 1.0)
+        measured = np.array([np.sum(w * uu), np.sum(w * vv)]) / w.sum()
+        errors.append(np.linalg.norm(measured - expected))
+        shifts.append(np.linalg.norm(project(scene.P[i], sq.mean(axis=0)) - expected))
+    assert len(errors) >= 15
+    assert np.max(errors) < 0.1
+    assert np.max(shifts) > 0.5  # the lens did move the squares
+
+
+def test_lens_image_is_the_pinhole_image_distorted(plain_pair, box_scene):
+    _, lens = plain_pair
+    K = lens.K[1]
+    # The frame's corners look ~9-10 px further out (k1 = -0.12, barrel): the world point seen
+    # at the bottom corners of the lens image projects there in the pinhole image.
+    corners = np.array([[0.0, 479.0], [639.0, 479.0]])
+    points, labels = lens.surface_points(1)
+    assert np.all(labels[[479, 479], [0, 639]] >= 0)
+    seen = points[[479, 479], [0, 639]]
+    moved = project(lens.P[1], seen) - corners
+    np.testing.assert_allclose(moved, undistort_pixels(corners, K, LENS) - corners, atol=1e-6)
+    assert np.all((np.linalg.norm(moved, axis=1) > 8.0) & (np.linalg.norm(moved, axis=1) < 13))
+    # Undistorting the (textured) lens image gives back the pinhole render up to resampling.
+    textured = render_scene(SceneConfig(n_images=2, distortion=LENS)).images[1]
+    back = undistort_image(textured, K, LENS)
+    inner = (slice(20, 460), slice(20, 620))
+    diff_back = np.abs(_grey(back) - _grey(box_scene.images[1]))[inner].mean()
+    diff_raw = np.abs(_grey(textured) - _grey(box_scene.images[1]))[inner].mean()
+    assert diff_back < 0.25 * diff_raw, (diff_back, diff_raw)
+
+
+def test_lens_ground_truth_methods_use_distorted_pixels(plain_pair):
+    _, lens = plain_pair
+    # surface_points: the world point at each pixel centre projects back onto it.
+    points, labels = lens.surface_points(0)
+    hit = labels >= 0
+    v, u = np.nonzero(hit)
+    assert np.max(np.abs(lens.project(0, points[hit]) - np.stack([u, v], axis=1))) < 1e-6
+    assert np.all(lens.is_visible(0, points[hit][::53]))
+    # corner_visibility: inside the stored frame by the margin, in distorted pixels.
+    vis = lens.corner_visibility(0)
+    uv = lens.project(0, lens.corners[vis])
+    assert np.all((uv >= 9.5) & (uv <= [640 - 10.5, 480 - 10.5]))
+    # true_match: corners seen in image 0 at their distorted pixels -> distorted pixels in 1.
+    both = vis & lens.corner_visibility(1)
+    x1, ok = lens.true_match(0, 1, lens.project(0, lens.corners[both]))
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(x1[ok], lens.project(1, lens.corners[both])[ok], atol=1e-6)
+    # calibration_points: distorted pixels plus the calibration noise.
+    pattern, p1, p2 = lens.calibration_points()
+    e = np.concatenate([p1 - lens.project(0, pattern), p2 - lens.project(1, pattern)])
+    assert e.std() == pytest.approx(lens.config.calib_noise_px, rel=0.25)
+
+
+def test_is_visible_rejects_points_a_lens_would_fold_into_the_frame():
+    # A strong barrel lens maps far-off-axis directions back into the frame (r_d = r (1 - 0.3
+    # r^2) falls again beyond r ~ 1.05); such points are not seen.
+    scene = render_scene(SceneConfig(n_images=2, width=64, height=48, focal_px=80.0,
+                                     focal0_px=80.0, supersample=1,
+                                     distortion=(-0.3, 0.0, 0.0, 0.0)))
+    K, R, t = scene.K[1], scene.R[1], scene.t[1]
+    xy = np.array([[1.6, 0.0], [0.2, 0.1]])  # normalized, pinhole
+    X = (np.column_stack([xy, np.ones(2)]) * 0.3 - t) @ R  # 0.3 m in front, nothing between
+    uv = scene.project(1, X)
+    assert np.all((uv >= 0) & (uv <= [63, 47]))  # both distorted pixels fall in the frame
+    np.testing.assert_array_equal(scene.is_visible(1, X), [False, True])
+
+
+def test_write_scene_records_the_lens(plain_pair, tmp_path):
+    pinhole, lens = plain_pair
+    doc = json.loads(write_scene(lens, tmp_path / "lens")["cameras"].read_text())
+    assert doc["distortion"] == list(LENS)
+    assert "distortion" not in json.loads(
+        write_scene(pinhole, tmp_path / "pin")["cameras"].read_text())
+
+
+def test_lens_render_time():
+    cfg = SceneConfig(n_images=2, textured=False)
+    lens_cfg = SceneConfig(n_images=2, textured=False, distortion=LENS)
+    times = {False: [], True: []}
+    for _ in range(3):
+        for with_lens, c in ((False, cfg), (True, lens_cfg)):
+            start = time.perf_counter()
+            render_scene(c)
+            times[with_lens].append(time.perf_counter() - start)
+    assert min(times[True]) < 1.5 * min(times[False]), times

@@ -33,6 +33,12 @@ face squares row-major (row = index along ``FACE_V``, bottom to top, then column
 ``FACE_U``); within a square its 4 corners counter-clockwise seen from outside, starting at its
 (min s, min r) corner: ``(s0, r0), (s1, r0), (s1, r1), (s0, r1)``. Square k owns corners
 ``4k .. 4k+3``; squares 0..47 are on the side faces (12 each), 48..56 on the top.
+
+A lens (``SceneConfig.distortion``, :mod:`stereoseed.lens`) distorts every image; K, R, t, P stay
+the pinhole cameras (``lens.undistort_image`` gives the images P explains). Methods taking or
+returning pixels (``SyntheticScene.project``, ``surface_points``, ``is_visible``, ``true_match``,
+``corner_visibility``, ``calibration_points``, ``write_scene``'s points) use the stored images'
+(distorted) pixels.
 """
 from __future__ import annotations
 
@@ -47,7 +53,8 @@ import numpy as np
 
 from .camera import camera_center, compose_projection, depths, project
 from .io import write_image
-from .synthetic_render import _cast_kernel, _render_kernel
+from .lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
+from .synthetic_render import _cast_kernel, _render_kernel, _render_kernel_lens
 
 __all__ = [
     "BOX_HALF",
@@ -150,8 +157,10 @@ class SceneConfig:
     look_at_height: float = 0.2  # roughly the box centre
     focal0_px: float = 780.0  # camera 0 is another physical camera ...
     principal_offset0_px: tuple[float, float] = (3.5, -2.5)  # ... and an off-centre principal pt
+    distortion: tuple[float, ...] = ()  # every image's lens: () or (k1, k2, p1, p2[, k3])
 
     def __post_init__(self) -> None:
+        lens_coefficients(self.distortion)  # 0, 4 or 5 finite numbers, else ValueError
         if self.n_images < 2:
             raise ValueError("n_images must be >= 2 (the stereo pair)")
         if self.supersample < 1:
@@ -322,6 +331,8 @@ class SyntheticScene:
     images: list of (H, W, 3) uint8 BGR; P: list of (3, 4) = K [R | t]; K, R: lists of (3, 3);
     t: list of (3,); corners: (228, 3) world coordinates (module docstring: order);
     corner_labels: (228,) face label of each corner; names: "img_000.png", ...
+    K, R, t, P: pinhole cameras; with a lens the images and pixel methods are distorted (module
+    docstring).
     """
 
     config: SceneConfig
@@ -344,10 +355,30 @@ class SyntheticScene:
         """Camera centres (n_images, 3)."""
         return np.array([camera_center(P) for P in self.P])
 
+    @property
+    def distortion(self) -> tuple[float, ...]:
+        """The lens of every image (``config.distortion``): () or (k1, k2, p1, p2[, k3])."""
+        return tuple(self.config.distortion)
+
+    @property
+    def has_lens(self) -> bool:
+        return bool(np.any(lens_coefficients(self.config.distortion)))
+
+    def project(self, i: int, points: np.ndarray) -> np.ndarray:
+        """Pixels in image i as stored (distorted when a lens is set) of world points (N, 3)
+        -> (N, 2). Without a lens: ``project(P[i], points)``."""
+        uv = project(self.P[i], points)
+        if not self.has_lens:
+            return uv
+        return distort_pixels(uv, self.K[i], self.config.distortion)
+
     def _rays(self, i: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """World ray directions (N, 3) (not normalised; t = 1 at depth 1) through pixels (u, v)."""
+        """World ray directions (N, 3) (not normalised; t = 1 at depth 1) through pixels (u, v)
+        of image i as stored (undistorted first when a lens is set; NaN where no ray exists)."""
         Minv = self.R[i].T @ np.linalg.inv(self.K[i])
         pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+        if self.has_lens:
+            pix[:, :2] = undistort_pixels(pix[:, :2], self.K[i], self.config.distortion)
         return pix @ Minv.T
 
     def surface_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -362,6 +393,7 @@ class SyntheticScene:
             dirs = self._rays(i, u.ravel(), v.ravel())
             C = camera_center(self.P[i])
             t, labels = _cast(C, dirs)
+            labels[~np.all(np.isfinite(dirs), axis=1)] = -1  # beyond a lens's principal branch
             with np.errstate(invalid="ignore"):
                 points = C + t[:, None] * dirs
             points[labels < 0] = np.nan
@@ -377,13 +409,23 @@ class SyntheticScene:
         (image area: ``-0.5 + margin <= u < W - 0.5 - margin``, likewise v), and not occluded:
         the first surface along the ray from the centre is not closer than ``1 - tol`` times the
         point's distance. Points in empty space count as visible if nothing hides them.
+        With a lens the image area is that of the stored (distorted) image, and the point's
+        distorted pixel must undistort back to it (a point far outside the frame that a strong
+        lens would fold back in is not seen).
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         cfg = self.config
-        uv = project(self.P[i], points)
+        pinhole = project(self.P[i], points)
+        uv = pinhole
         with np.errstate(invalid="ignore"):
+            if self.has_lens:
+                uv = distort_pixels(pinhole, self.K[i], cfg.distortion)
+                back = undistort_pixels(uv, self.K[i], cfg.distortion)
+                same = np.all(np.abs(back - pinhole) < 1e-6, axis=1)
+            else:
+                same = True
             inside = (
-                (depths(self.P[i], points) > 0)
+                (depths(self.P[i], points) > 0) & same
                 & (uv[:, 0] >= margin - 0.5) & (uv[:, 0] < cfg.width - 0.5 - margin)
                 & (uv[:, 1] >= margin - 0.5) & (uv[:, 1] < cfg.height - 0.5 - margin)
             )
@@ -399,7 +441,7 @@ class SyntheticScene:
         surfaces (edges, occlusion boundaries) or the background are not evaluated. The world
         point is the intersection of the ray through x with that face's plane (exact, no
         interpolation), kept if camera j sees it. Returns (N, 2) positions and (N,) bool
-        "evaluable".
+        "evaluable". With a lens, x and the positions are distorted pixels (images as stored).
         """
         x = np.asarray(x, np.float64).reshape(-1, 2)
         _, labels = self.surface_points(i)
@@ -418,10 +460,11 @@ class SyntheticScene:
         X = C + t[:, None] * rays
         ok &= np.isfinite(t) & (t > 0)
         ok[ok] &= self.is_visible(j, X[ok])
-        return project(self.P[j], X), ok
+        return self.project(j, X), ok
 
     def corner_visibility(self, i: int, margin: float = 10.0) -> np.ndarray:
-        """(228,) bool: corner's face turned towards camera i, unoccluded, >= margin px inside."""
+        """(228,) bool: corner's face turned towards camera i, unoccluded, >= margin px inside
+        image i as stored (distorted with a lens)."""
         C = camera_center(self.P[i])
         facing = np.einsum("nk,nk->n", FACE_NORMALS[self.corner_labels], C - self.corners) > 0
         return facing & self.is_visible(i, self.corners, margin=margin)
@@ -460,21 +503,29 @@ class SyntheticScene:
         """What a user would measure on the pattern with the stereo pair (images 0 and 1).
 
         Returns pattern (M, 3) corners visible in both images (corner order kept), points1 (M, 2)
-        their pixels in image 0 and points2 (M, 2) in image 1, each with Gaussian noise of
+        their pixels in image 0 and points2 (M, 2) in image 1 (distorted pixels with a lens: what
+        one measures on the stored images), each with Gaussian noise of
         ``config.calib_noise_px`` (seeded; the same call always gives the same numbers).
         """
         both = self.corner_visibility(0) & self.corner_visibility(1)
         pattern = self.corners[both]
         rng = np.random.default_rng([self.config.seed, _STREAM_CALIB])
         sigma = self.config.calib_noise_px
-        points1 = project(self.P[0], pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
-        points2 = project(self.P[1], pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
+        points1 = self.project(0, pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
+        points2 = self.project(1, pattern) + rng.normal(0.0, sigma, size=(len(pattern), 2))
         return pattern, points1, points2
 
 
 def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
-    """Render the ring of views around the box (deterministic: same config, same bytes)."""
+    """Render the ring of views around the box (deterministic: same config, same bytes).
+
+    With ``config.distortion`` each (sub-)sample of a pixel is undistorted through the lens
+    before its ray is cast: the images are the pinhole images, distorted. Without one (or with
+    all-zero coefficients) the pinhole kernel renders, byte for byte as before lenses existed.
+    """
     cfg = config
+    lens = lens_coefficients(cfg.distortion)
+    r2_max = principal_r2(lens)
     Ks, Rs, ts = _cameras(cfg)
     tex_faces, tex_ground = _textures(cfg)
     albedo = _ALBEDO_TEXTURED if cfg.textured else _ALBEDO_PLAIN
@@ -486,13 +537,20 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
         far_ground = albedo[2, 0]
     images, Ps = [], []
     for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
-        Minv = R.T @ np.linalg.inv(K)
-        rgb = _render_kernel(
-            np.ascontiguousarray(Minv), -R.T @ t, cfg.height, cfg.width, cfg.supersample,
+        scene_args = (
+            cfg.height, cfg.width, cfg.supersample,
             BOX_HALF, BOX_HEIGHT, FACE_ORIGIN, FACE_U, FACE_V, _FACE_GRID, SQUARE_SIZE,
             SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
             albedo, _SHADE, tints, _SKY_RGB, far_ground,
         )
+        if np.any(lens):
+            rgb = _render_kernel_lens(
+                np.ascontiguousarray(np.linalg.inv(K)), np.ascontiguousarray(R.T), lens, r2_max,
+                -R.T @ t, *scene_args,
+            )
+        else:
+            Minv = R.T @ np.linalg.inv(K)
+            rgb = _render_kernel(np.ascontiguousarray(Minv), -R.T @ t, *scene_args)
         image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
         if cfg.noise_sigma > 0:
             image = add_noise(image, cfg.noise_sigma, noise_generator(cfg.seed, i))
@@ -509,8 +567,10 @@ def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
     """Write images and ground truth to out_dir (created if missing).
 
     Files: the PNG images (scene.names); ``cameras.json`` {"images": [{"name", "P", "K", "R",
-    "t", "center"}]}; ``corners.txt`` (228 lines "X Y Z"); ``pattern.txt`` (M lines "X Y Z"),
-    ``points1.txt`` / ``points2.txt`` (M lines "u v", images 0 / 1) from calibration_points();
+    "t", "center"}]} (pinhole cameras), plus ``"distortion": [k1, k2, p1, p2(, k3)]`` at the top
+    level when the scene has a lens; ``corners.txt`` (228 lines "X Y Z"); ``pattern.txt`` (M lines
+    "X Y Z"), ``points1.txt`` / ``points2.txt`` (M lines "u v", images 0 / 1) from
+    calibration_points() (distorted pixels with a lens);
     ``images.txt`` (image paths relative to out_dir, in order).
     Returns {"images": [Path, ...], "cameras", "corners", "pattern", "points1", "points2",
     "images_txt": Path}.
@@ -526,7 +586,10 @@ def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
         for name, P, K, R, t in zip(scene.names, scene.P, scene.K, scene.R, scene.t)
     ]
     written["cameras"] = out / "cameras.json"
-    written["cameras"].write_text(json.dumps({"images": cams}, indent=1))
+    cameras_doc: dict = {"images": cams}
+    if scene.has_lens:
+        cameras_doc["distortion"] = [float(c) for c in scene.distortion]
+    written["cameras"].write_text(json.dumps(cameras_doc, indent=1))
     pattern, points1, points2 = scene.calibration_points()
     for key, array, fmt in (("corners", scene.corners, "%.10f"), ("pattern", pattern, "%.10f"),
                             ("points1", points1, "%.6f"), ("points2", points2, "%.6f")):
