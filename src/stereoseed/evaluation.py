@@ -113,6 +113,8 @@ class TrueCorrespondences:
         vis = self.scene.is_visible(index, self.points, margin=8.0)
         ids = np.flatnonzero(vis)
         rng = np.random.default_rng([self.seed, index])
+        # pinhole pixels: with a lens scene these are the pixels of the undistorted images the
+        # pipeline works on (it undistorts what it reads)
         xy = project(self.scene.P[index], self.points[ids]) + rng.normal(0, self._noise, (len(ids), 2))
         self._ids[index] = ids
         n = len(ids)
