@@ -1,0 +1,109 @@
+"""End to end: print the target, photograph it through a lens (rendered), calibrate from the
+photos, reconstruct a ring seen through the same lens (issue 20)."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from stereoseed.camera import camera_center
+from stereoseed.cli import main
+from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic_target import render_target
+from stereoseed.target import make_target
+
+LENS = (-0.12, 0.03, 0.001, -0.0005)
+TARGET_AT = np.array([0.0, 0.0, 420.0])  # mm: the target's corner at the box's height
+
+
+def _look_at(centre, at):
+    z = (at - centre) / np.linalg.norm(at - centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory):
+    """The target (A3) and, for each camera of a ring's pair at 1 m, its photo of the target
+    and two more views for the lens; the ring itself rendered through the same lens."""
+    folder = tmp_path_factory.mktemp("calib")
+    target = make_target(folder / "target", "A3", 3)
+    scene = render_scene(SceneConfig(n_images=5, focal_jitter=0.0, distance=1.0, distortion=LENS))
+    files = {}
+    for cam in (0, 1):
+        K, R = scene.K[cam], scene.R[cam]
+        t = scene.t[cam] * 1000.0 + R @ TARGET_AT
+        views = [(R, t)] + [_look_at(np.array([750 * np.cos(a), 750 * np.sin(a), 450.0]),
+                                     np.array([-140.0 + dx, -140.0 - dx, -170.0]))
+                            for a, dx in ((np.radians(20 + 40 * cam), 130.0), (np.radians(40 + 40 * cam), -130.0))]
+        files[cam] = []
+        for k, (Rv, tv) in enumerate(views):
+            path = folder / f"cam{cam}_{k}.png"
+            cv2.imwrite(str(path), render_target(target, K, Rv, tv, distortion=LENS))
+            files[cam].append(path)
+    return folder, target, scene, files
+
+
+def test_calibrate_from_photos_of_the_target(photos, capsys):
+    folder, target, scene, files = photos
+    out = folder / "calib.json"
+    code = main(["calibrate", "--target", str(target), str(files[0][0]), str(files[1][0]),
+                 "--lens-images1", *map(str, files[0][1:]), "--lens-images2", *map(str, files[1][1:]), "-o", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0 and "face 0" in printed and "RMS" in printed
+    cams = json.loads(out.read_text())["cameras"]
+    for cam, entry in enumerate(cams):
+        C_true = camera_center(scene.P[cam]) * 1000.0 - TARGET_AT  # in the target's frame, mm
+        assert np.linalg.norm(camera_center(np.array(entry["P"])) - C_true) < 0.01 * np.linalg.norm(C_true)
+        np.testing.assert_allclose(entry["distortion"][0], LENS[0], atol=0.01)
+        assert entry["image_size"] == [640, 480] and entry["lens_views"] == 3 and entry["rms_px"] < 0.1
+    for cam in (0, 1):  # a check image per photo
+        assert all((folder / f"calib_{p.stem}.png").is_file() for p in files[cam])
+
+
+def test_a_ring_through_the_lens_is_reconstructed_with_the_calibrated_distortion(photos, tmp_path, capsys):
+    folder, target, scene, files = photos
+    main(["calibrate", "--target", str(target), str(files[0][0]), str(files[1][0]), "--lens-images1",
+          *map(str, files[0][1:]), "--lens-images2", *map(str, files[1][1:]), "-o", str(tmp_path / "calib.json")])
+    # calib.json is in the target's frame (mm): the ring's images are in the scene's (m)
+    paths = write_scene(scene, tmp_path / "ring")
+    calib = json.loads((tmp_path / "calib.json").read_text())
+    to_target = np.eye(4)
+    to_target[:3, :3] *= 1000.0
+    to_target[:3, 3] = -TARGET_AT
+    for cam in calib["cameras"]:
+        cam["P"] = (np.array(cam["P"]) @ to_target).tolist()
+    (tmp_path / "calib_m.json").write_text(json.dumps(calib))
+    code = main(["reconstruct", str(paths["images_txt"]), "--calib", str(tmp_path / "calib_m.json"),
+                 "--out", str(tmp_path / "o"), "--quiet"])
+    assert code == 0
+    out = json.loads((tmp_path / "o" / "cameras.json").read_text())["images"]
+    assert all(im["registered"] for im in out)
+    np.testing.assert_allclose(out[3]["distortion"][:4], LENS, atol=0.02)
+    errors = [np.linalg.norm(np.array(im["center"]) - camera_center(P)) for im, P in zip(out[2:], scene.P[2:])]
+    assert max(errors) < 0.002, errors  # measured on the 12-image ring: 0.019 cm (no lens: 0.014 cm)
+
+
+def test_photos_without_the_target_or_of_another_size_are_one_line(photos, tmp_path, capsys):
+    folder, target, scene, files = photos
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((480, 640, 3), 120, np.uint8))
+    code = main(["calibrate", "--target", str(target), str(blank), str(files[1][0]), "-o", str(tmp_path / "c.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "no calibration target found" in err and err.count("\n") == 1
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), cv2.resize(cv2.imread(str(files[0][1])), (800, 600)))
+    code = main(["calibrate", "--target", str(target), str(files[0][0]), str(files[1][0]), "--lens-images1", str(big),
+                 "-o", str(tmp_path / "c.json")])
+    assert code == 2 and "same camera" in capsys.readouterr().err
+    # a calibration with a lens for 640x480 images refuses an 800x600 image of the sequence
+    main(["calibrate", "--target", str(target), str(files[0][0]), str(files[1][0]), "-o", str(tmp_path / "c.json")])
+    capsys.readouterr()
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{files[0][0]}\n{files[1][0]}\n{big}\n")
+    code = main(["reconstruct", str(listing), "--calib", str(tmp_path / "c.json"), "--out", str(tmp_path / "o"),
+                 "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "800x600" in err and "lens" in err
