@@ -30,6 +30,26 @@ from stereoseed.synthetic import (
 )
 
 
+def _dark_square_centroid(grey, poly):
+    """(expected, measured) centroid (2,) of a dark square whose outline projects to ``poly``
+    (K, 2): the polygon's centroid, and the darkness-weighted centroid of the image inside the
+    polygon grown by 40 % around it (which stays within the gaps); None for a tiny square."""
+    x, y = poly[:, 0], poly[:, 1]
+    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+    area = cross.sum() / 2
+    if abs(area) < 150:
+        return None
+    expected = np.array([((x + np.roll(x, -1)) * cross).sum(), ((y + np.roll(y, -1)) * cross).sum()]) / (6 * area)
+    grown = expected + 1.4 * (poly - expected)
+    mask = np.zeros(grey.shape, np.uint8)
+    cv2.fillPoly(mask, [np.rint(grown).astype(np.int32)], 1)
+    vv, uu = np.nonzero(mask)
+    g = grey[vv, uu]
+    light, dark = np.percentile(g, 95), g.min()
+    w = np.clip((light - g) / (light - dark), 0.0, 1.0)
+    return expected, np.array([np.sum(w * uu), np.sum(w * vv)]) / w.sum()
+
+
 def _grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64)
 
@@ -170,24 +190,9 @@ def test_dark_square_centroids_match_projection_subpixel(plain_box_scene, i):
     vis = scene.corner_visibility(i).reshape(57, 4).all(axis=1)
     errors = []
     for sq in squares[vis]:
-        poly = project(P, sq)
-        x, y = poly[:, 0], poly[:, 1]
-        cross = x * np.roll(y, -1) - np.roll(x, -1) * y
-        area = cross.sum() / 2
-        if abs(area) < 150:
-            continue
-        expected = np.array([((x + np.roll(x, -1)) * cross).sum(),
-                             ((y + np.roll(y, -1)) * cross).sum()]) / (6 * area)
-        # Region: the quadrilateral grown by 40 % around its centre, which stays within the gaps.
-        grown = expected + 1.4 * (poly - expected)
-        mask = np.zeros(grey.shape, np.uint8)
-        cv2.fillPoly(mask, [np.rint(grown).astype(np.int32)], 1)
-        vv, uu = np.nonzero(mask)
-        g = grey[vv, uu]
-        light, dark = np.percentile(g, 95), g.min()
-        w = np.clip((light - g) / (light - dark), 0.0, 1.0)
-        measured = np.array([np.sum(w * uu), np.sum(w * vv)]) / w.sum()
-        errors.append(np.linalg.norm(measured - expected))
+        found = _dark_square_centroid(grey, project(P, sq))
+        if found is not None:
+            errors.append(np.linalg.norm(found[1] - found[0]))
     assert len(errors) >= 15
     assert np.max(errors) < 0.1
 
@@ -473,22 +478,10 @@ def test_lens_dark_square_centroids_match_distorted_projection(plain_pair, i):
     errors, shifts = [], []
     for sq in squares[vis]:
         outline = np.concatenate([a + s * (b - a) for a, b in zip(sq, np.roll(sq, -1, axis=0))])
-        poly = scene.project(i, outline)
-        x, y = poly[:, 0], poly[:, 1]
-        cross = x * np.roll(y, -1) - np.roll(x, -1) * y
-        area = cross.sum() / 2
-        if abs(area) < 150:
+        found = _dark_square_centroid(grey, scene.project(i, outline))
+        if found is None:
             continue
-        expected = np.array([((x + np.roll(x, -1)) * cross).sum(),
-                             ((y + np.roll(y, -1)) * cross).sum()]) / (6 * area)
-        grown = expected + 1.4 * (poly - expected)
-        mask = np.zeros(grey.shape, np.uint8)
-        cv2.fillPoly(mask, [np.rint(grown).astype(np.int32)], 1)
-        vv, uu = np.nonzero(mask)
-        g = grey[vv, uu]
-        light, dark = np.percentile(g, 95), g.min()
-        w = np.clip((light - g) / (light - dark), 0.0, 1.0)
-        measured = np.array([np.sum(w * uu), np.sum(w * vv)]) / w.sum()
+        expected, measured = found
         errors.append(np.linalg.norm(measured - expected))
         shifts.append(np.linalg.norm(project(scene.P[i], sq.mean(axis=0)) - expected))
     assert len(errors) >= 15
@@ -546,7 +539,7 @@ def test_is_visible_rejects_points_a_lens_would_fold_into_the_frame():
     scene = render_scene(SceneConfig(n_images=2, width=64, height=48, focal_px=80.0,
                                      focal0_px=80.0, supersample=1,
                                      distortion=(-0.3, 0.0, 0.0, 0.0)))
-    K, R, t = scene.K[1], scene.R[1], scene.t[1]
+    R, t = scene.R[1], scene.t[1]
     xy = np.array([[1.6, 0.0], [0.2, 0.1]])  # normalized, pinhole
     X = (np.column_stack([xy, np.ones(2)]) * 0.3 - t) @ R  # 0.3 m in front, nothing between
     uv = scene.project(1, X)

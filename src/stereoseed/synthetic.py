@@ -54,7 +54,7 @@ import numpy as np
 from .camera import camera_center, compose_projection, depths, project
 from .io import write_image
 from .lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
-from .synthetic_render import _cast_kernel, _render_kernel, _render_kernel_lens
+from .synthetic_render import _cast_kernel, _render_kernel
 
 __all__ = [
     "BOX_HALF",
@@ -543,14 +543,9 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
             SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
             albedo, _SHADE, tints, _SKY_RGB, far_ground,
         )
-        if np.any(lens):
-            rgb = _render_kernel_lens(
-                np.ascontiguousarray(np.linalg.inv(K)), np.ascontiguousarray(R.T), lens, r2_max,
-                -R.T @ t, *scene_args,
-            )
-        else:
-            Minv = R.T @ np.linalg.inv(K)
-            rgb = _render_kernel(np.ascontiguousarray(Minv), -R.T @ t, *scene_args)
+        rgb = _render_kernel(np.ascontiguousarray(R.T @ np.linalg.inv(K)), np.ascontiguousarray(np.linalg.inv(K)),
+                             np.ascontiguousarray(R.T), bool(np.any(lens)), np.asarray(lens, np.float64),
+                             float(r2_max), -R.T @ t, *scene_args)
         image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
         if cfg.noise_sigma > 0:
             image = add_noise(image, cfg.noise_sigma, noise_generator(cfg.seed, i))

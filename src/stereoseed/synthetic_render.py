@@ -113,60 +113,57 @@ def _shade_sample(ox, oy, oz, dx, dy, dz, half, height, face_o, face_u, face_v, 
     return a * tints[tint, 0], a * tints[tint, 1], a * tints[tint, 2]
 
 
-@njit(parallel=True, cache=True)
-def _render_kernel(Minv, C, height_px, width_px, ss, half, height, face_o, face_u, face_v, grid,
-                   sq_size, sq_gap, tex_faces, face_texel, tex_ground, ground_texel, ground_radius,
-                   albedo, shade, tints, sky, far_ground):
-    """Box-filtered supersampled render. Minv = R^T K^-1 (3, 3), C (3,) -> (H, W, 3) linear RGB."""
-    out = np.empty((height_px, width_px, 3), dtype=np.float64)
-    inv = 1.0 / (ss * ss)
-    for v in prange(height_px):
-        for u in range(width_px):
-            acc_r = 0.0
-            acc_g = 0.0
-            acc_b = 0.0
-            for j in range(ss):
-                vs = v + (j + 0.5) / ss - 0.5
-                for i in range(ss):
-                    us = u + (i + 0.5) / ss - 0.5
-                    dx = Minv[0, 0] * us + Minv[0, 1] * vs + Minv[0, 2]
-                    dy = Minv[1, 0] * us + Minv[1, 1] * vs + Minv[1, 2]
-                    dz = Minv[2, 0] * us + Minv[2, 1] * vs + Minv[2, 2]
-                    r, g, b = _shade_sample(C[0], C[1], C[2], dx, dy, dz, half, height, face_o,
-                                            face_u, face_v, grid, sq_size, sq_gap, tex_faces,
-                                            face_texel, tex_ground, ground_texel, ground_radius,
-                                            albedo, shade, tints, sky, far_ground)
-                    acc_r += r
-                    acc_g += g
-                    acc_b += b
-            out[v, u, 0] = acc_r * inv
-            out[v, u, 1] = acc_g * inv
-            out[v, u, 2] = acc_b * inv
-    return out
-
-
-@njit(parallel=True, cache=True)
-def _render_kernel_lens(Kinv, Rt, lens, r2_max, C, height_px, width_px, ss, half, height, face_o,
-                        face_u, face_v, grid, sq_size, sq_gap, tex_faces, face_texel, tex_ground,
-                        ground_texel, ground_radius, albedo, shade, tints, sky, far_ground):
-    """:func:`_render_kernel` behind a lens: each sub-sample's (distorted) pixel is undistorted
-    (Newton, :mod:`stereoseed.lens`) before its ray is cast, so the image is the pinhole image
-    distorted. Kinv = K^-1, Rt = R^T (3, 3); lens (5,) = (k1, k2, p1, p2, k3); r2_max from
-    :func:`stereoseed.lens.principal_r2` (a sample with no principal-branch ray shows the sky).
-    The pixel centre is undistorted first; its sub-samples start from its linearisation, which
-    leaves one Newton step to each."""
-    out = np.empty((height_px, width_px, 3), dtype=np.float64)
-    inv = 1.0 / (ss * ss)
+@njit(cache=True)
+def _sample_ray(us, vs, Minv, Kinv, Rt, has_lens, lens, r2_max, centre_ok, xdc, ydc, xc, yc, jxx, jxy, jyy, det):
+    """World direction (dx, dy, dz) of the ray through sub-pixel (us, vs), and whether it exists.
+    Pinhole: Minv (us, vs, 1). Behind a lens: the (distorted) sub-pixel is undistorted (Newton,
+    :mod:`stereoseed.lens`) before R^T is applied, started from the linearisation at the pixel
+    centre (xdc, ydc) -> (xc, yc) with Jacobian (jxx, jxy, jyy) when ``centre_ok``."""
+    if not has_lens:
+        dx = Minv[0, 0] * us + Minv[0, 1] * vs + Minv[0, 2]
+        dy = Minv[1, 0] * us + Minv[1, 1] * vs + Minv[1, 2]
+        dz = Minv[2, 0] * us + Minv[2, 1] * vs + Minv[2, 2]
+        return dx, dy, dz, True
     k1, k2, p1, p2, k3 = lens[0], lens[1], lens[2], lens[3], lens[4]
+    xd = Kinv[0, 0] * us + Kinv[0, 1] * vs + Kinv[0, 2]
+    yd = Kinv[1, 0] * us + Kinv[1, 1] * vs + Kinv[1, 2]
+    if centre_ok:
+        ex = xd - xdc
+        ey = yd - ydc
+        x, y, ok = undistort_point_from(xd, yd, xc + (jyy * ex - jxy * ey) / det, yc + (jxx * ey - jxy * ex) / det,
+                                        k1, k2, p1, p2, k3, r2_max, 20)
+    else:
+        x, y, ok = undistort_point(xd, yd, k1, k2, p1, p2, k3, r2_max, 20)
+    dx = Rt[0, 0] * x + Rt[0, 1] * y + Rt[0, 2]
+    dy = Rt[1, 0] * x + Rt[1, 1] * y + Rt[1, 2]
+    dz = Rt[2, 0] * x + Rt[2, 1] * y + Rt[2, 2]
+    return dx, dy, dz, ok
+
+
+@njit(parallel=True, cache=True)
+def _render_kernel(Minv, Kinv, Rt, has_lens, lens, r2_max, C, height_px, width_px, ss, half, height, face_o,
+                   face_u, face_v, grid, sq_size, sq_gap, tex_faces, face_texel, tex_ground, ground_texel,
+                   ground_radius, albedo, shade, tints, sky, far_ground):
+    """Box-filtered supersampled render -> (H, W, 3) linear RGB. Minv = R^T K^-1 (3, 3), C (3,).
+    Behind a lens (``has_lens``; Kinv = K^-1, Rt = R^T, lens (5,) = (k1, k2, p1, p2, k3), r2_max
+    from :func:`stereoseed.lens.principal_r2`) each sub-sample's pixel is undistorted before its
+    ray is cast, so the image is the pinhole image distorted; a sample without a principal-branch
+    ray shows the sky. The pixel centre is undistorted first; its sub-samples start from its
+    linearisation, which leaves one Newton step to each."""
+    out = np.empty((height_px, width_px, 3), dtype=np.float64)
+    inv = 1.0 / (ss * ss)
     for v in prange(height_px):
         for u in range(width_px):
-            xdc = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
-            ydc = Kinv[1, 0] * u + Kinv[1, 1] * v + Kinv[1, 2]
-            xc, yc, centre_ok = undistort_point(xdc, ydc, k1, k2, p1, p2, k3, r2_max, 20)
-            if centre_ok:
-                jxx, jxy, jyy = lens_jacobian(xc, yc, k1, k2, p1, p2, k3)
-                det = jxx * jyy - jxy * jxy
-                centre_ok = abs(det) > 1e-12
+            xdc = ydc = xc = yc = jxx = jxy = jyy = det = 0.0
+            centre_ok = False
+            if has_lens:
+                xdc = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
+                ydc = Kinv[1, 0] * u + Kinv[1, 1] * v + Kinv[1, 2]
+                xc, yc, centre_ok = undistort_point(xdc, ydc, lens[0], lens[1], lens[2], lens[3], lens[4], r2_max, 20)
+                if centre_ok:
+                    jxx, jxy, jyy = lens_jacobian(xc, yc, lens[0], lens[1], lens[2], lens[3], lens[4])
+                    det = jxx * jyy - jxy * jxy
+                    centre_ok = abs(det) > 1e-12
             acc_r = 0.0
             acc_g = 0.0
             acc_b = 0.0
@@ -174,24 +171,13 @@ def _render_kernel_lens(Kinv, Rt, lens, r2_max, C, height_px, width_px, ss, half
                 vs = v + (j + 0.5) / ss - 0.5
                 for i in range(ss):
                     us = u + (i + 0.5) / ss - 0.5
-                    xd = Kinv[0, 0] * us + Kinv[0, 1] * vs + Kinv[0, 2]
-                    yd = Kinv[1, 0] * us + Kinv[1, 1] * vs + Kinv[1, 2]
-                    if centre_ok:
-                        ex = xd - xdc
-                        ey = yd - ydc
-                        x, y, ok = undistort_point_from(
-                            xd, yd, xc + (jyy * ex - jxy * ey) / det,
-                            yc + (jxx * ey - jxy * ex) / det, k1, k2, p1, p2, k3, r2_max, 20)
-                    else:
-                        x, y, ok = undistort_point(xd, yd, k1, k2, p1, p2, k3, r2_max, 20)
+                    dx, dy, dz, ok = _sample_ray(us, vs, Minv, Kinv, Rt, has_lens, lens, r2_max, centre_ok,
+                                                 xdc, ydc, xc, yc, jxx, jxy, jyy, det)
                     if not ok:
                         acc_r += sky[0]
                         acc_g += sky[1]
                         acc_b += sky[2]
                         continue
-                    dx = Rt[0, 0] * x + Rt[0, 1] * y + Rt[0, 2]
-                    dy = Rt[1, 0] * x + Rt[1, 1] * y + Rt[1, 2]
-                    dz = Rt[2, 0] * x + Rt[2, 1] * y + Rt[2, 2]
                     r, g, b = _shade_sample(C[0], C[1], C[2], dx, dy, dz, half, height, face_o,
                                             face_u, face_v, grid, sq_size, sq_gap, tex_faces,
                                             face_texel, tex_ground, ground_texel, ground_radius,
