@@ -106,14 +106,24 @@ def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
     return cameras, images, warnings
 
 
+def _observations_by_point(result: Result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The observations grouped by point: (starts (P + 1,): point p's are rows starts[p] to
+    starts[p + 1]; image (O,), keypoint (O,), xy (O, 2) in our pixel convention)."""
+    tr = result.tracks
+    order = np.argsort(tr["obs_point"], kind="stable")
+    image, keypoint = tr["obs_image"][order], tr["obs_keypoint"][order]
+    xy = tr["keypoints_xy"][tr["keypoints_offset"][image] + keypoint]
+    starts = np.zeros(len(tr["point_xyz"]) + 1, np.int64)
+    np.cumsum(np.bincount(tr["obs_point"], minlength=len(tr["point_xyz"])), out=starts[1:])
+    return starts, image, keypoint, xy
+
+
 def _tracks_by_point(result: Result) -> list[np.ndarray]:
     """Per point, its track (T, 2): (COLMAP image id, 2D point index)."""
-    tr = result.tracks
     image_id = np.zeros(len(result.names), np.int64)
     image_id[result.registered] = np.arange(1, len(result.registered) + 1)
-    order = np.argsort(tr["obs_point"], kind="stable")
-    pairs = np.stack([image_id[tr["obs_image"][order]], tr["obs_keypoint"][order]], axis=1)
-    return np.split(pairs, np.cumsum(np.bincount(tr["obs_point"], minlength=len(tr["point_xyz"])))[:-1])
+    starts, image, keypoint, _ = _observations_by_point(result)
+    return np.split(np.stack([image_id[image], keypoint], axis=1), starts[1:-1])
 
 
 def write_colmap(result: Result, out_dir: str | Path, binary: bool = False) -> list[str]:
@@ -124,9 +134,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False) -> l
     tr = result.tracks
     tracks = _tracks_by_point(result)
     (_write_colmap_binary if binary else _write_colmap_text)(out, cameras, images, tr, tracks)
-    for w in warnings:
-        log.info("%s", w)
-    return warnings
+    return _logged(warnings)
 
 
 def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
@@ -174,76 +182,71 @@ def _write_colmap_binary(out: Path, cameras, images, tr, tracks) -> None:
     write("points3D.bin", chunks)
 
 
+def _single_focal_cameras(result: Result, fmt: str) -> tuple[dict[int, tuple], list[str]]:
+    """Per registered image, (one focal length: the mean of fx and fy, R, t, principal point
+    (2,)) for a format with one focal length and no skew; a warning for each image where that
+    moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
+    cams, warnings = {}, []
+    for i in result.registered:
+        K, R, t = decompose_projection(result.P[i])
+        moved = _moved_px(K, result.sizes[i], one_focal=True)
+        if moved > MAX_APPROXIMATION_PX:
+            warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "
+                            f"(pixels move by up to {moved:.2f} px)")
+        cams[i] = (0.5 * (K[0, 0] + K[1, 1]), R, t, K[:2, 2])
+    return cams, warnings
+
+
+def _measurements(result: Result, cams: dict[int, tuple], y_up: bool) -> list[str]:
+    """Per point, its measurements "camera keypoint dx dy", relative to each camera's principal
+    point (y up for Bundler), the cameras numbered in registration order."""
+    index = {i: n for n, i in enumerate(result.registered)}
+    starts, image, keypoint, xy = _observations_by_point(result)
+    return [" ".join(f"{index[i]} {k} {_num(x - cams[i][3][0])} "
+                     f"{_num(cams[i][3][1] - y if y_up else y - cams[i][3][1])}"
+                     for i, k, (x, y) in zip(image[a:b].tolist(), keypoint[a:b].tolist(), xy[a:b].tolist()))
+            for a, b in zip(starts[:-1], starts[1:])]
+
+
 def write_nvm(result: Result, path: str | Path) -> list[str]:
     """VisualSFM's NVM_V3: one focal length per camera (the mean of fx, fy), the principal
     point assumed at the measurement origin, so measurements are written relative to each
     camera's principal point. Returns the warnings."""
-    tr, warnings = result.tracks, []
-    index = {i: n for n, i in enumerate(result.registered)}
-    lines = ["NVM_V3", "", str(len(index))]
-    for i in result.registered:
-        K, R, t = _one_focal_camera(result, i, "NVM", warnings)
-        x, y, z, w = Rotation.from_matrix(R).as_quat()
-        C = -R.T @ t
-        lines.append(f"{result.names[i]} {_num(0.5 * (K[0, 0] + K[1, 1]))} " + " ".join(
-            repr(float(v)) for v in (w, x, y, z, *C)) + " 0 0")
-    lines.append(str(len(tr["point_xyz"])))
-    principal = {i: decompose_projection(result.P[i])[0][:2, 2] for i in result.registered}
-    for p, track in enumerate(_tracks_by_image_index(result)):
-        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
-        meas = " ".join(f"{index[i]} {k} {_num(x - principal[i][0])} {_num(y - principal[i][1])}"
-                        for i, k, x, y in track)
-        lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {len(track)} {meas}")
-    write_text(path, "\n".join(lines) + "\n")
-    for w in warnings:
-        log.info("%s", w)
-    return warnings
-
-
-def _one_focal_camera(result: Result, i: int, fmt: str, warnings: list[str]) -> tuple[np.ndarray, ...]:
-    """K, R, t of image i for a format with one focal length and no skew (the caller writes the
-    mean of fx and fy); a warning is added when that moves a pixel by more than
-    ``MAX_APPROXIMATION_PX``."""
-    K, R, t = decompose_projection(result.P[i])
-    moved = _moved_px(K, result.sizes[i], one_focal=True)
-    if moved > MAX_APPROXIMATION_PX:
-        warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "
-                        f"(pixels move by up to {moved:.2f} px)")
-    return K, R, t
-
-
-def _tracks_by_image_index(result: Result) -> list[list[tuple[int, int, float, float]]]:
-    """Per point: [(image index, keypoint index, x, y)] in our pixel convention."""
     tr = result.tracks
-    off = tr["keypoints_offset"]
-    out: list[list] = [[] for _ in range(len(tr["point_xyz"]))]
-    for p, i, k in zip(tr["obs_point"].tolist(), tr["obs_image"].tolist(), tr["obs_keypoint"].tolist()):
-        x, y = tr["keypoints_xy"][off[i] + k]
-        out[p].append((i, k, float(x), float(y)))
-    return out
+    cams, warnings = _single_focal_cameras(result, "NVM")
+    lines = ["NVM_V3", "", str(len(cams))]
+    for i, (f, R, t, _) in cams.items():
+        x, y, z, w = Rotation.from_matrix(R).as_quat()
+        lines.append(f"{result.names[i]} {_num(f)} " + " ".join(_num(v) for v in (w, x, y, z, *(-R.T @ t))) + " 0 0")
+    lines.append(str(len(tr["point_xyz"])))
+    counts = np.diff(_observations_by_point(result)[0])
+    for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=False)):
+        lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {n} {meas}")
+    write_text(path, "\n".join(lines) + "\n")
+    return _logged(warnings)
 
 
 def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
     """Bundler's bundle.out (v0.3) and list.txt: cameras look down -z with y up, measurements
     relative to the principal point with y up. Returns the warnings."""
-    out, tr, warnings = Path(out_dir), result.tracks, []
-    index = {i: n for n, i in enumerate(result.registered)}
+    out, tr = Path(out_dir), result.tracks
+    cams, warnings = _single_focal_cameras(result, "Bundler")
     flip = np.diag([1.0, -1.0, -1.0])
-    lines = ["# Bundle file v0.3", f"{len(index)} {len(tr['point_xyz'])}"]
-    principal = {}
-    for i in result.registered:
-        K, R, t = _one_focal_camera(result, i, "Bundler", warnings)
-        principal[i] = K[:2, 2]
-        lines.append(f"{_num(0.5 * (K[0, 0] + K[1, 1]))} 0 0")
-        lines += [" ".join(repr(float(v)) for v in row) for row in flip @ R]
-        lines.append(" ".join(repr(float(v)) for v in flip @ t))
-    for p, track in enumerate(_tracks_by_image_index(result)):
-        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
-        lines += [" ".join(repr(float(v)) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}",
-                  f"{len(track)} " + " ".join(f"{index[i]} {k} {_num(x - principal[i][0])} {_num(principal[i][1] - y)}"
-                                              for i, k, x, y in track)]
+    lines = ["# Bundle file v0.3", f"{len(cams)} {len(tr['point_xyz'])}"]
+    for f, R, t, _ in cams.values():
+        lines.append(f"{_num(f)} 0 0")
+        lines += [" ".join(_num(v) for v in row) for row in flip @ R]
+        lines.append(" ".join(_num(v) for v in flip @ t))
+    counts = np.diff(_observations_by_point(result)[0])
+    for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=True)):
+        lines += [" ".join(_num(v) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}", f"{n} {meas}"]
     write_text(out / "bundle.out", "\n".join(lines) + "\n")
     write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
+    return _logged(warnings)
+
+
+def _logged(warnings: list[str]) -> list[str]:
+    """The warnings, also logged (the CLI prints what it gets back)."""
     for w in warnings:
         log.info("%s", w)
     return warnings
