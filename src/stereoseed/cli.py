@@ -186,20 +186,16 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     results.check()  # before any work: never clobber what the user made
     images, names, P_pair = load_sequence(args.images, args.calib)
     staging = results.open(keep=args.resume)
-    bar = None if args.quiet else tqdm(total=len(images), unit="image", file=sys.stderr)
+    bar = tqdm(total=len(images), unit="image", file=sys.stderr, disable=args.quiet)
 
     def progress(done: int, total: int, message: str) -> None:
-        if bar is not None:
-            bar.n = done
-            bar.set_postfix_str(message[:40])
-            bar.refresh()
+        bar.n = done
+        bar.set_postfix_str(message[:40])
 
     try:
-        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress, checkpoint=staging / CHECKPOINT,
-                                    resume=args.resume)
-        if bar is not None:
-            bar.close()
-            bar = None
+        with bar:
+            recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
+                                        checkpoint=staging / CHECKPOINT, resume=args.resume)
         if args.dense:
             from .dense import densify
 
@@ -211,9 +207,6 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     except BaseException:
         results.abandon()
         raise
-    finally:
-        if bar is not None:
-            bar.close()
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         print(f"resumed after {len(report['resumed_images'])} images already placed")

@@ -25,9 +25,9 @@ from .errors import StereoseedError
 from .matching.containers import Matches
 from .modes import mode_of
 from .reconstruction import Reconstruction, View
-from .refinement import SKIPPED, adjust, drop_outliers
-from .registration import MOTION_PRIOR, Registration, RegistrationFailure, register_view
-from .tracks import colors_at, new_points_three_view, triangulate_matches
+from .refinement import adjust, ba_report, drop_outliers
+from .registration import MOTION_PRIOR, Registration, RegistrationFailure, chained_points, register_view
+from .tracks import add_two_view_points, new_points_three_view
 
 __all__ = ["initialise", "insert_view", "finish"]
 
@@ -71,14 +71,10 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     _check_pair(recon, cfg)
     m = _match_known(recon, 0, 1)
     _refine(recon, 0, 1, m)
-    X, kept = triangulate_matches(recon, 0, 1, m, cfg)
-    if len(X) < cfg.resection.min_inliers:
-        raise StereoseedError(f"{names[0]}, {names[1]}: only {len(X)} points triangulated from the calibrated pair "
+    ids = add_two_view_points(recon, 0, 1, m, cfg, colour_view=0)
+    if len(ids) < cfg.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
+        raise StereoseedError(f"{names[0]}, {names[1]}: only {len(ids)} points triangulated from the calibrated pair "
                               f"({len(m)} matches); check the calibration belongs to these two images")
-    first = recon.views[0]
-    ids = recon.add_points(X, colors_at(first.image, first.features.points[kept.idx1]))
-    recon.add_observations(0, kept.idx1, ids)
-    recon.add_observations(1, kept.idx2, ids)
     return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
                    "seconds": {"total": time.perf_counter() - t0}}
 
@@ -152,7 +148,6 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     mode = mode_of(cfg)
     view = recon.views[k]
     prev = recon.registered_before(k, 1)[0]
-    vp = recon.views[prev]
     _commit(view, reg)
     report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
                               "registered_by": reg.found_by}
@@ -171,8 +166,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     t = time.perf_counter()
     m = _match_known(recon, prev, k)
     _refine(recon, prev, k, m)
-    pid = vp.point_of_feature[m.idx1]
-    chained = (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+    pid, chained = chained_points(recon, prev, m)
     # the chained observations consistent with the camera just estimated
     consistent = np.zeros(len(m), bool)
     if chained.any():
@@ -193,7 +187,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
 
     t = time.perf_counter()
     if cfg.pipeline.ba == "global":
-        ba = adjust(recon, cfg, free_views=recon.registered_views) or dict(SKIPPED)
+        ba = ba_report(adjust(recon, cfg, free_views=recon.registered_views))
     else:
         ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
     timing["bundle"] = time.perf_counter() - t

@@ -20,9 +20,9 @@ from .config import Config
 from .loop_closure import close_loop
 from .matching.containers import Matches
 from .reconstruction import Reconstruction
-from .refinement import SKIPPED, adjust, global_adjust
+from .refinement import adjust, ba_report, global_adjust
 from .registration import implausible_motion
-from .tracks import colors_at, retriangulate, track_by_projection, triangulate_matches
+from .tracks import add_two_view_points, retriangulate, track_by_projection
 
 __all__ = ["PaperMode", "AccurateMode", "mode_of"]
 
@@ -39,12 +39,7 @@ class PaperMode:
         point; consistent (M,): chained and reprojecting within the resection threshold, whose
         points are ``chain_points``. Returns the new point ids."""
         recon.add_observations(k, m.idx2[consistent], chain_points, link=False)
-        X, kept = triangulate_matches(recon, prev, k, m, cfg)
-        view = recon.views[k]
-        ids = recon.add_points(X, colors_at(view.image, view.features.points[kept.idx2]))
-        recon.add_observations(prev, kept.idx1, ids, link=False)
-        recon.add_observations(k, kept.idx2, ids)
-        return ids
+        return add_two_view_points(recon, prev, k, m, cfg, colour_view=k, link_a=False)
 
     def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
         """The paper's points stay two-view points."""
@@ -59,7 +54,7 @@ class PaperMode:
         view = recon.views[k]
         window = [k] + recon.registered_before(k, PAPER_COST_IMAGES - 1)
         P_resected, X_new = view.P.copy(), recon.points[new_points].copy()
-        ba = adjust(recon, cfg, free_views=[k], free_points=new_points, views_in_cost=window) or dict(SKIPPED)
+        ba = ba_report(adjust(recon, cfg, free_views=[k], free_points=new_points, views_in_cost=window))
         why = implausible_motion(view.P, recon.views[prev], recon.points[chain_points], k - prev,
                                  cfg.pipeline.max_zoom_step)
         if why:
@@ -79,13 +74,8 @@ class AccurateMode:
                    consistent: np.ndarray, chain_points: np.ndarray, cfg: Config) -> np.ndarray:
         """The chained points' tracks grow into k; the other matches become new points."""
         recon.add_observations(k, m.idx2[consistent], chain_points)
-        view = recon.views[k]
-        new = m.subset(~chained & (view.point_of_feature[m.idx2] < 0))
-        X, kept = triangulate_matches(recon, prev, k, new, cfg)
-        ids = recon.add_points(X, colors_at(view.image, view.features.points[kept.idx2]))
-        recon.add_observations(prev, kept.idx1, ids)
-        recon.add_observations(k, kept.idx2, ids)
-        return ids
+        new = m.subset(~chained & (recon.views[k].point_of_feature[m.idx2] < 0))
+        return add_two_view_points(recon, prev, k, new, cfg, colour_view=k)
 
     def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
         """The points of the window's older views searched in k and k's points in them; every
@@ -102,7 +92,7 @@ class AccurateMode:
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
                      chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
         """The last W registered cameras and every point they see."""
-        return adjust(recon, cfg, free_views=recon.registered_views[-cfg.pipeline.window:]) or dict(SKIPPED)
+        return ba_report(adjust(recon, cfg, free_views=recon.registered_views[-cfg.pipeline.window:]))
 
     def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's

@@ -25,7 +25,13 @@ import numpy as np
 from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
 from .features import Features
 
-__all__ = ["View", "Reconstruction", "Checkpoint", "eq14"]
+__all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
+
+
+def intrinsics_in_frame(K: np.ndarray, source_turned: bool, turned: bool, image_size: tuple[int, int]) -> np.ndarray:
+    """Intrinsics K (3, 3) of an image (turned by 180 degrees or not) expressed for an image of
+    ``image_size`` (width, height) that is ``turned`` or not."""
+    return K if source_turned == turned else intrinsics_turned_180(K, image_size)
 
 
 def eq14(sum_squared_px: float, n_images: int, n_points: int) -> float:
@@ -116,7 +122,7 @@ class View:
         """Intrinsics K (3, 3) of ``source``'s image expressed for this view's image: turning an
         image by 180 degrees maps pixel (x, y) to (W - 1 - x, H - 1 - y), which moves the
         principal point (focal lengths and skew stay, the roll goes into R)."""
-        return K if source.rotated_180 == self.rotated_180 else intrinsics_turned_180(K, self.image_size)
+        return intrinsics_in_frame(K, source.rotated_180, self.rotated_180, self.image_size)
 
     def append_features(self, features: Features) -> np.ndarray:
         """Add interest points found by tracking, not detection; returns their indices (K,)."""

@@ -14,12 +14,14 @@ from .bundle import BundleProblem, bundle_adjust
 from .config import Config
 from .reconstruction import Reconstruction, eq14
 
-__all__ = ["adjust", "drop_outliers", "global_adjust", "SKIPPED"]
+__all__ = ["adjust", "ba_report", "drop_outliers", "global_adjust"]
 
 CALIBRATED = (0, 1)  # the calibrated pair fixes the frame and the scale: it never moves
 
 
-SKIPPED = {"skipped": True}  # the report of a BA with nothing to adjust
+def ba_report(result: dict[str, Any] | None) -> dict[str, Any]:
+    """The JSON-able report of an :func:`adjust` (``{"skipped": True}`` when it had nothing to adjust)."""
+    return {"skipped": True} if result is None else result
 
 
 def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
@@ -102,7 +104,7 @@ def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], i
     while True:
         ba = adjust(recon, cfg, free_views=recon.registered_views)
         if ba is None:  # nothing registered past the pair: no BA, so nothing to judge by
-            return dict(SKIPPED), 0
+            return ba_report(None), 0
         removed = drop_outliers(recon, cfg)
         removed_per_round.append(removed)
         rms_first = ba.get("rms_before_px") if rms_first is None else rms_first

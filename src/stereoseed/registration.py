@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .camera import camera_center, decompose_projection, depths, intrinsics_turned_180
+from .camera import camera_center, decompose_projection, depths
 from .config import Config
 from .errors import StereoseedError
 from .features import Features
 from .matching.containers import Matches
 from .motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
-from .reconstruction import Reconstruction, View
+from .reconstruction import Reconstruction, View, intrinsics_in_frame
 from .resection import ResectionResult, implausible_intrinsics, resect
 
 __all__ = ["Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion"]
@@ -46,7 +46,7 @@ class Candidate:
 
     def in_frame(self, K: np.ndarray, source: View) -> np.ndarray:
         """Intrinsics K (3, 3) of ``source``'s image expressed for this image's frame."""
-        return K if source.rotated_180 == self.rotated_180 else intrinsics_turned_180(K, self.image_size)
+        return intrinsics_in_frame(K, source.rotated_180, self.rotated_180, self.image_size)
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,7 @@ def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps:
     return None
 
 
-def _chained(recon: Reconstruction, prev: int, m: Matches) -> tuple[np.ndarray, np.ndarray]:
+def chained_points(recon: Reconstruction, prev: int, m: Matches) -> tuple[np.ndarray, np.ndarray]:
     """(point ids (M,) of prev's matched interest points, chained (M,) bool: a live point)."""
     pid = recon.views[prev].point_of_feature[m.idx1]
     return pid, (pid >= 0) & recon.alive[np.maximum(pid, 0)]
@@ -185,13 +185,13 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     t = time.perf_counter()
     width = vp.image.shape[1]
     m = source.match(prev, k, vp.features, cand.features, None, width)
-    pid, chained = _chained(recon, prev, m)
+    pid, chained = chained_points(recon, prev, m)
     if chained.sum() < cfg.resection.min_inliers and getattr(source, "turns_images", False):
         # a camera turned upside down since the previous image (a ring walked over the top of
         # an object) matches only once its image is turned back
         turned = _turned(source, cand)
         m2 = source.match(prev, k, vp.features, turned.features, None, width)
-        pid2, chained2 = _chained(recon, prev, m2)
+        pid2, chained2 = chained_points(recon, prev, m2)
         if chained2.sum() > chained.sum():
             cand, m, pid, chained = turned, m2, pid2, chained2
     seconds["matching"] = time.perf_counter() - t

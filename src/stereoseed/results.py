@@ -50,9 +50,12 @@ def exported_points(recon: Reconstruction, max_distance_factor: float) -> np.nda
         return ids
     pts = recon.points[ids]
     centre = np.median(pts, axis=0)
-    cams = [recon.views[v].center for v in recon.registered_views]
-    scale = float(np.median([np.linalg.norm(c - centre) for c in cams]))
-    return ids[np.linalg.norm(pts - centre, axis=1) <= max_distance_factor * scale]
+    return ids[np.linalg.norm(pts - centre, axis=1) <= max_distance_factor * _camera_distance(recon, centre)]
+
+
+def _camera_distance(recon: Reconstruction, centre: np.ndarray) -> float:
+    """The registered cameras' median distance to ``centre`` (3,): the scale of the scene."""
+    return float(np.median([np.linalg.norm(recon.views[v].center - centre) for v in recon.registered_views]))
 
 
 def _input_frame(view: View, xy: np.ndarray) -> np.ndarray:
@@ -167,7 +170,7 @@ def _write_cameras_ply(recon: Reconstruction, path: Path, points: np.ndarray) ->
     deep; the calibrated pair orange, the walk blue."""
     reg = recon.registered_views
     centre = np.median(points, axis=0) if len(points) else np.zeros(3)
-    depth = 0.1 * float(np.median([np.linalg.norm(recon.views[v].center - centre) for v in reg])) if reg else 1.0
+    depth = 0.1 * _camera_distance(recon, centre) if reg else 1.0
     vertices, faces, colours = [], [], []
     for n, v in enumerate(reg):
         view = recon.views[v]

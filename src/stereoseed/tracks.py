@@ -15,7 +15,8 @@ from .matching.two_view import epipolar_band_mask
 from .reconstruction import Reconstruction, View
 from .triangulation import triangulate, triangulate_tracks
 
-__all__ = ["colors_at", "triangulate_matches", "new_points_three_view", "track_by_projection", "retriangulate"]
+__all__ = ["colors_at", "triangulate_matches", "add_two_view_points", "new_points_three_view", "track_by_projection",
+           "retriangulate"]
 
 
 def colors_at(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -35,6 +36,20 @@ def triangulate_matches(recon: Reconstruction, a: int, b: int, m: Matches, cfg: 
     res = triangulate(np.stack([va.P, vb.P]), np.stack([x1, x2]), iterations=tc.lm_iterations)
     ok = res.valid(tc.max_reprojection_px, tc.min_angle_deg)
     return res.points[ok], m.subset(ok)
+
+
+def add_two_view_points(recon: Reconstruction, a: int, b: int, m: Matches, cfg: Config, colour_view: int,
+                        link_a: bool = True) -> np.ndarray:
+    """New points from matches ``m`` between registered views a and b (:func:`triangulate_matches`),
+    coloured from ``colour_view`` (a or b), observed in both; ``link_a`` False keeps a's interest
+    points standing for what they stood for (the paper mode). Returns the new point ids."""
+    X, kept = triangulate_matches(recon, a, b, m, cfg)
+    view = recon.views[colour_view]
+    ids = recon.add_points(X, colors_at(view.image, view.features.points[kept.idx1 if colour_view == a
+                                                                         else kept.idx2]))
+    recon.add_observations(a, kept.idx1, ids, link=link_a)
+    recon.add_observations(b, kept.idx2, ids)
+    return ids
 
 
 def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Config) -> np.ndarray:
@@ -58,11 +73,8 @@ def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Co
     ia, ib = np.nonzero(band & (zab >= tc.three_view_min_zncc))
     if len(ia) == 0:
         return none
-    ia, ib = fa[ia], fb[ib]
-    res = triangulate(np.stack([va.P, vb.P]), np.stack([va.features.points[ia], vb.features.points[ib]]),
-                      iterations=cfg.triangulation.lm_iterations)
-    ok = res.valid(cfg.triangulation.max_reprojection_px, cfg.triangulation.min_angle_deg)
-    ia, ib, X = ia[ok], ib[ok], res.points[ok]
+    X, kept = triangulate_matches(recon, a, b, Matches(fa[ia], fb[ib], np.zeros(len(ia))), cfg)
+    ia, ib = kept.idx1, kept.idx2
     if len(ia) == 0:
         return none
     dist, nearest = cKDTree(vc.features.points[fc]).query(project(vc.P, X))
