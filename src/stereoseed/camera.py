@@ -20,6 +20,8 @@ __all__ = [
     "project_homogeneous",
     "project_per_observation",
     "point_jacobian",
+    "backproject",
+    "viewing_direction",
     "camera_center",
     "depths",
     "compose_projection",
@@ -182,6 +184,19 @@ def point_jacobian(P_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarr
     Ju = (P_obs[:, 0, :3] - uv[:, 0:1] * P_obs[:, 2, :3]) * inv[:, None]
     Jv = (P_obs[:, 1, :3] - uv[:, 1:2] * P_obs[:, 2, :3]) * inv[:, None]
     return np.stack([Ju, Jv], axis=1)
+
+
+def backproject(P: np.ndarray, pixels: np.ndarray, depth: float) -> np.ndarray:
+    """World points (N, 3) at depth ``depth`` (Hartley & Zisserman eq. 6.15, world units) on the
+    rays of ``pixels`` (N, 2) of a finite camera P (3, 4), for any sign and scale of P."""
+    Pn = normalize_projection(np.asarray(P, dtype=np.float64))
+    rays = np.linalg.solve(Pn[:, :3], np.column_stack([pixels, np.ones(len(pixels))]).T).T  # unit depth
+    return camera_center(Pn) + depth * rays
+
+
+def viewing_direction(P: np.ndarray) -> np.ndarray:
+    """Unit vector (3,) along the optical axis of camera P (3, 4), towards the scene."""
+    return normalize_projection(np.asarray(P, dtype=np.float64))[2, :3]
 
 
 def intrinsics_turned_180(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:

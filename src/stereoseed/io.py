@@ -72,15 +72,13 @@ class atomic_path:
         return False
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """``json.dumps``'s ``default``: NumPy arrays become lists, NumPy scalars Python numbers,
+    paths strings."""
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj)}")
@@ -89,13 +87,14 @@ def _jsonable(obj: Any) -> Any:
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     """Write ``data`` as indented JSON, atomically; NumPy arrays become lists."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n")
+        tmp.write_text(json.dumps(data, indent=2, default=jsonable) + "\n", encoding="utf-8")
     return Path(path)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` as UTF-8 (whatever the locale: image names may not be ASCII), atomically."""
     with atomic_path(path) as tmp:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8")
     return Path(path)
 
 

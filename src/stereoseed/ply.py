@@ -12,8 +12,8 @@ from .io import atomic_path
 
 __all__ = ["write_ply", "read_ply", "read_ply_vertices"]
 
-_PLY_TYPES = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int", "u4": "uint", "i2": "short",
-              "u2": "ushort", "i1": "char"}
+_PLY_TYPES = {"<f4": "float", "u1": "uchar", "<i4": "int"}  # the property types write_ply writes
+GREY = 200  # the colour of points that come without one
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,
@@ -25,7 +25,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     points: (N, 3); colors: (N, 3) uint8 RGB or None (grey)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if colors is None:
-        colors = np.full((len(points), 3), 200, dtype=np.uint8)
+        colors = np.full((len(points), 3), GREY, dtype=np.uint8)
     columns = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
     extra = {}
     for name, values in (properties or {}).items():
@@ -41,7 +41,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         vertex[name] = values
     header = ["ply", "format binary_little_endian 1.0", "comment written by stereoseed",
               f"element vertex {len(points)}"]
-    header += [f"property {_PLY_TYPES[np.dtype(kind).str.lstrip('<|')]} {name}" for name, kind in columns]
+    header += [f"property {_PLY_TYPES[kind]} {name}" for name, kind in columns]
     face_bytes = b""
     if faces is not None:
         faces = np.asarray(faces, np.int32).reshape(-1, 3)
@@ -86,5 +86,5 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if {"red", "green", "blue"} <= set(names):
         cols = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
     else:
-        cols = np.full((len(pts), 3), 200, np.uint8)
+        cols = np.full((len(pts), 3), GREY, np.uint8)
     return pts, cols

@@ -9,7 +9,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .camera import camera_center
+from .camera import backproject, camera_center, is_finite_camera, viewing_direction
 
 log = logging.getLogger("stereoseed.report_html")  # one logger for the whole report
 
@@ -88,27 +88,12 @@ def _registered_cameras(recon: Any) -> list[tuple[int, str, np.ndarray, tuple[in
     for i, v in enumerate(recon.views):
         try:
             P = v.P_input
-            if P is None or not np.all(np.isfinite(P)) or abs(np.linalg.det(P[:, :3])) < 1e-300:
+            if P is None or not is_finite_camera(P):
                 continue
             cams.append((i, str(v.name), np.asarray(P, np.float64), tuple(v.image_size)))
         except Exception as e:  # noqa: BLE001
             log.debug("report.html: view %d has no usable camera (%s)", i, e)
     return cams
-
-
-def _backproject(P: np.ndarray, pixels: np.ndarray, depth: float) -> np.ndarray:
-    """World points (N, 3) at camera depth ``depth`` on the rays of pixels (N, 2), for any sign
-    and scale of P (depth as in Hartley & Zisserman eq. 6.15)."""
-    M = P[:, :3]
-    rays = np.linalg.solve(M, np.column_stack([pixels, np.ones(len(pixels))]).T).T  # M @ ray = (u, v, 1)
-    t = depth * np.linalg.norm(M[2]) * np.sign(np.linalg.det(M))
-    return camera_center(P) + t * rays
-
-
-def _viewing_direction(P: np.ndarray) -> np.ndarray:
-    M = P[:, :3]
-    d = np.sign(np.linalg.det(M)) * M[2]
-    return d / np.linalg.norm(d)
 
 
 def _scene_frame(points: np.ndarray, centers: np.ndarray) -> dict[str, Any]:
@@ -192,8 +177,8 @@ def _figure_3d(recon: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.n
     for i, name, P, (w, h) in cams:
         corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
         c = camera_center(P)
-        q = _backproject(P, corners, depth)
-        top = _backproject(P, np.array([[(w - 1) / 2.0, -0.25 * h]]), depth)[0]  # the 'up' tick above the image
+        q = backproject(P, corners, depth)
+        top = backproject(P, np.array([[(w - 1) / 2.0, -0.25 * h]]), depth)[0]  # the 'up' tick above the image
         segments = [(c, q[0]), (c, q[1]), (c, q[2]), (c, q[3]), (q[0], q[1]), (q[1], q[2]), (q[2], q[3]),
                     (q[3], q[0]), (q[0], top), (top, q[1])]
         groups["calibrated pair" if i < 2 else "registered"].append((i, name, segments))
@@ -250,7 +235,7 @@ def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
                      "marker": {"size": 2, "color": "rgba(120,120,120,0.35)"}, "hoverinfo": "skip"})
     if cams:
         c = np.array([camera_center(P) for _, _, P, _ in cams])
-        d = np.array([_viewing_direction(P) for _, _, P, _ in cams])
+        d = np.array([viewing_direction(P) for _, _, P, _ in cams])
         u, v = c @ e1, c @ e2
         length = 0.08 * frame["size"]
         du, dv = d @ e1, d @ e2

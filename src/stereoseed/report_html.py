@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from .camera import camera_center
-from .io import atomic_path
+from .io import jsonable, write_text
 from .report_figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
                              _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
 
@@ -48,16 +48,8 @@ def _fmt(value: Any, digits: int = 3) -> str:
 
 def _json_for_script(data: Any) -> str:
     """JSON safe inside a <script> element (no '</script>', no HTML-significant characters)."""
-    text = json.dumps(data, separators=(",", ":"), allow_nan=False, default=_jsonable)
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False, default=jsonable)
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
 def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | None:
@@ -82,10 +74,10 @@ def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | N
     if best is None:
         return None
     k, row = best
-    previous = [j for j in range(k) if recon.views[j].registered]
+    previous = recon.registered_before(k, 1)
     if not previous:
         return None
-    j = previous[-1]
+    j = previous[0]
     vj, vk = recon.views[j], recon.views[k]
     if vj.features is None or vk.features is None or recon.source is None:
         return None
@@ -299,7 +291,6 @@ def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path) -
     """
     path = Path(out_dir) / "report.html"
     text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}")
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    write_text(path, text)
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
     return path

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .camera import camera_center, decompose_projection
+from .camera import backproject, camera_center, decompose_projection
 from .config import Config
 from .errors import StereoseedError
 from .io import atomic_path, write_json
@@ -102,12 +102,9 @@ def _tracks(recon: Reconstruction, ids: np.ndarray) -> dict[str, np.ndarray]:
 def frustum_mesh(P: np.ndarray, size: tuple[int, int], depth: float) -> tuple[np.ndarray, np.ndarray]:
     """A camera drawn as a pyramid: its centre and the four image corners back-projected to
     ``depth`` (world units). P: (3, 4); size: (width, height). -> vertices (5, 3), triangles (4, 3)."""
-    K, R, t = decompose_projection(P)
     w, h = size
-    corners = np.array([[-0.5, -0.5, 1.0], [w - 0.5, -0.5, 1.0], [w - 0.5, h - 0.5, 1.0], [-0.5, h - 0.5, 1.0]])
-    rays = corners @ np.linalg.inv(K).T  # camera frame, z = 1
-    C = camera_center(P)
-    vertices = np.vstack([C, C + (rays * depth) @ R])
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+    vertices = np.vstack([camera_center(P), backproject(P, corners, depth)])
     return vertices, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
 
 

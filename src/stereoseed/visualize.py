@@ -12,7 +12,7 @@ from .features import Features
 from .matching.containers import Matches
 from .propagation import PropagationResult
 
-__all__ = ["draw_matches", "disparity_image", "save_propagation_png"]
+__all__ = ["draw_matches", "disparity_image", "save_propagation_png", "draw_calibration_check"]
 
 
 def _to_bgr_u8(image: np.ndarray) -> np.ndarray:
@@ -125,9 +125,10 @@ def draw_calibration_check(image: np.ndarray, detected: np.ndarray, reprojected:
     calibrated camera and lens put it (red cross), so a user sees that it worked.
     detected, reprojected: (N, 2) pixels. Returns the BGR canvas (written as PNG if ``path``)."""
     canvas = _to_bgr_u8(image).copy()
-    shift = 4
+    shift = 4  # circles drawn at 1/16 px so sub-pixel positions are honoured
     for (x, y), (u, v) in zip(np.asarray(detected), np.asarray(reprojected)):
-        cv2.circle(canvas, (int(round(x * 16)), int(round(y * 16))), 4 << shift, (0, 200, 0), 1, cv2.LINE_AA, shift)
+        cv2.circle(canvas, (int(round(x * (1 << shift))), int(round(y * (1 << shift)))), 4 << shift, (0, 200, 0), 1,
+                   cv2.LINE_AA, shift)
         cv2.drawMarker(canvas, (int(round(u)), int(round(v))), (0, 0, 255), cv2.MARKER_CROSS, 6, 1, cv2.LINE_AA)
     if path is not None:
         write_image(path, canvas)

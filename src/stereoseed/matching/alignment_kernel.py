@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..features import sample_bilinear
+from ..image import sample_bilinear
 
 @njit(cache=True, fastmath=True)
 def _sample_normalised(img, A, t, r, out):

@@ -74,7 +74,7 @@ def filter_fundamental_ransac(
     inliers.
     """
     if len(matches) < 8:
-        return Matches.empty(), None, f"robust F needs at least 8 matches, got {len(matches)}"
+        return Matches.empty(), None, f"needs at least 8 matches, got {len(matches)}"
     x1, x2 = matches.points(kp1, kp2)
     # One robust run on a weak pair depends on its random samples; the best-supported of a few
     # runs takes most of the luck out, and a pair whose best run already has many inliers is not
@@ -97,10 +97,10 @@ def filter_fundamental_ransac(
         if F is None or inl_run.sum() > inl.sum():
             F, inl = F_run, inl_run
     if F is None:
-        return Matches.empty(), None, (f"robust F failed: {error}" if error is not None else "robust F found no model")
+        return Matches.empty(), None, (f"OpenCV failed: {error}" if error is not None else "no model found")
     if inl.sum() < config.min_f_inliers:
         return (Matches.empty(), None,
-                f"robust F has only {int(inl.sum())} inliers (< {config.min_f_inliers}): rejected")
+                f"only {int(inl.sum())} inliers (< {config.min_f_inliers}): rejected")
     return matches.subset(inl), F, ""
 
 

@@ -48,8 +48,9 @@ def _masked_scores(desc1: np.ndarray, desc2: list[np.ndarray], cand: np.ndarray)
         ii, jj = np.nonzero(cand)
         s = np.full((n1, n2), -np.inf, np.float32)
         best = np.full(len(ii), -np.inf, np.float32)
+        rows = desc1[ii]
         for d2 in desc2:
-            z = np.einsum("ij,ij->i", desc1[ii], d2[jj])
+            z = np.einsum("ij,ij->i", rows, d2[jj])
             np.fmax(best, z, out=best)  # fmax: NaN (unavailable) loses
         s[ii, jj] = best
         return s
