@@ -16,10 +16,12 @@ import numpy as np
 
 from stereoseed.config import Config
 from stereoseed.evaluation import camera_errors
-from stereoseed.lens import undistort_image, undistort_pixels, undistortion_maps
-from stereoseed.lens_calibration import calibrate_from_target, project_view
+from stereoseed.camera import camera_center, compose_projection
+from stereoseed.lens import project_distorted, undistort_image, undistort_pixels, undistortion_maps
+from stereoseed.lens_calibration import calibrate_from_target
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.synthetic_target import load_target as load_rendered_target
 from stereoseed.synthetic_target import render_target
 from stereoseed.target import load_target, make_target
 
@@ -66,28 +68,28 @@ def _frame_errors(cal, K_true: np.ndarray, R: np.ndarray, t: np.ndarray, covered
     rays = undistort_pixels(px, K_true, LENS)
     Xc = np.c_[(rays - K_true[:2, 2]) / np.diag(K_true)[:2], np.ones(len(rays))] * 1400.0
     X = (Xc - t) @ R
-    return np.linalg.norm(project_view(cal.K, cal.distortion, cal.R[0], cal.t[0], X) - px, axis=1)
+    return np.linalg.norm(project_distorted(cal.K, cal.R[0], cal.t[0], cal.distortion, X) - px, axis=1)
 
 
-def calibration(noise: float, scene) -> dict:
-    folder = Path(tempfile.mkdtemp())
-    target = load_target(make_target(folder, "A3", 3))
+def calibration(noise: float, scene, folder: Path) -> tuple[dict, list]:
+    """Calibrate both cameras of the pair from renders of the target in ``folder`` (made once)."""
+    target = load_target(folder / "target.json")
+    texture = load_rendered_target(folder / "target.json")  # the face images read once for every render
     out = {}
     cals = []
     for cam in (0, 1):
         K, R = scene.K[cam], scene.R[cam]
         t = scene.t[cam] * MM + R @ TARGET_AT  # the pair's camera in the target's frame
-        pair = render_target(target.path, K, R, t, distortion=LENS, noise_sigma=noise, seed=cam)
-        more = [render_target(target.path, K, Rv, tv, distortion=LENS, noise_sigma=noise, seed=10 * cam + k)
+        pair = render_target(texture, K, R, t, distortion=LENS, noise_sigma=noise, seed=cam)
+        more = [render_target(texture, K, Rv, tv, distortion=LENS, noise_sigma=noise, seed=10 * cam + k)
                 for k, (Rv, tv) in enumerate(_lens_views(K, np.zeros(3), 4))]
         for label, images in (("pair alone", [pair]), ("pair + 4 views", [pair] + more)):
             cal, checks = calibrate_from_target(target, [(f"view{k}", im) for k, im in enumerate(images)])
-            C_true = -R.T @ t
-            C = -cal.R[0].T @ cal.t[0]
-            under = np.linalg.norm(checks[0].reprojected - project_view(K, np.r_[LENS, 0.0], R, t,
-                                                                          _points3d(target, images[0])), axis=1)
+            under = np.linalg.norm(checks[0].reprojected - project_distorted(K, R, t, LENS, checks[0].points3d), axis=1)
+            C_true = camera_center(compose_projection(K, R, t))
             out[f"camera{cam + 1}/{label}"] = {
-                "centre_error_pct_of_distance": float(100 * np.linalg.norm(C - C_true) / np.linalg.norm(C_true)),
+                "centre_error_pct_of_distance": float(100 * np.linalg.norm(camera_center(cal.P) - C_true)
+                                                      / np.linalg.norm(C_true)),
                 "target_points_p95_px": float(np.percentile(under, 95)),
                 "covered_frame_p95_px": float(np.percentile(_frame_errors(cal, K, R, t, checks[0].detected), 95)),
                 "whole_frame_p95_px": float(np.percentile(_frame_errors(cal, K, R, t), 95)),
@@ -96,12 +98,6 @@ def calibration(noise: float, scene) -> dict:
             if label == "pair + 4 views":
                 cals.append(cal)
     return out, cals
-
-
-def _points3d(target, image):
-    from stereoseed.target import detect_target
-
-    return detect_target(image, target).points3d
 
 
 def ring(cals) -> dict:
@@ -130,10 +126,12 @@ def ring(cals) -> dict:
 def run() -> dict:
     scene = render_scene(SceneConfig(n_images=2, focal_jitter=0.0, distance=DISTANCE))
     out = {}
-    for noise in (0.0, 2.0):
-        out[f"calibration/sigma{noise:g}"], cals = calibration(noise, scene)
-        if noise == 0.0:
-            out["ring12"] = ring(cals)
+    with tempfile.TemporaryDirectory() as folder:
+        make_target(folder, "A3", 3)
+        for noise in (0.0, 2.0):
+            out[f"calibration/sigma{noise:g}"], cals = calibration(noise, scene, Path(folder))
+            if noise == 0.0:
+                out["ring12"] = ring(cals)
     return out
 
 

@@ -7,7 +7,8 @@ import pytest
 
 from geometry_helpers import box_points, look_at_camera
 from stereoseed.errors import StereoseedError
-from stereoseed.lens_calibration import calibrate_lens, project_view, read_lenses, read_opencv_intrinsics
+from stereoseed.lens import project_distorted
+from stereoseed.lens_calibration import calibrate_lens, read_lenses, read_opencv_intrinsics
 
 LENS = np.array([-0.12, 0.03, 0.001, -0.0005, 0.0])
 SIZE = (640, 480)
@@ -25,7 +26,7 @@ def _views(n_views, noise=0.1, seed=0, lens=LENS):
         aim = [(0.0, 0.0, 200.0), (330.0, 330.0, 420.0), (-330.0, -330.0, -50.0), (330.0, -330.0, -50.0),
                (-330.0, 330.0, 420.0)][i % 5]
         _, R, t, _ = look_at_camera((1400 * np.cos(a), 1400 * np.sin(a), 700.0), target=aim, f=800.0)
-        x = project_view(K, lens, R, t, X) + rng.normal(0, noise, (len(X), 2))
+        x = project_distorted(K, R, t, lens, X) + rng.normal(0, noise, (len(X), 2))
         inside = np.all((x > 0) & (x < np.array(SIZE) - 1), axis=1)
         views.append((X[inside], x[inside]))
         poses.append((R, t))
@@ -41,15 +42,15 @@ def _frame_error(cal, K, lens, R, t):
     rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, lens).reshape(-1, 2)
     Xc = np.c_[rays, np.ones(len(rays))] * 1500.0
     X = (Xc - t) @ R  # world
-    return np.linalg.norm(project_view(cal.K, cal.distortion, cal.R[0], cal.t[0], X) - px, axis=1)
+    return np.linalg.norm(project_distorted(cal.K, cal.R[0], cal.t[0], cal.distortion, X) - px, axis=1)
 
 
-def test_the_lens_model_is_opencvs():
+def test_the_lens_model_the_calibration_fits_is_opencvs():
     views, K, poses = _views(1, noise=0.0)
     X, x = views[0]
     R, t = poses[0]
     ocv = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, LENS)[0].reshape(-1, 2)
-    np.testing.assert_allclose(project_view(K, LENS, R, t, X), ocv, atol=1e-9)
+    np.testing.assert_allclose(project_distorted(K, R, t, LENS, X), ocv, atol=1e-9)
 
 
 def test_one_view_gives_the_camera_and_the_lens_under_the_pattern():
@@ -62,7 +63,7 @@ def test_one_view_gives_the_camera_and_the_lens_under_the_pattern():
     X, x = views[0]
     R, t = poses[0]
     truth = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, LENS)[0].reshape(-1, 2)
-    assert np.percentile(np.linalg.norm(project_view(cal.K, cal.distortion, cal.R[0], cal.t[0], X) - truth, axis=1),
+    assert np.percentile(np.linalg.norm(project_distorted(cal.K, cal.R[0], cal.t[0], cal.distortion, X) - truth, axis=1),
                          95) < 0.3
 
 

@@ -10,7 +10,7 @@ per physical camera). The first view is the stereo pair's: its pose is the camer
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +21,9 @@ from scipy.optimize import least_squares
 from .calibration import check_correspondences, dlt_projection
 from .camera import compose_projection, decompose_projection, depths
 from .errors import StereoseedError
-from .lens import distort_normalized
+from .lens import lens_coefficients, project_distorted
 
-__all__ = ["LensCalibration", "Lens", "calibrate_lens", "project_view", "read_lenses", "read_opencv_intrinsics"]
+__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_intrinsics"]
 
 # a view whose pattern points reproject worse than this cannot be the same camera and lens (a
 # wrong correspondence, another camera's image)
@@ -43,7 +43,6 @@ class LensCalibration:
     rms_px: list[float]
     n_points: list[int]
     image_size: tuple[int, int] | None = None
-    residuals: list[np.ndarray] = field(default_factory=list, repr=False)
 
     @property
     def P(self) -> np.ndarray:
@@ -57,13 +56,6 @@ class LensCalibration:
         if self.image_size is not None:
             out["image_size"] = list(self.image_size)
         return out
-
-
-def project_view(K: np.ndarray, distortion: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of points X (N, 3) through camera K [R | t] and its lens."""
-    Xc = X @ R.T + t
-    xy = distort_normalized(Xc[:, :2] / Xc[:, 2:3], distortion)
-    return np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
 
 
 def _unpack(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tuple:
@@ -98,7 +90,7 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
         p0 = [K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]] + [0.0] * n_lens
         fixed = None
     else:
-        fixed = (np.asarray(intrinsics[0], np.float64), np.r_[np.asarray(intrinsics[1], np.float64), np.zeros(5)][:5])
+        fixed = (np.asarray(intrinsics[0], np.float64), lens_coefficients(intrinsics[1]))
         p0 = []
     for (K, R, t), (X, x) in zip(starts, checked):
         if fixed is not None:  # the pose that the known intrinsics give the DLT's rays
@@ -107,14 +99,13 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
 
     def residuals(p: np.ndarray) -> np.ndarray:
         K, d, Rs, ts = _unpack(p, len(checked), n_lens, fixed)
-        return np.concatenate([(project_view(K, d, R, t, X) - x).ravel() for (X, x), R, t in zip(checked, Rs, ts)])
+        return np.concatenate([(project_distorted(K, R, t, d, X) - x).ravel() for (X, x), R, t in zip(checked, Rs, ts)])
 
     sol = least_squares(residuals, np.asarray(p0, np.float64), method="lm", x_scale="jac", max_nfev=2000)
     K, d, Rs, ts = _unpack(sol.x, len(checked), n_lens, fixed)
-    res, rms, counts = [], [], []
+    rms, counts = [], []
     for (X, x), R, t, name in zip(checked, Rs, ts, what):
-        r = project_view(K, d, R, t, X) - x
-        res.append(r)
+        r = project_distorted(K, R, t, d, X) - x
         rms.append(float(np.sqrt(np.mean(np.sum(r * r, axis=1)))))
         counts.append(len(X))
         if rms[-1] > MAX_RMS_PX:
@@ -122,7 +113,7 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
                                   f"are the pixels those of these points, and all views of this camera?")
         if np.any(depths(compose_projection(K, R, t), X) <= 0):
             raise StereoseedError(f"{name}: pattern points would be behind the camera; are u and v swapped?")
-    return LensCalibration(K, d, Rs, ts, rms, counts, image_size, res)
+    return LensCalibration(K, d, Rs, ts, rms, counts, image_size)
 
 
 @dataclass(frozen=True)
@@ -164,7 +155,7 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
         if d.size not in (4, 5) or not np.all(np.isfinite(d)) or not np.all(np.isfinite(K)):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3]), "
                                   f"got {d.size}")
-        lenses.append(Lens(K, np.r_[d, np.zeros(5 - d.size)], size))
+        lenses.append(Lens(K, lens_coefficients(d), size))
     return lenses + [None] * (2 - len(lenses))
 
 
@@ -189,18 +180,20 @@ def read_opencv_intrinsics(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if d.size > 5 and np.any(d[5:] != 0):
         raise StereoseedError(f"{path}: distortion terms beyond k3 (the rational or thin-prism model) are not "
                               f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
-    return np.asarray(K, np.float64), np.r_[d[:5], np.zeros(max(0, 5 - d.size))]
+    return np.asarray(K, np.float64), lens_coefficients(d[:5])
 
 
 @dataclass
 class ViewCheck:
     """What a user looks at to trust one calibration image: detected corners per face, the
-    share of the frame they cover, the RMS, the detected and reprojected pixels."""
+    share of the frame they cover, the RMS, the detected corners' 3D points (N, 3) and pixels
+    (N, 2), and where the calibrated camera and lens put them (N, 2)."""
 
     name: str
     per_face: dict[int, int]
     coverage: float
     rms_px: float
+    points3d: np.ndarray
     detected: np.ndarray
     reprojected: np.ndarray
     warnings: list[str]
@@ -237,6 +230,6 @@ def calibrate_from_target(target: Any, images: list[tuple[str, np.ndarray]], k3:
         if coverage < 1 / 3:
             warnings.append(f"the corners cover {100 * coverage:.0f} % of the frame: the lens is poorly determined "
                             f"outside them (add views with the target elsewhere in the frame)")
-        checks.append(ViewCheck(name, faces, coverage, rms, d.pixels,
-                                project_view(cal.K, cal.distortion, R, t, d.points3d), warnings))
+        checks.append(ViewCheck(name, faces, coverage, rms, d.points3d, d.pixels,
+                                project_distorted(cal.K, R, t, cal.distortion, d.points3d), warnings))
     return cal, checks
