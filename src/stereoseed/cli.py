@@ -147,7 +147,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     # the pair as the reconstruction starts from it: a calibration that does not fit the images
     # is refused, and the seeds are its triangulated matches
     recon, _ = initialise([img1, img2], names, [P1, P2], cfg)
-    seeds, _ = pair_seeds(recon, 0, 1)
+    seeds = pair_seeds(recon, 0, 1)
     result = propagate(img1, img2, seeds, fundamental_from_projections(P1, P2), cfg.propagation,
                        subpixel_method=cfg.propagation.subpixel_method)
     print(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")

@@ -35,19 +35,15 @@ log = logging.getLogger(__name__)
 __all__ = ["pair_seeds", "densify_pair", "fuse", "estimate_normals", "densify"]
 
 
-def pair_seeds(recon: Reconstruction, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse matches between registered views a and b: the 3D points both observe.
-
-    Returns seeds (S, 4) float64 (xa, ya, xb, yb) and their scores (S,) (1 for all; the
-    propagation re-scores them by ZNCC).
-    """
+def pair_seeds(recon: Reconstruction, a: int, b: int) -> np.ndarray:
+    """Sparse matches between registered views a and b, the 3D points both observe, as seeds
+    (S, 4) float64 (xa, ya, xb, yb) (the propagation scores them by ZNCC)."""
     rows = []
     for v in (a, b):
         sel = recon.obs_view == v
         rows.append((recon.obs_point[sel], recon.views[v].features.points[recon.obs_feature[sel]]))
-    common, ia, ib = np.intersect1d(rows[0][0], rows[1][0], return_indices=True)
-    seeds = np.hstack([rows[0][1][ia], rows[1][1][ib]])
-    return seeds, np.ones(len(seeds))
+    _, ia, ib = np.intersect1d(rows[0][0], rows[1][0], return_indices=True)
+    return np.hstack([rows[0][1][ia], rows[1][1][ib]])
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -103,10 +99,7 @@ def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources:
 
 def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """The voxel (side ``voxel``) of each point (N, 3) as a group index (N,), and the group sizes (K,)."""
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(_voxel_keys(points, voxel), return_inverse=True, return_counts=True)
     return inverse.reshape(-1), counts
 
 
@@ -121,8 +114,14 @@ def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarr
     replaced by their mean position and mean colour. (N, 3), (N, 3) -> (K, 3), (K, 3)."""
     if len(points) == 0:
         return points, colors
+    return _fuse(points, colors, voxel)[:2]
+
+
+def _fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fuse` of a non-empty cloud, with each point's voxel index (N,) and the voxels' sizes (K,)."""
     inverse, counts = _voxel_groups(points, voxel)
-    return _group_mean(points, inverse, counts), np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8)
+    return (_group_mean(points, inverse, counts), np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8),
+            inverse, counts)
 
 
 def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
@@ -189,7 +188,7 @@ def _run_pair(args: tuple) -> dict[str, Any]:
 def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
     reg = recon.registered_views
     for a, b in zip(reg[:-1], reg[1:]):
-        seeds, _ = pair_seeds(recon, a, b)
+        seeds = pair_seeds(recon, a, b)
         yield (recon.views[a].image, recon.views[b].image, recon.views[a].P, recon.views[b].P, seeds,
                cfg.propagation, cfg.dense)
 
@@ -256,9 +255,7 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
     produced it) and its support (how many pairs put a point in its voxel)."""
     if len(points) == 0:
         return points, colors, np.zeros((0, 3)), np.zeros(0, np.int64)
-    inverse, counts = _voxel_groups(points, voxel)
-    fused = _group_mean(points, inverse, counts)
-    fused_colors = np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8)
+    fused, fused_colors, inverse, counts = _fuse(points, colors, voxel)
     # where the pair's two cameras stand, averaged over the voxel's points
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
     viewpoints = _group_mean(stand[sources], inverse, counts)

@@ -52,7 +52,7 @@ import cv2
 import numpy as np
 
 from .camera import camera_center, compose_projection, depths, project
-from .io import write_image
+from .io import write_image, write_text
 from .lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
 from .synthetic_render import _cast_kernel, _render_kernel
 
@@ -536,14 +536,15 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
         tints[2] = tints[1]
         far_ground = albedo[2, 0]
     images, Ps = [], []
+    scene_args = (
+        cfg.height, cfg.width, cfg.supersample,
+        BOX_HALF, BOX_HEIGHT, FACE_ORIGIN, FACE_U, FACE_V, _FACE_GRID, SQUARE_SIZE,
+        SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
+        albedo, _SHADE, tints, _SKY_RGB, far_ground,
+    )
     for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
-        scene_args = (
-            cfg.height, cfg.width, cfg.supersample,
-            BOX_HALF, BOX_HEIGHT, FACE_ORIGIN, FACE_U, FACE_V, _FACE_GRID, SQUARE_SIZE,
-            SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
-            albedo, _SHADE, tints, _SKY_RGB, far_ground,
-        )
-        rgb = _render_kernel(np.ascontiguousarray(R.T @ np.linalg.inv(K)), np.ascontiguousarray(np.linalg.inv(K)),
+        Kinv = np.linalg.inv(K)
+        rgb = _render_kernel(np.ascontiguousarray(R.T @ Kinv), np.ascontiguousarray(Kinv),
                              np.ascontiguousarray(R.T), bool(np.any(lens)), np.asarray(lens, np.float64),
                              float(r2_max), -R.T @ t, *scene_args)
         image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
@@ -584,12 +585,12 @@ def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
     cameras_doc: dict = {"images": cams}
     if scene.has_lens:
         cameras_doc["distortion"] = [float(c) for c in scene.distortion]
-    written["cameras"].write_text(json.dumps(cameras_doc, indent=1))
+    write_text(written["cameras"], json.dumps(cameras_doc, indent=1))
     pattern, points1, points2 = scene.calibration_points()
     for key, array, fmt in (("corners", scene.corners, "%.10f"), ("pattern", pattern, "%.10f"),
                             ("points1", points1, "%.6f"), ("points2", points2, "%.6f")):
         written[key] = out / f"{key}.txt"
         np.savetxt(written[key], array, fmt=fmt)
     written["images_txt"] = out / "images.txt"
-    written["images_txt"].write_text("".join(f"{name}\n" for name in scene.names))
+    write_text(written["images_txt"], "".join(f"{name}\n" for name in scene.names))
     return written
