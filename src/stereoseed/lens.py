@@ -135,6 +135,33 @@ def principal_r2(d) -> float:
     return float(real.real.min()) if real.size else np.inf
 
 
+@njit(cache=True)
+def undistort_pixel_centre(xd, yd, lens, r2_max):
+    """A renderer's start for the sub-samples of one pixel: the pixel centre's undistorted
+    normalized position (xd, yd distorted) and the lens Jacobian there, ``lens`` (5,):
+    (x, y, jxx, jxy, jyy, det, ok); ok False where the centre has no principal-branch inverse
+    or the Jacobian degenerates (each sub-sample is then inverted from scratch)."""
+    x, y, ok = undistort_point(xd, yd, lens[0], lens[1], lens[2], lens[3], lens[4], r2_max, _ITERATIONS)
+    jxx = jxy = jyy = det = 0.0
+    if ok:
+        jxx, jxy, jyy = lens_jacobian(x, y, lens[0], lens[1], lens[2], lens[3], lens[4])
+        det = jxx * jyy - jxy * jxy
+        ok = abs(det) > 1e-12
+    return x, y, jxx, jxy, jyy, det, ok
+
+
+@njit(cache=True)
+def undistort_sample(xd, yd, xdc, ydc, xc, yc, jxx, jxy, jyy, det, centre_ok, lens, r2_max):
+    """A sub-sample's undistorted normalized position (x, y, ok), started from the linearisation
+    at its pixel centre (:func:`undistort_pixel_centre`: one Newton step is then left)."""
+    if centre_ok:
+        ex = xd - xdc
+        ey = yd - ydc
+        return undistort_point_from(xd, yd, xc + (jyy * ex - jxy * ey) / det, yc + (jxx * ey - jxy * ex) / det,
+                                    lens[0], lens[1], lens[2], lens[3], lens[4], r2_max, _ITERATIONS)
+    return undistort_point(xd, yd, lens[0], lens[1], lens[2], lens[3], lens[4], r2_max, _ITERATIONS)
+
+
 @njit(parallel=True, cache=True)
 def _undistort_kernel(xy_d, coeffs, r2_max, iterations):
     n = xy_d.shape[0]

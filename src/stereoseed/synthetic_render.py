@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from .image import sample_bilinear
-from .lens import lens_jacobian, undistort_point, undistort_point_from
+from .lens import undistort_pixel_centre, undistort_sample
 
 @njit(cache=True)
 def _intersect(ox, oy, oz, dx, dy, dz, half, height):
@@ -124,16 +124,9 @@ def _sample_ray(us, vs, Minv, Kinv, Rt, has_lens, lens, r2_max, centre_ok, xdc, 
         dy = Minv[1, 0] * us + Minv[1, 1] * vs + Minv[1, 2]
         dz = Minv[2, 0] * us + Minv[2, 1] * vs + Minv[2, 2]
         return dx, dy, dz, True
-    k1, k2, p1, p2, k3 = lens[0], lens[1], lens[2], lens[3], lens[4]
     xd = Kinv[0, 0] * us + Kinv[0, 1] * vs + Kinv[0, 2]
     yd = Kinv[1, 0] * us + Kinv[1, 1] * vs + Kinv[1, 2]
-    if centre_ok:
-        ex = xd - xdc
-        ey = yd - ydc
-        x, y, ok = undistort_point_from(xd, yd, xc + (jyy * ex - jxy * ey) / det, yc + (jxx * ey - jxy * ex) / det,
-                                        k1, k2, p1, p2, k3, r2_max, 20)
-    else:
-        x, y, ok = undistort_point(xd, yd, k1, k2, p1, p2, k3, r2_max, 20)
+    x, y, ok = undistort_sample(xd, yd, xdc, ydc, xc, yc, jxx, jxy, jyy, det, centre_ok, lens, r2_max)
     dx = Rt[0, 0] * x + Rt[0, 1] * y + Rt[0, 2]
     dy = Rt[1, 0] * x + Rt[1, 1] * y + Rt[1, 2]
     dz = Rt[2, 0] * x + Rt[2, 1] * y + Rt[2, 2]
@@ -159,11 +152,7 @@ def _render_kernel(Minv, Kinv, Rt, has_lens, lens, r2_max, C, height_px, width_p
             if has_lens:
                 xdc = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
                 ydc = Kinv[1, 0] * u + Kinv[1, 1] * v + Kinv[1, 2]
-                xc, yc, centre_ok = undistort_point(xdc, ydc, lens[0], lens[1], lens[2], lens[3], lens[4], r2_max, 20)
-                if centre_ok:
-                    jxx, jxy, jyy = lens_jacobian(xc, yc, lens[0], lens[1], lens[2], lens[3], lens[4])
-                    det = jxx * jyy - jxy * jxy
-                    centre_ok = abs(det) > 1e-12
+                xc, yc, jxx, jxy, jyy, det, centre_ok = undistort_pixel_centre(xdc, ydc, lens, r2_max)
             acc_r = 0.0
             acc_g = 0.0
             acc_b = 0.0

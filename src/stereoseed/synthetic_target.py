@@ -35,8 +35,7 @@ from numba import njit, prange
 
 from .errors import StereoseedError
 from .io import read_image
-from .lens import lens_coefficients, lens_jacobian, principal_r2, undistort_point
-from .lens import undistort_point_from
+from .lens import lens_coefficients, principal_r2, undistort_pixel_centre, undistort_sample
 from .synthetic import add_noise
 
 __all__ = ["TargetFace", "Target", "load_target", "face_points", "render_target",
@@ -213,7 +212,6 @@ def _target_kernel(Kinv, Rt, C, lens, r2_max, has_lens, height_px, width_px, ss,
     out = np.empty((height_px, width_px, 3), dtype=np.float64)
     n_faces = origins.shape[0]
     inv = 1.0 / (ss * ss)
-    k1, k2, p1, p2, k3 = lens[0], lens[1], lens[2], lens[3], lens[4]
     for v in prange(height_px):
         acc = np.zeros(3)
         for u in range(width_px):
@@ -226,11 +224,7 @@ def _target_kernel(Kinv, Rt, C, lens, r2_max, has_lens, height_px, width_px, ss,
             centre_ok = False
             xc = yc = jxx = jxy = jyy = det = 0.0
             if has_lens:
-                xc, yc, centre_ok = undistort_point(xdc, ydc, k1, k2, p1, p2, k3, r2_max, 20)
-                if centre_ok:
-                    jxx, jxy, jyy = lens_jacobian(xc, yc, k1, k2, p1, p2, k3)
-                    det = jxx * jyy - jxy * jxy
-                    centre_ok = abs(det) > 1e-12
+                xc, yc, jxx, jxy, jyy, det, centre_ok = undistort_pixel_centre(xdc, ydc, lens, r2_max)
             for j in range(ss):
                 vs = v + (j + 0.5) / ss - 0.5
                 for i in range(ss):
@@ -238,15 +232,8 @@ def _target_kernel(Kinv, Rt, C, lens, r2_max, has_lens, height_px, width_px, ss,
                     x = Kinv[0, 0] * us + Kinv[0, 1] * vs + Kinv[0, 2]
                     y = Kinv[1, 0] * us + Kinv[1, 1] * vs + Kinv[1, 2]
                     if has_lens:
-                        ok = False
-                        if centre_ok:
-                            ex = x - xdc
-                            ey = y - ydc
-                            x, y, ok = undistort_point_from(
-                                x, y, xc + (jyy * ex - jxy * ey) / det,
-                                yc + (jxx * ey - jxy * ex) / det, k1, k2, p1, p2, k3, r2_max, 20)
-                        else:
-                            x, y, ok = undistort_point(x, y, k1, k2, p1, p2, k3, r2_max, 20)
+                        x, y, ok = undistort_sample(x, y, xdc, ydc, xc, yc, jxx, jxy, jyy, det, centre_ok, lens,
+                                                    r2_max)
                         if not ok:
                             continue  # no ray: background
                     dx = Rt[0, 0] * x + Rt[0, 1] * y + Rt[0, 2]
