@@ -248,14 +248,15 @@ def make_target(out_dir: str | os.PathLike, size: str = "A4", faces: int = 3) ->
     if out.exists() and not out.is_dir():
         raise StereoseedError(f"{out}: is a file; give a folder to write the target into")
     W, H = _page_px(size)
-    entries, face_objs = [], []
+    entries, face_objs, pages = [], [], []
     first_id = 0
     for k in range(faces):
         board = _make_board(size, W, H, first_id)
         first_id += board.n_markers
         origin, u, v, label = _face_geometry(k, W, H)
         name = f"face_{k}.png"
-        write_image(out / name, _face_image(board, W, H, k, faces, label))
+        pages.append(_face_image(board, W, H, k, faces, label))
+        write_image(out / name, pages[-1])
         face_objs.append(Face(k, out / name, origin, u, v, board, (W, H)))
         entries.append({
             "image": name, "size_px": [W, H], "plane": label,
@@ -265,7 +266,7 @@ def make_target(out_dir: str | os.PathLike, size: str = "A4", faces: int = 3) ->
                       "origin_uv": list(board.origin_uv),
                       "square_mm": round(board.square_px * MM_PER_PX, 4),
                       "marker_mm": round(board.marker_px * MM_PER_PX, 4)}})
-    write_image(out / "assembly.png", _assembly_sheet(face_objs, size, W, H))
+    write_image(out / "assembly.png", _assembly_sheet(face_objs, pages, size, W, H))
     path = write_json(out / "target.json", {
         "unit": "mm", "paper": size, "dpi": DPI,
         "note": "pixel (u, v) centre of a face image (0, 0 = centre of the top-left pixel) lies at "
@@ -275,7 +276,7 @@ def make_target(out_dir: str | os.PathLike, size: str = "A4", faces: int = 3) ->
     return path
 
 
-def _assembly_sheet(faces: list[Face], size: str, W: int, H: int) -> np.ndarray:
+def _assembly_sheet(faces: list[Face], pages: list[np.ndarray], size: str, W: int, H: int) -> np.ndarray:
     """A landscape page: the target seen from (1, 1, 1) (an axonometric view textured with the
     face images through the contract), the axes, and the instructions."""
     SW, SH = _page_px("A4")[::-1] if size != "letter" else _page_px("letter")[::-1]
@@ -305,8 +306,7 @@ def _assembly_sheet(faces: list[Face], size: str, W: int, H: int) -> np.ndarray:
                          cv2.LINE_AA)
     f = 4  # the face images reduced 4x first (a reduced pixel u' is centred on u = f u' + (f - 1) / 2)
     reduce = np.array([[f, 0, (f - 1) / 2], [0, f, (f - 1) / 2], [0, 0, 1.0]])
-    for face in faces:
-        img = cv2.imread(str(face.image), cv2.IMREAD_GRAYSCALE)
+    for face, img in zip(faces, pages):  # the pages as drawn (grey), not read back from their PNGs
         small = cv2.resize(img, (img.shape[1] // f, img.shape[0] // f), interpolation=cv2.INTER_AREA)
         Hm = A @ face.matrix() @ reduce
         warped = cv2.warpPerspective(small, Hm, (SW, SH), flags=cv2.INTER_LINEAR, borderValue=0)
