@@ -423,17 +423,27 @@ def _check_P(P: Any, where: str) -> np.ndarray:
     if not 1 / MAX_MAGNITUDE <= scale <= MAX_MAGNITUDE:
         raise StereoseedError(f"{where}: 'P' has entries of magnitude {scale:.3g}, out of range; give P in pixels "
                               "(K [R | t]) or rescale it (P is defined up to scale)")
-    M = P[:, :3]
-    m = float(np.abs(M).max())
-    try:
-        s = np.linalg.svd(M / m, compute_uv=False) if m > 0 else np.zeros(3)
-    except np.linalg.LinAlgError:
-        s = np.zeros(3)
-    if not s[2] >= SINGULAR_RATIO * s[0] or s[0] == 0:
+    s = _singular_values(P[:, :3])
+    if _singular(s):
         raise StereoseedError(f"{where}: 'P' is not a camera: its left 3x3 block is singular (condition number "
                               f"{(s[0] / s[2]) if s[2] > 0 else float('inf'):.3g}); give P = K [R | t] with K and R "
                               "invertible")
     return P
+
+
+def _singular_values(M: np.ndarray) -> np.ndarray:
+    """Singular values (3,) of a 3x3 matrix scaled to its largest entry (zeros for a zero or
+    unusable matrix)."""
+    m = float(np.abs(M).max())
+    try:
+        return np.linalg.svd(M / m, compute_uv=False) if m > 0 else np.zeros(3)
+    except np.linalg.LinAlgError:
+        return np.zeros(3)
+
+
+def _singular(s: np.ndarray) -> bool:
+    """Whether singular values ``s`` (largest first) are those of a (near) singular matrix."""
+    return not s[2] >= SINGULAR_RATIO * s[0] or s[0] == 0
 
 
 def read_middlebury_par(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -478,9 +488,7 @@ def _parse_par(text: str, path: Path) -> dict[str, np.ndarray]:
                                   "keep one line per image")
         v = np.array(_numbers(fields[1:], where))
         K, R, t = v[:9].reshape(3, 3), v[9:18].reshape(3, 3), v[18:21]
-        k = float(np.abs(K).max())
-        sk = np.linalg.svd(K / k, compute_uv=False) if k > 0 else np.zeros(3)
-        if not sk[2] >= SINGULAR_RATIO * sk[0] or sk[0] == 0:
+        if _singular(_singular_values(K)):
             raise StereoseedError(f"{where}: K of {_show(name)} is singular; check the 9 numbers after the name "
                                   "(K row by row: fx s cx 0 fy cy 0 0 1)")
         off = float(np.abs(R @ R.T - np.eye(3)).max())
