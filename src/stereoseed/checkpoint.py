@@ -49,7 +49,7 @@ def _features_state(f: Features | None) -> tuple | None:
 
 def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
     """Pickle the reconstruction's state and the reports so far to ``path`` (atomically)."""
-    state = recon.checkpoint()
+    state = recon.checkpoint(copy=False)  # pickled at once: no copy needed
     # (P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed) per view;
     # the images are read again on resume, the grey images recomputed from them
     views = [(s[0], _features_state(s[1]), s[2], None) + tuple(s[4:]) for s in state.views]

@@ -308,12 +308,14 @@ class Reconstruction:
         v.P, v.camera_model, v.zoomed, v.status = None, None, False, "pending"
         v.point_of_feature[:] = -1
 
-    def checkpoint(self) -> Checkpoint:
-        """A copy of everything an insertion may change (points, observations, views)."""
-        return Checkpoint(self.points.copy(), self.colors.copy(), self.alive.copy(),
-                          (self.obs_view.copy(), self.obs_feature.copy(), self.obs_point.copy(),
-                           self.obs_linked.copy()),
-                          tuple(v._state() for v in self.views))
+    def checkpoint(self, copy: bool = True) -> Checkpoint:
+        """Everything an insertion may change (points, observations, views). ``copy`` False
+        gives views of the current arrays, for a state written out at once (pickled), not kept."""
+        arrays = (self.points, self.colors, self.alive, self.obs_view, self.obs_feature, self.obs_point,
+                  self.obs_linked)
+        if copy:
+            arrays = tuple(a.copy() for a in arrays)
+        return Checkpoint(*arrays[:3], arrays[3:], tuple(v._state() for v in self.views))
 
     def restore(self, state: Checkpoint) -> None:
         """Back to the state of ``state`` (from :meth:`checkpoint`)."""
