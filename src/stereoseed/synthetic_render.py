@@ -15,49 +15,32 @@ from .image import sample_bilinear
 from .lens import undistort_pixel_centre, undistort_sample
 
 @njit(cache=True)
+def _slab(o, d, lo, hi, lab_rising, lab_falling, tnear, tfar, label):
+    """One slab lo <= o + t d <= hi of the slab method: the entry (tnear, label) and exit tfar
+    so far, updated, and whether the ray can still meet the box (a ray parallel to the slab
+    must start inside it). lab_rising / lab_falling: the face entered when d > 0 / d < 0."""
+    if d != 0.0:
+        t1 = (lo - o) / d
+        t2 = (hi - o) / d
+        if d > 0.0:
+            enter, leave, lab = t1, t2, lab_rising
+        else:
+            enter, leave, lab = t2, t1, lab_falling
+        if enter > tnear:
+            tnear, label = enter, lab
+        return tnear, min(tfar, leave), label, True
+    return tnear, tfar, label, not (o < lo or o > hi)
+
+
+@njit(cache=True)
 def _intersect(ox, oy, oz, dx, dy, dz, half, height):
     """First hit of the ray o + t d (t > 0) with the box or the ground: (t, label), (inf, -1)."""
-    tnear = -np.inf
-    tfar = np.inf
-    label = -1
-    hit_box = True
-    # Slab method; the entering face is the slab whose entry parameter is the largest.
-    if dx != 0.0:
-        t1 = (-half - ox) / dx
-        t2 = (half - ox) / dx
-        if dx > 0.0:
-            enter, leave, lab = t1, t2, 3
-        else:
-            enter, leave, lab = t2, t1, 1
-        if enter > tnear:
-            tnear, label = enter, lab
-        tfar = min(tfar, leave)
-    elif ox < -half or ox > half:
-        hit_box = False
-    if dy != 0.0:
-        t1 = (-half - oy) / dy
-        t2 = (half - oy) / dy
-        if dy > 0.0:
-            enter, leave, lab = t1, t2, 4
-        else:
-            enter, leave, lab = t2, t1, 2
-        if enter > tnear:
-            tnear, label = enter, lab
-        tfar = min(tfar, leave)
-    elif oy < -half or oy > half:
-        hit_box = False
-    if dz != 0.0:
-        t1 = (0.0 - oz) / dz
-        t2 = (height - oz) / dz
-        if dz > 0.0:
-            enter, leave, lab = t1, t2, 0  # bottom face: only reachable from under the ground
-        else:
-            enter, leave, lab = t2, t1, 5
-        if enter > tnear:
-            tnear, label = enter, lab
-        tfar = min(tfar, leave)
-    elif oz < 0.0 or oz > height:
-        hit_box = False
+    # Slab method; the entering face is the slab whose entry parameter is the largest. Face 0,
+    # the bottom, is only reachable from under the ground.
+    tnear, tfar, label, in_x = _slab(ox, dx, -half, half, 3, 1, -np.inf, np.inf, -1)
+    tnear, tfar, label, in_y = _slab(oy, dy, -half, half, 4, 2, tnear, tfar, label)
+    tnear, tfar, label, in_z = _slab(oz, dz, 0.0, height, 0, 5, tnear, tfar, label)
+    hit_box = in_x and in_y and in_z
     if hit_box and tnear <= tfar and tnear > 0.0:
         return tnear, label
     # The box stands on the ground, so a ray that misses it can only meet the ground plane.
