@@ -130,6 +130,37 @@ def _heap_pop(hs, hi, n):
 
 
 @njit(cache=True)
+def _epipolar_line(F, x, y):
+    """The epipolar line (a, b, c) in image 2 of pixel (x, y) of image 1, normalised so that
+    a x' + b y' + c is the signed distance in pixels, and the norm it had (0 at the epipole,
+    where the line is undefined and (a, b, c) are left as they are)."""
+    a = F[0, 0] * x + F[0, 1] * y + F[0, 2]
+    b = F[1, 0] * x + F[1, 1] * y + F[1, 2]
+    c = F[2, 0] * x + F[2, 1] * y + F[2, 2]
+    nrm = np.sqrt(a * a + b * b)
+    if nrm > 0.0:
+        a /= nrm
+        b /= nrm
+        c /= nrm
+    return a, b, c, nrm
+
+
+@njit(cache=True)
+def _claim(x1, y1, x2, y2, score, m, match_x, match_y, taken2, mx1, my1, mx2, my2, msc, hs, hi, hn):
+    """Record match m: pixel (x1, y1) of image 1 with (x2, y2) of image 2, both now taken, and
+    push it on the heap of matches to grow from. Returns (m + 1, the heap's new size)."""
+    match_x[y1, x1] = x2
+    match_y[y1, x1] = y2
+    taken2[y2, x2] = True
+    mx1[m] = x1
+    my1[m] = y1
+    mx2[m] = x2
+    my2[m] = y2
+    msc[m] = score
+    return m + 1, _heap_push(hs, hi, hn, score, m)
+
+
+@njit(cache=True)
 def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, min_zncc,
                       half, radius, grad, use_f, F, band):
     """Best-first propagation. See the module docstring for the algorithm.
@@ -164,16 +195,8 @@ def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, m
             continue
         if match_x[y1, x1] >= 0 or taken2[y2, x2]:
             continue
-        match_x[y1, x1] = x2
-        match_y[y1, x1] = y2
-        taken2[y2, x2] = True
-        mx1[m] = x1
-        my1[m] = y1
-        mx2[m] = x2
-        my2[m] = y2
-        msc[m] = seed_scores[k]
-        hn = _heap_push(hs, hi, hn, seed_scores[k], m)
-        m += 1
+        m, hn = _claim(x1, y1, x2, y2, seed_scores[k], m, match_x, match_y, taken2, mx1, my1, mx2, my2, msc,
+                       hs, hi, hn)
     n_seeds_used = m
 
     side = 2 * radius + 1
@@ -207,15 +230,8 @@ def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, m
                 b = 0.0
                 c = 0.0
                 if use_f:
-                    a = F[0, 0] * ux + F[0, 1] * uy + F[0, 2]
-                    b = F[1, 0] * ux + F[1, 1] * uy + F[1, 2]
-                    c = F[2, 0] * ux + F[2, 1] * uy + F[2, 2]
-                    nrm = np.sqrt(a * a + b * b)
-                    if nrm > 0.0:
-                        a /= nrm
-                        b /= nrm
-                        c /= nrm
-                    else:  # u is the epipole: every u' is on its (undefined) line
+                    a, b, c, nrm = _epipolar_line(F, ux, uy)
+                    if not nrm > 0.0:  # u is the epipole: every u' is on its (undefined) line
                         a = 0.0
                         b = 0.0
                         c = 0.0
@@ -259,14 +275,6 @@ def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, m
             vx2 = cv[k] - vy2 * W2
             if match_x[uy, ux] >= 0 or taken2[vy2, vx2]:
                 continue
-            match_x[uy, ux] = vx2
-            match_y[uy, ux] = vy2
-            taken2[vy2, vx2] = True
-            mx1[m] = ux
-            my1[m] = uy
-            mx2[m] = vx2
-            my2[m] = vy2
-            msc[m] = cs[k]
-            hn = _heap_push(hs, hi, hn, cs[k], m)
-            m += 1
+            m, hn = _claim(ux, uy, vx2, vy2, cs[k], m, match_x, match_y, taken2, mx1, my1, mx2, my2, msc,
+                           hs, hi, hn)
     return mx1[:m], my1[:m], mx2[:m], my2[:m], msc[:m], n_seeds_used, match_x, match_y

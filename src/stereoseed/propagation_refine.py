@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .propagation_kernels import _FASTMATH, _dot_window, _load_centred
+from .propagation_kernels import _FASTMATH, _dot_window, _epipolar_line, _load_centred
 
 
 @njit(cache=True)
@@ -69,14 +69,8 @@ def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f
             g = (rowp + rowm - 2.0 * row0) / 6.0
             e = (z[2, 2] - z[2, 0] - z[0, 2] + z[0, 0]) / 4.0
         if use_f:
-            la = F[0, 0] * x1 + F[0, 1] * y1 + F[0, 2]
-            lb = F[1, 0] * x1 + F[1, 1] * y1 + F[1, 2]
-            lc = F[2, 0] * x1 + F[2, 1] * y1 + F[2, 2]
-            nrm = np.sqrt(la * la + lb * lb)
+            la, lb, lc, nrm = _epipolar_line(F, x1, y1)
             if nrm > 0.0:
-                la /= nrm
-                lb /= nrm
-                lc /= nrm
                 r = la * x2 + lb * y2 + lc  # signed distance of x2 to the line
                 px = -r * la  # foot of the perpendicular, as an offset from x2
                 py = -r * lb
@@ -268,15 +262,9 @@ def _refine_affine_pass(I1, mean1, inv1, I2, x1s, y1s, aff, use_f, F, half, sear
         rx = cx
         ry = cy
         if use_f:
-            la = F[0, 0] * px + F[0, 1] * py + F[0, 2]
-            lb = F[1, 0] * px + F[1, 1] * py + F[1, 2]
-            lc = F[2, 0] * px + F[2, 1] * py + F[2, 2]
-            nrm = np.sqrt(la * la + lb * lb)
+            la, lb, lc, nrm = _epipolar_line(F, px, py)
             if nrm == 0.0:
                 continue
-            la /= nrm
-            lb /= nrm
-            lc /= nrm
             r = la * cx + lb * cy + lc
             cx -= r * la  # foot of the perpendicular: the search runs on the line itself
             cy -= r * lb
