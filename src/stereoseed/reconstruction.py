@@ -105,9 +105,9 @@ class View:
         return self._P is not None
 
     @property
-    def image_size(self) -> tuple[int, int]:
-        """(width, height) of the image."""
-        return self.image.shape[1], self.image.shape[0]
+    def image_size(self) -> tuple[int, int] | None:
+        """(width, height) of the image; None for a view without one (a camera alone)."""
+        return None if self.image is None else (self.image.shape[1], self.image.shape[0])
 
     @property
     def P_input(self) -> np.ndarray | None:
