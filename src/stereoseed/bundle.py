@@ -93,7 +93,7 @@ class _Segments:
         return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
     """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n): every pair of
     observations (i, j) of one point adds -Y_i W_j^T (n, n) at cameras (cams[i], cams[j]).
