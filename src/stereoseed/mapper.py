@@ -18,15 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from .camera import epipolar_distances, fundamental_from_projections, project
+from .camera import epipolar_distances, fundamental_from_projections
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
 from .matching.containers import Matches
 from .modes import mode_of
 from .reconstruction import Reconstruction, View
+from .quasi_dense_registration import grow_quasi_dense, reconsider
 from .refinement import adjust, ba_report, drop_outliers
-from .registration import MOTION_PRIOR, Registration, RegistrationFailure, chained_points, register_view
+from .registration import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
 from .tracks import add_two_view_points, new_points_three_view
 
 __all__ = ["initialise", "insert_view", "finish"]
@@ -115,6 +116,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
         found = register_view(recon, k, cfg)
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
         found = RegistrationFailure(f"{view.name}: numerical failure ({e}); skipped")
+    found = reconsider(recon, k, found, cfg)  # a weak sparse chain: the quasi-dense attempt
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
     state = recon.checkpoint()
@@ -132,7 +134,7 @@ def _failed(view: View, reason: str, found: Registration | RegistrationFailure) 
     view.status = f"failed: {reason}"
     log.info("%s", reason)
     return {"image": view.name, "status": "failed", "reason": reason, "matches": found.matches,
-            "chained_points": found.chained_points,
+            "chained_points": found.chained_points, **found.notes,
             "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
 
 
@@ -154,7 +156,9 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     prev = recon.registered_before(k, 1)[0]
     _commit(view, reg)
     report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
-                              "registered_by": reg.found_by}
+                              "registered_by": reg.found_by, **reg.notes}
+    if reg.quasi_dense is not None:
+        report["quasi_dense"] = reg.quasi_dense.report
     if view.rotated_180:
         report["rotated_180"] = True
     if reg.hypothesis is not None:
@@ -170,14 +174,13 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     t = time.perf_counter()
     m = _match_known(recon, prev, k)
     _refine(recon, prev, k, m)
-    pid, chained = chained_points(recon, prev, m)
     # the chained observations consistent with the camera just estimated
-    consistent = np.zeros(len(m), bool)
-    if chained.any():
-        err = np.linalg.norm(project(view.P, recon.points[pid[chained]]) - view.features.points[m.idx2[chained]], axis=1)
-        consistent[np.flatnonzero(chained)[err <= cfg.resection.ransac_threshold_px]] = True
+    pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
     chain_points = pid[consistent]
     ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
+    if reg.quasi_dense is not None and cfg.quasi_dense.keep_tracks:  # the propagated matches' tracks
+        more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode, cfg)
+        ids, chain_points = np.concatenate([ids, more]), np.concatenate([chain_points, more_chained])
     if reg.found_by == MOTION_PRIOR:
         # repeated patterns defeated two-view matching: let a third view decide
         before = recon.registered_before(prev, 1)
