@@ -10,7 +10,7 @@ measure the chain alone.
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -102,18 +102,20 @@ class HarrisZncc:
 
 class Prefetching:
     """A correspondence source whose interest points of the next images are computed in a
-    background thread while the mapper places the current one.
+    background thread while the mapper places the current one (``image_of(index)`` gives the
+    image of view ``index``).
 
     The interest points of image k depend on image k alone, and OpenCV and the Numba kernels
     release the GIL: on two cores the detector of the next images runs while the geometry of
-    this one is solved. Everything else is the wrapped source's. ``images``: the sequence;
-    ``first``: the first index to prefetch; ``ahead``: how many images ahead (each holds its
+    this one is solved. Everything else is the wrapped source's. ``first``: the first index to
+    prefetch; ``ahead``: how many images ahead (each holds its
     interest points and grey image until asked for). Use as a context manager: the thread
     stops (pending work cancelled) on exit."""
 
-    def __init__(self, source: Any, images: list[np.ndarray], first: int, ahead: int = 2):
+    def __init__(self, source: Any, image_of: Callable[[int], np.ndarray], n_images: int, first: int, ahead: int = 2):
         self.source = source
-        self._images = images
+        self._image_of = image_of
+        self._n = n_images
         self._next = first
         self._ahead = ahead
         self._futures: dict[int, Future] = {}
@@ -123,16 +125,22 @@ class Prefetching:
     def __getattr__(self, name: str) -> Any:  # match, refine, track, turns_images: the source's
         return getattr(self.source, name)
 
+    def _features_of(self, index: int) -> tuple[np.ndarray, Features]:
+        image = self._image_of(index)
+        return image, self.source.features(index, image)
+
     def _submit_up_to(self, last: int) -> None:
-        while self._next <= min(last, len(self._images) - 1):
-            self._futures[self._next] = self._executor.submit(self.source.features, self._next, self._images[self._next])
+        while self._next <= min(last, self._n - 1):
+            self._futures[self._next] = self._executor.submit(self._features_of, self._next)
             self._next += 1
 
     def features(self, index: int, image: np.ndarray) -> Features:
         self._submit_up_to(index + self._ahead)
         future = self._futures.pop(index, None)
-        if future is not None and image is self._images[index]:  # not a turned copy
-            return future.result()
+        if future is not None:
+            fetched, features = future.result()
+            if fetched is image or np.array_equal(fetched, image):  # not a turned copy
+                return features
         return self.source.features(index, image)
 
     def __enter__(self) -> "Prefetching":

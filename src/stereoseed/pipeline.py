@@ -14,11 +14,12 @@ from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
-from .io import list_images, read_calibration, read_image
+from .io import list_images, read_calibration
 from .lens import undistort_image, undistortion_maps
 from .lens_calibration import read_lenses
 from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
+from .sequence import ImageSequence
 from .report_html import write_report_html
 from .results import write_result
 
@@ -63,7 +64,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
     source = recon.source
     try:
-        with Prefetching(source, [v.image for v in recon.views], first=len(per_image)) as recon.source:
+        with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)
                 per_image.append(rep)
@@ -88,32 +89,35 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     return recon, report
 
 
-def load_sequence(images_source: str, calib_path: str) -> tuple[list[np.ndarray], list[str], list[np.ndarray]]:
-    """Read an ordered image sequence (folder or list file) and the pair's calibration:
-    (images uint8 BGR, names, the pair's two (3, 4) cameras). When the calibration carries a
-    lens (calib.json "distortion"), every image is undistorted as it is read (one remap; image 0
-    through the first camera's lens, every later image through the second camera's: the moving
-    camera keeps its lens, so a zoom that changes the distortion is not modelled), and the
-    cameras hold for the undistorted pixels."""
+def load_sequence(images_source: str, calib_path: str) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
+    """An image sequence (folder or list file) and the pair's calibration: (the images, read
+    when needed as uint8 BGR (:class:`stereoseed.sequence.ImageSequence`), names, the pair's
+    two (3, 4) cameras). When the calibration carries a lens (calib.json "distortion"), every
+    image is undistorted as it is read (one remap; image 0 through the first camera's lens,
+    every later image through the second camera's: the moving camera keeps its lens, so a zoom
+    that changes the distortion is not modelled), and the cameras hold for the undistorted
+    pixels. The first two images are read here: a bad pair is refused before any work."""
     paths = list_images(images_source)
     if len(paths) < 2:
         raise StereoseedError(f"{images_source}: {len(paths)} image(s); the calibrated pair needs two")
     P_pair = read_calibration(calib_path, [p.name for p in paths])
     lenses = read_lenses(calib_path)
     maps: dict[int, Any] = {}
-    images = []
-    for i, p in enumerate(paths):
-        image = read_image(p)
+
+    def undistort(i: int, image: np.ndarray) -> np.ndarray:
         lens = lenses[min(i, 1)]
-        if lens is not None:
-            size = image.shape[1::-1]
-            if lens.image_size is not None and tuple(size) != tuple(lens.image_size):
-                raise StereoseedError(f"{p}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
-                                      f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
-            if min(i, 1) not in maps:
-                maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
-            image = undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
-        images.append(image)
+        if lens is None:
+            return image
+        size = image.shape[1::-1]
+        if lens.image_size is not None and tuple(size) != tuple(lens.image_size):
+            raise StereoseedError(f"{paths[i]}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
+                                  f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
+        if min(i, 1) not in maps:
+            maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
+        return undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
+
+    images = ImageSequence(paths, undistort)
+    images[0], images[1]  # noqa: B018 - read now: an unreadable pair image fails before any work
     return images, [p.name for p in paths], P_pair
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -58,16 +58,29 @@ class View:
     def __init__(self, name: str, features: Features | None = None, P: np.ndarray | None = None,
                  status: str = "pending", point_of_feature: np.ndarray | None = None,
                  image: np.ndarray | None = None, rotated_180: bool = False, camera_model: str | None = None,
-                 zoomed: bool = False):
+                 zoomed: bool = False, load: Callable[[], np.ndarray] | None = None):
         self.name = name
         self.features = features
         self.status = status
         self.point_of_feature = np.zeros(0, np.int64) if point_of_feature is None else point_of_feature
+        self._load = load
         self.image = image
         self.rotated_180 = rotated_180
         self.camera_model = camera_model
         self.zoomed = zoomed
         self.P = P
+
+    @property
+    def image(self) -> np.ndarray | None:
+        """The image as the run works on it: the one set, else the input image read on demand
+        through ``load`` (a long sequence does not hold every image)."""
+        if self._image is None and self._load is not None:
+            return self._load()
+        return self._image
+
+    @image.setter
+    def image(self, image: np.ndarray | None) -> None:
+        self._image = image
 
     @property
     def P(self) -> np.ndarray | None:
@@ -135,7 +148,7 @@ class View:
         return np.arange(start, start + len(features))
 
     def _state(self) -> tuple:
-        return (self._P, self.features, self.point_of_feature.copy(), self.image, self.status, self.rotated_180,
+        return (self._P, self.features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
                 self.camera_model, self.zoomed)
 
     def _restore(self, state: tuple) -> None:
