@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -156,6 +156,17 @@ class View:
          self.camera_model, self.zoomed) = state
 
 
+def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """(value, the indices (K,) of its rows) for each distinct value of ``values`` (O,) int: one
+    sort, not a scan of every row per value (a long sequence has hundreds of views)."""
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    bounds = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+    for start, end in zip(np.r_[0, bounds], np.r_[bounds, len(values)]):
+        if end > start:
+            yield int(ordered[start]), order[start:end]
+
+
 def _read_only(a: np.ndarray) -> np.ndarray:
     a.flags.writeable = False
     return a
@@ -264,8 +275,9 @@ class Reconstruction:
 
     def remove_observations(self, mask: np.ndarray) -> None:
         """Drop the observations selected by mask (O,) and unlink their interest points."""
-        for v in np.unique(self.obs_view[mask]):
-            sel = mask & (self.obs_view == v)
+        removed = np.flatnonzero(mask)
+        for v, rows in _rows_by_value(self.obs_view[removed]):
+            sel = removed[rows]
             pof = self.views[v].point_of_feature
             f = self.obs_feature[sel]
             linked = pof[f] == self.obs_point[sel]
@@ -347,18 +359,16 @@ class Reconstruction:
         views = self.obs_view if mask is None else self.obs_view[mask]
         feats = self.obs_feature if mask is None else self.obs_feature[mask]
         out = np.empty((len(views), 2))
-        for v in np.unique(views):
-            sel = views == v
-            out[sel] = self.views[v].features.points[feats[sel]]
+        for v, rows in _rows_by_value(views):
+            out[rows] = self.views[v].features.points[feats[rows]]
         return out
 
     def observation_errors(self) -> np.ndarray:
         """Reprojection distance (px) of every observation, (O,)."""
         err = np.empty(len(self.obs_view))
         xy = self.observation_xy()
-        for v in np.unique(self.obs_view):
-            sel = self.obs_view == v
-            err[sel] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[sel]]) - xy[sel], axis=1)
+        for v, rows in _rows_by_value(self.obs_view):
+            err[rows] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[rows]]) - xy[rows], axis=1)
         return err
 
     def track_lengths(self) -> np.ndarray:

@@ -81,7 +81,7 @@ def _tracks(recon: Reconstruction, ids: np.ndarray) -> dict[str, np.ndarray]:
         view = recon.views[v]
         xy = _input_frame(view, view.features.points) if view.registered and view.features is not None \
             else np.zeros((0, 2))
-        here = np.flatnonzero(obs_view == v)
+        here = np.arange(*np.searchsorted(obs_view, [v, v + 1]))  # obs_view is sorted
         # an interest point observing two points (the paper mode's unlinked observations) gets a
         # copy per extra point: a 2D point of COLMAP's model belongs to one 3D point
         first = np.ones(len(here), bool)
