@@ -52,7 +52,7 @@ def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dic
     state = recon.checkpoint(copy=False)  # pickled at once: no copy needed
     # (P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed) per view;
     # the images are read again on resume, the grey images recomputed from them
-    views = [(s[0], _features_state(s[1]), s[2], None) + tuple(s[4:]) for s in state.views]
+    views = [(s[0], _features_state(s[1]), s[2], None) + tuple(s[4:8]) for s in state.views]
     payload = {"version": VERSION, "key": key, "per_image": per_image, "points": state.points, "colors": state.colors,
                "alive": state.alive, "observations": state.observations, "views": views}
     with atomic_path(path) as tmp:
@@ -83,7 +83,7 @@ def load_checkpoint(path: str | Path, images: list[np.ndarray], names: list[str]
         image = cv2.rotate(image, cv2.ROTATE_180) if rotated else image
         features = None if feats is None else Features(*feats, gray=to_gray(image))
         views.append(View(name, image=image))
-        states.append((P, features, pof, image, status, rotated, model, zoomed))
+        states.append((P, features, pof, image, status, rotated, model, zoomed, False))
     recon = Reconstruction(views)
     recon.restore(Checkpoint(payload["points"], payload["colors"], payload["alive"], payload["observations"],
                              tuple(states)))

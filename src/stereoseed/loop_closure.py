@@ -32,8 +32,8 @@ def close_loop(recon: Reconstruction, cfg: Config) -> tuple[bool, dict[str, Any]
             va, vb = recon.views[a], recon.views[b]
             if np.dot(va.R[2], vb.R[2]) < np.cos(np.radians(lc.max_axis_angle_deg)):
                 continue  # looking too differently to share much
-            m = recon.source.match(b, a, vb.features, va.features, fundamental_from_projections(vb.P, va.P),
-                                   vb.image.shape[1])
+            m = recon.source.match(b, a, vb.restore_gray(), va.restore_gray(), fundamental_from_projections(vb.P, va.P),
+                                   vb.image_size[0])
             tried += len(m)
             if len(m) < lc.min_matches:
                 continue

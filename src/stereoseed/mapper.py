@@ -48,7 +48,7 @@ def _match_known(recon: Reconstruction, a: int, b: int) -> Matches:
     """Matches between registered views a and b under their epipolar geometry."""
     va, vb = recon.views[a], recon.views[b]
     return recon.source.match(a, b, va.features, vb.features, fundamental_from_projections(va.P, vb.P),
-                              va.image.shape[1])
+                              va.image_size[0])
 
 
 def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
@@ -147,7 +147,8 @@ def _failed(view: View, reason: str, found: Registration | RegistrationFailure) 
 def _commit(view: View, reg: Registration) -> None:
     """The one place where a registered camera enters the reconstruction."""
     cand = reg.candidate
-    view.image, view.features, view.rotated_180 = cand.image, cand.features, cand.rotated_180
+    view.keep_image(cand.image, cand.rotated_180)
+    view.features = cand.features
     view.point_of_feature = np.full(len(cand.features), -1, np.int64)
     view.P = reg.P
     view.camera_model = "focal" if reg.free_camera_refused else None

@@ -68,6 +68,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)
                 per_image.append(rep)
+                _release_grays(recon, cfg)
                 if checkpoint is not None:
                     save_checkpoint(checkpoint, recon, per_image, key)
                 if progress:
@@ -87,6 +88,19 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
+
+
+def _release_grays(recon: Reconstruction, cfg: Config) -> None:
+    """Keep the grey images of the views the next insertions work with (the BA window, the
+    motion prior's recent views, the two before the next image) and of the first views (the
+    loop closure matches them at the end); the others are read again if ever needed. The
+    memory of a long run then grows with its points and descriptors only."""
+    reg = recon.registered_views
+    working = max(cfg.pipeline.window, cfg.motion_prior.recent_views) + 2
+    keep = set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
+    for i in reg:
+        if i not in keep:
+            recon.views[i].release_gray()
 
 
 def load_sequence(images_source: str, calib_path: str) -> tuple[ImageSequence, list[str], list[np.ndarray]]:

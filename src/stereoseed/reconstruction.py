@@ -16,7 +16,7 @@ steps stay vectorised and appending does not copy everything each time.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -24,6 +24,7 @@ import numpy as np
 
 from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
 from .features import Features
+from .image import to_gray
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
 
@@ -65,10 +66,45 @@ class View:
         self.point_of_feature = np.zeros(0, np.int64) if point_of_feature is None else point_of_feature
         self._load = load
         self.image = image
+        self._gray_released = False
         self.rotated_180 = rotated_180
         self.camera_model = camera_model
         self.zoomed = zoomed
         self.P = P
+
+    @property
+    def features(self) -> Features | None:
+        """The interest points (their grey image None after :meth:`release_gray`, until
+        :meth:`restore_gray`)."""
+        return self._features
+
+    @features.setter
+    def features(self, features: Features | None) -> None:
+        self._features = features
+        self._gray_released = False
+
+    def restore_gray(self) -> Features | None:
+        """The interest points with their grey image, computed again from the image if it was
+        released (what matching or tracking against an old view needs)."""
+        f = self._features
+        if f is not None and f.gray is None and self._gray_released:
+            self._features = replace(f, gray=to_gray(self.image))
+            self._gray_released = False
+        return self._features
+
+    def release_gray(self) -> None:
+        """Let go of the interest points' grey image (recomputed from the image on demand): a
+        view out of the mapper's working set holds its points and descriptors only."""
+        f = self._features
+        if f is not None and f.gray is not None and (self._load is not None or self._image is not None):
+            self._features = replace(f, gray=None)
+            self._gray_released = True
+
+    def keep_image(self, image: np.ndarray, rotated_180: bool) -> None:
+        """The image the run works on: held only when the view cannot read it again (turned, or
+        given in memory)."""
+        self.image = image if (rotated_180 or self._load is None) else None
+        self.rotated_180 = rotated_180
 
     @property
     def image(self) -> np.ndarray | None:
@@ -81,6 +117,7 @@ class View:
     @image.setter
     def image(self, image: np.ndarray | None) -> None:
         self._image = image
+        self._size = None if image is None else (image.shape[1], image.shape[0])
 
     @property
     def P(self) -> np.ndarray | None:
@@ -120,7 +157,10 @@ class View:
     @property
     def image_size(self) -> tuple[int, int] | None:
         """(width, height) of the image; None for a view without one (a camera alone)."""
-        return None if self.image is None else (self.image.shape[1], self.image.shape[0])
+        if self._size is None:
+            image = self.image
+            self._size = None if image is None else (image.shape[1], image.shape[0])
+        return self._size
 
     @property
     def P_input(self) -> np.ndarray | None:
@@ -148,12 +188,14 @@ class View:
         return np.arange(start, start + len(features))
 
     def _state(self) -> tuple:
-        return (self._P, self.features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
-                self.camera_model, self.zoomed)
+        """(P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed,
+        grey image released)."""
+        return (self._P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
+                self.camera_model, self.zoomed, self._gray_released)
 
     def _restore(self, state: tuple) -> None:
         (self.P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180,
-         self.camera_model, self.zoomed) = state
+         self.camera_model, self.zoomed, self._gray_released) = state
 
 
 def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:

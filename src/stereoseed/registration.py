@@ -198,8 +198,8 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     prev = recon.registered_before(k, 1)[0]
     vp, view, source = recon.views[prev], recon.views[k], recon.source
     moving = recon.views[1]
-    if view.image.shape[:2] != moving.image.shape[:2]:
-        (h, w), (h1, w1) = view.image.shape[:2], moving.image.shape[:2]
+    if view.image_size != moving.image_size:
+        (w, h), (w1, h1) = view.image_size, moving.image_size
         return RegistrationFailure(f"{view.name}: {w}x{h} pixels, but the calibrated moving camera's images are "
                                    f"{w1}x{h1}; give images of that size (its intrinsics are in pixels of that size)")
     seconds = {}
@@ -207,7 +207,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     cand = Candidate(k, view.name, view.image, source.features(k, view.image), view.rotated_180)
     seconds["features"] = time.perf_counter() - t
     t = time.perf_counter()
-    width = vp.image.shape[1]
+    width = vp.image_size[0]
     m = source.match(prev, k, vp.features, cand.features, None, width)
     pid, chained = chained_points(recon, prev, m)
     if chained.sum() < cfg.resection.min_inliers and getattr(source, "turns_images", False):

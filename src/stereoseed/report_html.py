@@ -82,7 +82,7 @@ def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | N
     if vj.features is None or vk.features is None or recon.source is None:
         return None
     F = fundamental_from_projections(vj.P, vk.P)
-    matches = recon.source.match(j, k, vj.features, vk.features, F, vj.image.shape[1])
+    matches = recon.source.match(j, k, vj.restore_gray(), vk.restore_gray(), F, vj.image_size[0])
     canvas = draw_matches(vj.image, vj.features.points, vk.image, vk.features.points, matches)
     if canvas.shape[1] > MAX_MATCH_IMAGE_WIDTH:
         scale = MAX_MATCH_IMAGE_WIDTH / canvas.shape[1]

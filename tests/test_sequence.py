@@ -1,0 +1,69 @@
+"""ImageSequence reads images when asked and keeps a few; views load, release and restore what
+a long run does not need to hold."""
+import numpy as np
+import pytest
+
+from stereoseed.errors import StereoseedError
+from stereoseed.features import extract_features
+from stereoseed.io import write_image
+from stereoseed.reconstruction import View
+from stereoseed.sequence import ImageSequence
+from geometry_helpers import band_noise
+
+
+@pytest.fixture
+def files(tmp_path):
+    paths = []
+    for i in range(5):
+        image = (np.dstack([band_noise((60, 80), seed=i)] * 3) * 255).astype(np.uint8)
+        paths.append(write_image(tmp_path / f"{i}.png", image))
+    return paths
+
+
+def test_images_are_read_when_asked_and_the_last_few_kept(files):
+    seq = ImageSequence(files, transform=lambda i, im: im[:, ::-1].copy(), capacity=2)
+    assert len(seq) == 5 and seq.reads == 0
+    first = seq[0]
+    assert seq[0] is first and seq.reads == 1  # cached
+    seq[1], seq[2]
+    assert seq.reads == 3
+    again = seq[0]  # evicted by 1 and 2: read again, same pixels
+    assert again is not first and np.array_equal(again, first) and seq.reads == 4
+    assert not again.flags.writeable  # shared: nobody may change it in place
+    assert seq[-1].shape == (60, 80, 3)
+    sub = seq[1:4]
+    assert len(sub) == 3 and np.array_equal(sub[0], seq[1])  # the transform follows the slice
+    with pytest.raises(IndexError):
+        seq[5]
+
+
+def test_an_unreadable_image_is_reported_when_read(files, tmp_path):
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not a png")
+    seq = ImageSequence([files[0], bad])
+    seq[0]
+    with pytest.raises(StereoseedError, match="bad.png"):
+        seq[1]
+
+
+def test_a_view_releases_its_grey_image_and_restores_the_same_one(files):
+    seq = ImageSequence(files, capacity=1)
+    view = View("0.png", load=lambda: seq[0])
+    view.features = extract_features(view.image)
+    gray = view.features.gray.copy()
+    assert view.image_size == (80, 60)
+    state = view._state()
+    view.release_gray()
+    assert view.features.gray is None
+    seq[1]  # evicts image 0
+    assert np.array_equal(view.restore_gray().gray, gray)
+    view.release_gray()
+    released = view._state()
+    view._restore(state)  # a rollback to before the release keeps its grey image
+    assert view.features.gray is not None
+    view._restore(released)  # and one to after it can still restore it
+    assert np.array_equal(view.restore_gray().gray, gray)
+    # a view whose image was given in memory, not loadable, keeps it: keep_image holds it
+    held = View("x", image=seq[0])
+    held.keep_image(seq[0], rotated_180=False)
+    assert held.image is not None
