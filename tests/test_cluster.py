@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from distributed import LocalCluster
+from distributed import Client, LocalCluster
 
 from stereoseed.batch import read_sequence_list, run_batch
 from stereoseed.cli import main
@@ -47,6 +47,11 @@ def sequence_files(tmp_path_factory, four_views):
     return folder
 
 
+def _workers(scheduler: str) -> set[str]:
+    with Client(scheduler, set_as_default=False) as client:
+        return set(client.scheduler_info()["workers"])
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -60,10 +65,12 @@ def test_dense_on_the_cluster_is_the_local_cloud(scheduler, four_views, tmp_path
     assert len(recon.registered_views) == 4
     for name in ("local", "remote"):
         (tmp_path / name).mkdir()
+    workers = _workers(scheduler)
     local = densify(copy.copy(recon), cfg, tmp_path / "local")  # densify stores the cloud on recon: copies
     with executor_for(scheduler, cfg.dense.workers) as pool:
         assert pool.remote and pool.slots == 2
         remote = densify(copy.copy(recon), cfg, tmp_path / "remote", pool)
+    assert _workers(scheduler) == workers  # none died (Dask would rerun its job quietly on a new one)
     assert remote["points"] == local["points"] > 100_000
     assert [p["wide_angle"] for p in remote["pairs"]] == [p["wide_angle"] for p in local["pairs"]]
     assert [p["pair"] for p in remote["pairs"]] == [[a, b] for a, b in zip(four_views.names, four_views.names[1:])]
@@ -80,10 +87,12 @@ def test_batch_on_the_cluster_reports_the_bad_sequence_and_writes_the_others(sch
                        f"{seq}/images.txt {seq}/missing.json bad\n"
                        f"\n"
                        f"{seq}/first3.txt {seq}/calib.json three\n")
+    workers = _workers(scheduler)
     code = main(["batch", str(listing), "--dense", "--scheduler", scheduler, "--out-root", str(tmp_path / "res"),
                  "--quiet"])
     out = capsys.readouterr().out
     assert code == 1
+    assert _workers(scheduler) == workers  # the failed sequence failed in its job, no worker died
     lines = out.strip().splitlines()
     assert lines[0].startswith("four: registered 4/4 images")
     assert lines[1].startswith("bad: failed: ") and "missing.json: calibration file not found" in lines[1]
