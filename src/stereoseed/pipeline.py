@@ -16,7 +16,6 @@ from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
 from .cluster import JobPool
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
-from .dense import densify
 from .errors import StereoseedError
 from .io import list_images, read_calibration, read_image
 from .lens import undistort_image, undistortion_maps
@@ -145,6 +144,8 @@ def reconstruct_to_folder(images_source: str, calib_path: str, out: str | Path, 
         recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                     checkpoint=staging / CHECKPOINT, resume=resume)
         if dense:
+            from .dense import densify  # the dense stage's modules only for a dense run
+
             report["dense"] = densify(recon, cfg, staging, pool)
         save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
         results.commit(drop=(CHECKPOINT,))
