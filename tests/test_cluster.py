@@ -127,7 +127,7 @@ def test_batch_locally_runs_every_sequence_in_list_order(sequence_files, tmp_pat
     assert [o.ok for o in outcomes] == [True, False]
     assert outcomes[0].summary["registered"] == 3 and outcomes[0].summary["points"] > 100
     assert "nothing.txt: calibration file not found" in outcomes[1].reason
-    assert seen == [(0, 2, "on this process"), (1, 2, "a: done"), (2, 2, "b: failed")]
+    assert seen == [(0, 2, "running in this process"), (1, 2, "a: done"), (2, 2, "b: failed")]
     assert (tmp_path / "a" / "cameras.json").is_file() and not (tmp_path / "b").exists()
 
 

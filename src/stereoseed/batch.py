@@ -135,7 +135,7 @@ def run_batch(sequences: list[Sequence], cfg: Config = Config(), dense: bool = F
         cfg = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, workers=1))
     outcomes: list[Outcome] = []
     if progress:
-        progress(0, len(sequences), f"on {pool.where}")
+        progress(0, len(sequences), f"running {pool.where}")
     jobs = ((s, cfg, dense) for s in sequences)
     for sequence, done in zip(sequences, pool.in_order(run_sequence, jobs)):
         try:

@@ -36,9 +36,10 @@ _NEEDS_EXTRA = "--scheduler needs the cluster extra: pip install 'stereoseed[clu
 class JobPool:
     """Runs jobs ``fn(*args)`` and hands back futures (``.result()`` returns the value or raises
     the job's exception). ``slots``: how many jobs run at once; ``remote``: the jobs run on a
-    Dask cluster (whose worker processes cannot start a pool of their own)."""
+    Dask cluster (whose worker processes cannot start a pool of their own); ``where``: for
+    messages ("in this process", "on the Dask cluster at ...")."""
 
-    def __init__(self, slots: int = 1, submit: Callable[..., Any] | None = None, where: str = "this process",
+    def __init__(self, slots: int = 1, submit: Callable[..., Any] | None = None, where: str = "in this process",
                  remote: bool = False):
         self.slots, self.where, self.remote = max(1, slots), where, remote
         self._submit = submit
@@ -88,7 +89,7 @@ def executor_for(scheduler: str | None, workers: int,
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with_parent,
                                  initargs=(os.getpid(),)) as pool:
-            yield JobPool(workers, pool.submit, f"{workers} local processes")
+            yield JobPool(workers, pool.submit, f"in {workers} local processes")
         return
     client = _connect(scheduler, connect_timeout)
     try:
@@ -98,7 +99,7 @@ def executor_for(scheduler: str | None, workers: int,
         def submit(fn: Callable[..., Any], *args: Any) -> Any:
             return client.submit(fn, *args, pure=False)  # every job is run, none deduplicated by hash
 
-        yield JobPool(slots, submit, f"the Dask cluster at {scheduler}", remote=True)
+        yield JobPool(slots, submit, f"on the Dask cluster at {scheduler}", remote=True)
     finally:
         client.close()
 
