@@ -97,25 +97,40 @@ def timing() -> dict:
     return out
 
 
-def temple(data_dir: Path | None = None) -> dict:
+def _middlebury(folder: str, par: str, data_dir: Path | None, paths: bool = False) -> dict:
+    """Both modes on a Middlebury sparse ring: figures against the par file's cameras; with
+    ``paths``, which path registered each image (sparse chain, motion prior, quasi-dense) and
+    the time of each insertion."""
     data_dir = data_dir or Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-    seq = data_dir / "templeSparseRing"
+    seq = data_dir / folder
     if not seq.is_dir():
         return {"skipped": f"{seq} not found"}
     from stereoseed.io import read_middlebury_par
-    images, names, P_pair = load_sequence(str(seq / "ring_order.txt"), str(seq / "templeSR_par.txt"))
-    truth = read_middlebury_par(seq / "templeSR_par.txt")
+    images, names, P_pair = load_sequence(str(seq / "ring_order.txt"), str(seq / par))
+    truth = read_middlebury_par(seq / par)
     out = {}
     for mode in ("paper", "accurate"):
         recon, report = reconstruct(images, names, P_pair, _cfg(mode))
         s = _summary(recon, report, truth_P=[truth[n] for n in names])
         s["center_error_mm_per_image"] = [None if e is None else round(e * 10, 2) for e in s["center_error_cm"]["per_image"]]
+        if paths:
+            s["paths"] = [r.get("registered_by", r.get("status")) for r in report["per_image"][2:]]
+            s["insertion_s"] = [round(r["seconds"]["total"], 2) for r in report["per_image"][2:]]
         out[mode] = s
     return out
 
 
+def temple(data_dir: Path | None = None) -> dict:
+    return _middlebury("templeSparseRing", "templeSR_par.txt", data_dir)
+
+
+def dino(data_dir: Path | None = None) -> dict:
+    """dinoSparseRing (white, almost untextured): where the quasi-dense registration works."""
+    return _middlebury("dinoSparseRing", "dinoSR_par.txt", data_dir, paths=True)
+
+
 def run() -> dict:
-    return {"synthetic": synthetic_rings(), "timing": timing(), "temple": temple()}
+    return {"synthetic": synthetic_rings(), "timing": timing(), "temple": temple(), "dino": dino()}
 
 
 if __name__ == "__main__":

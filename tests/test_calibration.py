@@ -111,3 +111,48 @@ def test_random_inputs_either_calibrate_or_raise_clearly(rows):
         assert str(e).startswith("calibration: ") and "\n" not in str(e)
         return
     assert cal.P.shape == (3, 4) and np.all(np.isfinite(cal.P)) and cal.rms_px <= 5.0
+
+
+@pytest.mark.parametrize("model", ["free", "zero-skew", "focal", "fixed"])
+def test_refinement_reaches_scipys_least_squares_optimum(model):
+    """The analytic-Jacobian LM finds the same optimum as SciPy's MINPACK LM (finite-difference
+    Jacobian) on the same parameterisation: an oracle for the whole refinement."""
+    from scipy.optimize import least_squares
+    from stereoseed import camera_models
+
+    rng = np.random.default_rng(7)
+    K, R, t, P = ring_camera(20.0, f=780.0, skew=0.6, aspect=1.004, pp=(318.0, 243.0))
+    X = box_points(rng, 80)
+    x = project(P, X) + rng.normal(0, 0.7, (len(X), 2))
+    ref_K = K.copy()
+    ref_K[:2, :2] *= 0.9  # a reference 10 % less zoomed: the focal model must find the zoom
+    start = camera_models.project_to_model(P, model, ref_K)
+    params, fixed = camera_models.params_from_projection(start, model, ref_K)
+    params[-6:-3] += 0.01  # off by ~0.6 deg
+    params[-3:] += 0.02  # and 2 cm
+    start = camera_models.projection_from_params(params, model, fixed)
+
+    def residuals(p):
+        return (project(camera_models.projection_from_params(p, model, fixed), X) - x).ravel()
+
+    oracle = least_squares(residuals, params, method="lm", xtol=1e-12, ftol=1e-12)
+    P_oracle = camera_models.projection_from_params(oracle.x, model, fixed)
+    P_ours = refine_projection(start, X, x, model=model, reference_K=ref_K)
+    assert reprojection_rms(P_ours, X, x) <= reprojection_rms(P_oracle, X, x) * (1 + 1e-9)
+    assert np.linalg.norm(camera_center(P_ours) - camera_center(P_oracle)) < 1e-6  # metres
+    assert reprojection_rms(P_ours, X, x) < reprojection_rms(start, X, x) / 5
+
+
+def test_huber_refinement_ignores_gross_outliers():
+    rng = np.random.default_rng(8)
+    K, R, t, P = ring_camera(-30.0, f=800.0)
+    X = box_points(rng, 100)
+    x = project(P, X) + rng.normal(0, 0.3, (len(X), 2))
+    x[:15] += rng.uniform(20, 60, (15, 2))  # 15 % gross mismatches
+    start = dlt_projection(X[15:], x[15:])
+    robust = refine_projection(start, X, x, loss="huber", f_scale=1.0)
+    plain = refine_projection(start, X, x)
+    err = lambda Pc: np.linalg.norm(camera_center(Pc) - camera_center(P))
+    clean = refine_projection(start, X[15:], x[15:])  # the fit without the mismatches
+    assert err(robust) < 2 * max(err(clean), 1e-3)
+    assert err(plain) > 10 * err(clean)  # the mismatches do matter to least squares

@@ -63,3 +63,30 @@ def test_decompose_roundtrip_property(angle, f, skew, aspect, scale):
     np.testing.assert_allclose(K2, K, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(R2, R, atol=1e-9)
     np.testing.assert_allclose(normalize_projection(scale * P), normalize_projection(P), atol=1e-9)
+
+
+@pytest.mark.parametrize("model", ["free", "zero-skew", "focal", "fixed"])
+def test_projection_derivatives_match_central_differences(model):
+    from stereoseed import camera_models
+
+    rng = np.random.default_rng(3)
+    ref = np.array([[800.0, 0.5, 320.0], [0.0, 790.0, 240.0], [0.0, 0.0, 1.0]])
+    K = ref.copy()
+    K[:2, :2] *= 1.1
+    K = camera_models.K_from_intrinsics(camera_models._intrinsics_from_K(K, model, ref), model, ref)
+    R = camera_models.rotation_from_vector(rng.normal(size=3))
+    t = rng.normal(size=3)
+    analytic = camera_models.projection_derivatives(K, R, t, model, ref)
+    intrinsics = camera_models._intrinsics_from_K(K, model, ref)
+    ni = len(intrinsics)
+
+    def P_of(p):  # the parameterisation the derivatives are of: left rotation increment
+        K_p = camera_models.K_from_intrinsics(p[:ni], model, ref)
+        return K_p @ np.hstack([camera_models.rotation_from_vector(p[ni:ni + 3]) @ R, (t + p[ni + 3:]).reshape(3, 1)])
+
+    p0 = np.r_[intrinsics, np.zeros(6)]
+    for j in range(len(p0)):
+        e = np.zeros(len(p0))
+        e[j] = 1e-6 * max(1.0, abs(p0[j]))
+        numeric = (P_of(p0 + e) - P_of(p0 - e)) / (2 * e[j])
+        assert np.abs(numeric - analytic[j]).max() < 1e-6 * max(1.0, np.abs(analytic[j]).max())

@@ -128,10 +128,12 @@ def test_plain_box_without_epipolar_geometry_is_placed_by_the_motion_prior(plain
 
 
 def test_plain_box_hypotheses_reach_past_the_three_best_pairings():
-    # scene seed 3: the last image sees few squares; every hypothesis drawn from each point's 3
-    # best pairings was 8-29 cm off (the true camera would explain 51 recent points, the chosen
-    # one 36) and the image landed 11 cm off. Hypotheses from the 6 best pairings too: 2.5 cm.
-    scene = render_scene(SceneConfig(textured=False, seed=3))
+    # Found on scene seed 3: the last image saw few squares; every hypothesis drawn from each
+    # point's 3 best pairings was 8-29 cm off (the true camera would explain 51 recent points,
+    # the chosen one 36) and the image landed 11 cm off; hypotheses from the 6 best pairings too:
+    # 2.5 cm. Since the analytic-Jacobian refinement seed 3 no longer needs the wider search;
+    # seed 1 does (twice), which the assertion below checks.
+    scene = render_scene(SceneConfig(textured=False, seed=1))
     recon, report = _run(scene, "accurate")
     assert report["registered"] == scene.n_images
     searches = [r["motion_prior_search"] for r in report["per_image"][2:] if "motion_prior_search" in r]

@@ -18,8 +18,9 @@ import numpy as np
 from numba import njit
 
 from . import camera_models
-from .camera import point_jacobian, project_per_observation
+from .camera import camera_jacobian, point_jacobian, project_per_observation
 from .config import BundleConfig
+from .robust import huber_cost, huber_weights
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
 
@@ -74,26 +75,6 @@ def _projection_derivatives(params: np.ndarray, model: str, ref_K: np.ndarray | 
     return out
 
 
-def _camera_jacobian(dP: np.ndarray, Xh: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """d(u, v)/dparams for observations of one camera. dP: (n, 3, 4); Xh: (O, 4) -> (O, 2, n)."""
-    dh = np.einsum("jik,ok->oij", dP, Xh)  # (O, 3, n)
-    inv = 1.0 / h[:, 2]
-    du = (dh[:, 0] - uv[:, 0:1] * dh[:, 2]) * inv[:, None]
-    dv = (dh[:, 1] - uv[:, 1:2] * dh[:, 2]) * inv[:, None]
-    return np.stack([du, dv], axis=1)
-
-
-def _huber_weights(r: np.ndarray, delta: float) -> np.ndarray:
-    """IRLS weights of the Huber loss on the 2D residual norm. r: (O, 2) -> (O,)."""
-    norm = np.linalg.norm(r, axis=1)
-    return np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
-
-
-def _robust_cost(r: np.ndarray, delta: float) -> float:
-    norm = np.linalg.norm(r, axis=1)
-    return float(np.sum(np.where(norm <= delta, norm ** 2, 2 * delta * norm - delta ** 2)))
-
-
 class _Segments:
     """Sums of per-observation values grouped by an integer key (0..n-1), with the grouping
     (a stable sort) computed once: ``np.add.reduceat`` is far faster than ``np.add.at``."""
@@ -112,7 +93,7 @@ class _Segments:
         return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
     """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n): every pair of
     observations (i, j) of one point adds -Y_i W_j^T (n, n) at cameras (cams[i], cams[j]).
@@ -199,12 +180,12 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     eye_n, eye_3 = np.eye(n), np.eye(3)
 
     lam = 1e-3
-    cost = _robust_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
+    cost = huber_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
         h, uv = project_per_observation(Ps[oc], X[op])
         r = uv - xy
-        w = _huber_weights(r, delta)
+        w = huber_weights(r, delta)
         Jp = point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
         Jc = np.zeros((len(oc), 2, n))
         Xh = np.hstack([X[op], np.ones((len(op), 1))])
@@ -212,7 +193,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             sel = oc == c
             if sel.any():
                 dP = _projection_derivatives(params[cam_slot[c]], model, ref_K(c))
-                Jc[sel] = _camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
+                Jc[sel] = camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
         wJcT = np.swapaxes(Jc, 1, 2) * w[:, None, None]  # (O, n, 2)
         wJpT = np.swapaxes(Jp, 1, 2) * w[:, None, None]  # (O, 3, 2)
         U = by_camera.sum((wJcT @ Jc)[has_c])
@@ -250,7 +231,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             X_new = X.copy()
             X_new[free_pt_idx] += dp
             with np.errstate(all="ignore"):
-                new_cost = _robust_cost(project_per_observation(Ps_new[oc], X_new[op])[1] - xy, delta)
+                new_cost = huber_cost(project_per_observation(Ps_new[oc], X_new[op])[1] - xy, delta)
             if np.isfinite(new_cost) and new_cost < cost:
                 improvement = (cost - new_cost) / max(cost, 1e-300)
                 params, Ps, X, cost = new_params, Ps_new, X_new, new_cost

@@ -8,11 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from . import camera_models
-from .camera import decompose_projection, depths, normalize_projection, project
+from .camera import camera_jacobian, decompose_projection, depths, normalize_projection, project
 from .errors import StereoseedError
+from .robust import huber_cost, huber_weights
 
 __all__ = [
     "normalization_2d",
@@ -107,25 +107,72 @@ def reprojection_rms(P: np.ndarray, points3d: np.ndarray, points2d: np.ndarray) 
 
 def refine_projection(P: np.ndarray, points3d: np.ndarray, points2d: np.ndarray,
                       model: str = "free", reference_K: np.ndarray | None = None,
-                      loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 200) -> np.ndarray:
+                      loss: str = "linear", f_scale: float = 1.0, max_iterations: int = 100) -> np.ndarray:
     """Levenberg-Marquardt refinement of P minimising the reprojection error (ML under
     Gaussian pixel noise).
 
     P: (3, 4) initial camera; points3d: (N, 3); points2d: (N, 2). ``model`` is a camera model of
     :mod:`stereoseed.camera_models` ("free": 11 DOF K+R+t). ``loss`` "huber" with ``f_scale``
-    px makes it robust. Returns the refined P (3, 4).
+    px makes it robust (on each point's 2D error, as the bundle adjustment does; solved by
+    iteratively reweighted least squares). Returns the refined P (3, 4).
+
+    The Jacobian is analytic (``camera_models.projection_derivatives`` chained through the
+    projection): resection polishes hundreds of hypotheses in a run, and finite differences
+    cost one projection of every point per parameter.
     """
+    if loss not in ("linear", "huber"):
+        raise ValueError(f"loss must be 'linear' or 'huber', not {loss!r}")
     params, fixed = camera_models.params_from_projection(P, model, reference_K)
+    K, R, t = camera_models.krt_from_params(params, model, fixed)
+    ni = camera_models.N_INTRINSICS[model]
+    intrinsics = params[:ni]
     X = np.asarray(points3d, dtype=np.float64)
     x = np.asarray(points2d, dtype=np.float64)
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    delta = f_scale if loss == "huber" else np.inf
 
-    def residuals(p: np.ndarray) -> np.ndarray:
-        return (project(camera_models.projection_from_params(p, model, fixed), X) - x).ravel()
+    def evaluate(intrinsics: np.ndarray, R: np.ndarray, t: np.ndarray):
+        K = camera_models.K_from_intrinsics(intrinsics, model, fixed)
+        Pc = K @ np.hstack([R, t.reshape(3, 1)])
+        h = Xh @ Pc.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = h[:, :2] / h[:, 2:3]
+        r = uv - x
+        cost = huber_cost(r, delta)
+        return K, Pc, h, uv, r, (cost if np.isfinite(cost) else np.inf)
 
-    method = "lm" if loss == "linear" and 2 * len(X) >= len(params) else "trf"
-    sol = least_squares(residuals, params, method=method, loss=loss, f_scale=f_scale,
-                        max_nfev=max_nfev, x_scale="jac")
-    return normalize_projection(camera_models.projection_from_params(sol.x, model, fixed))
+    K, Pc, h, uv, r, cost = evaluate(intrinsics, R, t)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        if not np.isfinite(cost):
+            break
+        w = huber_weights(r, delta)
+        J = camera_jacobian(camera_models.projection_derivatives(K, R, t, model, fixed), Xh, h, uv)
+        J = J.reshape(-1, J.shape[2])  # (2N, n): rows u0, v0, u1, ...
+        Jw = J * np.repeat(w, 2)[:, None]
+        A = Jw.T @ J
+        g = Jw.T @ r.ravel()
+        improved = False
+        while damping < 1e12:
+            try:
+                step = np.linalg.solve(A + damping * np.diag(np.maximum(np.diag(A), 1e-12)), -g)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            trial = (intrinsics + step[:ni], camera_models.rotation_from_vector(step[ni:ni + 3]) @ R,
+                     t + step[ni + 3:])
+            K_new, P_new, h_new, uv_new, r_new, cost_new = evaluate(*trial)
+            if cost_new < cost:
+                improved = True
+                converged = cost - cost_new <= 1e-10 * cost  # scipy's ftol is 1e-8
+                intrinsics, R, t = trial
+                K, Pc, h, uv, r, cost = K_new, P_new, h_new, uv_new, r_new, cost_new
+                damping = max(damping / 10.0, 1e-12)
+                break
+            damping *= 10.0
+        if not improved or converged:
+            break
+    return normalize_projection(Pc)
 
 
 @dataclass

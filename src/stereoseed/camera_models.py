@@ -21,7 +21,8 @@ MODELS = ("free", "zero-skew", "focal", "fixed")
 N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
 __all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection",
-           "krt_from_params", "projection_from_params", "project_to_model"]
+           "krt_from_params", "projection_from_params", "project_to_model", "projection_derivatives",
+           "rotation_from_vector"]
 
 
 def n_params(model: str) -> int:
@@ -120,3 +121,45 @@ def project_to_model(P: np.ndarray, model: str, reference_K: np.ndarray | None =
     """The camera of ``model``'s family closest to P (same centre and rotation)."""
     params, ref = params_from_projection(P, model, reference_K)
     return projection_from_params(params, model, ref)
+
+
+def projection_derivatives(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: str,
+                           reference_K: np.ndarray | None = None) -> np.ndarray:
+    """dP/dparam, (n_params(model), 3, 4), of P = K [R | t], analytic.
+
+    The parameters are the model's intrinsics, then a rotation *increment* w applied on the left
+    (R <- exp([w]x) R, so dR/dw_j = [e_j]x R at w = 0), then t. A refinement that moves R by
+    such increments stays away from the rotation vector's singularity at pi."""
+    Rt = np.hstack([R, np.reshape(t, (3, 1))])
+    dK = _intrinsic_derivatives(model, reference_K)
+    ni = len(dK)
+    out = np.zeros((ni + 6, 3, 4))
+    if ni:
+        out[:ni] = np.matmul(np.array(dK), Rt)
+    zero = np.zeros(3)
+    # [e_j]x R for j = x, y, z, written out (rows of R crossed into place)
+    skew_R = np.array([[zero, -R[2], R[1]], [R[2], zero, -R[0]], [-R[1], R[0], zero]])
+    out[ni:ni + 3, :, :3] = np.matmul(K, skew_R)
+    out[ni + 3:, :, 3] = K.T
+    return out
+
+
+def _intrinsic_derivatives(model: str, reference_K: np.ndarray | None) -> list[np.ndarray]:
+    """dK/d(intrinsic parameter), one (3, 3) matrix per intrinsic of ``model`` (K is linear in
+    them, so these are constants)."""
+    def unit(*entries: tuple[int, int]) -> np.ndarray:
+        d = np.zeros((3, 3))
+        for r, c in entries:
+            d[r, c] = 1.0
+        return d
+
+    if _check(model) == "free":  # fx, fy, skew, cx, cy
+        return [unit((0, 0)), unit((1, 1)), unit((0, 1)), unit((0, 2)), unit((1, 2))]
+    if model == "zero-skew":  # f, cx, cy
+        return [unit((0, 0), (1, 1)), unit((0, 2)), unit((1, 2))]
+    if model == "fixed":
+        return []
+    ref = _require_reference(reference_K)  # focal: K = reference_K with its 2x2 block scaled by f / f_ref
+    d = np.zeros((3, 3))
+    d[:2, :2] = np.triu(ref[:2, :2]) / ref[0, 0]
+    return [d]

@@ -9,7 +9,8 @@ measure the chain alone.
 """
 from __future__ import annotations
 
-from typing import Protocol
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -19,7 +20,7 @@ from .matching.alignment import PairCache, align_matches, refine_features
 from .matching.containers import Matches
 from .matching.pair import match_pair
 
-__all__ = ["CorrespondenceSource", "HarrisZncc"]
+__all__ = ["CorrespondenceSource", "HarrisZncc", "Prefetching"]
 
 
 class CorrespondenceSource(Protocol):
@@ -97,3 +98,46 @@ class HarrisZncc:
         ok[look] = (al.converged & (al.shift(probe, m) <= max_shift_px)
                     & (al.zncc > self.cfg.tracking.min_aligned_zncc))
         return xy, ok
+
+
+class Prefetching:
+    """A correspondence source whose interest points of the next images are computed in a
+    background thread while the mapper places the current one.
+
+    The interest points of image k depend on image k alone, and OpenCV and the Numba kernels
+    release the GIL: on two cores the detector of the next images runs while the geometry of
+    this one is solved. Everything else is the wrapped source's. ``images``: the sequence;
+    ``first``: the first index to prefetch; ``ahead``: how many images ahead (each holds its
+    interest points and grey image until asked for). Use as a context manager: the thread
+    stops (pending work cancelled) on exit."""
+
+    def __init__(self, source: Any, images: list[np.ndarray], first: int, ahead: int = 2):
+        self.source = source
+        self._images = images
+        self._next = first
+        self._ahead = ahead
+        self._futures: dict[int, Future] = {}
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-features")
+        self._submit_up_to(first + ahead - 1)
+
+    def __getattr__(self, name: str) -> Any:  # match, refine, track, turns_images: the source's
+        return getattr(self.source, name)
+
+    def _submit_up_to(self, last: int) -> None:
+        while self._next <= min(last, len(self._images) - 1):
+            self._futures[self._next] = self._executor.submit(self.source.features, self._next, self._images[self._next])
+            self._next += 1
+
+    def features(self, index: int, image: np.ndarray) -> Features:
+        self._submit_up_to(index + self._ahead)
+        future = self._futures.pop(index, None)
+        if future is not None and image is self._images[index]:  # not a turned copy
+            return future.result()
+        return self.source.features(index, image)
+
+    def __enter__(self) -> "Prefetching":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+        self._futures.clear()

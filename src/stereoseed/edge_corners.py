@@ -26,7 +26,7 @@ _EDGE_MAX_SCATTER = 0.3  # px rms of the edge points about their line: a straigh
 _EDGE_MAX_SHIFT = 1.0  # px from the junction's position: farther is another structure
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _edge_line(gray, cx, cy, nx, ny, sides, half, s_from, s_to, s_step, max_scatter):
     """Sub-pixel edge points along the edge of normal (nx, ny) leaving (cx, cy) on ``sides``
     (+1, -1 or both: 0) and their total-least-squares line. Returns (ok, nx, ny, c): n.p = c."""
@@ -112,7 +112,7 @@ def _edge_line(gray, cx, cy, nx, ny, sides, half, s_from, s_to, s_step, max_scat
     return True, ex, ey, ex * mx + ey * my
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_step, min_angle_deg,
                         max_scatter, max_shift, out, ok):
     h, w = gray.shape

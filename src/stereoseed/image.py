@@ -62,7 +62,7 @@ def to_gray(image: np.ndarray, dtype: type = np.float32) -> np.ndarray:
     return np.ascontiguousarray(np.clip(gray, 0.0, 1.0), dtype=dtype)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sample_bilinear(img: np.ndarray, x: float, y: float) -> float:
     """Bilinear sample of img (H, W) at (x, y), edges replicated (pixel centres at integers).
 

@@ -64,7 +64,7 @@ def distort_normalized(xy: np.ndarray, d) -> np.ndarray:
     return np.stack([xd, yd], axis=1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lens_jacobian(x, y, k1, k2, p1, p2, k3):
     """d(x_d, y_d) / d(x, y) at undistorted (x, y): the symmetric (jxx, jxy, jyy)."""
     x2 = x * x
@@ -78,7 +78,7 @@ def lens_jacobian(x, y, k1, k2, p1, p2, k3):
     return jxx, jxy, jyy
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def undistort_point_from(xd, yd, x, y, k1, k2, p1, p2, k3, r2_max, iterations):
     """Newton inversion of the lens for one point from the initial guess (x, y):
     (x_d, y_d) -> (x, y, ok).
@@ -114,7 +114,7 @@ def undistort_point_from(xd, yd, x, y, k1, k2, p1, p2, k3, r2_max, iterations):
     return np.nan, np.nan, False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def undistort_point(xd, yd, k1, k2, p1, p2, k3, r2_max, iterations):
     """:func:`undistort_point_from` starting from ``(x_d, y_d) / c(r_d)`` (one fixed-point
     step from the distorted point: the principal branch's side)."""
@@ -135,7 +135,7 @@ def principal_r2(d) -> float:
     return float(real.real.min()) if real.size else np.inf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def undistort_pixel_centre(xd, yd, lens, r2_max):
     """A renderer's start for the sub-samples of one pixel: the pixel centre's undistorted
     normalized position (xd, yd distorted) and the lens Jacobian there, ``lens`` (5,):
@@ -150,7 +150,7 @@ def undistort_pixel_centre(xd, yd, lens, r2_max):
     return x, y, jxx, jxy, jyy, det, ok
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def undistort_sample(xd, yd, xdc, ydc, xc, yc, jxx, jxy, jyy, det, centre_ok, lens, r2_max):
     """A sub-sample's undistorted normalized position (x, y, ok), started from the linearisation
     at its pixel centre (:func:`undistort_pixel_centre`: one Newton step is then left)."""

@@ -16,7 +16,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from .calibration import check_correspondences, dlt_projection
 from .camera import compose_projection, decompose_projection, depths
@@ -100,6 +99,8 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
     def residuals(p: np.ndarray) -> np.ndarray:
         K, d, Rs, ts = _unpack(p, len(checked), n_lens, fixed)
         return np.concatenate([(project_distorted(K, R, t, d, X) - x).ravel() for (X, x), R, t in zip(checked, Rs, ts)])
+
+    from scipy.optimize import least_squares  # here: a reconstruction that only reads a lens need not load it
 
     sol = least_squares(residuals, np.asarray(p0, np.float64), method="lm", x_scale="jac", max_nfev=2000)
     K, d, Rs, ts = _unpack(sol.x, len(checked), n_lens, fixed)

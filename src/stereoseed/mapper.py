@@ -18,15 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from .camera import epipolar_distances, fundamental_from_projections, project
+from .camera import epipolar_distances, fundamental_from_projections
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc
 from .errors import StereoseedError
 from .matching.containers import Matches
 from .modes import mode_of
 from .reconstruction import Reconstruction, View
+from .quasi_dense_registration import grow_quasi_dense, reconsider
 from .refinement import adjust, ba_report, drop_outliers
-from .registration import MOTION_PRIOR, Registration, RegistrationFailure, chained_points, register_view
+from .registration import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
 from .tracks import add_two_view_points, new_points_three_view
 
 __all__ = ["initialise", "insert_view", "finish"]
@@ -81,7 +82,8 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
 
 def _check_pair(recon: Reconstruction, cfg: Config) -> None:
     """The calibration must fit its two images: their matches found without it (robust F) must
-    lie on its epipolar lines (``PipelineConfig.pair_min_consistent``). Raises
+    lie on its epipolar lines (``PipelineConfig.pair_min_consistent``), or, when they do not,
+    matching under the calibration's epipolar geometry must find more of them. Raises
     :class:`StereoseedError` naming the likely causes."""
     v0, v1 = recon.views[0], recon.views[1]
     if v0.image.shape == v1.image.shape and np.array_equal(v0.image, v1.image):
@@ -93,7 +95,10 @@ def _check_pair(recon: Reconstruction, cfg: Config) -> None:
     x0, x1 = m.points(v0.features, v1.features)
     d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
     consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
-    if consistent < cfg.pipeline.pair_min_consistent:
+    if consistent < cfg.pipeline.pair_min_consistent and len(_match_known(recon, 0, 1)) < len(m):
+        # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
+        # then the calibration's own epipolar geometry still matches more than that F does,
+        # while a calibration of other images matches only what falls in its bands by chance.
         raise StereoseedError(
             f"{v0.name}, {v1.name}: the calibration does not fit these images: only {100 * consistent:.0f} % of "
             f"their {len(m)} matches lie on its epipolar lines (a fitting one: ~100 %); are the two cameras "
@@ -111,6 +116,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
         found = register_view(recon, k, cfg)
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
         found = RegistrationFailure(f"{view.name}: numerical failure ({e}); skipped")
+    found = reconsider(recon, k, found, cfg)  # a weak sparse chain: the quasi-dense attempt
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
     state = recon.checkpoint()
@@ -128,7 +134,7 @@ def _failed(view: View, reason: str, found: Registration | RegistrationFailure) 
     view.status = f"failed: {reason}"
     log.info("%s", reason)
     return {"image": view.name, "status": "failed", "reason": reason, "matches": found.matches,
-            "chained_points": found.chained_points,
+            "chained_points": found.chained_points, **found.notes,
             "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
 
 
@@ -150,7 +156,9 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     prev = recon.registered_before(k, 1)[0]
     _commit(view, reg)
     report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
-                              "registered_by": reg.found_by}
+                              "registered_by": reg.found_by, **reg.notes}
+    if reg.quasi_dense is not None:
+        report["quasi_dense"] = reg.quasi_dense.report
     if view.rotated_180:
         report["rotated_180"] = True
     if reg.hypothesis is not None:
@@ -166,14 +174,13 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     t = time.perf_counter()
     m = _match_known(recon, prev, k)
     _refine(recon, prev, k, m)
-    pid, chained = chained_points(recon, prev, m)
     # the chained observations consistent with the camera just estimated
-    consistent = np.zeros(len(m), bool)
-    if chained.any():
-        err = np.linalg.norm(project(view.P, recon.points[pid[chained]]) - view.features.points[m.idx2[chained]], axis=1)
-        consistent[np.flatnonzero(chained)[err <= cfg.resection.ransac_threshold_px]] = True
+    pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
     chain_points = pid[consistent]
     ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
+    if reg.quasi_dense is not None and cfg.quasi_dense.keep_tracks:  # the propagated matches' tracks
+        more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode, cfg)
+        ids, chain_points = np.concatenate([ids, more]), np.concatenate([chain_points, more_chained])
     if reg.found_by == MOTION_PRIOR:
         # repeated patterns defeated two-view matching: let a third view decide
         before = recon.registered_before(prev, 1)

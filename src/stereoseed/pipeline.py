@@ -15,7 +15,7 @@ import numpy as np
 from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
 from .cluster import JobPool
 from .config import Config
-from .correspondence import CorrespondenceSource, HarrisZncc
+from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
 from .io import list_images, read_calibration, read_image
 from .lens import undistort_image, undistortion_maps
@@ -66,13 +66,18 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     resumed = [r["image"] for r in per_image] if state is not None else []
     if progress:
         progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
-    for k in range(len(per_image), n):
-        rep = insert_view(recon, k, cfg)
-        per_image.append(rep)
-        if checkpoint is not None:
-            save_checkpoint(checkpoint, recon, per_image, key)
-        if progress:
-            progress(k + 1, n, f"{names[k]}: {rep['status']}")
+    source = recon.source
+    try:
+        with Prefetching(source, [v.image for v in recon.views], first=len(per_image)) as recon.source:
+            for k in range(len(per_image), n):
+                rep = insert_view(recon, k, cfg)
+                per_image.append(rep)
+                if checkpoint is not None:
+                    save_checkpoint(checkpoint, recon, per_image, key)
+                if progress:
+                    progress(k + 1, n, f"{names[k]}: {rep['status']}")
+    finally:
+        recon.source = source
     final = finish(recon, cfg)
     pc = cfg.pipeline
     report = {

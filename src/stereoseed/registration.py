@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
 
-from .camera import camera_center, decompose_projection, depths
+from .camera import camera_center, decompose_projection, depths, project
 from .config import Config
 from .errors import StereoseedError
 from .features import Features
@@ -24,7 +25,8 @@ from .motion_prior import Hypothesis, explained_points, hypotheses_by_motion_pri
 from .reconstruction import Reconstruction, View, intrinsics_in_frame
 from .resection import ResectionResult, implausible_intrinsics, resect
 
-__all__ = ["Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion"]
+__all__ = ["Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
+           "consistent_chain"]
 
 CHAIN, MOTION_PRIOR = "epipolar chain", "motion prior"
 
@@ -68,6 +70,10 @@ class Registration:
     hypothesis: Hypothesis | None = None
     free_camera_refused: str | None = None
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, resection
+    # found_by "quasi-dense": the propagated matches the commit turns into tracks
+    # (:class:`stereoseed.quasi_dense_registration.QuasiDenseMatches`); the report of the attempt
+    quasi_dense: Any = None
+    notes: dict[str, Any] = field(default_factory=dict)
 
     @property
     def P(self) -> np.ndarray:
@@ -86,12 +92,15 @@ class Registration:
 
 @dataclass(frozen=True)
 class RegistrationFailure:
-    """Why an image could not be registered (``reason`` names the image)."""
+    """Why an image could not be registered (``reason`` names the image); ``candidate``: the
+    image as matched, when it got that far (a second attempt can start from it)."""
 
     reason: str
     matches: int = 0
     chained_points: int = 0
     seconds: dict[str, float] = field(default_factory=dict)
+    candidate: Candidate | None = None
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -118,6 +127,21 @@ def chained_points(recon: Reconstruction, prev: int, m: Matches) -> tuple[np.nda
     """(point ids (M,) of prev's matched interest points, chained (M,) bool: a live point)."""
     pid = recon.views[prev].point_of_feature[m.idx1]
     return pid, (pid >= 0) & recon.alive[np.maximum(pid, 0)]
+
+
+def consistent_chain(recon: Reconstruction, prev: int, k: int, m: Matches,
+                     threshold_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For matches prev <-> k once view k's camera is committed: (point ids (M,), chained (M,)
+    bool, consistent (M,) bool: chained and k's interest point within ``threshold_px`` of the
+    point's projection)."""
+    pid, chained = chained_points(recon, prev, m)
+    consistent = np.zeros(len(m), bool)
+    if chained.any():
+        view = recon.views[k]
+        err = np.linalg.norm(project(view.P, recon.points[pid[chained]]) - view.features.points[m.idx2[chained]],
+                             axis=1)
+        consistent[np.flatnonzero(chained)[err <= threshold_px]] = True
+    return pid, chained, consistent
 
 
 class _Resector:
@@ -201,7 +225,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     seconds["resection"] = time.perf_counter() - t
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, str):
-        return RegistrationFailure(found, n_matches, n_chained, seconds)
+        return RegistrationFailure(found, n_matches, n_chained, seconds, cand)
     (res, refused), found_by, hypothesis = found
     return Registration(cand, res, found_by, n_matches, n_chained, hypothesis, refused, seconds)
 

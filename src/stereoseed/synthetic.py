@@ -158,6 +158,9 @@ class SceneConfig:
     focal0_px: float = 780.0  # camera 0 is another physical camera ...
     principal_offset0_px: tuple[float, float] = (3.5, -2.5)  # ... and an off-centre principal pt
     distortion: tuple[float, ...] = ()  # every image's lens: () or (k1, k2, p1, p2[, k3])
+    # textured scene: the albedo standard deviation of the box's light part and of the ground
+    # disk (None: 0.10 and 0.12); 0.02 is a faint texture (a white object, few Harris corners)
+    texture_amplitude: float | None = None
 
     def __post_init__(self) -> None:
         lens_coefficients(self.distortion)  # 0, 4 or 5 finite numbers, else ValueError
@@ -167,6 +170,8 @@ class SceneConfig:
             raise ValueError("supersample must be >= 1")
         if not 0.0 <= self.focal_jitter < 1.0:
             raise ValueError("focal_jitter must be in [0, 1)")
+        if self.texture_amplitude is not None and not 0.0 <= self.texture_amplitude <= 0.5:
+            raise ValueError("texture_amplitude must be in [0, 0.5] (an albedo standard deviation) or None")
 
 
 # --------------------------------------------------------------------------------------------
@@ -529,6 +534,9 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
     Ks, Rs, ts = _cameras(cfg)
     tex_faces, tex_ground = _textures(cfg)
     albedo = _ALBEDO_TEXTURED if cfg.textured else _ALBEDO_PLAIN
+    if cfg.textured and cfg.texture_amplitude is not None:
+        albedo = albedo.copy()
+        albedo[[0, 2], 1] = cfg.texture_amplitude
     tints, far_ground = _TINTS, _FAR_GROUND_ALBEDO
     if not cfg.textured:
         # The plain scene's ground is one uniform floor: no disk rim to offer a spurious feature.

@@ -225,7 +225,7 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
     return X
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve3(H, g):
     """Solve the 3x3 system H x = g by Cramer's rule (H symmetric positive definite here)."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -247,7 +247,7 @@ def _solve3(H, g):
 
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _add_row(H: np.ndarray, g: np.ndarray, a0: float, a1: float, a2: float, b: float) -> None:
     """Accumulate one equation a . X = b into the normal equations (upper triangle of H)."""
     H[0, 0] += a0 * a0
@@ -261,7 +261,7 @@ def _add_row(H: np.ndarray, g: np.ndarray, a0: float, a1: float, a2: float, b: f
     g[2] += a2 * b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _two_view_kernel(P1, P2, x1, x2, iterations, out_X, out_err):
     n = x1.shape[0]
     H = np.empty((3, 3))

@@ -12,7 +12,7 @@ from numba import njit
 
 from ..image import sample_bilinear
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _sample_normalised(img, A, t, r, out):
     """Patch of img at u -> A u + t (u in [-r, r]^2), zero-mean; returns its norm and whether
     every sample lies inside the image."""
@@ -53,7 +53,7 @@ def _sample_normalised(img, A, t, r, out):
     return np.sqrt(norm), inside
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _invert(a, out, work):
     """Inverse of the small (n, n) matrix a into out (Gauss-Jordan, partial pivoting); work is
     (n, 2n) scratch. Allocation-free, like the rest of the per-match alignment work."""
@@ -86,7 +86,7 @@ def _invert(a, out, work):
             out[i, j] = work[i, n + j]
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
                tmpl, img, jac, hess, hess_inv, work, A, t, b, dp, t_out, A_out, zncc, converged):
     """Align match i (see :func:`_align_kernel`); every array argument after uy is scratch or
@@ -206,7 +206,7 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
     A_out[i] = A
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
     """Inverse-compositional affine Lucas-Kanade for every match (M,): images g1, gx, gy, g2
     float32, x1, x2 (M, 2), half patch side r; returns t (M, 2), A (M, 2, 2), zncc (M,),

@@ -82,7 +82,7 @@ def candidate_mask(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarr
                              float(band_px))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
     """The mask of :func:`candidate_mask` from the window centres (N1, 2), the points of image 2
     (N2, 2), the epipolar lines in image 2 (N1, 3) and the normals' lengths of the lines in
@@ -105,7 +105,7 @@ def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
     return mask
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _best_per_row_and_column(s):
     """(N1, N2) scores -> best column of each row (N1,), its score (N1,), best row of each
     column (N2,); the first of equal maxima, as np.argmax. One pass."""

@@ -1,0 +1,199 @@
+"""What the user waits for: ``stereoseed reconstruct`` timed as a whole process, cold (a fresh
+Numba cache, as after an install that compiled nothing) and warm (the second run), per stage
+from its report.json, with peak RSS; and, when pycolmap is installed (the ``bench`` extra),
+COLMAP on the same images in the same run (CPU SIFT, sequential matching, incremental
+mapping), with the ratio. Sequences: a held-out 14-image textured box (scene seed 1; the other
+sections use seed 0), a 36-image ring at 10 degrees and templeSparseRing when the data is there.
+The dense stage is timed as a whole process too, on the 18-image ring.
+
+    python benchmarks/bench_speed.py [--only box14,temple,ring36,dense]
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stereoseed.calibration import calibrate_camera
+from stereoseed.evaluation import camera_errors
+from stereoseed.io import read_middlebury_par, write_json
+from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+
+STAGES = ("features", "matching", "resection", "triangulation", "bundle")
+BIN = Path(sys.executable).parent
+
+
+def _data_dir() -> Path:
+    return Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+def timed_process(args: list[str], env: dict | None = None) -> dict:
+    """Run a command to its end: wall seconds, peak RSS (MB) of the process, exit code."""
+    t = time.perf_counter()
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    seconds = time.perf_counter() - t
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace")
+    return {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024, "returncode": proc.returncode,
+            "stderr": err.strip().splitlines()[-1:] if proc.returncode else []}
+
+
+def _synthetic(folder: Path, config: SceneConfig) -> dict:
+    """A rendered ring written as a user's folder: images, images.txt and a calib.json from the
+    pattern (as `stereoseed calibrate` would write it); the true cameras for the errors."""
+    scene = render_scene(config)
+    written = write_scene(scene, folder)
+    pattern, points1, points2 = scene.calibration_points()
+    cams = [calibrate_camera(pattern, pts) for pts in (points1, points2)]
+    write_json(folder / "calib.json", {"cameras": [c.to_dict() for c in cams]})
+    return {"images": written["images_txt"], "calib": folder / "calib.json", "names": list(scene.names),
+            "truth": list(scene.P), "image_dir": folder}
+
+
+def _temple(folder: Path) -> dict | None:
+    seq = _data_dir() / "templeSparseRing"
+    if not seq.is_dir():
+        return None
+    names = [n.strip() for n in (seq / "ring_order.txt").read_text().splitlines() if n.strip()]
+    truth = read_middlebury_par(seq / "templeSR_par.txt")
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "images.txt").write_text("".join(f"{seq / n}\n" for n in names))
+    return {"images": folder / "images.txt", "calib": seq / "templeSR_par.txt", "names": names,
+            "truth": [truth[n] for n in names], "image_dir": seq}
+
+
+def _stages(report: dict) -> dict:
+    per = [r.get("seconds", {}) for r in report["per_image"][2:]]
+    out = {s: round(sum(p.get(s, 0.0) for p in per), 3) for s in STAGES}
+    out["pair"] = round(report["per_image"][1].get("seconds", {}).get("total", 0.0), 3)
+    out["final_step"] = round(report["final"].get("seconds", 0.0), 3) if isinstance(report.get("final"), dict) else None
+    out["reconstruct_call"] = round(report["seconds"], 3)
+    return out
+
+
+def _centre_errors_mm(out_dir: Path, data: dict) -> dict:
+    """Camera-centre errors (mm) of the moving camera's images in a result folder's cameras.json."""
+    path = out_dir / "cameras.json"
+    if not path.exists():
+        return {}
+    by_name = {c["name"]: c for c in json.loads(path.read_text())["images"]}
+    cams = [np.array(by_name[n]["P"]) if by_name.get(n, {}).get("registered") else None for n in data["names"]]
+    err = [e for e in camera_errors(cams, data["truth"])["center_m"][2:] if e is not None]
+    return {"median_mm": float(np.median(err) * 1000), "max_mm": float(np.max(err) * 1000)} if err else {}
+
+
+def stereoseed_runs(data: dict, work: Path, extra: tuple[str, ...] = ()) -> dict:
+    """Cold then warm whole-process runs of `stereoseed reconstruct` on one sequence."""
+    cache = work / "numba_cache"
+    shutil.rmtree(cache, ignore_errors=True)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    out: dict = {}
+    for label in ("cold", "warm"):
+        result = work / f"out_{label}"
+        run = timed_process([str(BIN / "stereoseed"), "reconstruct", str(data["images"]), "--calib", str(data["calib"]),
+                             "--out", str(result), "--quiet", *extra], env)
+        if run["returncode"] == 0:
+            report = json.loads((result / "report.json").read_text())
+            run.update(registered=report["registered"], images=report["images"], stages=_stages(report))
+            if "dense" in report:
+                run["dense"] = {k: report["dense"].get(k) for k in ("points", "seconds", "workers")}
+        out[label] = run
+    out["import_seconds"] = timed_process([sys.executable, "-c", "import stereoseed.cli, stereoseed.pipeline, "
+                                           "stereoseed.results"])["seconds"]
+    return out
+
+
+COLMAP_SCRIPT = """
+import sys, time, pycolmap
+from pathlib import Path
+db, images, out = sys.argv[1], sys.argv[2], sys.argv[3]
+names = sys.argv[4:]
+opts = pycolmap.FeatureExtractionOptions()
+opts.num_threads = -1
+pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                          extraction_options=opts, device=pycolmap.Device.cpu)
+pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+maps = pycolmap.incremental_mapping(db, images, out)
+best = max(maps.values(), key=lambda r: r.num_reg_images()) if maps else None
+print(best.num_reg_images() if best else 0)
+"""
+
+
+def colmap_run(data: dict, work: Path) -> dict:
+    """pycolmap 4 on the same images: whole process (import included), registered images."""
+    try:
+        import pycolmap  # noqa: F401  (only whether it is there)
+    except ImportError:
+        return {"skipped": "pycolmap is not installed (pip install 'stereoseed[bench]')"}
+    shutil.rmtree(work / "colmap", ignore_errors=True)
+    (work / "colmap" / "sparse").mkdir(parents=True)
+    script = work / "colmap.py"
+    script.write_text(COLMAP_SCRIPT)
+    names = [str(p.resolve().relative_to(Path(data["image_dir"]).resolve())) for p in data["images_abs"]]
+    args = [sys.executable, str(script), str(work / "colmap" / "db.db"), str(data["image_dir"]),
+            str(work / "colmap" / "sparse"), *names]
+    t = time.perf_counter()
+    proc = subprocess.run(args, capture_output=True, text=True)
+    out = {"seconds": time.perf_counter() - t, "returncode": proc.returncode}
+    if proc.returncode == 0:
+        out["registered"] = int(proc.stdout.strip().splitlines()[-1])
+    else:
+        out["stderr"] = proc.stderr.strip().splitlines()[-1:]
+    return out
+
+
+def _resolve_names(data: dict) -> dict:
+    listing = Path(data["images"])
+    paths = [Path(p.strip()) for p in listing.read_text().splitlines() if p.strip()]
+    paths = [p if p.is_absolute() else listing.parent / p for p in paths]
+    data["images_abs"] = paths
+    return data
+
+
+def sequence(name: str, data: dict, work: Path) -> dict:
+    data = _resolve_names(data)
+    ours = stereoseed_runs(data, work)
+    ours["camera_centre_error"] = _centre_errors_mm(work / "out_warm", data)
+    colmap = colmap_run(data, work)
+    out = {"stereoseed": ours, "colmap": colmap}
+    if "seconds" in colmap and ours["warm"]["returncode"] == 0:
+        out["warm_over_colmap"] = ours["warm"]["seconds"] / colmap["seconds"]
+        out["cold_over_colmap"] = ours["cold"]["seconds"] / colmap["seconds"]
+    print(f"[speed] {name}: warm {ours['warm']['seconds']:.2f} s, cold {ours['cold']['seconds']:.2f} s, "
+          f"COLMAP {colmap.get('seconds', float('nan')):.2f} s", file=sys.stderr, flush=True)
+    return out
+
+
+def run(only: tuple[str, ...] = ("box14", "temple", "ring36", "dense")) -> dict:
+    results: dict = {"cores": os.cpu_count()}
+    with tempfile.TemporaryDirectory(prefix="stereoseed-speed-") as tmp:
+        root = Path(tmp)
+        if "box14" in only:
+            results["box14"] = sequence("box14", _synthetic(root / "box14", SceneConfig(seed=1)), root / "box14_work")
+        if "temple" in only:
+            temple = _temple(root / "temple")
+            results["temple"] = (sequence("temple", temple, root / "temple_work") if temple
+                                 else {"skipped": f"{_data_dir() / 'templeSparseRing'} not found"})
+        if "ring36" in only:
+            ring = _synthetic(root / "ring36", SceneConfig(n_images=36, step_deg=10.0, seed=1))
+            results["ring36"] = sequence("ring36", ring, root / "ring36_work")
+        if "dense" in only:
+            ring = _resolve_names(_synthetic(root / "ring18", SceneConfig(n_images=18, seed=1)))
+            results["dense_ring18"] = stereoseed_runs(ring, root / "ring18_work", ("--dense",))
+    return results
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--only", default="box14,temple,ring36,dense")
+    print(json.dumps(run(tuple(parser.parse_args().only.split(","))), indent=1))
