@@ -41,33 +41,6 @@ def test_fuse_gives_each_voxel_the_mean_of_its_members():
     np.testing.assert_array_equal(fcol[order_got], exp_col[order_exp])
 
 
-def test_pool_workers_die_with_their_parent():
-    """The pool initializer asks the kernel to kill a worker whose parent dies (Linux)."""
-    import ctypes
-    import multiprocessing
-    import os
-    import sys
-
-    from stereoseed.dense import _die_with_parent
-
-    if not sys.platform.startswith("linux"):
-        pytest.skip("PR_SET_PDEATHSIG is Linux-only")
-
-    def child(q):
-        _die_with_parent(os.getppid())
-        sig = ctypes.c_int(0)
-        ctypes.CDLL(None).prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
-        q.put(sig.value)
-
-    ctx = multiprocessing.get_context("fork")
-    q = ctx.Queue()
-    p = ctx.Process(target=child, args=(q,))
-    p.start()
-    import signal
-    assert q.get(timeout=30) == signal.SIGKILL
-    p.join()
-
-
 def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):
     cfg = Config()
     recon, _ = reconstruct(short_ring.images, short_ring.names, short_ring.P[:2], cfg,

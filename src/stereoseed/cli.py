@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cluster import CONNECT_TIMEOUT_S
 from .errors import StereoseedError
 
 
@@ -166,47 +167,64 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed
-CHECKPOINT = ".checkpoint.pkl"  # in the staging folder, kept after an interruption for --resume
+EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (the others were)
+
+
+def _config(args: argparse.Namespace):
+    """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
+    from .config import Config, PipelineConfig
+
+    try:
+        return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
+                                              ba=args.ba))
+    except ValueError as e:
+        raise StereoseedError(str(e)) from None
+
+
+def _pool(args: argparse.Namespace, workers: int):
+    """Where the jobs run: the Dask cluster of --scheduler (connected now, before any work),
+    else local (None: the library's default)."""
+    from contextlib import nullcontext
+
+    from .cluster import executor_for
+
+    if args.scheduler is None:
+        return nullcontext()
+    return executor_for(args.scheduler, workers, connect_timeout=args.connect_timeout)
+
+
+class _Bar:
+    """The progress callback (done, total, message) as a tqdm bar on stderr, shown from the
+    first report on: a run refused before any work leaves only its error line."""
+
+    def __init__(self, unit: str, quiet: bool):
+        self.unit, self.quiet, self.bar = unit, quiet, None
+
+    def __call__(self, done: int, total: int, message: str) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(total=total, unit=self.unit, file=sys.stderr, disable=self.quiet)
+        self.bar.total, self.bar.n = total, done
+        self.bar.set_postfix_str(message[:40])
+
+    def __enter__(self) -> "_Bar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from .pipeline import reconstruct_to_folder
 
-    from .config import Config, PipelineConfig
-    from .lens_calibration import read_lenses
-    from .pipeline import load_sequence, reconstruct, save_outputs
-    from .results import ResultSet
-
-    try:
-        cfg = Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
-                                             ba=args.ba))
-    except ValueError as e:
-        raise StereoseedError(str(e)) from None
-    results = ResultSet(args.out)
-    results.check()  # before any work: never clobber what the user made
-    images, names, P_pair = load_sequence(args.images, args.calib)
-    staging = results.open(keep=args.resume)
-    bar = tqdm(total=len(images), unit="image", file=sys.stderr, disable=args.quiet)
-
-    def progress(done: int, total: int, message: str) -> None:
-        bar.n = done
-        bar.set_postfix_str(message[:40])
-
-    try:
-        with bar:
-            recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
-                                        checkpoint=staging / CHECKPOINT, resume=args.resume)
-        if args.dense:
-            from .dense import densify
-
-            report["dense"] = densify(recon, cfg, staging)
-        save_outputs(recon, report, staging, cfg, read_lenses(args.calib))
-        results.commit(drop=(CHECKPOINT,))
-    except KeyboardInterrupt:
-        raise  # the staging folder keeps the checkpoint: --resume continues
-    except BaseException:
-        results.abandon()
-        raise
+    cfg = _config(args)
+    if args.scheduler and not args.dense:
+        raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
+    with _pool(args, cfg.dense.workers) as pool, _Bar("image", args.quiet) as progress:
+        report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
+                                       progress=progress, pool=pool)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         print(f"resumed after {len(report['resumed_images'])} images already placed")
@@ -220,6 +238,27 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped), "
           f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
     return EXIT_SKIPPED if (args.strict and failed) else 0
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from .batch import read_sequence_list, run_batch
+
+    cfg = _config(args)
+    sequences = read_sequence_list(args.sequences, args.out_root)
+    with _pool(args, cfg.dense.workers) as pool, _Bar("sequence", args.quiet) as progress:
+        outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
+    for o in outcomes:
+        if o.ok:
+            s = o.summary
+            dense = f", {s['dense_points']} dense points" if "dense_points" in s else ""
+            print(f"{o.sequence.name}: registered {s['registered']}/{s['images']} images ({s['skipped']} skipped), "
+                  f"{s['points']} points{dense}; wrote {o.sequence.out}")
+        else:
+            print(f"{o.sequence.name}: failed: {o.reason}")
+    failed = [o for o in outcomes if not o.ok]
+    print(f"batch: {len(outcomes) - len(failed)} of {len(outcomes)} sequences reconstructed"
+          + ("; failed: " + ", ".join(f"{o.sequence.name} ({o.reason})" for o in failed) if failed else ""))
+    return EXIT_SEQUENCES_FAILED if failed else 0
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -278,6 +317,30 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """The options of a run, shared by reconstruct and batch."""
+    p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
+                   help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
+                        "'accurate': multi-view tracks, constrained camera, wider window (default)")
+    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal", "fixed"], default=None,
+                   help="moving camera model (default: free in paper mode, focal in accurate mode; "
+                        "fixed: the lens did not zoom, every image keeps the calibrated second camera's intrinsics)")
+    p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
+    p.add_argument("--ba", choices=["local", "global", "final"], default=None,
+                   help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
+                        "(default: local in paper mode, final in accurate mode)")
+    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
+                        "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "
+                        "paths); default: this machine")
+    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
+                   help="give up on a --scheduler that has not answered by then (default: %(default)g)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
+    p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
+                        "pairs without a robust F)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
@@ -315,26 +378,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
-                   help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
-                        "'accurate': multi-view tracks, constrained camera, wider window (default)")
-    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal", "fixed"], default=None,
-                   help="moving camera model (default: free in paper mode, focal in accurate mode; "
-                        "fixed: the lens did not zoom, every image keeps the calibrated second camera's intrinsics)")
-    p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
-    p.add_argument("--ba", choices=["local", "global", "final"], default=None,
-                   help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
-                        "(default: local in paper mode, final in accurate mode)")
-    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    _add_run_options(p)
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run into the same --out from its checkpoint (same result as an "
                         "uninterrupted run)")
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_SKIPPED} when any image could not be placed (the results are written)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
-    p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
-                        "pairs without a robust F)")
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("batch", help="reconstruct many sequences, one result folder each (locally, or on a Dask cluster)")
+    p.add_argument("sequences", help="a text file, one line per sequence: IMAGES CALIB OUT (relative paths from the "
+                                     "file's folder; # starts a comment; see docs/formats.md)")
+    p.add_argument("--out-root", help="folder that relative OUT paths are resolved against (default: the list's folder)")
+    _add_run_options(p)
+    p.set_defaults(func=_cmd_batch)
 
     p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file")
     p.add_argument("result", help="a folder written by stereoseed reconstruct --out")

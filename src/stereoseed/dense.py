@@ -2,21 +2,16 @@
 pair, seeded by its sparse matches and restricted by its known epipolar geometry; dense
 triangulation with filters; fusion of the pairs' clouds into one model.
 
-Pairs are independent and run in a process pool; each worker returns only its filtered cloud,
-so memory holds at most ``workers`` pairs' match maps at a time. On Linux a worker is killed by
-the kernel when the process that started it dies (``prctl(PR_SET_PDEATHSIG)``), so a killed
-caller leaves no orphaned workers behind.
+Pairs are independent jobs (:mod:`stereoseed.cluster`): a local process pool by default, or a
+Dask cluster's workers; each job returns only its filtered cloud, so memory holds at most a few
+pairs' match maps at a time, and the clouds are fused in pair order whichever job finished first.
 """
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-import signal
-import sys
 import time
-from collections import deque
-from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -24,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import camera_center, fundamental_from_projections
+from .cluster import JobPool, executor_for
 from .config import Config, DenseConfig, PropagationConfig
 from .ply import write_ply
 from .propagation import propagate
@@ -159,28 +155,6 @@ def _auto_voxel(recon: Reconstruction) -> float:
     return float(np.median(feet))
 
 
-_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
-
-
-def _die_with_parent(parent_pid: int) -> None:
-    """Pool initializer: have the kernel SIGKILL this worker when its parent dies (Linux only;
-    elsewhere a no-op). The signal follows the thread that started the worker, which is the one
-    running :func:`densify` and outlives the pool. Ctrl-C is the parent's to handle: a worker
-    ignores SIGINT (else every worker prints its own KeyboardInterrupt traceback)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    except (OSError, AttributeError):  # no libc prctl: keep the worker, as before
-        return
-    if os.getppid() != parent_pid:  # the parent died before prctl took effect
-        os._exit(1)
-
-
 def _run_pair(args: tuple) -> dict[str, Any]:
     return densify_pair(*args)
 
@@ -193,38 +167,28 @@ def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
                cfg.propagation, cfg.dense)
 
 
-def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None) -> dict[str, Any]:
+def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None,
+            pool: JobPool | None = None) -> dict[str, Any]:
     """Quasi-dense stage over every consecutive registered pair; writes ``dense.ply`` in
-    out_dir when given. Returns the report (per pair counts and times, fused count)."""
+    out_dir when given. Returns the report (per pair counts and times, fused count).
+
+    pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
+    cluster); default a local pool of ``cfg.dense.workers`` processes. The cloud is the same
+    wherever the jobs run."""
     t0 = time.perf_counter()
     reg = recon.registered_views
     pairs = list(zip(reg[:-1], reg[1:]))
     clouds, cols, per_pair = [], [], []
-    workers = max(1, min(cfg.dense.workers, len(pairs)))
+
     def collect(pair: tuple[int, int], res: dict[str, Any]) -> None:
         clouds.append(res["points"])
         cols.append(res["colors"])
         per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
 
-    if workers > 1:
-        # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
-        # breaks unguarded user scripts; at most 2 jobs per worker in flight bound the memory
-        methods = multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with_parent,
-                                 initargs=(os.getpid(),)) as pool:
-            in_flight: deque = deque()
-            for pair, job in zip(pairs, _pair_jobs(recon, cfg)):
-                in_flight.append((pair, pool.submit(_run_pair, job)))
-                if len(in_flight) >= 2 * workers:
-                    pair_done, fut = in_flight.popleft()
-                    collect(pair_done, fut.result())
-            while in_flight:
-                pair_done, fut = in_flight.popleft()
-                collect(pair_done, fut.result())
-    else:
-        for pair, job in zip(pairs, _pair_jobs(recon, cfg)):
-            collect(pair, _run_pair(job))
+    local = executor_for(None, min(cfg.dense.workers, len(pairs))) if pool is None else nullcontext(pool)
+    with local as jobs:
+        for pair, done in zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, cfg))):
+            collect(pair, done.result())
     points = np.vstack(clouds) if clouds else np.zeros((0, 3))
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)

@@ -1,5 +1,7 @@
 """The whole run over an ordered sequence: load it, reconstruct it with the incremental mapper
-(:mod:`stereoseed.mapper`), save the results. The step-by-step API is the mapper's.
+(:mod:`stereoseed.mapper`), save the results (:func:`reconstruct_to_folder` does all three, as
+``stereoseed reconstruct`` and each job of ``stereoseed batch``). The step-by-step API is the
+mapper's.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
+from .cluster import JobPool
 from .config import Config
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
@@ -21,14 +24,16 @@ from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
 from .sequence import ImageSequence
 from .report_html import write_report_html
-from .results import write_result
+from .results import ResultSet, write_result
 
-__all__ = ["reconstruct", "load_sequence", "save_outputs"]
+__all__ = ["reconstruct", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 
 log = logging.getLogger(__name__)
 
 # progress(done, total, message): called after the pair and after each insertion
 Progress = Callable[[int, int, str], None]
+
+CHECKPOINT = ".checkpoint.pkl"  # in the staging folder, kept after an interruption for resume
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
@@ -144,3 +149,32 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
     written = write_result(recon, report, out_dir, cfg, lenses)
     written["report_html"] = write_report_html(recon, report, out_dir)
     return written
+
+
+def reconstruct_to_folder(images_source: str, calib_path: str, out: str | Path, cfg: Config = Config(),
+                          dense: bool = False, resume: bool = False, progress: Progress | None = None,
+                          pool: JobPool | None = None) -> dict[str, Any]:
+    """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
+    (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
+    ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
+    (:class:`stereoseed.results.ResultSet`): on failure it keeps what it held, and after an
+    interruption the staging folder keeps the checkpoint for ``resume``. Returns the report."""
+    results = ResultSet(out)
+    results.check()  # before any work: never clobber what the user made
+    images, names, P_pair = load_sequence(images_source, calib_path)
+    staging = results.open(keep=resume)
+    try:
+        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
+                                    checkpoint=staging / CHECKPOINT, resume=resume)
+        if dense:
+            from .dense import densify  # the dense stage's modules only for a dense run
+
+            report["dense"] = densify(recon, cfg, staging, pool)
+        save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
+        results.commit(drop=(CHECKPOINT,))
+    except KeyboardInterrupt:
+        raise  # the staging folder keeps the checkpoint: resume continues
+    except BaseException:
+        results.abandon()
+        raise
+    return report

@@ -51,9 +51,10 @@ def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f
             for sy in range(-1, 2):
                 for sx in range(-1, 2):
                     iv = inv2[y2 + sy, x2 + sx]
-                    if iv == 0.0:
-                        valid = False
-                    z[sy + 1, sx + 1] = inv1[y1, x1] * iv * _dot_window(buf, I2, x2 + sx, y2 + sy, half)
+                    if iv == 0.0:  # flat, or its window leaves image 2: reading it would run off the
+                        valid = False  # array (a segfault where the image ends a memory mapping)
+                    else:
+                        z[sy + 1, sx + 1] = inv1[y1, x1] * iv * _dot_window(buf, I2, x2 + sx, y2 + sy, half)
         # quadratic coefficients on the 3x3 grid (orthogonal-polynomial least squares)
         b = c = d = e = g = 0.0
         if valid:
