@@ -72,3 +72,22 @@ def test_a_still_camera_or_a_broken_file_is_refused(tmp_path, walk):
         read_keyframes(broken)
     with pytest.raises(StereoseedError, match="not found"):
         read_keyframes(tmp_path / "missing.mp4")
+
+
+def test_reconstruct_takes_the_pair_then_the_video(walk, tmp_path, capsys):
+    import json
+
+    from stereoseed.cli import main
+    from stereoseed.io import write_image, write_json
+
+    pair, frames, video = walk
+    for name, image in zip(("pair0.png", "pair1.png"), pair.images):
+        write_image(tmp_path / name, image)
+    write_json(tmp_path / "calib.json", {"cameras": [{"P": P.tolist()} for P in pair.P]})
+    code = main(["reconstruct", str(tmp_path / "pair0.png"), str(tmp_path / "pair1.png"), str(video),
+                 "--calib", str(tmp_path / "calib.json"), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    keyframes = sorted(p.name for p in (tmp_path / "out" / "keyframes").iterdir())
+    assert keyframes == [k.name for k in read_keyframes(video)]  # kept with the result that names them
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["registered"] == report["images"] == 2 + len(keyframes)

@@ -374,7 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_match)
 
     p = sub.add_parser("reconstruct", help="incremental reconstruction of an ordered image sequence")
-    p.add_argument("images", help="a folder (images in name order) or a text file listing image paths")
+    p.add_argument("images", nargs="+",
+                   help="a folder (images in name order) or a text file listing image paths; or the two calibrated "
+                        "photos then the video of the walk (keyframes picked from it), e.g. pair1.png pair2.png walk.mp4")
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")

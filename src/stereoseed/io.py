@@ -24,7 +24,7 @@ from .errors import StereoseedError
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
 __all__ = ["read_image", "list_images", "read_points_file", "read_calibration", "write_json",
-           "write_text", "atomic_path", "IMAGE_EXTENSIONS"]
+           "write_text", "atomic_path", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- atomic writing
@@ -109,7 +109,7 @@ _LIST_HINT = "give a folder of images or a text file listing them, one path a li
 # extensions of files that are images (to refuse as a list of images or a table), and of videos
 _IMAGE_LIKE = IMAGE_EXTENSIONS + (".gif", ".jp2", ".j2k", ".exr", ".hdr", ".pic", ".pnm", ".pam", ".pfm",
                                   ".heic", ".heif", ".avif", ".jxl", ".dng", ".raw", ".cr2", ".nef", ".arw")
-_VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv")
+VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv")
 _BINARY_BYTES = re.compile(rb"[\x00-\x08\x0e-\x1a\x1c-\x1f]")  # control bytes no text file holds
 _BINARY_CHARS = re.compile(r"[\x00-\x08\x0e-\x1a\x1c-\x1f]")
 _NEWLINE = re.compile(r"\r\n|\r|\n")  # only these end a line (not \x85, \u2028..., which names may hold)
@@ -307,7 +307,7 @@ def list_images(source: str | os.PathLike) -> list[Path]:
     if suffix in _IMAGE_LIKE:
         raise StereoseedError(f"{source}: is an image, not a folder of images or a list of them; give the folder "
                               "that holds the sequence, or a text file listing its images one a line")
-    if suffix in _VIDEO_EXTENSIONS:
+    if suffix in VIDEO_EXTENSIONS:
         raise StereoseedError(f"{source}: is a video; extract its frames into a folder first (e.g. ffmpeg -i "
                               f"{_show(source.name)} frames/%04d.png) and give that folder")
     text = _read_text(source, "list of images", _LIST_HINT, latin1=True)

@@ -14,15 +14,16 @@ import numpy as np
 
 from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
 from .cluster import JobPool
-from .config import Config
+from .config import Config, VideoConfig
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
-from .io import list_images, read_calibration
+from .io import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration, write_image
 from .lens import undistort_image, undistortion_maps
 from .lens_calibration import read_lenses
 from .mapper import finish, initialise, insert_view
 from .reconstruction import Reconstruction
 from .sequence import ImageSequence
+from .video import read_keyframes
 from .report_html import write_report_html
 from .results import ResultSet, write_result
 
@@ -108,18 +109,26 @@ def _release_grays(recon: Reconstruction, cfg: Config) -> None:
             recon.views[i].release_gray()
 
 
-def load_sequence(images_source: str, calib_path: str) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
-    """An image sequence (folder or list file) and the pair's calibration: (the images, read
-    when needed as uint8 BGR (:class:`stereoseed.sequence.ImageSequence`), names, the pair's
-    two (3, 4) cameras). When the calibration carries a lens (calib.json "distortion"), every
-    image is undistorted as it is read (one remap; image 0 through the first camera's lens,
-    every later image through the second camera's: the moving camera keeps its lens, so a zoom
-    that changes the distortion is not modelled), and the cameras hold for the undistorted
-    pixels. The first two images are read here: a bad pair is refused before any work."""
-    paths = list_images(images_source)
-    if len(paths) < 2:
-        raise StereoseedError(f"{images_source}: {len(paths)} image(s); the calibrated pair needs two")
-    P_pair = read_calibration(calib_path, [p.name for p in paths])
+def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig()
+                  ) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
+    """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
+    (:class:`stereoseed.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
+
+    ``images_source``: a folder (its images in name order), a list file, or several of these and
+    image files in order; a video (given directly or listed) stands for its keyframes
+    (:func:`stereoseed.video.read_keyframes`, named ``VIDEO_FRAME.png``): the two calibrated
+    photos first, then the video of the walk. When the calibration carries a lens (calib.json
+    "distortion"), every image is undistorted as it is read (one remap; image 0 through the
+    first camera's lens, every later image through the second camera's: the moving camera
+    keeps its lens, so a zoom that changes the distortion is not modelled), and the cameras hold
+    for the undistorted pixels. The first two images are read here: a bad pair is refused
+    before any work."""
+    sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
+    entries, names = _sequence_entries(sources, video)
+    if len(entries) < 2:
+        raise StereoseedError(f"{' '.join(map(str, sources))}: {len(entries)} image(s); the calibrated pair needs two")
+    paths = [e if isinstance(e, Path) else Path(n) for e, n in zip(entries, names)]
+    P_pair = read_calibration(calib_path, names)
     lenses = read_lenses(calib_path)
     maps: dict[int, Any] = {}
 
@@ -135,9 +144,33 @@ def load_sequence(images_source: str, calib_path: str) -> tuple[ImageSequence, l
             maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
         return undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
 
-    images = ImageSequence(paths, undistort)
+    images = ImageSequence(entries, undistort)
     images[0], images[1]  # noqa: B018 - read now: an unreadable pair image fails before any work
-    return images, [p.name for p in paths], P_pair
+    return images, names, P_pair
+
+
+def _sequence_entries(sources: list, video: VideoConfig) -> tuple[list, list[str]]:
+    """(paths, or keyframe images in memory; their names) of the sources in order."""
+    entries: list = []
+    names: list[str] = []
+
+    def add(path: Path) -> None:
+        if path.suffix.lower() in VIDEO_EXTENSIONS:
+            keyframes = read_keyframes(path, video)
+            entries.extend(k.image for k in keyframes)
+            names.extend(k.name for k in keyframes)
+        else:
+            entries.append(path)
+            names.append(path.name)
+
+    for source in map(Path, sources):
+        if source.is_file() and (source.suffix.lower() in VIDEO_EXTENSIONS
+                                 or (len(sources) > 1 and source.suffix.lower() in IMAGE_EXTENSIONS)):
+            add(source)
+        else:
+            for path in list_images(source):
+                add(path)
+    return entries, names
 
 
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
@@ -151,7 +184,7 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
     return written
 
 
-def reconstruct_to_folder(images_source: str, calib_path: str, out: str | Path, cfg: Config = Config(),
+def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: str | Path, cfg: Config = Config(),
                           dense: bool = False, resume: bool = False, progress: Progress | None = None,
                           pool: JobPool | None = None) -> dict[str, Any]:
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
@@ -161,9 +194,12 @@ def reconstruct_to_folder(images_source: str, calib_path: str, out: str | Path, 
     interruption the staging folder keeps the checkpoint for ``resume``. Returns the report."""
     results = ResultSet(out)
     results.check()  # before any work: never clobber what the user made
-    images, names, P_pair = load_sequence(images_source, calib_path)
+    images, names, P_pair = load_sequence(images_source, calib_path, cfg.video)
     staging = results.open(keep=resume)
     try:
+        for i, name in enumerate(names):  # a video's keyframes: kept with the result, which names them
+            if images.source(i) == "memory":
+                write_image(staging / "keyframes" / name, images[i])
         recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                     checkpoint=staging / CHECKPOINT, resume=resume)
         if dense:
