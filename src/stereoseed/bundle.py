@@ -86,6 +86,12 @@ class _Segments:
         self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(keys) else np.zeros(0, int)
         self.keys = sorted_keys[self.starts] if len(keys) else np.zeros(0, int)
 
+    def groups(self):
+        """(key, the positions (K,) of its values in the grouped array), key by key."""
+        ends = np.r_[self.starts[1:], len(self.order)]
+        for key, start, end in zip(self.keys, self.starts, ends):
+            yield int(key), self.order[start:end]
+
     def sum(self, values: np.ndarray) -> np.ndarray:
         out = np.zeros((self.n,) + values.shape[1:])
         if len(self.keys):
@@ -171,6 +177,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     # sums over observations grouped by point / by camera, precomputed once
     by_point = _Segments(slot_p[has_p], nP)
     by_camera = _Segments(slot_c[has_c], nC)
+    rows_of_free_cameras = np.flatnonzero(has_c)
     both_idx_all = np.flatnonzero(both)
     both_by_camera = _Segments(slot_c[both], nC)
     by_point_both = _Segments(slot_p[both_idx_all], nP)
@@ -189,11 +196,10 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         Jp = point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
         Jc = np.zeros((len(oc), 2, n))
         Xh = np.hstack([X[op], np.ones((len(op), 1))])
-        for c in free_cams:
-            sel = oc == c
-            if sel.any():
-                dP = _projection_derivatives(params[cam_slot[c]], model, ref_K(c))
-                Jc[sel] = camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
+        for slot, positions in by_camera.groups():  # one sort, not a scan of all observations per camera
+            sel = rows_of_free_cameras[positions]
+            dP = _projection_derivatives(params[slot], model, ref_K(free_cams[slot]))
+            Jc[sel] = camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
         wJcT = np.swapaxes(Jc, 1, 2) * w[:, None, None]  # (O, n, 2)
         wJpT = np.swapaxes(Jp, 1, 2) * w[:, None, None]  # (O, 3, 2)
         U = by_camera.sum((wJcT @ Jc)[has_c])
