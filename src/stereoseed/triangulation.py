@@ -170,6 +170,15 @@ def triangulate(Ps: np.ndarray, x: np.ndarray, mask: np.ndarray | None = None, i
     )
 
 
+def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Sums of ``values`` (O, ...) grouped by ``index`` (O,) in 0..n-1 -> (n, ...): one
+    ``np.bincount`` per component (in observation order, as ``np.add.at``, at a tenth of its
+    cost)."""
+    flat = values.reshape(len(values), -1)
+    sums = [np.bincount(index, weights=flat[:, j], minlength=n) for j in range(flat.shape[1])]
+    return np.stack(sums, axis=1).reshape((n,) + values.shape[1:])
+
+
 def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarray, n_points: int,
                        iterations: int = 10) -> np.ndarray:
     """Triangulate points seen in varying numbers of views (tracks of any length).
@@ -187,8 +196,7 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
     rv = xy[:, 1:2] * Pn[:, 2] - Pn[:, 1]
     ru /= np.linalg.norm(ru, axis=1, keepdims=True)
     rv /= np.linalg.norm(rv, axis=1, keepdims=True)
-    AtA = np.zeros((n_points, 4, 4))
-    np.add.at(AtA, point_index, ru[:, :, None] * ru[:, None, :] + rv[:, :, None] * rv[:, None, :])
+    AtA = _sum_by(point_index, ru[:, :, None] * ru[:, None, :] + rv[:, :, None] * rv[:, None, :], n_points)
     _, vecs = np.linalg.eigh(AtA)
     Mh = vecs[:, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -203,10 +211,8 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
         h, uv = project_per_observation(P_obs, Xo)
         r = uv - xy
         J = point_jacobian(P_obs, h, uv)
-        H = np.zeros((n_points, 3, 3))
-        g = np.zeros((n_points, 3))
-        np.add.at(H, point_index, np.einsum("oki,okj->oij", J, J))
-        np.add.at(g, point_index, np.einsum("oki,ok->oi", J, r))
+        H = _sum_by(point_index, np.einsum("oki,okj->oij", J, J), n_points)
+        g = _sum_by(point_index, np.einsum("oki,ok->oi", J, r), n_points)
         cost = np.bincount(point_index, weights=np.sum(r * r, axis=1), minlength=n_points)
         return cost, H, g
 
