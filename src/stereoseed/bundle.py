@@ -18,9 +18,9 @@ import numpy as np
 from numba import njit
 
 from . import camera_models
-from .camera import camera_jacobian, point_jacobian, project_per_observation
+from .camera import project_per_observation
 from .config import BundleConfig
-from .robust import huber_cost, huber_weights
+from .robust import huber_cost
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
 
@@ -86,12 +86,6 @@ class _Segments:
         self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(keys) else np.zeros(0, int)
         self.keys = sorted_keys[self.starts] if len(keys) else np.zeros(0, int)
 
-    def groups(self):
-        """(key, the positions (K,) of its values in the grouped array), key by key."""
-        ends = np.r_[self.starts[1:], len(self.order)]
-        for key, start, end in zip(self.keys, self.starts, ends):
-            yield int(key), self.order[start:end]
-
     def sum(self, values: np.ndarray) -> np.ndarray:
         out = np.zeros((self.n,) + values.shape[1:])
         if len(self.keys):
@@ -121,6 +115,61 @@ def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
                         if b != a:
                             S[rj + v, ri + u] -= x
     return S
+
+
+@njit(cache=True, nogil=True)
+def _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row, n_cams, n_points, n_both):
+    """The Gauss-Newton blocks of the robust (Huber, IRLS) reprojection error, one pass over the
+    observations with nothing stored per observation but W: U (n_cams, n, n) and gc (n_cams, n)
+    of the free cameras, V (n_points, 3, 3) and gp (n_points, 3) of the free points, and
+    W (n_both, n, 3) = w Jc^T Jp of each observation of a free point by a free camera (its row
+    ``both_row[o]``). Ps (C, 3, 4), X (M, 3); oc, op (O,) observation -> camera, point;
+    xy (O, 2); cam_slot (C,), pt_slot (M,) the free index or -1; dP (n_cams, n, 3, 4) dP/dparams
+    of each free camera."""
+    n = dP.shape[1]
+    U = np.zeros((n_cams, n, n))
+    gc = np.zeros((n_cams, n))
+    V = np.zeros((n_points, 3, 3))
+    gp = np.zeros((n_points, 3))
+    W = np.zeros((n_both, n, 3))
+    Jc = np.zeros((2, n))
+    Jp = np.zeros((2, 3))
+    for o in range(oc.shape[0]):
+        c, p = oc[o], op[o]
+        x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
+        h0 = Ps[c, 0, 0] * x0 + Ps[c, 0, 1] * x1 + Ps[c, 0, 2] * x2 + Ps[c, 0, 3]
+        h1 = Ps[c, 1, 0] * x0 + Ps[c, 1, 1] * x1 + Ps[c, 1, 2] * x2 + Ps[c, 1, 3]
+        h2 = Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3]
+        u, v = h0 / h2, h1 / h2
+        ru, rv = u - xy[o, 0], v - xy[o, 1]
+        norm = np.sqrt(ru * ru + rv * rv)
+        w = 1.0 if norm <= delta else delta / max(norm, 1e-300)
+        sc, sp = cam_slot[c], pt_slot[p]
+        if sc >= 0:
+            for j in range(n):
+                d0 = dP[sc, j, 0, 0] * x0 + dP[sc, j, 0, 1] * x1 + dP[sc, j, 0, 2] * x2 + dP[sc, j, 0, 3]
+                d1 = dP[sc, j, 1, 0] * x0 + dP[sc, j, 1, 1] * x1 + dP[sc, j, 1, 2] * x2 + dP[sc, j, 1, 3]
+                d2 = dP[sc, j, 2, 0] * x0 + dP[sc, j, 2, 1] * x1 + dP[sc, j, 2, 2] * x2 + dP[sc, j, 2, 3]
+                Jc[0, j] = (d0 - u * d2) / h2
+                Jc[1, j] = (d1 - v * d2) / h2
+            for a in range(n):
+                gc[sc, a] += w * (Jc[0, a] * ru + Jc[1, a] * rv)
+                for b in range(n):
+                    U[sc, a, b] += w * (Jc[0, a] * Jc[0, b] + Jc[1, a] * Jc[1, b])
+        if sp >= 0:
+            for k in range(3):
+                Jp[0, k] = (Ps[c, 0, k] - u * Ps[c, 2, k]) / h2
+                Jp[1, k] = (Ps[c, 1, k] - v * Ps[c, 2, k]) / h2
+            for a in range(3):
+                gp[sp, a] += w * (Jp[0, a] * ru + Jp[1, a] * rv)
+                for b in range(3):
+                    V[sp, a, b] += w * (Jp[0, a] * Jp[0, b] + Jp[1, a] * Jp[1, b])
+            if sc >= 0:
+                row = both_row[o]
+                for a in range(n):
+                    for b in range(3):
+                        W[row, a, b] = w * (Jc[0, a] * Jp[0, b] + Jc[1, a] * Jp[1, b])
+    return U, gc, V, gp, W
 
 
 def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:
@@ -175,10 +224,9 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     nC, nP = len(free_cams), len(free_pt_idx)
 
     # sums over observations grouped by point / by camera, precomputed once
-    by_point = _Segments(slot_p[has_p], nP)
-    by_camera = _Segments(slot_c[has_c], nC)
-    rows_of_free_cameras = np.flatnonzero(has_c)
     both_idx_all = np.flatnonzero(both)
+    both_row = np.full(len(oc), -1, np.int64)  # observation -> its row of W (free point, free camera)
+    both_row[both_idx_all] = np.arange(len(both_idx_all))
     both_by_camera = _Segments(slot_c[both], nC)
     by_point_both = _Segments(slot_p[both_idx_all], nP)
     # the same grouping (observations of free points by free cameras, point by point) sums S's
@@ -190,30 +238,16 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     cost = huber_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
-        h, uv = project_per_observation(Ps[oc], X[op])
-        r = uv - xy
-        w = huber_weights(r, delta)
-        Jp = point_jacobian(Ps[oc], h, uv)  # (O, 2, 3)
-        Jc = np.zeros((len(oc), 2, n))
-        Xh = np.hstack([X[op], np.ones((len(op), 1))])
-        for slot, positions in by_camera.groups():  # one sort, not a scan of all observations per camera
-            sel = rows_of_free_cameras[positions]
-            dP = _projection_derivatives(params[slot], model, ref_K(free_cams[slot]))
-            Jc[sel] = camera_jacobian(dP, Xh[sel], h[sel], uv[sel])
-        wJcT = np.swapaxes(Jc, 1, 2) * w[:, None, None]  # (O, n, 2)
-        wJpT = np.swapaxes(Jp, 1, 2) * w[:, None, None]  # (O, 3, 2)
-        U = by_camera.sum((wJcT @ Jc)[has_c])
-        gc = by_camera.sum((wJcT @ r[:, :, None])[has_c, :, 0])
-        V = by_point.sum((wJpT @ Jp)[has_p])
-        gp = by_point.sum((wJpT @ r[:, :, None])[has_p, :, 0])
-        Wo = wJcT @ Jp  # (O, n, 3), meaningful where both
+        dP = np.stack([_projection_derivatives(params[i], model, ref_K(c)) for i, c in enumerate(free_cams)]) \
+            if nC else np.zeros((0, n, 3, 4))
+        U, gc, V, gp, Wb = _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, float(delta), both_row,
+                                            nC, nP, len(both_idx_all))
 
         while True:
             Ud = U + lam * (U * eye_n) + 1e-12 * eye_n
             Vd = V + lam * (V * eye_3) + 1e-12 * eye_3
             Vinv = np.linalg.inv(Vd)
             if nC:
-                Wb = Wo[both_idx_all]
                 Y = Wb @ Vinv[slot_p[both_idx_all]]  # (Ob, n, 3)
                 S2 = _reduced_camera_matrix(by_point_both.order, point_starts, slot_c[both_idx_all], Wb, Y, nC)
                 for i in range(nC):
