@@ -67,3 +67,32 @@ def test_a_view_releases_its_grey_image_and_restores_the_same_one(files):
     held = View("x", image=seq[0])
     held.keep_image(seq[0], rotated_180=False)
     assert held.image is not None
+
+
+def test_descriptors_spill_to_a_file_and_read_back_the_same(files, tmp_path):
+    seq = ImageSequence(files)
+    view = View("0.png", load=lambda: seq[0])
+    view.features = extract_features(view.image)
+    desc = view.features.desc.copy()
+    view.release_gray(spill_to=tmp_path)
+    assert isinstance(view.features.desc, np.memmap) and np.array_equal(view.features.desc, desc)
+    assert list(tmp_path.glob("desc_*.npy"))
+
+
+def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch):
+    """Views out of the working set give up their grey images and descriptors during the run;
+    the cameras are those of a run that keeps everything in memory."""
+    from stereoseed import pipeline
+    from stereoseed.config import Config
+    from stereoseed.synthetic import SceneConfig, render_scene
+
+    scene = render_scene(SceneConfig(n_images=12, width=320, height=240, focal_px=400, focal0_px=390, supersample=1))
+    spilled, _ = pipeline.reconstruct(scene.images, scene.names, scene.P[:2], Config())
+    assert sum(isinstance(v.features.desc, np.memmap) for v in spilled.views) >= 2
+    monkeypatch.setattr(pipeline, "_release_pixels", lambda recon, cfg, folder: None)
+    kept, _ = pipeline.reconstruct(scene.images, scene.names, scene.P[:2], Config())
+    assert not any(isinstance(v.features.desc, np.memmap) for v in kept.views)
+    for a, b in zip(spilled.views, kept.views):
+        assert (a.P is None) == (b.P is None)
+        if a.P is not None:
+            np.testing.assert_array_equal(a.P, b.P)

@@ -6,6 +6,7 @@ mapper's.
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -69,12 +70,16 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if progress:
         progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
     source = recon.source
+    # descriptors of old views go to files that live as long as the reconstruction (a memory
+    # map of a file keeps working once the folder is removed on POSIX systems)
+    spill = recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-",
+                                                                       ignore_cleanup_errors=True)
     try:
         with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)
                 per_image.append(rep)
-                _release_grays(recon, cfg)
+                _release_pixels(recon, cfg, spill.name)
                 if checkpoint is not None:
                     save_checkpoint(checkpoint, recon, per_image, key)
                 if progress:
@@ -96,17 +101,18 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     return recon, report
 
 
-def _release_grays(recon: Reconstruction, cfg: Config) -> None:
-    """Keep the grey images of the views the next insertions work with (the BA window, the
-    motion prior's recent views, the two before the next image) and of the first views (the
-    loop closure matches them at the end); the others are read again if ever needed. The
-    memory of a long run then grows with its points and descriptors only."""
+def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
+    """Keep the grey images and descriptors of the views the next insertions work with (the BA
+    window, the motion prior's recent views, the two before the next image) and of the first
+    views (the loop closure matches them at the end); the others' grey images are read again
+    and their descriptors memory-mapped from ``spill_to`` if ever needed. The memory of a long
+    run then grows with its points and observations only."""
     reg = recon.registered_views
     working = max(cfg.pipeline.window, cfg.motion_prior.recent_views) + 2
     keep = set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
     for i in reg:
         if i not in keep:
-            recon.views[i].release_gray()
+            recon.views[i].release_gray(spill_to)
 
 
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig()

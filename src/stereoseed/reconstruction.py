@@ -16,6 +16,7 @@ steps stay vectorised and appending does not copy everything each time.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -92,13 +93,24 @@ class View:
             self._gray_released = False
         return self._features
 
-    def release_gray(self) -> None:
-        """Let go of the interest points' grey image (recomputed from the image on demand): a
-        view out of the mapper's working set holds its points and descriptors only."""
+    def release_gray(self, spill_to: Path | None = None) -> None:
+        """Let go of the interest points' grey image (recomputed from the image on demand) and,
+        with ``spill_to`` (a folder), move their descriptors to a file there, memory-mapped: a
+        view out of the mapper's working set keeps only its points in memory, and a page of its
+        descriptors is read back only if an old view is matched again."""
         f = self._features
-        if f is not None and f.gray is not None and (self._load is not None or self._image is not None):
-            self._features = replace(f, gray=None)
-            self._gray_released = True
+        if f is None:
+            return
+        changes: dict[str, Any] = {}
+        if f.gray is not None and (self._load is not None or self._image is not None):
+            changes["gray"] = None
+        if spill_to is not None and not isinstance(f.desc, np.memmap) and f.desc.size:
+            path = Path(spill_to) / f"desc_{next(_SPILLED)}.npy"
+            np.save(path, f.desc)
+            changes["desc"] = np.load(path, mmap_mode="r")
+        if changes:
+            self._features = replace(f, **changes)
+            self._gray_released = self._gray_released or "gray" in changes
 
     def keep_image(self, image: np.ndarray, rotated_180: bool) -> None:
         """The image the run works on: held only when the view cannot read it again (turned, or
@@ -198,6 +210,9 @@ class View:
          self.camera_model, self.zoomed, self._gray_released) = state
 
 
+_SPILLED = itertools.count()  # file names of spilled descriptors: unique within a process
+
+
 def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
     """(value, the indices (K,) of its rows) for each distinct value of ``values`` (O,) int: one
     sort, not a scan of every row per value (a long sequence has hundreds of views)."""
@@ -281,6 +296,7 @@ class Reconstruction:
         self._obs_point = _Growing(np.int64)
         self._obs_linked = _Growing(bool)
         self.source: Any = None
+        self.spill_folder: Any = None  # where old views' descriptors went (pipeline.reconstruct)
 
     # ------------------------------------------------------------ arrays (views, read them)
     points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")
