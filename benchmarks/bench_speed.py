@@ -104,7 +104,8 @@ def stereoseed_runs(data: dict, work: Path, extra: tuple[str, ...] = ()) -> dict
             report = json.loads((result / "report.json").read_text())
             run.update(registered=report["registered"], images=report["images"], stages=_stages(report))
             if "dense" in report:
-                run["dense"] = {k: report["dense"].get(k) for k in ("points", "seconds", "workers")}
+                run["dense"] = {"points": report["dense"]["points"], "seconds": report["dense"]["seconds"],
+                                "pairs": len(report["dense"]["pairs"])}
         out[label] = run
     out["import_seconds"] = timed_process([sys.executable, "-c", "import stereoseed.cli, stereoseed.pipeline, "
                                            "stereoseed.results"])["seconds"]
