@@ -10,6 +10,7 @@ The dense stage is timed as a whole process too, on the 18-image ring.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -130,9 +131,7 @@ print(best.num_reg_images() if best else 0)
 
 def colmap_run(data: dict, work: Path) -> dict:
     """pycolmap 4 on the same images: whole process (import included), registered images."""
-    try:
-        import pycolmap  # noqa: F401  (only whether it is there)
-    except ImportError:
+    if importlib.util.find_spec("pycolmap") is None:
         return {"skipped": "pycolmap is not installed (pip install 'stereoseed[bench]')"}
     shutil.rmtree(work / "colmap", ignore_errors=True)
     (work / "colmap" / "sparse").mkdir(parents=True)
