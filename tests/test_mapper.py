@@ -251,3 +251,23 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
     scene = render_scene(SceneConfig(textured=False, seed=5, n_images=2))
     recon, report = initialise(scene.images, scene.names, scene.P[:2], Config())
     assert report["new_points"] >= 100
+
+
+def test_a_view_left_without_enough_observations_is_dropped_at_the_end():
+    # a weakly placed view can lose its observations to outlier removal until nothing determines
+    # its camera; the finishing step then deregisters it and says why
+    from stereoseed.mapper import _drop_undetermined_views
+    from stereoseed.pipeline import reconstruct
+    from stereoseed.synthetic import SceneConfig, render_scene
+
+    scene = render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400, focal0_px=390, supersample=1))
+    recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], Config())
+    assert _drop_undetermined_views(recon, Config()) == {}  # a sound run keeps every view
+    seen = np.flatnonzero(recon.obs_view == 3)
+    cut = np.zeros(len(recon.obs_view), bool)
+    cut[seen[5:]] = True  # view 3 keeps 5 observations
+    recon.remove_observations(cut)
+    dropped = _drop_undetermined_views(recon, Config())
+    assert list(dropped) == [scene.names[3]] and "5 observations" in dropped[scene.names[3]]
+    assert recon.views[3].P is None and recon.views[3].status.startswith("failed")
+    assert all(recon.views[k].P is not None for k in (0, 1, 2, 4))

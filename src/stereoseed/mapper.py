@@ -218,5 +218,27 @@ def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
     t = time.perf_counter()
     cfg = cfg.resolved()
     out = mode_of(cfg).finish(recon, cfg)
+    dropped = _drop_undetermined_views(recon, cfg)
+    if dropped:
+        out["dropped"] = dropped
     out["seconds"] = time.perf_counter() - t
     return out
+
+
+def _drop_undetermined_views(recon: Reconstruction, cfg: Config) -> dict[str, str]:
+    """Deregister the moving camera's views left with fewer observations than a resection needs
+    (``ResectionConfig.min_inliers``): outlier removal can strip a weakly placed view (the motion
+    prior's camera from a dozen points) until nothing determines its camera, and a global BA then
+    moves it anywhere (a dino view 0.4 m off went to 2.2 m on 9 observations). Returns
+    {name: reason} of the views dropped."""
+    dropped = {}
+    counts = np.bincount(recon.obs_view, minlength=len(recon.views))
+    for k in recon.registered_views:
+        if k >= 2 and counts[k] < cfg.resection.min_inliers:
+            reason = (f"{recon.views[k].name}: dropped at the end, only {counts[k]} observations left after outlier "
+                      f"removal (a camera needs {cfg.resection.min_inliers}); its camera is not determined")
+            recon.deregister(k)
+            recon.views[k].status = f"failed: {reason}"
+            dropped[recon.views[k].name] = reason
+            log.info("%s", reason)
+    return dropped

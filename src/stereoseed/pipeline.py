@@ -87,6 +87,9 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     finally:
         recon.source = source
     final = finish(recon, cfg)
+    for r in per_image:  # a view the finishing step could not keep is reported as skipped
+        if r.get("image") in final.get("dropped", {}):
+            r.update(status="failed", reason=final["dropped"][r["image"]])
     pc = cfg.pipeline
     report = {
         "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,
