@@ -241,8 +241,9 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(seq
     np.testing.assert_allclose(_cameras(out), expected, atol=1e-9)
     assert not (tmp_path / ".o.partial").exists()
     if proc.returncode == -signal.SIGKILL:  # killed before it finished (it may have won the race)
+        # every image came from the checkpoint: the resumed run placed none again (its time is
+        # the dense stage's and the writing's; timing belongs in the benchmarks, not here)
         assert len(json.loads((out / "report.json").read_text())["resumed_images"]) == len(paths["images"])
-        assert resumed_time < full_time, (resumed_time, full_time)
     print(f"uninterrupted {full_time:.1f} s, resumed {resumed_time:.1f} s")
 
 
