@@ -101,7 +101,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if not args.noise >= 0:
         raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
 
-    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse)
+    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=print)
+
+
+def _cmd_precompile(args: argparse.Namespace) -> int:
+    from .precompile import precompile
+
+    print(f"stereoseed: Numba kernels compiled and cached ({precompile():.0f} s)", file=sys.stderr)
+    return 0
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
@@ -422,6 +429,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
     p.add_argument("--sparse", action="store_true", help="skip the dense stage")
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("precompile", help="compile the Numba kernels once (make's install step does it), so the "
+                                          "first run does not wait for them")
+    p.set_defaults(func=_cmd_precompile)
 
     p = sub.add_parser("view", help="open a result folder's report.html in the default browser")
     p.add_argument("result", help="a result folder (stereoseed reconstruct --out RESULT)")

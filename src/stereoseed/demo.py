@@ -1,9 +1,12 @@
 """`stereoseed demo`: render the box scene, calibrate the pair from its pattern, reconstruct,
-and print the error against the ground truth. Everything it writes goes to one folder."""
+and report the error against the ground truth. Everything it writes goes to one folder. Its
+lines go to ``say`` (the CLI passes ``print``; by default they are logged)."""
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -17,13 +20,16 @@ from .pipeline import reconstruct, save_outputs
 from .results import ResultSet
 from .synthetic import SceneConfig, render_scene, write_scene
 
+log = logging.getLogger(__name__)
 
-def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = True) -> int:
+
+def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = True,
+             say: Callable[[str], None] = log.info) -> int:
     results = ResultSet(out)
     results.check()
     staging = results.open()
     try:
-        code = _run(staging, out, n_images, noise, dense)
+        code = _run(staging, out, n_images, noise, dense, say)
         results.commit()
     except BaseException:
         results.abandon()
@@ -31,19 +37,19 @@ def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = Tr
     return code
 
 
-def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool) -> int:
+def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say: Callable[[str], None]) -> int:
     """The demo, writing into ``staging``, which becomes ``out`` when it is done."""
     t0 = time.perf_counter()
     scene = render_scene(SceneConfig(n_images=n_images, noise_sigma=noise))
     write_scene(scene, staging / "scene")
-    print(f"rendered {n_images} images of the 34x34x44 cm box ({time.perf_counter() - t0:.1f} s) -> {out / 'scene'}")
+    say(f"rendered {n_images} images of the 34x34x44 cm box ({time.perf_counter() - t0:.1f} s) -> {out / 'scene'}")
 
     pattern, pts1, pts2 = scene.calibration_points()
     cams = [calibrate_camera(pattern, pts, what=f"pair image {i + 1}") for i, pts in enumerate((pts1, pts2))]
     write_json(staging / "calib.json", {"cameras": [c.to_dict() for c in cams]})
     for i, c in enumerate(cams):
         err = np.linalg.norm(camera_center(c.P) - camera_center(scene.P[i]))
-        print(f"calibrated camera {i + 1} from {c.n_points} pattern corners: reprojection RMS {c.rms_px:.3f} px, "
+        say(f"calibrated camera {i + 1} from {c.n_points} pattern corners: reprojection RMS {c.rms_px:.3f} px, "
               f"centre error {err * 1000:.2f} mm")
 
     cfg = Config()
@@ -61,14 +67,14 @@ def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool) -> 
         report["dense"]["median_surface_distance_m"] = float(np.median(distance)) if len(distance) else None
     save_outputs(recon, report, staging, cfg)
     centre = [e for e in errors["center_m"][2:] if e is not None]
-    print(f"registered {report['registered']}/{report['images']} images, {report['points']} sparse points, "
+    say(f"registered {report['registered']}/{report['images']} images, {report['points']} sparse points, "
           f"reprojection RMS {report['reprojection']['rms_px']:.3f} px")
     if centre:
-        print(f"camera centre error (moving camera): mean {np.mean(centre) * 100:.3f} cm, max {np.max(centre) * 100:.3f} cm")
-    print(f"3D RMS of the {len(seen)} reconstructed box corners (eq. 13, no alignment): {corner_rms * 100:.3f} cm")
+        say(f"camera centre error (moving camera): mean {np.mean(centre) * 100:.3f} cm, max {np.max(centre) * 100:.3f} cm")
+    say(f"3D RMS of the {len(seen)} reconstructed box corners (eq. 13, no alignment): {corner_rms * 100:.3f} cm")
     if dense:
         d = report["dense"]
-        print(f"quasi-dense: {d['points']} fused points from {len(d['pairs'])} pairs in {d['seconds']:.1f} s, "
+        say(f"quasi-dense: {d['points']} fused points from {len(d['pairs'])} pairs in {d['seconds']:.1f} s, "
               f"median distance to the true surface {d['median_surface_distance_m'] * 1000:.2f} mm")
-    print(f"total {time.perf_counter() - t0:.1f} s; outputs in {out}")
+    say(f"total {time.perf_counter() - t0:.1f} s; outputs in {out}")
     return 0

@@ -1,4 +1,4 @@
-"""Compile the Numba kernels once, at install time: ``python -m stereoseed.precompile``.
+"""Compile the Numba kernels once, at install time: ``stereoseed precompile`` (``make`` runs it).
 
 Numba compiles a kernel on its first call and keeps the machine code in its cache
 (``cache=True``; next to the package when that folder is writable, else in the user's cache
@@ -9,9 +9,6 @@ quasi-dense stage with the argument types of a real run, and throws the result a
 """
 from __future__ import annotations
 
-import contextlib
-import io
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,11 +20,5 @@ def precompile() -> float:
 
     t = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="stereoseed-precompile-") as tmp:
-        with contextlib.redirect_stdout(io.StringIO()):
-            run_demo(Path(tmp) / "out", n_images=3, dense=True)
+        run_demo(Path(tmp) / "out", n_images=3, dense=True, say=lambda line: None)
     return time.perf_counter() - t
-
-
-if __name__ == "__main__":
-    seconds = precompile()
-    print(f"stereoseed: Numba kernels compiled and cached ({seconds:.0f} s)", file=sys.stderr)
