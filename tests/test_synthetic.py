@@ -13,6 +13,7 @@ from stereoseed.camera import camera_center, compose_projection, project
 from stereoseed.edge_corners import _edge_corners
 from stereoseed.image import to_gray
 from stereoseed.lens import distort_pixels, undistort_image, undistort_pixels
+from stereoseed.synthetic_render import add_noise
 from stereoseed.synthetic import (
     BOX_HALF,
     BOX_HEIGHT,
@@ -23,7 +24,6 @@ from stereoseed.synthetic import (
     GROUND_RADIUS,
     SQUARE_SIZE,
     SceneConfig,
-    add_noise,
     box_corners,
     render_scene,
     write_scene,

@@ -132,7 +132,8 @@ def noisy_images(images: list[np.ndarray], sigma: float, scene_seed: int) -> lis
     """The images of ``render_scene(SceneConfig(noise_sigma=sigma, seed=scene_seed, ...))`` made
     from the noise-free render of the same config: the renderer adds noise after rendering, from
     a stream of its own, so re-rendering each noise level would only repeat the ray tracing."""
-    from .synthetic import add_noise, noise_generator
+    from .synthetic import noise_generator
+    from .synthetic_render import add_noise
 
     if sigma <= 0:
         return list(images)

@@ -54,7 +54,7 @@ import numpy as np
 from .camera import camera_center, compose_projection, depths, project
 from .io import write_image, write_text
 from .lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
-from .synthetic_render import _cast_kernel, _render_kernel
+from .synthetic_render import _cast_kernel, _render_kernel, add_noise  # the sensor's noise lives with the renderer
 
 __all__ = [
     "BOX_HALF",
@@ -72,7 +72,6 @@ __all__ = [
     "box_corners",
     "render_scene",
     "write_scene",
-    "add_noise",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -147,7 +146,7 @@ class SceneConfig:
     height: int = 480
     focal_px: float = 800.0  # camera 1 (the moving camera's nominal focal length)
     focal_jitter: float = 0.10  # images >= 2: focal_px * (1 + U(-jitter, jitter))
-    noise_sigma: float = 0.0  # Gaussian grey-level noise (0..255 scale), see add_noise
+    noise_sigma: float = 0.0  # Gaussian grey-level noise (0..255 scale), see synthetic_render.add_noise
     textured: bool = True  # False: the paper's plain box (uniform faces + dark squares)
     supersample: int = 3  # s x s box-filtered samples per pixel
     seed: int = 0
@@ -307,22 +306,6 @@ def noise_generator(scene_seed: int, index: int) -> np.random.Generator:
     """The random stream of image ``index``'s pixel noise in the scene of seed ``scene_seed``:
     noisy variants of a rendered scene can be made without rendering again."""
     return np.random.default_rng([scene_seed, _STREAM_NOISE, index])
-
-
-def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
-    """Add Gaussian grey-level noise to a uint8 image, round and clip. -> uint8, same shape.
-
-    image: (H, W) or (H, W, 3) uint8; sigma in grey levels (0..255). For colour images one sample
-    per pixel is added to all channels: the grey conversion (weights summing to 1) then carries
-    noise of standard deviation sigma, which is what the paper's Fig. 9 varies.
-    """
-    image = np.asarray(image)
-    if sigma <= 0:
-        return image.copy()
-    noise = rng.normal(0.0, sigma, size=image.shape[:2])
-    if image.ndim == 3:
-        noise = noise[:, :, None]
-    return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
 
 
 # --------------------------------------------------------------------------------------------

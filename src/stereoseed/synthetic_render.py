@@ -1,5 +1,5 @@
 """The synthetic scene's Numba renderer: ray casting against the box and the ground, shading,
-box-filtered supersampling.
+box-filtered supersampling; and the sensor's noise (:func:`add_noise`).
 
 World frame and face labels are those of :mod:`stereoseed.synthetic`, which sets the scene up
 (cameras, textures, constants) and calls these kernels; every kernel takes the geometry and the
@@ -174,3 +174,19 @@ def _cast_kernel(C, dirs, half, height):
         ts[k] = t
         labels[k] = lab
     return ts, labels
+
+
+def add_noise(image: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Add Gaussian grey-level noise to a uint8 image, round and clip. -> uint8, same shape.
+
+    image: (H, W) or (H, W, 3) uint8; sigma in grey levels (0..255). For colour images one sample
+    per pixel is added to all channels: the grey conversion (weights summing to 1) then carries
+    noise of standard deviation sigma, which is what the paper's Fig. 9 varies.
+    """
+    image = np.asarray(image)
+    if sigma <= 0:
+        return image.copy()
+    noise = rng.normal(0.0, sigma, size=image.shape[:2])
+    if image.ndim == 3:
+        noise = noise[:, :, None]
+    return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)

@@ -36,7 +36,7 @@ from numba import njit, prange
 from .errors import StereoseedError
 from .io import read_image
 from .lens import lens_coefficients, principal_r2, undistort_pixel_centre, undistort_sample
-from .synthetic import add_noise
+from .synthetic_render import add_noise
 
 __all__ = ["TargetFace", "Target", "load_target", "face_points", "render_target",
            "default_background"]
@@ -285,7 +285,7 @@ def render_target(target: str | os.PathLike | Target, K: np.ndarray, R: np.ndarr
     supersample: s x s box-filtered samples per pixel; background: None (mid-grey with a faint
     texture, :func:`default_background`), a grey level, a BGR triple or an (H, W[, 3]) image,
     0..255; noise_sigma: Gaussian grey-level noise (0..255 scale,
-    :func:`stereoseed.synthetic.add_noise`), seeded by seed like the default background.
+    :func:`stereoseed.synthetic_render.add_noise`), seeded by seed like the default background.
     """
     if not isinstance(target, Target):
         target = load_target(target)
