@@ -53,11 +53,11 @@ def test_a_view_releases_its_grey_image_and_restores_the_same_one(files):
     gray = view.features.gray.copy()
     assert view.image_size == (80, 60)
     state = view._state()
-    view.release_gray()
+    view.release_pixels()
     assert view.features.gray is None
     seq[1]  # evicts image 0
     assert np.array_equal(view.restore_gray().gray, gray)
-    view.release_gray()
+    view.release_pixels()
     released = view._state()
     view._restore(state)  # a rollback to before the release keeps its grey image
     assert view.features.gray is not None
@@ -74,7 +74,7 @@ def test_descriptors_spill_to_a_file_and_read_back_the_same(files, tmp_path):
     view = View("0.png", load=lambda: seq[0])
     view.features = extract_features(view.image)
     desc = view.features.desc.copy()
-    view.release_gray(spill_to=tmp_path)
+    view.release_pixels(spill_to=tmp_path)
     assert isinstance(view.features.desc, np.memmap) and np.array_equal(view.features.desc, desc)
     assert list(tmp_path.glob("desc_*.npy"))
 

@@ -115,7 +115,7 @@ def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
     keep = set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
     for i in reg:
         if i not in keep:
-            recon.views[i].release_gray(spill_to)
+            recon.views[i].release_pixels(spill_to)
 
 
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig()

@@ -75,7 +75,7 @@ class View:
 
     @property
     def features(self) -> Features | None:
-        """The interest points (their grey image None after :meth:`release_gray`, until
+        """The interest points (their grey image None after :meth:`release_pixels`, until
         :meth:`restore_gray`)."""
         return self._features
 
@@ -93,7 +93,7 @@ class View:
             self._gray_released = False
         return self._features
 
-    def release_gray(self, spill_to: Path | None = None) -> None:
+    def release_pixels(self, spill_to: Path | None = None) -> None:
         """Let go of the interest points' grey image (recomputed from the image on demand) and,
         with ``spill_to`` (a folder), move their descriptors to a file there, memory-mapped: a
         view out of the mapper's working set keeps only its points in memory, and a page of its
