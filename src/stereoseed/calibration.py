@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import camera_models
-from .camera import camera_jacobian, decompose_projection, depths, normalize_projection, project
+from .camera import camera_jacobian, compose_projection, decompose_projection, depths, normalize_projection, project
 from .errors import StereoseedError
 from .robust import huber_cost, huber_weights
 
@@ -123,7 +123,7 @@ def refine_projection(P: np.ndarray, points3d: np.ndarray, points2d: np.ndarray,
     if loss not in ("linear", "huber"):
         raise ValueError(f"loss must be 'linear' or 'huber', not {loss!r}")
     params, fixed = camera_models.params_from_projection(P, model, reference_K)
-    K, R, t = camera_models.krt_from_params(params, model, fixed)
+    _, R, t = camera_models.krt_from_params(params, model, fixed)
     ni = camera_models.N_INTRINSICS[model]
     intrinsics = params[:ni]
     X = np.asarray(points3d, dtype=np.float64)
@@ -133,7 +133,7 @@ def refine_projection(P: np.ndarray, points3d: np.ndarray, points2d: np.ndarray,
 
     def evaluate(intrinsics: np.ndarray, R: np.ndarray, t: np.ndarray):
         K = camera_models.K_from_intrinsics(intrinsics, model, fixed)
-        Pc = K @ np.hstack([R, t.reshape(3, 1)])
+        Pc = compose_projection(K, R, t)
         h = Xh @ Pc.T
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = h[:, :2] / h[:, 2:3]

@@ -104,7 +104,8 @@ class View:
         changes: dict[str, Any] = {}
         if f.gray is not None and (self._load is not None or self._image is not None):
             changes["gray"] = None
-        if spill_to is not None and not isinstance(f.desc, np.memmap) and f.desc.size:
+        # a memory map backed by a file (an unpickled one, after a resume, holds its data in RAM)
+        if spill_to is not None and getattr(f.desc, "filename", None) is None and f.desc.size:
             path = Path(spill_to) / f"desc_{next(_SPILLED)}.npy"
             np.save(path, f.desc)
             changes["desc"] = np.load(path, mmap_mode="r")
@@ -424,9 +425,9 @@ class Reconstruction:
     def observation_errors(self) -> np.ndarray:
         """Reprojection distance (px) of every observation, (O,)."""
         err = np.empty(len(self.obs_view))
-        xy = self.observation_xy()
-        for v, rows in _rows_by_value(self.obs_view):
-            err[rows] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[rows]]) - xy[rows], axis=1)
+        for v, rows in _rows_by_value(self.obs_view):  # one grouping for the pixels and the cameras
+            xy = self.views[v].features.points[self.obs_feature[rows]]
+            err[rows] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[rows]]) - xy, axis=1)
         return err
 
     def track_lengths(self) -> np.ndarray:

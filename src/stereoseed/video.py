@@ -100,6 +100,10 @@ def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig()) -> list[K
             gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
             return gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
 
+        def keep_sharpest(candidates: list[tuple[float, int, np.ndarray]]) -> None:
+            _, best_index, best = max(candidates, key=lambda c: c[0])
+            keyframes.append(Keyframe(best_index, f"{path.stem}_{best_index:06d}.png", best))
+
         tracker = _Tracker(small_gray(frame), cfg)
         candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
         index = 0
@@ -115,13 +119,11 @@ def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig()) -> list[K
             if motion >= threshold or followed < cfg.min_tracked_fraction or len(candidates) >= cfg.sharpest_of:
                 if not candidates:  # lost before 3/4 of the motion: this frame, as it is
                     candidates.append((sharpness(gray), index, frame))
-                _, best_index, best = max(candidates, key=lambda c: c[0])
-                keyframes.append(Keyframe(best_index, f"{path.stem}_{best_index:06d}.png", best))
+                keep_sharpest(candidates)
                 candidates = []
                 tracker.restart(gray)
         if candidates:  # the end of the walk, past 3/4 of a step
-            _, best_index, best = max(candidates, key=lambda c: c[0])
-            keyframes.append(Keyframe(best_index, f"{path.stem}_{best_index:06d}.png", best))
+            keep_sharpest(candidates)
     finally:
         capture.release()
     if not keyframes:
