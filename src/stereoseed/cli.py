@@ -140,7 +140,6 @@ def _cmd_match(args: argparse.Namespace) -> int:
 def _cmd_propagate(args: argparse.Namespace) -> int:
     from .camera import fundamental_from_projections
     from .config import Config
-    from .dense import pair_seeds
     from .io import check_image_output, read_calibration, read_image
     from .mapper import initialise
     from .propagation import propagate
@@ -155,7 +154,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     # the pair as the reconstruction starts from it: a calibration that does not fit the images
     # is refused, and the seeds are its triangulated matches
     recon, _ = initialise([img1, img2], names, [P1, P2], cfg)
-    seeds = pair_seeds(recon, 0, 1)
+    seeds = recon.shared_pixels(0, 1)
     result = propagate(img1, img2, seeds, fundamental_from_projections(P1, P2), cfg.propagation,
                        subpixel_method=cfg.propagation.subpixel_method)
     print(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")

@@ -12,14 +12,13 @@ imported only when a scheduler is given.
 """
 from __future__ import annotations
 
-import asyncio
 import logging
 import multiprocessing
 import os
 import signal
 import sys
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from contextlib import contextmanager
 from typing import Any, Callable, Iterable, Iterator
 
@@ -85,6 +84,8 @@ def executor_for(scheduler: str | None, workers: int,
             return
         # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
         # breaks unguarded user scripts
+        from concurrent.futures import ProcessPoolExecutor  # here: every command imports this module
+
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with_parent,
@@ -108,6 +109,8 @@ def _connect(scheduler: str, timeout: float) -> Any:
     """A Dask client of the scheduler at ``scheduler``, with at least one worker that imports
     this stereoseed version."""
     try:
+        import asyncio
+
         from distributed import Client
         from distributed.comm import connect
     except ImportError:

@@ -28,18 +28,7 @@ from .triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["pair_seeds", "densify_pair", "fuse", "estimate_normals", "densify"]
-
-
-def pair_seeds(recon: Reconstruction, a: int, b: int) -> np.ndarray:
-    """Sparse matches between registered views a and b, the 3D points both observe, as seeds
-    (S, 4) float64 (xa, ya, xb, yb) (the propagation scores them by ZNCC)."""
-    rows = []
-    for v in (a, b):
-        sel = recon.obs_view == v
-        rows.append((recon.obs_point[sel], recon.views[v].features.points[recon.obs_feature[sel]]))
-    _, ia, ib = np.intersect1d(rows[0][0], rows[1][0], return_indices=True)
-    return np.hstack([rows[0][1][ia], rows[1][1][ib]])
+__all__ = ["densify_pair", "fuse", "estimate_normals", "densify"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -162,7 +151,7 @@ def _run_pair(args: tuple) -> dict[str, Any]:
 def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
     reg = recon.registered_views
     for a, b in zip(reg[:-1], reg[1:]):
-        seeds = pair_seeds(recon, a, b)
+        seeds = recon.shared_pixels(a, b)
         yield (recon.views[a].image, recon.views[b].image, recon.views[a].P, recon.views[b].P, seeds,
                cfg.propagation, cfg.dense)
 

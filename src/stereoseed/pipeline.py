@@ -9,12 +9,11 @@ import logging
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
-from .cluster import JobPool
 from .config import Config, VideoConfig
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
@@ -27,6 +26,9 @@ from .sequence import ImageSequence
 from .video import read_keyframes
 from .report_html import write_report_html
 from .results import ResultSet, write_result
+
+if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
+    from .cluster import JobPool
 
 __all__ = ["reconstruct", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 

@@ -215,17 +215,6 @@ def _cell_keys(xy: np.ndarray, cell: int) -> np.ndarray:
     return (xy[:, 1] // cell).astype(np.int64) * 1_000_000 + (xy[:, 0] // cell).astype(np.int64)
 
 
-def _shared_observations(recon: Reconstruction, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (N, 2) in a and in b of the live points both views observe."""
-    out = []
-    for v in (a, b):
-        sel = (recon.obs_view == v) & recon.alive[recon.obs_point]
-        pids, first = np.unique(recon.obs_point[sel], return_index=True)
-        out.append((pids, recon.views[v].features.points[recon.obs_feature[sel][first]]))
-    _, ia, ib = np.intersect1d(out[0][0], out[1][0], assume_unique=True, return_indices=True)
-    return out[0][1][ia], out[1][1][ib]
-
-
 def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoints:
     """The previous pair's quasi-dense matches (view a and the registered view before it),
     propagated from the points both observe under their known F and triangulated; only grid
@@ -235,12 +224,11 @@ def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoin
         return PairPoints.none()
     b, cell = before[0], cfg.quasi_dense.grid_cell_px
     va, vb = recon.views[a], recon.views[b]
-    xa_seed, xb_seed = _shared_observations(recon, a, b)
     bg = cfg.quasi_dense.background_grey
-    res = propagate(_foreground(va.image, bg), _foreground(vb.image, bg), np.hstack([xa_seed, xb_seed]),
+    res = propagate(_foreground(va.image, bg), _foreground(vb.image, bg), recon.shared_pixels(a, b),
                     fundamental_from_projections(va.P, vb.P), cfg.propagation)
     q, sc = res.matches, res.scores.astype(np.float64)
-    observed = va.features.points[recon.obs_feature[(recon.obs_view == a) & recon.alive[recon.obs_point]]]
+    observed = recon.observation_xy(recon.obs_view == a)  # an observation's point is always alive
     free = ~np.isin(_cell_keys(q[:, :2], cell), _cell_keys(observed, cell))
     q, sc = q[free], sc[free]
     rows = grid_best(q[:, :2], sc, cell)

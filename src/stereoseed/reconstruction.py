@@ -430,6 +430,16 @@ class Reconstruction:
             err[rows] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[rows]]) - xy, axis=1)
         return err
 
+    def shared_pixels(self, a: int, b: int) -> np.ndarray:
+        """(S, 4) float64 (xa, ya, xb, yb): the pixels in views a and b of the points both
+        observe (a point's first observation in each view): the seeds of a pair's propagation."""
+        rows = []
+        for v in (a, b):
+            sel = self.obs_view == v
+            rows.append((self.obs_point[sel], self.views[v].features.points[self.obs_feature[sel]]))
+        _, ia, ib = np.intersect1d(rows[0][0], rows[1][0], return_indices=True)
+        return np.hstack([rows[0][1][ia], rows[1][1][ib]])
+
     def track_lengths(self) -> np.ndarray:
         return np.bincount(self.obs_point, minlength=len(self.points))
 
