@@ -99,9 +99,9 @@ def test_constrained_models(model):
     assert res.rms_after < 1e-5
 
 
-def test_reduced_camera_matrix_is_w_vinv_wt():
-    from stereoseed.bundle import _reduced_camera_matrix
-
+def _reduced_camera_case():
+    """A random reduced camera system and its dense reference -W V^-1 W^T (a camera may see a
+    point twice)."""
     rng = np.random.default_rng(3)
     n_cams, n_points, n = 4, 30, 7
     cams = rng.integers(0, n_cams, 150)
@@ -116,7 +116,37 @@ def test_reduced_camera_matrix_is_w_vinv_wt():
     dense_Vinv = np.zeros((n_points * 3, n_points * 3))
     for p in range(n_points):
         dense_Vinv[p * 3:(p + 1) * 3, p * 3:(p + 1) * 3] = Vinv[p]
-    order = np.argsort(points, kind="stable")
+    order = np.lexsort((cams, points))  # by point, then by camera
     starts = np.searchsorted(points[order], np.arange(n_points + 1))
-    S = _reduced_camera_matrix(order, starts, cams, W, W @ Vinv[points], n_cams)
-    np.testing.assert_allclose(S, -dense_W @ dense_Vinv @ dense_W.T, atol=1e-9)
+    Wt = np.swapaxes(W, 1, 2).copy()
+    return (order, starts, cams, Wt, W @ Vinv[points], n_cams), -dense_W @ dense_Vinv @ dense_W.T
+
+
+def test_reduced_camera_matrix_is_w_vinv_wt():
+    from stereoseed.bundle import _reduced_camera_matrix
+
+    args, expected = _reduced_camera_case()
+    np.testing.assert_allclose(_reduced_camera_matrix(*args), expected, atol=1e-9)
+
+
+def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
+    # each thread owns whole block rows: the same additions in the same order, bit for bit
+    from stereoseed import bundle
+
+    args, _ = _reduced_camera_case()
+    single = bundle._reduced_camera_matrix(*args)
+    monkeypatch.setattr(bundle, "_THREADS", 3)
+    monkeypatch.setattr(bundle, "PAIRS_PER_THREAD", 1)
+    np.testing.assert_array_equal(bundle._reduced_camera_matrix(*args), single)
+
+
+def test_solve_symmetric_falls_back_to_least_squares():
+    from stereoseed.bundle import _solve_symmetric
+
+    A = np.random.default_rng(0).normal(size=(6, 6))
+    S = A @ A.T + np.eye(6)
+    b = np.arange(6.0)
+    np.testing.assert_allclose(S @ _solve_symmetric(S, b), b, atol=1e-10)
+    singular = np.zeros((3, 3))
+    singular[0, 0] = 2.0  # not definite: Cholesky fails, least squares gives the minimum-norm answer
+    np.testing.assert_allclose(_solve_symmetric(singular, np.array([4.0, 0.0, 0.0])), [2.0, 0.0, 0.0])

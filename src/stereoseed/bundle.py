@@ -11,7 +11,9 @@ eliminating the points leaves the small reduced camera system S = U - W V^-1 W^T
 """
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +25,12 @@ from .config import BundleConfig
 from .robust import huber_cost
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
+
+# Threads forming a large reduced camera system: the cores this process may use, at most 4
+# (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a thread
+# costs more than it saves.
+_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+PAIRS_PER_THREAD = 500_000
 
 
 @dataclass
@@ -75,6 +83,17 @@ def _projection_derivatives(params: np.ndarray, model: str, ref_K: np.ndarray | 
     return out
 
 
+def _solve_symmetric(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """x of S x = rhs for the damped reduced camera system S (N, N), symmetric positive definite:
+    by Cholesky (half the work of LU), least squares should damping not have made it definite."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve  # only where cameras are adjusted
+
+    try:
+        return cho_solve(cho_factor(S, check_finite=False), rhs, check_finite=False)
+    except (LinAlgError, ValueError):
+        return np.linalg.lstsq(S, rhs, rcond=None)[0]
+
+
 class _Segments:
     """Sums of per-observation values grouped by an integer key (0..n-1), with the grouping
     (a stable sort) computed once: ``np.add.reduceat`` is far faster than ``np.add.at``."""
@@ -94,26 +113,64 @@ class _Segments:
 
 
 @njit(cache=True, nogil=True)
-def _reduced_camera_matrix(order, starts, cams, W, Y, n_cams):
-    """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n): every pair of
-    observations (i, j) of one point adds -Y_i W_j^T (n, n) at cameras (cams[i], cams[j]).
-    order: observations grouped by point, starts: (groups + 1,) offsets of the groups into it;
-    W, Y: (O, n, 3) with Y_i = W_i V_p^-1."""
-    n = W.shape[1]
-    S = np.zeros((n_cams * n, n_cams * n))
+def _add_point_pairs(S, order, starts, cams, Wt, Y, first_cam, end_cam):
+    """Adds -Y_i W_j^T (n, n) to S at cameras (cams[i], cams[j]) for every pair of observations
+    (i, j) of one point whose first camera is in [first_cam, end_cam): the rows of S a thread
+    owns. order: observations grouped by point and, within a point, by camera; starts:
+    (groups + 1,) offsets of the groups into it; Wt: (O, 3, n) the W blocks transposed,
+    Y: (O, n, 3) with Y_i = W_i V_p^-1. S is symmetric: each pair is added once, to the upper
+    block triangle (cams[i] <= cams[j] by the order), along rows of S and of Wt (contiguous,
+    so the innermost loop is vectorised); :func:`_mirror_upper` completes it."""
+    n = Wt.shape[2]
     for p in range(len(starts) - 1):
         for a in range(starts[p], starts[p + 1]):
             i = order[a]
+            if cams[i] < first_cam or cams[i] >= end_cam:
+                continue
             ri = cams[i] * n
-            for b in range(a, starts[p + 1]):  # Y_j W_i^T = (Y_i W_j^T)^T: each pair once
+            y = Y[i]
+            for b in range(a, starts[p + 1]):
                 j = order[b]
                 rj = cams[j] * n
+                w = Wt[j]
                 for u in range(n):
+                    y0, y1, y2 = y[u, 0], y[u, 1], y[u, 2]
+                    row = S[ri + u, rj:rj + n]
                     for v in range(n):
-                        x = Y[i, u, 0] * W[j, v, 0] + Y[i, u, 1] * W[j, v, 1] + Y[i, u, 2] * W[j, v, 2]
-                        S[ri + u, rj + v] -= x
-                        if b != a:
-                            S[rj + v, ri + u] -= x
+                        row[v] -= y0 * w[0, v] + y1 * w[1, v] + y2 * w[2, v]
+                    if b != a and ri == rj:  # a point seen twice by one camera: both halves of its block
+                        for v in range(n):
+                            S[rj + v, ri + u] -= y0 * w[0, v] + y1 * w[1, v] + y2 * w[2, v]
+
+
+@njit(cache=True, nogil=True)
+def _mirror_upper(S, n):
+    """Below the (n, n) diagonal blocks of S, the mirror of what is above them."""
+    size = S.shape[0]
+    for r in range(size):
+        for c in range(r - r % n + n, size):
+            S[c, r] = S[r, c]
+
+
+def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, Wt: np.ndarray, Y: np.ndarray,
+                           n_cams: int) -> np.ndarray:
+    """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n). Forming it
+    costs the sum over points of (track length)^2 blocks: on a large problem its block rows are
+    shared among threads (the kernel releases the GIL), split so that each adds as many pairs."""
+    n = Wt.shape[2]
+    S = np.zeros((n_cams * n, n_cams * n))
+    group_end = np.repeat(starts[1:], np.diff(starts))
+    pairs = np.bincount(cams[order], weights=group_end - np.arange(len(order)), minlength=n_cams)  # per first camera
+    threads = int(min(_THREADS, max(1, pairs.sum() // PAIRS_PER_THREAD)))
+    if threads == 1:
+        _add_point_pairs(S, order, starts, cams, Wt, Y, 0, n_cams)
+    else:
+        cuts = np.searchsorted(np.cumsum(pairs), pairs.sum() * np.arange(1, threads) / threads)
+        bounds = np.r_[0, cuts + 1, n_cams]
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(lambda t: _add_point_pairs(S, order, starts, cams, Wt, Y, bounds[t], bounds[t + 1]),
+                          range(threads)))
+    _mirror_upper(S, n)
     return S
 
 
@@ -232,6 +289,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     # the same grouping (observations of free points by free cameras, point by point) sums S's
     # off-diagonal blocks
     point_starts = np.r_[by_point_both.starts, len(both_idx_all)]
+    pair_order = np.lexsort((slot_c[both_idx_all], slot_p[both_idx_all]))  # by point, then by camera
     eye_n, eye_3 = np.eye(n), np.eye(3)
 
     lam = 1e-3
@@ -249,14 +307,11 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             Vinv = np.linalg.inv(Vd)
             if nC:
                 Y = Wb @ Vinv[slot_p[both_idx_all]]  # (Ob, n, 3)
-                S2 = _reduced_camera_matrix(by_point_both.order, point_starts, slot_c[both_idx_all], Wb, Y, nC)
+                S2 = _reduced_camera_matrix(pair_order, point_starts, slot_c[both_idx_all], np.swapaxes(Wb, 1, 2).copy(), Y, nC)
                 for i in range(nC):
                     S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
                 rhs = -gc + both_by_camera.sum((Y @ gp[slot_p[both_idx_all]][:, :, None])[:, :, 0])
-                try:
-                    dc = np.linalg.solve(S2, rhs.ravel()).reshape(nC, n)
-                except np.linalg.LinAlgError:
-                    dc = np.linalg.lstsq(S2, rhs.ravel(), rcond=None)[0].reshape(nC, n)
+                dc = _solve_symmetric(S2, rhs.ravel()).reshape(nC, n)
                 # back-substitution: V dp = -gp - W^T dc
                 back = -gp - by_point_both.sum((np.swapaxes(Wb, 1, 2) @ dc[slot_c[both_idx_all]][:, :, None])[:, :, 0])
             else:
