@@ -213,10 +213,19 @@ class BundleConfig:
     # docs/mapper.md), at most global_rounds times (COLMAP's global BA also re-runs after filtering).
     negligible_drop: float = 0.001
     global_rounds: int = 4
+    # A global BA whose reduced camera system costs more than this many track-length² blocks
+    # to form (sum over points of their track length squared) adjusts the cameras on a subset
+    # of the points, subset_cells x subset_cells per image, then the other points alone (ours,
+    # after Theia's track subset selection). The subset costs precision (the 300-image ring:
+    # 0.86 cm mean centre error instead of 0.66), so only past ~4x that ring (2.3e7 blocks,
+    # ~0.3 s a Levenberg-Marquardt iteration on 2 cores), where a whole BA takes minutes;
+    # docs/scaling.md
+    subset_above: float = 1e8
+    subset_cells: int = 8
 
     def __post_init__(self) -> None:
-        _positive(self, "huber_px")
-        _whole(self, "max_iterations", "global_rounds")
+        _positive(self, "huber_px", "subset_above")
+        _whole(self, "max_iterations", "global_rounds", "subset_cells")
         _in_range(self, "negligible_drop", 0.0, 1.0)
 
 

@@ -14,7 +14,7 @@ from .bundle import BundleProblem, bundle_adjust
 from .config import Config
 from .reconstruction import Reconstruction, eq14
 
-__all__ = ["adjust", "ba_report", "drop_outliers", "global_adjust"]
+__all__ = ["adjust", "ba_report", "drop_outliers", "global_adjust", "select_tracks"]
 
 CALIBRATED = (0, 1)  # the calibrated pair fixes the frame and the scale: it never moves
 
@@ -25,11 +25,11 @@ def ba_report(result: dict[str, Any] | None) -> dict[str, Any]:
 
 
 def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
-           views_in_cost: list[int] | None = None) -> dict[str, Any] | None:
+           views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None) -> dict[str, Any] | None:
     """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
     every point those views observe; the cost holds every observation of the involved points
-    (in ``views_in_cost`` only, if given). Returns a JSON-able report, or None when there is
-    nothing to adjust (no observation involved)."""
+    (in ``views_in_cost`` only, and of ``points_in_cost`` only, if given). Returns a JSON-able
+    report, or None when there is nothing to adjust (no observation involved)."""
     free_views = [v for v in free_views if v not in CALIBRATED]
     in_free_views = np.isin(recon.obs_view, free_views)
     if free_points is None:
@@ -37,6 +37,8 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
     involved = np.isin(recon.obs_point, free_points) | in_free_views
     if views_in_cost is not None:
         involved &= np.isin(recon.obs_view, views_in_cost)
+    if points_in_cost is not None:
+        involved &= np.isin(recon.obs_point, points_in_cost)
     involved &= recon.alive[recon.obs_point]
     if not involved.any():
         return None
@@ -97,12 +99,15 @@ def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], i
     """Bundle-adjust every registered view (the pair fixed), drop the outliers, and again while
     the last round removed more than ``BundleConfig.negligible_drop`` of the observations (at
     most ``global_rounds``): the wrong observations left by drift hold the first solution away
-    from the right one. Returns (the last round's BA report with "rounds", "removed_per_round"
-    and the first round's starting RMS added, observations removed)."""
+    from the right one. A large model (forming its reduced camera system costs more than
+    ``BundleConfig.subset_above`` track-length² blocks) adjusts its cameras on the points of
+    :func:`select_tracks` and then every other point with the cameras fixed. Returns (the last
+    round's BA report with "rounds", "removed_per_round" and the first round's starting RMS
+    added, observations removed)."""
     removed_per_round: list[int] = []
     rms_first = None
     while True:
-        ba = adjust(recon, cfg, free_views=recon.registered_views)
+        ba = _adjust_everything(recon, cfg)
         if ba is None:  # nothing registered past the pair: no BA, so nothing to judge by
             return ba_report(None), 0
         removed = drop_outliers(recon, cfg)
@@ -113,3 +118,46 @@ def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], i
             break
     ba.update(rounds=len(removed_per_round), removed_per_round=removed_per_round, rms_first_round_before_px=rms_first)
     return ba, sum(removed_per_round)
+
+
+def _adjust_everything(recon: Reconstruction, cfg: Config) -> dict[str, Any] | None:
+    """One BA of every registered view and point; on a subset of the points when the whole is
+    large (see :func:`global_adjust`)."""
+    views = recon.registered_views
+    length = np.bincount(recon.obs_point[np.isin(recon.obs_view, views)], minlength=len(recon.points))
+    if float(np.sum(length[recon.alive].astype(np.float64) ** 2)) <= cfg.bundle.subset_above:
+        return adjust(recon, cfg, free_views=views)
+    kept = select_tracks(recon, cfg.bundle.subset_cells)
+    ba = adjust(recon, cfg, free_views=views, free_points=kept, points_in_cost=kept)
+    if ba is None:
+        return None
+    others = np.setdiff1d(np.flatnonzero(recon.alive & (length > 0)), kept)
+    points_ba = adjust(recon, cfg, free_views=[], free_points=others)  # cameras fixed: one 3x3 system a point
+    ba.update(subset_points=len(kept), other_points=len(others),
+              seconds=ba["seconds"] + (points_ba["seconds"] if points_ba else 0.0),
+              observations=ba["observations"] + (points_ba["observations"] if points_ba else 0))
+    return ba
+
+
+def select_tracks(recon: Reconstruction, cells: int) -> np.ndarray:
+    """Ids (K,) of the live points a large global BA adjusts the cameras on: in each registered
+    view's image, cut into ``cells`` x ``cells``, the point of the longest track it sees in each
+    cell (the lowest reprojection error breaking ties). Every view keeps points spread over its
+    image, and the long tracks, which tie many views together (the loop closure's links among
+    them), are preferred: Theia's track subset selection for large bundle adjustments
+    (Sweeney, Theia SfM; Kushal & Agarwal, "Visibility based preconditioning", CVPR 2012)."""
+    rows = np.flatnonzero(recon.alive[recon.obs_point] & np.isin(recon.obs_view, recon.registered_views))
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    point, view = recon.obs_point[rows], recon.obs_view[rows]
+    xy = recon.observation_xy(rows)
+    size = np.array([v.image_size or (v.features.image_shape[1::-1] if v.features is not None else (1, 1))
+                     for v in recon.views], np.float64)  # (V, 2) width, height
+    col = np.clip(((xy[:, 0] + 0.5) * cells / size[view, 0]).astype(np.int64), 0, cells - 1)
+    row = np.clip(((xy[:, 1] + 0.5) * cells / size[view, 1]).astype(np.int64), 0, cells - 1)
+    cell = (view * cells + row) * cells + col
+    length = np.bincount(point, minlength=len(recon.points))[point]
+    error = recon.observation_errors()[rows]
+    order = np.lexsort((error, -length, cell))
+    first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
+    return np.unique(point[first])
