@@ -48,6 +48,18 @@ def test_keyframes_are_spaced_by_the_motion_and_start_past_the_first_frame(walk)
     assert len(read_keyframes(path, VideoConfig(keyframe_motion=0.04))) > 1.5 * len(keyframes)
 
 
+def test_keyframes_written_out_are_not_held(walk, tmp_path):
+    from stereoseed.io import read_image
+
+    _, _, path = walk
+    in_memory = read_keyframes(path)
+    on_disk = read_keyframes(path, save_to=tmp_path / "keyframes")
+    assert [k.name for k in on_disk] == [k.name for k in in_memory]
+    assert all(k.image is None and k.path == tmp_path / "keyframes" / k.name for k in on_disk)
+    for a, b in zip(on_disk, in_memory):  # PNG: the same pixels
+        np.testing.assert_array_equal(read_image(a.entry), b.entry)
+
+
 def test_the_keyframes_are_placed_after_the_calibrated_pair(walk):
     pair, frames, path = walk
     keyframes = read_keyframes(path)

@@ -2,7 +2,10 @@
 
 After each insertion the reconstruction's whole state (points, observations, every view's
 camera, interest points and links; not the images, which are read again) and the per-image
-reports are pickled atomically. A checkpoint belongs to one set of inputs (image pixels, the
+reports are pickled atomically. The descriptors of a view out of the mapper's working set are
+written once, when it leaves it, to the folder beside the checkpoint (:func:`spill_folder`), and
+the checkpoint names their file: a checkpoint costs the working set and the model, not the
+whole sequence's descriptors (300 MB at 300 images). A checkpoint belongs to one set of inputs (image pixels, the
 pair's cameras, the configuration: :func:`inputs_key`); a resumed run continues exactly where
 the interrupted one stopped and gives the same result as an uninterrupted run (every step is
 deterministic, and the correspondence source's caches only save time).
@@ -13,6 +16,8 @@ import hashlib
 import json
 import logging
 import pickle
+from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +25,22 @@ import cv2
 import numpy as np
 
 from .config import Config
-from .features import Features, to_gray
+from .features import Features
 from .io import atomic_path
 from .reconstruction import Checkpoint, Reconstruction, View
+from .sequence import ImageSequence
 
-__all__ = ["inputs_key", "save_checkpoint", "load_checkpoint"]
+__all__ = ["inputs_key", "save_checkpoint", "load_checkpoint", "spill_folder"]
 
 log = logging.getLogger(__name__)
-VERSION = 1
+VERSION = 2  # 2: spilled descriptors named, not copied
+
+
+def spill_folder(checkpoint: str | Path) -> Path:
+    """The folder beside ``checkpoint`` where the run spills the descriptors of old views
+    (:meth:`stereoseed.reconstruction.View.release_pixels`); the checkpoint refers to them."""
+    checkpoint = Path(checkpoint).absolute()
+    return checkpoint.with_name(checkpoint.name + ".spill")
 
 
 def inputs_key(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config) -> str:
@@ -43,8 +56,16 @@ def inputs_key(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     return h.hexdigest()
 
 
-def _features_state(f: Features | None) -> tuple | None:
-    return None if f is None else (f.points, f.desc, f.valid, f.response, f.image_shape)
+def _features_state(f: Features | None, spilled_in: Path) -> tuple | None:
+    """What a checkpoint holds of a view's interest points: descriptors spilled to
+    ``spilled_in`` by their file name, ("spilled", name), the rest as arrays."""
+    if f is None:
+        return None
+    desc = f.desc
+    filename = getattr(desc, "filename", None)  # a memory map's file
+    if filename is not None and Path(filename).parent == spilled_in:
+        desc = ("spilled", Path(filename).name)
+    return (f.points, desc, f.valid, f.response, f.image_shape)
 
 
 def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
@@ -52,7 +73,8 @@ def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dic
     state = recon.checkpoint(copy=False)  # pickled at once: no copy needed
     # (P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed) per view;
     # the images are read again on resume, the grey images recomputed from them
-    views = [(s[0], _features_state(s[1]), s[2], None) + tuple(s[4:8]) for s in state.views]
+    spilled_in = spill_folder(path)
+    views = [(s[0], _features_state(s[1], spilled_in), s[2], None) + tuple(s[4:8]) for s in state.views]
     payload = {"version": VERSION, "key": key, "per_image": per_image, "points": state.points, "colors": state.colors,
                "alive": state.alive, "observations": state.observations, "views": views}
     with atomic_path(path) as tmp:
@@ -60,11 +82,13 @@ def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dic
             pickle.dump(payload, fh, protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def load_checkpoint(path: str | Path, images: list[np.ndarray], names: list[str], key: str, source: Any
+def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str, source: Any
                     ) -> tuple[Reconstruction, list[dict[str, Any]]] | None:
     """The reconstruction and reports saved at ``path`` for these inputs (``key``), with the
-    images put back (turned where the run turned them) and ``source`` as correspondence source;
-    None when there is no usable checkpoint (missing, another version, other inputs)."""
+    images put back (read when needed from an :class:`ImageSequence`, turned where the run
+    turned them) and ``source`` as correspondence source; None when there is no usable
+    checkpoint (missing, another version, other inputs, its spilled descriptors gone). The
+    grey images are left to be computed again when needed (:meth:`View.restore_gray`)."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -78,14 +102,28 @@ def load_checkpoint(path: str | Path, images: list[np.ndarray], names: list[str]
         log.warning("%s: the checkpoint is of other inputs or settings; starting again", path)
         return None
     views, states = [], []
-    for name, image, s in zip(names, images, payload["views"]):
-        P, feats, pof, _, status, rotated, model, zoomed = s
-        image = cv2.rotate(image, cv2.ROTATE_180) if rotated else image
-        features = None if feats is None else Features(*feats, gray=to_gray(image))
-        views.append(View(name, image=image))
-        states.append((P, features, pof, image, status, rotated, model, zoomed, False))
+    try:
+        for i, (name, s) in enumerate(zip(names, payload["views"])):
+            P, feats, pof, _, status, rotated, model, zoomed = s
+            lazy = isinstance(images, ImageSequence)
+            view = View(name, load=partial(images.__getitem__, i) if lazy else None, image=None if lazy else images[i])
+            image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
+            features = None if feats is None else _features(feats, spill_folder(path))
+            views.append(view)
+            states.append((P, features, pof, image, status, rotated, model, zoomed, features is not None))
+    except OSError as e:
+        log.warning("%s: the checkpoint's spilled descriptors cannot be read (%s); starting again", path, e)
+        return None
     recon = Reconstruction(views)
     recon.restore(Checkpoint(payload["points"], payload["colors"], payload["alive"], payload["observations"],
                              tuple(states)))
     recon.source = source
     return recon, payload["per_image"]
+
+
+def _features(state: tuple, spilled_in: Path) -> Features:
+    """A view's interest points from their checkpoint state, spilled descriptors memory-mapped."""
+    points, desc, valid, response, image_shape = state
+    if isinstance(desc, tuple):
+        desc = np.load(spilled_in / desc[1], mmap_mode="r")
+    return Features(points, desc, valid, response, image_shape, gray=None)

@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from .checkpoint import inputs_key, load_checkpoint, save_checkpoint
+from .checkpoint import inputs_key, load_checkpoint, save_checkpoint, spill_folder
 from .config import Config, VideoConfig
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
-from .io import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration, write_image
+from .io import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration
 from .lens import undistort_image, undistortion_maps
 from .lens_calibration import read_lenses
 from .mapper import finish, initialise, insert_view
@@ -62,6 +62,8 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         state = load_checkpoint(checkpoint, images, names, key, source or HarrisZncc(cfg))
     if state is not None:
         recon, per_image = state
+        for i in _working_set(recon, cfg):  # the next insertions read their grey images
+            recon.views[i].restore_gray()
         log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
     else:
         recon, init = initialise(images, names, P_pair, cfg, source)
@@ -72,16 +74,21 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if progress:
         progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
     source = recon.source
-    # descriptors of old views go to files that live as long as the reconstruction (a memory
-    # map of a file keeps working once the folder is removed on POSIX systems)
-    spill = recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-",
-                                                                       ignore_cleanup_errors=True)
+    # descriptors of old views go to files: beside the checkpoint, which then names them instead
+    # of copying them, else in a folder that lives as long as the reconstruction (a memory map
+    # of a file keeps working once the folder is removed on POSIX systems)
+    if checkpoint is not None:
+        spill = spill_folder(checkpoint)
+        spill.mkdir(parents=True, exist_ok=True)
+    else:
+        recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
+        spill = Path(recon.spill_folder.name)
     try:
         with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)
                 per_image.append(rep)
-                _release_pixels(recon, cfg, spill.name)
+                _release_pixels(recon, cfg, spill)
                 if checkpoint is not None:
                     save_checkpoint(checkpoint, recon, per_image, key)
                 if progress:
@@ -112,30 +119,36 @@ def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
     views (the loop closure matches them at the end); the others' grey images are read again
     and their descriptors memory-mapped from ``spill_to`` if ever needed. The memory of a long
     run then grows with its points and observations only."""
-    reg = recon.registered_views
-    working = max(cfg.pipeline.window, cfg.motion_prior.recent_views) + 2
-    keep = set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
-    for i in reg:
+    keep = _working_set(recon, cfg)
+    for i in recon.registered_views:
         if i not in keep:
             recon.views[i].release_pixels(spill_to)
 
 
-def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig()
-                  ) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
+def _working_set(recon: Reconstruction, cfg: Config) -> set[int]:
+    """The views whose pixels and descriptors the next insertions and the loop closure use."""
+    reg = recon.registered_views
+    working = max(cfg.pipeline.window, cfg.motion_prior.recent_views) + 2
+    return set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
+
+
+def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
+                  keyframes_to: str | Path | None = None) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
     (:class:`stereoseed.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
 
     ``images_source``: a folder (its images in name order), a list file, or several of these and
     image files in order; a video (given directly or listed) stands for its keyframes
     (:func:`stereoseed.video.read_keyframes`, named ``VIDEO_FRAME.png``): the two calibrated
-    photos first, then the video of the walk. When the calibration carries a lens (calib.json
+    photos first, then the video of the walk; with ``keyframes_to`` (a folder) the keyframes are
+    written there as they are chosen and read back when needed. When the calibration carries a lens (calib.json
     "distortion"), every image is undistorted as it is read (one remap; image 0 through the
     first camera's lens, every later image through the second camera's: the moving camera
     keeps its lens, so a zoom that changes the distortion is not modelled), and the cameras hold
     for the undistorted pixels. The first two images are read here: a bad pair is refused
     before any work."""
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
-    entries, names = _sequence_entries(sources, video)
+    entries, names = _sequence_entries(sources, video, keyframes_to)
     if len(entries) < 2:
         raise StereoseedError(f"{' '.join(map(str, sources))}: {len(entries)} image(s); the calibrated pair needs two")
     paths = [e if isinstance(e, Path) else Path(n) for e, n in zip(entries, names)]
@@ -160,15 +173,16 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     return images, names, P_pair
 
 
-def _sequence_entries(sources: list, video: VideoConfig) -> tuple[list, list[str]]:
+def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Path | None
+                      ) -> tuple[list, list[str]]:
     """(paths, or keyframe images in memory; their names) of the sources in order."""
     entries: list = []
     names: list[str] = []
 
     def add(path: Path) -> None:
         if path.suffix.lower() in VIDEO_EXTENSIONS:
-            keyframes = read_keyframes(path, video)
-            entries.extend(k.image for k in keyframes)
+            keyframes = read_keyframes(path, video, keyframes_to)
+            entries.extend(k.entry for k in keyframes)
             names.extend(k.name for k in keyframes)
         else:
             entries.append(path)
@@ -205,12 +219,10 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     interruption the staging folder keeps the checkpoint for ``resume``. Returns the report."""
     results = ResultSet(out)
     results.check()  # before any work: never clobber what the user made
-    images, names, P_pair = load_sequence(images_source, calib_path, cfg.video)
     staging = results.open(keep=resume)
     try:
-        for i, name in enumerate(names):  # a video's keyframes: kept with the result, which names them
-            if images.source(i) == "memory":
-                write_image(staging / "keyframes" / name, images[i])
+        # a video's keyframes are kept with the result, which names them
+        images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
         recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                     checkpoint=staging / CHECKPOINT, resume=resume)
         if dense:
@@ -218,7 +230,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
 
             report["dense"] = densify(recon, cfg, staging, pool)
         save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
-        results.commit(drop=(CHECKPOINT,))
+        results.commit(drop=(CHECKPOINT, spill_folder(CHECKPOINT).name))
     except KeyboardInterrupt:
         raise  # the staging folder keeps the checkpoint: resume continues
     except BaseException:

@@ -16,7 +16,7 @@ steps stay vectorised and appending does not copy everything each time.
 """
 from __future__ import annotations
 
-import itertools
+import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -106,7 +106,7 @@ class View:
             changes["gray"] = None
         # a memory map backed by a file (an unpickled one, after a resume, holds its data in RAM)
         if spill_to is not None and getattr(f.desc, "filename", None) is None and f.desc.size:
-            path = Path(spill_to) / f"desc_{next(_SPILLED)}.npy"
+            path = Path(spill_to) / f"desc_{uuid.uuid4().hex}.npy"  # unique across runs: a resumed run spills beside
             np.save(path, f.desc)
             changes["desc"] = np.load(path, mmap_mode="r")
         if changes:
@@ -209,9 +209,6 @@ class View:
     def _restore(self, state: tuple) -> None:
         (self.P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180,
          self.camera_model, self.zoomed, self._gray_released) = state
-
-
-_SPILLED = itertools.count()  # file names of spilled descriptors: unique within a process
 
 
 def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:

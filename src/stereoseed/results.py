@@ -285,10 +285,14 @@ class ResultSet:
         return self.staging
 
     def commit(self, drop: tuple[str, ...] = ()) -> Path:
-        """Make the staging folder the result folder (files named in ``drop``, e.g. the
-        checkpoint, are removed first); the previous result set is deleted."""
+        """Make the staging folder the result folder (files and folders named in ``drop``,
+        e.g. the checkpoint, are removed first); the previous result set is deleted."""
         for name in drop:
-            (self.staging / name).unlink(missing_ok=True)
+            path = self.staging / name
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
         files = sorted(str(p.relative_to(self.staging)) for p in self.staging.rglob("*") if p.is_file())
         write_json(self.staging / MANIFEST, {"format_version": FORMAT_VERSION, "files": files})
         if self.path.exists() and _exchange(self.staging, self.path):

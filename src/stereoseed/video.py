@@ -21,6 +21,7 @@ import numpy as np
 
 from .config import VideoConfig
 from .errors import StereoseedError
+from .io import write_image
 
 __all__ = ["Keyframe", "read_keyframes", "sharpness"]
 
@@ -29,11 +30,18 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Keyframe:
-    """One frame kept: its index in the video, a name for the result folder, uint8 BGR image."""
+    """One frame kept: its index in the video, a name for the result folder, and either the
+    uint8 BGR image or, when the keyframes were written out, its file."""
 
     index: int
     name: str
-    image: np.ndarray
+    image: np.ndarray | None = None
+    path: Path | None = None
+
+    @property
+    def entry(self) -> Path | np.ndarray:
+        """What an image sequence reads it from: its file if written, else the image."""
+        return self.path if self.path is not None else self.image
 
 
 def sharpness(gray: np.ndarray) -> float:
@@ -76,8 +84,11 @@ class _Tracker:
         return float(np.median(motion)), float(self.alive.mean())
 
 
-def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig()) -> list[Keyframe]:
-    """The keyframes of the video at ``path``, in order (see the module's docstring).
+def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None
+                   ) -> list[Keyframe]:
+    """The keyframes of the video at ``path``, in order (see the module's docstring). With
+    ``save_to`` (a folder), each is written there as a PNG when chosen and only its file is
+    kept: a long walk's keyframes never sit in memory together.
 
     Raises :class:`StereoseedError` when the video cannot be opened or decoded, or gives no
     keyframe (the camera did not move)."""
@@ -102,7 +113,11 @@ def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig()) -> list[K
 
         def keep_sharpest(candidates: list[tuple[float, int, np.ndarray]]) -> None:
             _, best_index, best = max(candidates, key=lambda c: c[0])
-            keyframes.append(Keyframe(best_index, f"{path.stem}_{best_index:06d}.png", best))
+            name = f"{path.stem}_{best_index:06d}.png"
+            if save_to is None:
+                keyframes.append(Keyframe(best_index, name, best))
+            else:
+                keyframes.append(Keyframe(best_index, name, path=write_image(Path(save_to) / name, best)))
 
         tracker = _Tracker(small_gray(frame), cfg)
         candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion

@@ -1,0 +1,60 @@
+"""Checkpoints of a long run: the descriptors of old views named, not copied, and a resumed run
+that reads its images from disk ends where the uninterrupted one does."""
+import json
+import pickle
+
+import numpy as np
+import pytest
+
+from stereoseed import pipeline
+from stereoseed.checkpoint import spill_folder
+from stereoseed.config import Config
+from stereoseed.synthetic import write_scene
+
+
+@pytest.fixture(scope="module")
+def ring_on_disk(box_scene, tmp_path_factory):
+    """The 14-image box ring written as PNGs with its true pair: (images.txt, calib.json)."""
+    folder = tmp_path_factory.mktemp("ring")
+    paths = write_scene(box_scene, folder)
+    calib = folder / "calib.json"
+    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in box_scene.P[:2]]}))
+    return str(paths["images_txt"]), str(calib)
+
+
+def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras(ring_on_disk, tmp_path,
+                                                                                  monkeypatch):
+    images_txt, calib = ring_on_disk
+    cfg = Config()
+    images, names, P_pair = pipeline.load_sequence(images_txt, calib)
+    whole, _ = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=tmp_path / "whole.pkl")
+
+    checkpoint = tmp_path / "run.pkl"
+    insert = pipeline.insert_view
+
+    def interrupted(recon, k, cfg):
+        if k == 11:
+            raise KeyboardInterrupt
+        return insert(recon, k, cfg)
+
+    monkeypatch.setattr(pipeline, "insert_view", interrupted)
+    images, names, P_pair = pipeline.load_sequence(images_txt, calib)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=checkpoint)
+    # views 3-5 left the working set (the first 3 and the last 5 stay): their descriptors are
+    # in files beside the checkpoint, which names them
+    with open(checkpoint, "rb") as fh:
+        views = pickle.load(fh)["views"]
+    spilled = [i for i, v in enumerate(views) if v[1] is not None and isinstance(v[1][1], tuple)]
+    assert spilled == [3, 4, 5]
+    assert all((spill_folder(checkpoint) / views[i][1][1][1]).is_file() for i in spilled)
+
+    monkeypatch.setattr(pipeline, "insert_view", insert)
+    images, names, P_pair = pipeline.load_sequence(images_txt, calib)
+    resumed, report = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=checkpoint, resume=True)
+    assert report["resumed_images"] == names[:11]
+    assert resumed.registered_views == whole.registered_views
+    for a, b in zip(resumed.views, whole.views):
+        np.testing.assert_allclose(a.P, b.P, rtol=0, atol=1e-9 * np.abs(b.P).max())
+    # the resumed views read their images when needed instead of holding them
+    assert all(v._image is None for v in resumed.views)
