@@ -301,8 +301,8 @@ class QuasiDenseConfig:
     # (each 60-120 mm off, unzoomed 2-25 mm) 0.93-1.10
     zoom_epipolar_ratio: float = 0.5
     # the chosen camera's median must be within this factor of the robust F's own (the best any
-    # epipolar geometry does on these matches). dinoSparseRing: cameras 0.3-14 mm off 0.84-1.43,
-    # cameras 80-280 mm off 2.4 and more
+    # epipolar geometry does on these matches), and never below f_threshold_px. dinoSparseRing:
+    # cameras 0.3-14 mm off 0.84-1.43, cameras 80-280 mm off 2.4 and more
     camera_epipolar_factor: float = 2.0
 
     def __post_init__(self) -> None:

@@ -15,7 +15,10 @@ weak (fewer resection inliers than ``QuasiDenseConfig.weak_chain_inliers``), a s
    its validation);
    The previous pair's quasi-dense points (I_{k-2} <-> I_{k-1} propagated under their known F,
    one per grid cell, triangulated: :func:`previous_pair_points`) are chained the same way, so
-   the chain does not depend on the few Harris points of I_{k-1};
+   the chain does not depend on the few Harris points of I_{k-1}. The camera is judged by the
+   propagated matches' epipolar geometry (:func:`epipolar_agreement`): it zooms only when that
+   says so, and it is refused (as is a weak sparse camera kept after the attempt) when it
+   disagrees with them;
 5. optionally (``QuasiDenseConfig.keep_tracks``, off: measured to cost accuracy, see
    docs/quasi_dense.md), after the commit (:func:`grow_quasi_dense`), the chained points'
    tracks extended into I_k and the grid matches triangulated as new points, observed at new
@@ -49,7 +52,7 @@ from .registration import Candidate, Registration, RegistrationFailure, _Resecto
 from .resection import ResectionResult
 
 __all__ = ["QUASI_DENSE", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
-           "dense_chain", "reconsider", "grow_quasi_dense"]
+           "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
 
 log = logging.getLogger(__name__)
 
@@ -273,6 +276,15 @@ def robust_f_agreement(qd: QuasiDenseMatches) -> float:
     return float(np.median(epipolar_distances(qd.F, g[:, :2], g[:, 2:])))
 
 
+def camera_epipolar_limit(floor: float, cfg: Config) -> float:
+    """The largest :func:`epipolar_agreement` (px) a camera may have: ``camera_epipolar_factor``
+    times the robust F's own median ``floor``, and never below the robust F's inlier threshold
+    (``f_threshold_px``): on noise-free matches the floor is a tenth of a pixel and the chained
+    points' own errors alone exceed twice that (a synthetic camera 5 mm off: 0.45 px, floor 0.12)."""
+    qc = cfg.quasi_dense
+    return max(qc.camera_epipolar_factor * floor, qc.f_threshold_px)
+
+
 def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: QuasiDenseMatches, X3: np.ndarray,
                       x: np.ndarray, scores: np.ndarray, cfg: Config) -> tuple[ResectionResult, str | None] | str:
     """The camera of ``cand`` from the chained pairs X3 (N, 3) <-> x (N, 2), judged by the
@@ -284,7 +296,7 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
       previous image's intrinsics unless the zoomed camera's :func:`epipolar_agreement` is at
       most ``QuasiDenseConfig.zoom_epipolar_ratio`` times the unzoomed one's;
     * the chosen camera's agreement must be within ``QuasiDenseConfig.camera_epipolar_factor``
-      of the robust F's own (:func:`robust_f_agreement`).
+      of the robust F's own (:func:`robust_f_agreement`; :func:`camera_epipolar_limit`).
 
     Returns (result, why an 11-DOF camera was refused or None), or the reason of the failure;
     the agreements go into ``qd.report``."""
@@ -303,7 +315,7 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
         return found
     agrees = epipolar_agreement(vp.P, found[0].P, qd)
     qd.report["camera_median_px"] = agrees
-    if not agrees <= qc.camera_epipolar_factor * floor:
+    if not agrees <= camera_epipolar_limit(floor, cfg):
         return (f"{cand.name}: the quasi-dense camera disagrees with the propagated matches (their median distance "
                 f"to its epipolar lines {agrees:.2f} px, to the robust F's {floor:.2f} px)")
     return found
@@ -404,7 +416,7 @@ def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, 
         return found
     floor = robust_f_agreement(qd)
     agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
-    if agrees <= cfg.quasi_dense.camera_epipolar_factor * floor:
+    if agrees <= camera_epipolar_limit(floor, cfg):
         return found
     reason = (f"{found.candidate.name}: the weak {found.found_by} camera ({int(found.resection.inliers.sum())} "
               f"inliers) disagrees with the propagated matches (their median distance to its epipolar lines "
