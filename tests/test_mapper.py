@@ -271,3 +271,21 @@ def test_a_view_left_without_enough_observations_is_dropped_at_the_end():
     assert list(dropped) == [scene.names[3]] and "5 observations" in dropped[scene.names[3]]
     assert recon.views[3].P is None and recon.views[3].status.startswith("failed")
     assert all(recon.views[k].P is not None for k in (0, 1, 2, 4))
+
+
+def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
+    """accurate mode, "focal" model: the BA after an insertion runs on the "fixed" model while no
+    image after the pair was found zoomed; then, and in paper mode, on the run's model."""
+    from stereoseed.mapper import _unzoomed_held
+    from stereoseed.reconstruction import Reconstruction, View
+    P = np.hstack([np.eye(3), np.zeros((3, 1))])
+    recon = Reconstruction([View(name=f"v{i}", P=P) for i in range(4)])
+    cfg = Config().resolved()
+    assert _unzoomed_held(recon, cfg).pipeline.camera_model == "fixed"
+    recon.views[3].zoomed = True
+    assert _unzoomed_held(recon, cfg) is cfg
+    recon.views[3].zoomed = False
+    paper = Config(pipeline=PipelineConfig(mode="paper")).resolved()
+    assert _unzoomed_held(recon, paper) is paper
+    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolved()
+    assert _unzoomed_held(recon, no_hold) is no_hold

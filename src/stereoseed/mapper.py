@@ -200,16 +200,38 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
 
     t = time.perf_counter()
+    ba_cfg = _unzoomed_held(recon, cfg)
+    if ba_cfg is not cfg:
+        report["ba_intrinsics"] = "calibrated (no zoom found yet)"
     if cfg.pipeline.ba == "global":
-        ba = ba_report(adjust(recon, cfg, free_views=recon.registered_views))
+        ba = ba_report(adjust(recon, ba_cfg, free_views=recon.registered_views))
     else:
-        ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
     timing["bundle"] = time.perf_counter() - t
     removed = drop_outliers(recon, cfg)
     view.status = "registered"
     report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
+
+
+def _unzoomed_held(recon: Reconstruction, cfg: Config) -> Config:
+    """The configuration of the BA after an insertion: ``cfg`` with the "fixed" camera model (the
+    calibrated intrinsics, pose only) while no image after the pair was found zoomed by its
+    resection (``PipelineConfig.hold_unzoomed``, the "focal" model), else ``cfg`` itself.
+
+    The final BA's no-zoom hold, applied from the start: a small object seen with a long focal
+    length barely tells the focal length from the distance, and a free focal length per window
+    drifts. dinoSparseRing (accurate mode): the local BAs took the focal length from 3310 px
+    (the truth) to 3397, 3649, 4401 px over three insertions while the cameras moved away (a
+    camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
+    resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
+    pc = cfg.pipeline
+    if not (pc.mode == "accurate" and pc.hold_unzoomed and pc.camera_model == "focal"):
+        return cfg
+    if any(recon.views[v].zoomed for v in recon.registered_views if v > 1):
+        return cfg
+    return cfg.replace(pipeline={"camera_model": "fixed"})
 
 
 def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:

@@ -15,7 +15,10 @@ weak (fewer resection inliers than ``QuasiDenseConfig.weak_chain_inliers``), a s
    its validation);
    The previous pair's quasi-dense points (I_{k-2} <-> I_{k-1} propagated under their known F,
    one per grid cell, triangulated: :func:`previous_pair_points`) are chained the same way, so
-   the chain does not depend on the few Harris points of I_{k-1};
+   the chain does not depend on the few Harris points of I_{k-1}. The camera is judged by the
+   propagated matches' epipolar geometry (:func:`epipolar_agreement`): it zooms only when that
+   says so, and it is refused (as is a weak sparse camera kept after the attempt) when it
+   disagrees with them;
 5. optionally (``QuasiDenseConfig.keep_tracks``, off: measured to cost accuracy, see
    docs/quasi_dense.md), after the commit (:func:`grow_quasi_dense`), the chained points'
    tracks extended into I_k and the grid matches triangulated as new points, observed at new
@@ -46,9 +49,10 @@ from .reconstruction import Reconstruction
 from .tracks import colors_at
 from .triangulation import triangulate
 from .registration import Candidate, Registration, RegistrationFailure, _Resector, consistent_chain
+from .resection import ResectionResult
 
 __all__ = ["QUASI_DENSE", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
-           "dense_chain", "reconsider", "grow_quasi_dense"]
+           "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
 
 log = logging.getLogger(__name__)
 
@@ -253,9 +257,75 @@ def localised_candidates(fa: Features, fb: Features, cfg: Config) -> np.ndarray:
     return np.hstack(m.points(fa, fb))
 
 
-def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg: Config) -> Registration | str:
-    """Steps 1-4 for candidate ``cand`` after the registered view ``prev``. A
-    :class:`Registration` (found_by "quasi-dense") or the reason."""
+def epipolar_agreement(P_prev: np.ndarray, P: np.ndarray, qd: QuasiDenseMatches) -> float:
+    """Median distance (px) of the robust F's grid inliers to the epipolar lines of the cameras
+    P_prev (3, 4) of view a and P (3, 4) of view b: how well a camera for b agrees with the 2D
+    propagated matches alone, whatever the 3D points it was resected from (inf: no inliers)."""
+    g = qd.matches[qd.grid[qd.f_inlier]]
+    if len(g) == 0:
+        return float("inf")
+    return float(np.median(epipolar_distances(fundamental_from_projections(P_prev, P), g[:, :2], g[:, 2:])))
+
+
+def robust_f_agreement(qd: QuasiDenseMatches) -> float:
+    """Median distance (px) of the robust F's grid inliers to its own lines: the floor a camera's
+    :func:`epipolar_agreement` is compared with (inf: no F)."""
+    g = qd.matches[qd.grid[qd.f_inlier]]
+    if qd.F is None or len(g) == 0:
+        return float("inf")
+    return float(np.median(epipolar_distances(qd.F, g[:, :2], g[:, 2:])))
+
+
+def camera_epipolar_limit(floor: float, cfg: Config) -> float:
+    """The largest :func:`epipolar_agreement` (px) a camera may have: ``camera_epipolar_factor``
+    times the robust F's own median ``floor``, and never below the robust F's inlier threshold
+    (``f_threshold_px``): on noise-free matches the floor is a tenth of a pixel and the chained
+    points' own errors alone exceed twice that (a synthetic camera 5 mm off: 0.45 px, floor 0.12)."""
+    qc = cfg.quasi_dense
+    return max(qc.camera_epipolar_factor * floor, qc.f_threshold_px)
+
+
+def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: QuasiDenseMatches, X3: np.ndarray,
+                      x: np.ndarray, scores: np.ndarray, cfg: Config) -> tuple[ResectionResult, str | None] | str:
+    """The camera of ``cand`` from the chained pairs X3 (N, 3) <-> x (N, 2), judged by the
+    propagated matches' epipolar geometry, which does not depend on the chained points:
+
+    * a zoom is not taken from the resection's BIC, whose errors are correlated here (a region
+      grows from one seed; the chained points share the previous cameras' errors), so that
+      hundreds of pairs make a small systematic gain look like evidence. The camera keeps the
+      previous image's intrinsics unless the zoomed camera's :func:`epipolar_agreement` is at
+      most ``QuasiDenseConfig.zoom_epipolar_ratio`` times the unzoomed one's;
+    * the chosen camera's agreement must be within ``QuasiDenseConfig.camera_epipolar_factor``
+      of the robust F's own (:func:`robust_f_agreement`; :func:`camera_epipolar_limit`).
+
+    Returns (result, why an 11-DOF camera was refused or None), or the reason of the failure;
+    the agreements go into ``qd.report``."""
+    qc, vp = cfg.quasi_dense, recon.views[prev]
+    floor = robust_f_agreement(qd)
+    qd.report["robust_f_median_px"] = floor
+    found = _Resector(recon, prev, cand, cfg, may_zoom=False)(X3, x, scores)
+    if cfg.pipeline.camera_model != "fixed":  # the run's model may find a zoom
+        zoomed = _Resector(recon, prev, cand, cfg)(X3, x, scores)
+        if not isinstance(zoomed, str) and zoomed[0].info.get("model") != "fixed":
+            zoom_agrees = epipolar_agreement(vp.P, zoomed[0].P, qd)
+            qd.report["zoomed_camera_median_px"] = zoom_agrees
+            if isinstance(found, str) or zoom_agrees <= qc.zoom_epipolar_ratio * epipolar_agreement(vp.P, found[0].P, qd):
+                found = zoomed
+    if isinstance(found, str):
+        return found
+    agrees = epipolar_agreement(vp.P, found[0].P, qd)
+    qd.report["camera_median_px"] = agrees
+    if not agrees <= camera_epipolar_limit(floor, cfg):
+        return (f"{cand.name}: the quasi-dense camera disagrees with the propagated matches (their median distance "
+                f"to its epipolar lines {agrees:.2f} px, to the robust F's {floor:.2f} px)")
+    return found
+
+
+def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
+                         cfg: Config) -> tuple[Registration | str, QuasiDenseMatches | None]:
+    """Steps 1-4 for candidate ``cand`` after the registered view ``prev``: (a
+    :class:`Registration` (found_by "quasi-dense") or the reason, the propagated matches when
+    they gave a robust F, else None)."""
     vp, qc = recon.views[prev], cfg.quasi_dense
     t = time.perf_counter()
     harris = localised_candidates(vp.features, cand.features, cfg)
@@ -267,7 +337,7 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
     qd.report["seconds"]["seeds"] = t_seeds
     seconds = qd.report["seconds"]  # seeds, propagation, grid_and_f, resection
     if qd.F is None:
-        return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them"
+        return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
     t = time.perf_counter()
     qd = dataclasses.replace(qd, pair=previous_pair_points(recon, prev, cfg))
     seconds["previous_pair"] = time.perf_counter() - t
@@ -281,16 +351,16 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
                      chained_on_epipolar_lines=int(on_lines.sum()))
     if on_lines.sum() < cfg.pipeline.min_chained_points:
         return (f"{cand.name}: only {int(on_lines.sum())} 3D points chained through {len(qd.matches)} propagated "
-                f"matches (need {cfg.pipeline.min_chained_points})")
+                f"matches (need {cfg.pipeline.min_chained_points})"), qd
     t = time.perf_counter()
-    found = _Resector(recon, prev, cand, cfg)(X3[on_lines], x_cand[on_lines], scores[on_lines])
+    found = _resect_validated(recon, prev, cand, qd, X3[on_lines], x_cand[on_lines], scores[on_lines], cfg)
     seconds["resection"] = time.perf_counter() - t
     if isinstance(found, str):
-        return found
+        return found, qd
     res, refused = found
     qd.report["resection_inliers"] = int(res.inliers.sum())
     return Registration(cand, res, QUASI_DENSE, len(qd.grid), int(on_lines.sum()), None, refused, seconds,
-                        quasi_dense=qd)
+                        quasi_dense=qd), qd
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
@@ -310,29 +380,50 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     why_weak = (f"{sparse_inliers} sparse resection inliers < {limit}" if isinstance(found, Registration)
                 else found.reason)
     try:
-        attempt = register_quasi_dense(recon, prev, cand, cfg)
+        attempt, qd = register_quasi_dense(recon, prev, cand, cfg)
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
-        attempt = f"{cand.name}: numerical failure of the quasi-dense registration ({e})"
+        attempt, qd = f"{cand.name}: numerical failure of the quasi-dense registration ({e})", None
     notes = {"sparse_weak": why_weak}
     if isinstance(attempt, str):
         log.info("quasi-dense registration of %s failed: %s", cand.name, attempt)
         notes["quasi_dense_failed"] = attempt
         if isinstance(found, Registration):
-            return dataclasses.replace(found, notes={**found.notes, **notes})
+            return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes}), qd, cfg)
         return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {attempt}", notes=notes)
     seconds = {**found.seconds, **{f"quasi_dense_{s}": v for s, v in attempt.seconds.items()}}
     if attempt.resection.inliers.sum() < limit:  # no better founded than the weak chain it replaces
         notes["quasi_dense_failed"] = (f"{cand.name}: only {int(attempt.resection.inliers.sum())} quasi-dense "
                                        f"resection inliers (need {limit})")
         if isinstance(found, Registration):
-            return dataclasses.replace(found, notes={**found.notes, **notes}, seconds=seconds)
+            return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
+                                                                         seconds=seconds), qd, cfg)
         return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {notes['quasi_dense_failed']}",
                                    notes=notes, seconds=seconds)
     if sparse_inliers >= attempt.resection.inliers.sum():
         notes["quasi_dense_inliers"] = int(attempt.resection.inliers.sum())
-        return dataclasses.replace(found, notes={**found.notes, **notes}, seconds=seconds)
+        return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
+                                                                     seconds=seconds), qd, cfg)
     log.info("%s registered by quasi-dense matches (%s)", cand.name, why_weak)
     return dataclasses.replace(attempt, seconds=seconds, notes=notes)
+
+
+def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,
+                         cfg: Config) -> Registration | RegistrationFailure:
+    """The weak sparse camera ``found`` kept after the quasi-dense attempt, refused when it
+    disagrees with the propagated matches' epipolar geometry as a quasi-dense camera would be
+    (``QuasiDenseConfig.camera_epipolar_factor``); unchanged when there is no robust F."""
+    if qd is None or qd.F is None:
+        return found
+    floor = robust_f_agreement(qd)
+    agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
+    if agrees <= camera_epipolar_limit(floor, cfg):
+        return found
+    reason = (f"{found.candidate.name}: the weak {found.found_by} camera ({int(found.resection.inliers.sum())} "
+              f"inliers) disagrees with the propagated matches (their median distance to its epipolar lines "
+              f"{agrees:.2f} px, to the robust F's {floor:.2f} px)")
+    log.info("%s", reason)
+    return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
+                               notes={**found.notes, "sparse_refused": reason})
 
 
 def _grid_features(view_features: Features, xy: np.ndarray, patch_size: int) -> Features:

@@ -148,19 +148,26 @@ class _Resector:
     """Resection of one candidate under the run's camera model, each result validated (a
     plausible motion; an 11-DOF camera must be a physical one, else the focal-only model)."""
 
-    def __init__(self, recon: Reconstruction, prev: int, cand: Candidate, cfg: Config):
+    def __init__(self, recon: Reconstruction, prev: int, cand: Candidate, cfg: Config, may_zoom: bool = True):
         self.cfg, self.cand, self.prev = cfg, cand, recon.views[prev]
         self.steps = cand.index - prev
         self.model = cfg.pipeline.camera_model
         self.ref_K = cand.in_frame(recon.views[1].K, recon.views[1])
         self.fallback_K = cand.in_frame(self.prev.K, self.prev) if self.model != "free" else None
+        # may_zoom False: a "focal" camera keeps the previous image's intrinsics (the "fixed"
+        # model on them), for correspondences that cannot tell a zoom from a move (see
+        # quasi_dense_registration.register_quasi_dense)
+        self.may_zoom = may_zoom
 
     def _attempt(self, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray, model: str,
                  fallback_K: np.ndarray | None) -> ResectionResult | str:
         name = self.cand.name
+        reference_K = self.ref_K
+        if model == "focal" and not self.may_zoom and fallback_K is not None:
+            model, reference_K, fallback_K = "fixed", fallback_K, None
         try:
             res = resect(X3, x2, self.cfg.resection, scores=scores, image_size=self.cand.image_size, model=model,
-                         reference_K=self.ref_K, what=name, fallback_K=fallback_K)
+                         reference_K=reference_K, what=name, fallback_K=fallback_K)
             why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.pipeline.max_zoom_step)
             if not why and model == "free":
                 why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
