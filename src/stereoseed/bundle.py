@@ -94,22 +94,63 @@ def _solve_symmetric(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(S, rhs, rcond=None)[0]
 
 
-class _Segments:
-    """Sums of per-observation values grouped by an integer key (0..n-1), with the grouping
-    (a stable sort) computed once: ``np.add.reduceat`` is far faster than ``np.add.at``."""
+@njit(cache=True, nogil=True)
+def _eliminate_points(V, gp, gc, W, lam, point, camera):
+    """The points' side of the Schur complement under Levenberg-Marquardt damping ``lam``:
+    Vinv (P, 3, 3) the inverses of the damped point blocks (diagonal times 1 + lam, plus 1e-12;
+    by cofactors), Y (O, n, 3) = W V^-1 per observation, and the reduced right-hand side
+    rhs (C, n) = -gc + sum Y gp. V (P, 3, 3), gp (P, 3), gc (C, n), W (O, n, 3); point, camera
+    (O,) the free slots of each observation of a free point by a free camera."""
+    n_points = V.shape[0]
+    Vinv = np.empty((n_points, 3, 3))
+    for p in range(n_points):
+        a = V[p].copy()
+        for k in range(3):
+            a[k, k] = a[k, k] * (1.0 + lam) + 1e-12
+        c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+        c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+        c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+        det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+        inv_det = 1.0 / det  # a singular block gives inf, and its step is refused by the cost
+        Vinv[p, 0, 0] = c00 * inv_det
+        Vinv[p, 1, 0] = c01 * inv_det
+        Vinv[p, 2, 0] = c02 * inv_det
+        Vinv[p, 0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) * inv_det
+        Vinv[p, 1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) * inv_det
+        Vinv[p, 2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) * inv_det
+        Vinv[p, 0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) * inv_det
+        Vinv[p, 1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) * inv_det
+        Vinv[p, 2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) * inv_det
+    n = W.shape[1]
+    Y = np.empty((W.shape[0], n, 3))
+    rhs = -gc
+    for o in range(W.shape[0]):
+        p, c = point[o], camera[o]
+        for u in range(n):
+            for k in range(3):
+                Y[o, u, k] = W[o, u, 0] * Vinv[p, 0, k] + W[o, u, 1] * Vinv[p, 1, k] + W[o, u, 2] * Vinv[p, 2, k]
+            rhs[c, u] += Y[o, u, 0] * gp[p, 0] + Y[o, u, 1] * gp[p, 1] + Y[o, u, 2] * gp[p, 2]
+    return Vinv, Y, rhs
 
-    def __init__(self, keys: np.ndarray, n: int):
-        self.n = n
-        self.order = np.argsort(keys, kind="stable")
-        sorted_keys = keys[self.order]
-        self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(keys) else np.zeros(0, int)
-        self.keys = sorted_keys[self.starts] if len(keys) else np.zeros(0, int)
 
-    def sum(self, values: np.ndarray) -> np.ndarray:
-        out = np.zeros((self.n,) + values.shape[1:])
-        if len(self.keys):
-            out[self.keys] = np.add.reduceat(values[self.order], self.starts, axis=0)
-        return out
+@njit(cache=True, nogil=True)
+def _back_substitute(Vinv, gp, W, dc, point, camera):
+    """The points' step dp (P, 3) = V^-1 (-gp - sum W^T dc) once the cameras' step dc (C, n) is
+    known (arguments as :func:`_eliminate_points`)."""
+    back = -gp
+    n = W.shape[1]
+    for o in range(W.shape[0]):
+        p, c = point[o], camera[o]
+        for k in range(3):
+            acc = 0.0
+            for u in range(n):
+                acc += W[o, u, k] * dc[c, u]
+            back[p, k] -= acc
+    dp = np.empty_like(back)
+    for p in range(back.shape[0]):
+        for k in range(3):
+            dp[p, k] = Vinv[p, k, 0] * back[p, 0] + Vinv[p, k, 1] * back[p, 1] + Vinv[p, k, 2] * back[p, 2]
+    return dp
 
 
 @njit(cache=True, nogil=True)
@@ -280,17 +321,16 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     both = has_c & has_p
     nC, nP = len(free_cams), len(free_pt_idx)
 
-    # sums over observations grouped by point / by camera, precomputed once
+    # the observations of a free point by a free camera: the rows of W
     both_idx_all = np.flatnonzero(both)
-    both_row = np.full(len(oc), -1, np.int64)  # observation -> its row of W (free point, free camera)
+    both_row = np.full(len(oc), -1, np.int64)  # observation -> its row of W
     both_row[both_idx_all] = np.arange(len(both_idx_all))
-    both_by_camera = _Segments(slot_c[both], nC)
-    by_point_both = _Segments(slot_p[both_idx_all], nP)
-    # the same grouping (observations of free points by free cameras, point by point) sums S's
-    # off-diagonal blocks
-    point_starts = np.r_[by_point_both.starts, len(both_idx_all)]
-    pair_order = np.lexsort((slot_c[both_idx_all], slot_p[both_idx_all]))  # by point, then by camera
-    eye_n, eye_3 = np.eye(n), np.eye(3)
+    both_point, both_camera = slot_p[both_idx_all], slot_c[both_idx_all]
+    # grouped by point, then by camera within a point: the pairs that make the reduced system
+    pair_order = np.lexsort((both_camera, both_point))
+    grouped = both_point[pair_order]
+    point_starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, int)
+    eye_n = np.eye(n)
 
     lam = 1e-3
     cost = huber_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
@@ -301,23 +341,18 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         U, gc, V, gp, Wb = _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, float(delta), both_row,
                                             nC, nP, len(both_idx_all))
 
+        Wt = np.swapaxes(Wb, 1, 2).copy()  # rows of W^T: contiguous for the reduced system's kernel
         while True:
-            Ud = U + lam * (U * eye_n) + 1e-12 * eye_n
-            Vd = V + lam * (V * eye_3) + 1e-12 * eye_3
-            Vinv = np.linalg.inv(Vd)
+            Vinv, Y, rhs = _eliminate_points(V, gp, gc, Wb, lam, both_point, both_camera)
             if nC:
-                Y = Wb @ Vinv[slot_p[both_idx_all]]  # (Ob, n, 3)
-                S2 = _reduced_camera_matrix(pair_order, point_starts, slot_c[both_idx_all], np.swapaxes(Wb, 1, 2).copy(), Y, nC)
+                S2 = _reduced_camera_matrix(pair_order, point_starts, both_camera, Wt, Y, nC)
+                Ud = U + lam * (U * eye_n) + 1e-12 * eye_n
                 for i in range(nC):
                     S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
-                rhs = -gc + both_by_camera.sum((Y @ gp[slot_p[both_idx_all]][:, :, None])[:, :, 0])
                 dc = _solve_symmetric(S2, rhs.ravel()).reshape(nC, n)
-                # back-substitution: V dp = -gp - W^T dc
-                back = -gp - by_point_both.sum((np.swapaxes(Wb, 1, 2) @ dc[slot_c[both_idx_all]][:, :, None])[:, :, 0])
             else:
                 dc = np.zeros((0, n))
-                back = -gp
-            dp = (Vinv @ back[:, :, None])[:, :, 0]
+            dp = _back_substitute(Vinv, gp, Wb, dc, both_point, both_camera)
 
             new_params = [params[i] + dc[i] for i in range(nC)]
             Ps_new = Ps.copy()
