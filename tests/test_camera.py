@@ -90,3 +90,21 @@ def test_projection_derivatives_match_central_differences(model):
         e[j] = 1e-6 * max(1.0, abs(p0[j]))
         numeric = (P_of(p0 + e) - P_of(p0 - e)) / (2 * e[j])
         assert np.abs(numeric - analytic[j]).max() < 1e-6 * max(1.0, np.abs(analytic[j]).max())
+
+
+@pytest.mark.parametrize("model", ["free", "zero-skew", "focal", "fixed"])
+def test_projections_from_params_are_the_ones_of_each_camera(model):
+    # the batched form the BA uses gives each camera exactly as the one-camera form does,
+    # a rotation below the first-order threshold included
+    from stereoseed import camera_models
+
+    rng = np.random.default_rng(4)
+    n, ni = camera_models.n_params(model), camera_models.N_INTRINSICS[model]
+    params = rng.normal(size=(6, n))
+    params[:, :ni] = 400.0 + 100.0 * np.abs(params[:, :ni])
+    params[0, ni:ni + 3], params[1, ni:ni + 3] = 0.0, 1e-14
+    refs = np.stack([np.array([[800.0 + i, 0.5, 320.0], [0.0, 790.0, 240.0 + i], [0.0, 0.0, 1.0]]) for i in range(6)])
+    one_by_one = np.stack([camera_models.projection_from_params(p, model, r) for p, r in zip(params, refs)])
+    np.testing.assert_array_equal(camera_models.projections_from_params(params, model, refs), one_by_one)
+    shared = np.stack([camera_models.projection_from_params(p, model, refs[0]) for p in params])
+    np.testing.assert_array_equal(camera_models.projections_from_params(params, model, refs[0]), shared)

@@ -68,19 +68,16 @@ class BundleResult:
 
 
 def _projection_derivatives(params: np.ndarray, model: str, ref_K: np.ndarray | None) -> np.ndarray:
-    """dP/dparam_j for one camera, (n, 3, 4), by central differences (P is smooth in its
-    parameters; a relative step of 1e-6 keeps the truncation error near 1e-12)."""
-    n = len(params)
-    out = np.empty((n, 3, 4))
-    for j in range(n):
-        step = 1e-6 * max(1.0, abs(params[j]))
-        p_plus = params.copy()
-        p_plus[j] += step
-        p_minus = params.copy()
-        p_minus[j] -= step
-        out[j] = (camera_models.projection_from_params(p_plus, model, ref_K)
-                  - camera_models.projection_from_params(p_minus, model, ref_K)) / (2 * step)
-    return out
+    """dP/dparam_j of every camera, (C, n, 3, 4) for params (C, n), by central differences (P is
+    smooth in its parameters; a relative step of 1e-6 keeps the truncation error near 1e-12).
+    ref_K: None, (3, 3), or (C, 3, 3) one per camera."""
+    C, n = params.shape
+    step = 1e-6 * np.maximum(1.0, np.abs(params))  # (C, n)
+    shifts = step[:, :, None] * np.eye(n)  # camera c's parameter j moved: row (c, j)
+    refs = ref_K if ref_K is None or ref_K.ndim == 2 else np.repeat(ref_K, n, axis=0)
+    plus = camera_models.projections_from_params((params[:, None, :] + shifts).reshape(C * n, n), model, refs)
+    minus = camera_models.projections_from_params((params[:, None, :] - shifts).reshape(C * n, n), model, refs)
+    return (plus - minus).reshape(C, n, 3, 4) / (2 * step)[:, :, None, None]
 
 
 def _solve_symmetric(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -308,9 +305,11 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     n = camera_models.n_params(model) if len(free_cams) else 0
     cam_slot = np.full(len(Ps), -1, dtype=np.int64)
     cam_slot[free_cams] = np.arange(len(free_cams))
-    params = [camera_models.params_from_projection(Ps[c], model, ref_K(c))[0] for c in free_cams]
-    for c, p in zip(free_cams, params):  # start from the model's closest camera
-        Ps[c] = camera_models.projection_from_params(p, model, ref_K(c))
+    params = np.array([camera_models.params_from_projection(Ps[c], model, ref_K(c))[0] for c in free_cams]
+                      ).reshape(len(free_cams), n)
+    free_ref_K = ref_Ks if ref_Ks is None or ref_Ks.ndim == 2 else ref_Ks[free_cams]
+    if len(free_cams):  # start from the model's closest camera
+        Ps[free_cams] = camera_models.projections_from_params(params, model, free_ref_K)
     free_pt_idx = np.flatnonzero(free_pts)
     pt_slot = np.full(len(X), -1, dtype=np.int64)
     pt_slot[free_pt_idx] = np.arange(len(free_pt_idx))
@@ -336,8 +335,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     cost = huber_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
-        dP = np.stack([_projection_derivatives(params[i], model, ref_K(c)) for i, c in enumerate(free_cams)]) \
-            if nC else np.zeros((0, n, 3, 4))
+        dP = _projection_derivatives(params, model, free_ref_K) if nC else np.zeros((0, n, 3, 4))
         U, gc, V, gp, Wb = _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, float(delta), both_row,
                                             nC, nP, len(both_idx_all))
 
@@ -354,10 +352,10 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
                 dc = np.zeros((0, n))
             dp = _back_substitute(Vinv, gp, Wb, dc, both_point, both_camera)
 
-            new_params = [params[i] + dc[i] for i in range(nC)]
+            new_params = params + dc
             Ps_new = Ps.copy()
-            for i, c in enumerate(free_cams):
-                Ps_new[c] = camera_models.projection_from_params(new_params[i], model, ref_K(c))
+            if nC:
+                Ps_new[free_cams] = camera_models.projections_from_params(new_params, model, free_ref_K)
             X_new = X.copy()
             X_new[free_pt_idx] += dp
             with np.errstate(all="ignore"):

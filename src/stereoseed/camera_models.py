@@ -20,7 +20,7 @@ from .camera import compose_projection, decompose_projection
 MODELS = ("free", "zero-skew", "focal", "fixed")
 N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
-__all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection",
+__all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection", "projections_from_params",
            "krt_from_params", "projection_from_params", "project_to_model", "projection_derivatives",
            "rotation_from_vector"]
 
@@ -115,6 +115,42 @@ def krt_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | No
 def projection_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | None = None) -> np.ndarray:
     """P (3, 4) from a parameter vector of ``model``."""
     return compose_projection(*krt_from_params(params, model, reference_K))
+
+
+def projections_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | None = None) -> np.ndarray:
+    """P (B, 3, 4) of B parameter vectors (B, n_params(model)) at once, as
+    :func:`projection_from_params` gives them one by one; reference_K (3, 3) or (B, 3, 3). The
+    BA evaluates every free camera, and its finite-difference derivatives, each iteration."""
+    params = np.asarray(params, np.float64)
+    B, ni = len(params), N_INTRINSICS[_check(model)]
+    if model == "free":
+        K = np.zeros((B, 3, 3))
+        K[:, 0, 0], K[:, 1, 1], K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = params[:, :5].T
+        K[:, 2, 2] = 1.0
+    elif model == "zero-skew":
+        K = np.zeros((B, 3, 3))
+        K[:, 0, 0], K[:, 0, 2], K[:, 1, 2] = params[:, :3].T
+        K[:, 1, 1], K[:, 2, 2] = params[:, 0], 1.0
+    else:
+        K = np.broadcast_to(_require_reference(reference_K), (B, 3, 3)).copy()
+        if model == "focal":
+            scale = params[:, 0] / K[:, 0, 0]
+            K[:, 0, 0] *= scale
+            K[:, 0, 1] *= scale
+            K[:, 1, 1] *= scale
+    rvec = params[:, ni:ni + 3]
+    theta = np.sqrt(np.sum(rvec ** 2, axis=1))
+    turned = theta >= 1e-12
+    k = np.where(turned[:, None], rvec / np.where(turned, theta, 1.0)[:, None], rvec)
+    Kx = np.zeros((B, 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    # Rodrigues' formula; first order below 1e-12 rad (k is then the rotation vector itself)
+    sin = np.where(turned, np.sin(theta), 1.0)[:, None, None]
+    one_minus_cos = np.where(turned, 1.0 - np.cos(theta), 0.0)[:, None, None]
+    R = np.eye(3) + sin * Kx + one_minus_cos * (Kx @ Kx)
+    Rt = np.concatenate([R, params[:, ni + 3:ni + 6, None]], axis=2)
+    return K @ Rt
 
 
 def project_to_model(P: np.ndarray, model: str, reference_K: np.ndarray | None = None) -> np.ndarray:
