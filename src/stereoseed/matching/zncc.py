@@ -87,14 +87,15 @@ def _low_frequency_basis(patch_size: int) -> np.ndarray:
 
 
 def _bound_terms(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Projections (..., L) float32 of descriptors (..., D) on the low-frequency basis and the
-    norms (...,) float32 of what the basis leaves out (see zncc_kernels._pair_scores), computed
-    in float64."""
-    d64 = desc.astype(np.float64)
-    basis = _low_frequency_basis(int(round(np.sqrt(desc.shape[-1]))))
-    proj = d64 @ basis.T
-    rest = np.sqrt(np.maximum(np.einsum("...i,...i->...", d64, d64) - np.einsum("...i,...i->...", proj, proj), 0.0))
-    return np.ascontiguousarray(proj, np.float32), rest.astype(np.float32)
+    """Projections (..., L) float32 of descriptors (..., D) float32 on the low-frequency basis
+    and the norms (...,) float32 of what the basis leaves out (see zncc_kernels._pair_scores).
+    The norm of the residual vector itself, not sqrt(|a|^2 - |B a|^2): no cancellation where
+    the basis holds almost all of a patch."""
+    basis = _low_frequency_basis(int(round(np.sqrt(desc.shape[-1])))).astype(np.float32)
+    flat = desc.reshape(-1, desc.shape[-1])
+    proj = flat @ basis.T
+    rest = np.linalg.norm(flat - proj @ basis, axis=1)
+    return proj.reshape(desc.shape[:-1] + (len(basis),)), rest.reshape(desc.shape[:-1])
 
 
 def _scaled_descriptors(f2: Features, v2: np.ndarray, scales: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:

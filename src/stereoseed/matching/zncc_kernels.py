@@ -88,9 +88,9 @@ def _pair_scores(desc1, desc2, ok2, indptr, cols, proj1, rest1, proj2, rest2, fl
     set whose upper bound is below ``floor`` by :data:`_BOUND_MARGIN` is not scored at all:
     with an orthonormal basis B (L, D), a = B^T B a + q_a with q_a orthogonal to it, so
     a . b <= (B a) . (B b) + |q_a| |q_b|. proj1 (N1, L), proj2 (S, N2, L) float32 are the
-    projections B a, rest1 (N1,), rest2 (S, N2) float32 the norms |q| (computed in float64:
-    the bound's rounding stays far below the margin). Low image frequencies carry most of a
-    patch, so the bound rules out most pairs at the cost of L << D products.
+    projections B a, rest1 (N1,), rest2 (S, N2) float32 the norms |q| (the bound's float32
+    rounding, ~1e-6, stays far below the margin). Low image frequencies carry most of a patch,
+    so the bound rules out most pairs at the cost of L << D products.
     Indices, not row views, in the loops: a view costs a reference count per pair.
     """
     n1 = indptr.shape[0] - 1
