@@ -220,7 +220,8 @@ def test_band_mask_agrees_with_epipolar_distances():
 
 
 def test_candidates_and_best_scores_agree_with_numpy():
-    from stereoseed.matching.zncc import _best_per_row_and_column, candidate_mask
+    from stereoseed.matching.zncc import candidate_mask, candidate_pairs
+    from stereoseed.matching.zncc_kernels import _best_of_pairs
 
     P1, P2 = two_cameras()
     F = fundamental_from_projections(P1, P2)
@@ -234,12 +235,56 @@ def test_candidates_and_best_scores_agree_with_numpy():
     in_band = epipolar_distances(F, x1[ii.ravel()], x2[jj.ravel()]).reshape(80, 90) <= 25.0
     np.testing.assert_array_equal(banded, near & in_band)
     assert banded.any() and (near & ~banded).any()
+    indptr, cols = candidate_pairs(x1, x2, 150.0, F, 25.0)
+    rows = np.repeat(np.arange(80), np.diff(indptr))
+    np.testing.assert_array_equal(np.stack(np.nonzero(banded)), np.stack([rows, cols]))
     # ties and rows without a candidate resolve as np.argmax does
     s = np.where(banded, np.round(rng.random(banded.shape), 1), -np.inf).astype(np.float32)
-    best_col, best_score, best_row = _best_per_row_and_column(s)
+    best_col, best_score, best_row = _best_of_pairs(indptr, cols, s[rows, cols], 90)
     np.testing.assert_array_equal(best_col, np.argmax(s, axis=1))
     np.testing.assert_array_equal(best_row, np.argmax(s, axis=0))
     np.testing.assert_array_equal(best_score, s.max(axis=1))
+
+
+def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
+    """The CSR kernels against the dense matrix: the scores of the window's pairs (best over the
+    scales), the pairs the bound leaves out all score at most the floor, and the competitors
+    are the best scores outside the winner's neighbourhood."""
+    from stereoseed.matching.zncc import _bound_terms, _scaled_descriptors, candidate_pairs
+    from stereoseed.matching.zncc_kernels import _competitors, _pair_scores
+
+    _, feats = textured
+    f1, f2 = feats[0], feats[1]
+    v1, v2 = np.flatnonzero(f1.valid), np.flatnonzero(f2.valid)
+    x1, x2 = f1.points[v1], f2.points[v2]
+    desc1 = np.ascontiguousarray(f1.desc[v1])
+    desc2, ok2 = _scaled_descriptors(f2, v2, (1 / 1.2, 1.2))
+    dense = np.max(np.where(ok2[:, None, :], np.einsum("id,sjd->sij", desc1.astype(np.float64), desc2), -np.inf), axis=0)
+    indptr, cols = candidate_pairs(x1, x2, 150.0)
+    rows = np.repeat(np.arange(len(v1)), np.diff(indptr))
+    none = np.zeros((len(v1), 0), np.float32), np.zeros(len(v1), np.float32)
+    nothing2 = np.zeros(desc2.shape[:2] + (0,), np.float32), np.zeros(desc2.shape[:2], np.float32)
+    ptr_all, cols_all, s_all = _pair_scores(desc1, desc2, ok2, indptr, cols, *none, *nothing2, -np.inf)
+    np.testing.assert_array_equal(ptr_all, indptr)
+    np.testing.assert_array_equal(cols_all, cols)
+    np.testing.assert_allclose(s_all, dense[rows, cols], atol=2e-6)
+    ptr_kept, cols_kept, s_kept = _pair_scores(desc1, desc2, ok2, indptr, cols, *_bound_terms(desc1),
+                                               *_bound_terms(desc2), 0.6)
+    kept_rows = np.repeat(np.arange(len(v1)), np.diff(ptr_kept))
+    above = s_all > 0.6
+    np.testing.assert_array_equal(np.stack([rows[above], cols[above]]), np.stack([kept_rows, cols_kept]))
+    np.testing.assert_array_equal(s_kept, s_all[above])
+    assert 0 < len(s_kept) < 0.2 * len(s_all)  # the bound's purpose: most pairs are hopeless
+
+    matrix = np.full((len(v1), len(v2)), -np.inf, np.float32)
+    matrix[rows, cols] = s_all
+    which = np.flatnonzero(np.isfinite(matrix).any(axis=1))[:50]
+    winners = np.argmax(matrix[which], axis=1)
+    comp1, comp2 = _competitors(indptr, cols, s_all, which, winners, x1, x2, 5.5**2)
+    far2 = np.linalg.norm(x2[None, :] - x2[winners][:, None], axis=2) > 5.5
+    far1 = np.linalg.norm(x1[None, :] - x1[which][:, None], axis=2) > 5.5
+    np.testing.assert_array_equal(comp2, np.where(far2, matrix[which], -np.inf).max(axis=1))
+    np.testing.assert_array_equal(comp1, np.where(far1, matrix[:, winners].T, -np.inf).max(axis=1))
 
 
 def test_filter_epipolar_keeps_the_band():
@@ -648,7 +693,7 @@ def test_the_relaxed_match_reuses_the_pair_cache(textured, monkeypatch):
         alone, rows_alone = relaxed_rows(known, None)
         np.testing.assert_array_equal(cached.idx1, alone.idx1)
         np.testing.assert_array_equal(cached.idx2, alone.idx2)
-        assert len(cache.scores) == 1 and rows_alone > 100
+        assert sum(k[0] == "pairs" for k in cache.zncc) == (known is None) and rows_alone > 100
         if known is not None:
             assert rows_cached == 0
         else:  # a new robust F guides a few new candidates

@@ -3,7 +3,7 @@ import numpy as np
 from hypothesis import given, settings, strategies as st
 
 from stereoseed.camera import project
-from stereoseed.triangulation import triangulate, triangulate_linear
+from stereoseed.triangulation import triangulate, triangulate_linear, triangulate_tracks
 from geometry_helpers import box_points, ring_camera
 
 
@@ -86,3 +86,23 @@ def test_garbage_pixels_never_crash(pixels):
     res = triangulate(np.stack([P1, P2]), np.stack([x, x[::-1]]))
     assert res.points.shape == (len(x), 3)
     res.valid(2.0, 1.0)  # callable whatever came out
+
+
+def test_tracks_of_any_length_agree_with_the_batched_refinement():
+    """triangulate_tracks (observations grouped by point, compiled LM) against triangulate
+    (every point in every view, a mask): the same optimum on noisy tracks of 2 to 4 views;
+    a point seen once is NaN."""
+    rng = np.random.default_rng(3)
+    Ps = np.stack([ring_camera(a, f=870.0)[3] for a in (0.0, 15.0, 30.0, 45.0)])
+    X = box_points(rng, 60)
+    x = np.stack([project(P, X) for P in Ps]) + rng.normal(0, 0.5, (4, 60, 2))
+    seen = np.ones((4, 60), bool)
+    seen[2:, :20] = False  # two views
+    seen[3, 20:40] = False  # three views
+    seen[1:, 59] = False  # one view
+    ref = triangulate(Ps, x, seen, iterations=20).points
+    view, point = np.nonzero(seen)
+    order = np.argsort(point, kind="stable")[::-1]  # any order of the observations
+    got = triangulate_tracks(Ps[view[order]], x[view[order], point[order]], point[order], 60, iterations=20)
+    assert np.all(np.isnan(got[59]))
+    np.testing.assert_allclose(got[:59], ref[:59], atol=1e-7)

@@ -186,10 +186,12 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
     P_obs: (O, 3, 4) the camera of each observation; xy: (O, 2) its pixel; point_index: (O,)
     which point (0..n_points-1) it belongs to. Linear solution from the per-point sum of the
     DLT rows' outer products (4x4, smallest eigenvector), then Gauss-Newton/LM per point with
-    the normal equations accumulated over its observations. Returns (n_points, 3); points with
-    fewer than two observations are NaN.
+    the normal equations accumulated over its observations (compiled: :func:`_tracks_lm`).
+    Returns (n_points, 3); points with fewer than two observations are NaN.
     """
-    P_obs = np.asarray(P_obs, np.float64)
+    P_obs = np.ascontiguousarray(P_obs, np.float64)
+    xy = np.ascontiguousarray(xy, np.float64)
+    point_index = np.asarray(point_index, np.int64)
     scale = np.linalg.norm(P_obs[:, 2, :3], axis=1)
     Pn = P_obs / scale[:, None, None]
     ru = xy[:, 0:1] * Pn[:, 2] - Pn[:, 0]
@@ -203,31 +205,118 @@ def triangulate_tracks(P_obs: np.ndarray, xy: np.ndarray, point_index: np.ndarra
         X = Mh[:, :3] / Mh[:, 3:4]
     counts = np.bincount(point_index, minlength=n_points)
     bad = (counts < 2) | ~np.all(np.isfinite(X), axis=1)
-    X[bad] = 0.0
-    lam = np.full(n_points, 1e-3)
-
-    def cost_and_normal(Xc):
-        Xo = Xc[point_index]
-        h, uv = project_per_observation(P_obs, Xo)
-        r = uv - xy
-        J = point_jacobian(P_obs, h, uv)
-        H = _sum_by(point_index, np.einsum("oki,okj->oij", J, J), n_points)
-        g = _sum_by(point_index, np.einsum("oki,ok->oi", J, r), n_points)
-        cost = np.bincount(point_index, weights=np.sum(r * r, axis=1), minlength=n_points)
-        return cost, H, g
-
-    with np.errstate(all="ignore"):
-        cost, H, g = cost_and_normal(X)
-        for _ in range(iterations):
-            damp = lam[:, None, None] * (np.trace(H, axis1=1, axis2=2)[:, None, None] / 3 + 1e-12) * np.eye(3)
-            step = np.linalg.solve(H + damp + 1e-15 * np.eye(3), -g[..., None])[..., 0]
-            step[~np.all(np.isfinite(step), axis=1)] = 0.0
-            Xn = X + step
-            cost_n, Hn, gn = cost_and_normal(Xn)
-            better = np.isfinite(cost_n) & (cost_n < cost)
-            X[better], cost[better], H[better], g[better] = Xn[better], cost_n[better], Hn[better], gn[better]
-            lam = np.where(better, lam * 0.3, lam * 10.0)
     X[bad] = np.nan
+    # each point's observations together, in their order (the sums' order is the one np.bincount had)
+    order = np.argsort(point_index, kind="stable")
+    starts = np.zeros(n_points + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    return _tracks_lm(P_obs, xy, order, starts, np.ascontiguousarray(X), int(iterations))
+
+
+@njit(cache=True, nogil=True)
+def _track_normal(P_obs, xy, order, first, last, X, H, g):
+    """Normal equations H (3, 3), g (3,) of one point X (3,) over its observations
+    ``order[first:last]`` (J^T J and J^T r of the reprojection residuals); returns the cost
+    (sum of squared residuals)."""
+    H[:, :] = 0.0
+    g[:] = 0.0
+    cost = 0.0
+    for q in range(first, last):
+        o = order[q]
+        h0 = P_obs[o, 0, 0] * X[0] + P_obs[o, 0, 1] * X[1] + P_obs[o, 0, 2] * X[2] + P_obs[o, 0, 3]
+        h1 = P_obs[o, 1, 0] * X[0] + P_obs[o, 1, 1] * X[1] + P_obs[o, 1, 2] * X[2] + P_obs[o, 1, 3]
+        h2 = P_obs[o, 2, 0] * X[0] + P_obs[o, 2, 1] * X[1] + P_obs[o, 2, 2] * X[2] + P_obs[o, 2, 3]
+        u, v = h0 / h2, h1 / h2
+        r0, r1 = u - xy[o, 0], v - xy[o, 1]
+        inv = 1.0 / h2
+        ju0 = (P_obs[o, 0, 0] - u * P_obs[o, 2, 0]) * inv
+        ju1 = (P_obs[o, 0, 1] - u * P_obs[o, 2, 1]) * inv
+        ju2 = (P_obs[o, 0, 2] - u * P_obs[o, 2, 2]) * inv
+        jv0 = (P_obs[o, 1, 0] - v * P_obs[o, 2, 0]) * inv
+        jv1 = (P_obs[o, 1, 1] - v * P_obs[o, 2, 1]) * inv
+        jv2 = (P_obs[o, 1, 2] - v * P_obs[o, 2, 2]) * inv
+        H[0, 0] += ju0 * ju0 + jv0 * jv0
+        H[0, 1] += ju0 * ju1 + jv0 * jv1
+        H[0, 2] += ju0 * ju2 + jv0 * jv2
+        H[1, 1] += ju1 * ju1 + jv1 * jv1
+        H[1, 2] += ju1 * ju2 + jv1 * jv2
+        H[2, 2] += ju2 * ju2 + jv2 * jv2
+        g[0] += ju0 * r0 + jv0 * r1
+        g[1] += ju1 * r0 + jv1 * r1
+        g[2] += ju2 * r0 + jv2 * r1
+        cost += r0 * r0 + r1 * r1
+    H[1, 0], H[2, 0], H[2, 1] = H[0, 1], H[0, 2], H[1, 2]
+    return cost
+
+
+@njit(cache=True, nogil=True)
+def _solve3_pivoting(A, b, x):
+    """x (3,) with A x = b, A (3, 3) by Gaussian elimination with partial pivoting (A, b are
+    overwritten); NaN where A is singular, as a LAPACK solve gives it."""
+    for c in range(3):
+        piv = c
+        for r in range(c + 1, 3):
+            if abs(A[r, c]) > abs(A[piv, c]):
+                piv = r
+        if piv != c:
+            for k in range(3):
+                A[c, k], A[piv, k] = A[piv, k], A[c, k]
+            b[c], b[piv] = b[piv], b[c]
+        if A[c, c] == 0.0:
+            x[:] = np.nan
+            return
+        for r in range(c + 1, 3):
+            f = A[r, c] / A[c, c]
+            for k in range(c, 3):
+                A[r, k] -= f * A[c, k]
+            b[r] -= f * b[c]
+    for c in range(2, -1, -1):
+        acc = b[c]
+        for k in range(c + 1, 3):
+            acc -= A[c, k] * x[k]
+        x[c] = acc / A[c, c]
+
+
+@njit(cache=True, nogil=True)
+def _tracks_lm(P_obs, xy, order, starts, X, iterations):
+    """Levenberg-Marquardt of each point X (N, 3) on the reprojection error of its
+    observations ``order[starts[p]:starts[p + 1]]`` (P_obs (O, 3, 4), xy (O, 2)): damping
+    lam * (trace(H) / 3) on the diagonal, 0.3x after a step that lowers the cost, 10x after one
+    that does not. Rows of X that are NaN stay NaN. Returns X refined."""
+    H = np.empty((3, 3))
+    g = np.empty(3)
+    Hn = np.empty((3, 3))
+    gn = np.empty(3)
+    A = np.empty((3, 3))
+    b = np.empty(3)
+    step = np.empty(3)
+    Xn = np.empty(3)
+    for p in range(X.shape[0]):
+        if not (np.isfinite(X[p, 0]) and np.isfinite(X[p, 1]) and np.isfinite(X[p, 2])):
+            continue
+        first, last = starts[p], starts[p + 1]
+        cost = _track_normal(P_obs, xy, order, first, last, X[p], H, g)
+        lam = 1e-3
+        for _ in range(iterations):
+            damp = lam * ((H[0, 0] + H[1, 1] + H[2, 2]) / 3 + 1e-12)
+            for r in range(3):
+                for c in range(3):
+                    A[r, c] = (H[r, c] + damp) + 1e-15 if r == c else H[r, c]
+                b[r] = -g[r]
+            _solve3_pivoting(A, b, step)
+            if not (np.isfinite(step[0]) and np.isfinite(step[1]) and np.isfinite(step[2])):
+                step[:] = 0.0
+            for k in range(3):
+                Xn[k] = X[p, k] + step[k]
+            cost_n = _track_normal(P_obs, xy, order, first, last, Xn, Hn, gn)
+            if np.isfinite(cost_n) and cost_n < cost:
+                X[p, :] = Xn
+                cost = cost_n
+                H[:, :] = Hn
+                g[:] = gn
+                lam *= 0.3
+            else:
+                lam *= 10.0
     return X
 
 

@@ -4,6 +4,7 @@ One module per job; import each name from the module that defines it (nothing is
 
 * :mod:`.containers` -- the result containers :class:`Matches`, :class:`Alignment`, :class:`PairMatches`;
 * :mod:`.zncc` -- ZNCC scores, candidate masks, mutual best and uniqueness: :func:`match_zncc`;
+  its Numba kernels live in :mod:`.zncc_kernels`;
 * :mod:`.alignment` -- affine patch alignment (:func:`align_matches`), the localisation check
   (:func:`filter_localization`), sub-pixel refinement (:func:`refine_features`), :class:`PairCache`;
   its Numba kernels live in :mod:`.alignment_kernel`;

@@ -24,16 +24,17 @@ __all__ = ["PairCache", "align_matches", "filter_localization", "refine_features
 
 class PairCache:
     """What matching one pair several times (robust F, guided, relaxed, known F, then the
-    sub-pixel refinement) would otherwise compute again: the ZNCC scores of all valid pairs
-    (``scores``: per tuple of extra scales, (N1v, N2v) float32) and the alignment of each
-    (idx1, idx2) pair (``codes`` sorted, ``rows`` the matching :class:`Alignment` rows) for one
+    sub-pixel refinement) would otherwise compute again: what :func:`~.zncc.match_zncc` keeps
+    (``zncc``: descriptors at the other scales, the scored pairs of the search window) and the
+    alignment of each (idx1, idx2) pair (``codes`` sorted, ``rows`` the matching
+    :class:`Alignment` rows) for one
     set of alignment parameters (``params``: patch, iterations, tolerance; the relaxed
     configuration shares them). Valid for the two Features objects it was made for (identity).
     """
 
     def __init__(self, f1: Features, f2: Features):
         self.f1, self.f2 = f1, f2
-        self.scores: dict[tuple, np.ndarray] = {}
+        self.zncc: dict[tuple, object] = {}
         self.params: tuple | None = None
         self.codes = np.zeros(0, np.int64)
         self.rows = Alignment(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, bool))

@@ -145,13 +145,17 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
         t[0], t[1] = tx, ty
         norm, _ = _sample_normalised(g2, A, t, r, img)
         inv_norm = 1.0 / max(norm, 1e-12)
+        # the residual and its six projections in one pass over the patch
+        b0 = b1 = b2 = b3 = b4 = b5 = 0.0
         for p in range(npx):
-            img[p] = img[p] * inv_norm - tmpl[p]  # the residual
-        for c in range(6):
-            acc = 0.0
-            for p in range(npx):
-                acc += jac[c, p] * img[p]
-            b[c] = acc
+            e = img[p] * inv_norm - tmpl[p]
+            b0 += jac[0, p] * e
+            b1 += jac[1, p] * e
+            b2 += jac[2, p] * e
+            b3 += jac[3, p] * e
+            b4 += jac[4, p] * e
+            b5 += jac[5, p] * e
+        b[0], b[1], b[2], b[3], b[4], b[5] = b0, b1, b2, b3, b4, b5
         if it < 3:  # translation first
             for c in range(6):
                 dp[c] = 0.0
