@@ -7,12 +7,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import warnings
 from pathlib import Path
 
-import numpy as np
+# One BLAS thread unless the user says otherwise, set before NumPy loads OpenBLAS: the pipeline's
+# linear algebra is small matrices, where OpenBLAS's extra threads only spin against the
+# feature thread and the dense workers (14-image box, whole command: 2.71 -> 2.50 s, CPU time
+# 4.0 -> 2.5 s on 2 cores).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402 - after the BLAS setting
 
 from .cluster import CONNECT_TIMEOUT_S
 from .errors import StereoseedError
