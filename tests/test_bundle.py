@@ -150,3 +150,14 @@ def test_solve_symmetric_falls_back_to_least_squares():
     singular = np.zeros((3, 3))
     singular[0, 0] = 2.0  # not definite: Cholesky fails, least squares gives the minimum-norm answer
     np.testing.assert_allclose(_solve_symmetric(singular, np.array([4.0, 0.0, 0.0])), [2.0, 0.0, 0.0])
+
+
+def test_a_singular_point_block_gives_no_step_instead_of_an_error():
+    from stereoseed.bundle import _eliminate_points, _solve_symmetric
+
+    V = np.zeros((1, 3, 3))
+    V[0] -= 1e-12 * np.eye(3)  # cancels the damping's 1e-12: det 0
+    Vinv, Y, rhs = _eliminate_points(V, np.zeros((1, 3)), np.zeros((1, 7)), np.ones((1, 7, 3)), 0.0,
+                                     np.zeros(1, np.int64), np.zeros(1, np.int64))
+    assert not np.isfinite(Vinv).all()  # no ZeroDivisionError: the step is refused by its cost
+    assert np.isnan(_solve_symmetric(np.full((7, 7), np.inf), np.ones(7))).all()

@@ -58,3 +58,22 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
         np.testing.assert_allclose(a.P, b.P, rtol=0, atol=1e-9 * np.abs(b.P).max())
     # the resumed views read their images when needed instead of holding them
     assert all(v._image is None for v in resumed.views)
+
+
+def test_a_resume_with_a_mistyped_input_keeps_its_checkpoint(ring_on_disk, tmp_path):
+    from stereoseed.errors import StereoseedError
+    from stereoseed.results import ResultSet
+
+    images_txt, _ = ring_on_disk
+    out = tmp_path / "out"
+    staging = ResultSet(out).open()
+    (staging / pipeline.CHECKPOINT).write_bytes(b"the work of an interrupted run")
+    with pytest.raises(StereoseedError):
+        pipeline.reconstruct_to_folder(images_txt, str(tmp_path / "calib_typo.json"), out, resume=True)
+    assert (staging / pipeline.CHECKPOINT).read_bytes() == b"the work of an interrupted run"
+
+
+def test_the_spill_folder_is_named_as_memory_maps_name_their_files(tmp_path):
+    # a memory map's file name is normalised (os.path.abspath): "sub/.." must not hide the match
+    (tmp_path / "sub").mkdir()
+    assert spill_folder(tmp_path / "sub" / ".." / "ck.pkl") == tmp_path / "ck.pkl.spill"

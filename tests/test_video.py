@@ -60,6 +60,25 @@ def test_keyframes_written_out_are_not_held(walk, tmp_path):
         np.testing.assert_array_equal(read_image(a.entry), b.entry)
 
 
+def test_two_videos_of_one_name_are_refused(walk, tmp_path):
+    # their keyframes would be named, and written, alike
+    import shutil
+
+    from stereoseed.errors import StereoseedError
+    from stereoseed.io import write_image, write_json
+    from stereoseed.pipeline import load_sequence
+
+    pair, _, path = walk
+    for name, image in zip(("pair0.png", "pair1.png"), pair.images):
+        write_image(tmp_path / name, image)
+    write_json(tmp_path / "calib.json", {"cameras": [{"P": P.tolist()} for P in pair.P]})
+    (tmp_path / "again").mkdir()
+    twin = shutil.copy(path, tmp_path / "again" / path.name)
+    sources = [str(tmp_path / "pair0.png"), str(tmp_path / "pair1.png"), str(path), str(twin)]
+    with pytest.raises(StereoseedError, match="second video named"):
+        load_sequence(sources, str(tmp_path / "calib.json"), keyframes_to=tmp_path / "keyframes")
+
+
 def test_the_keyframes_are_placed_after_the_calibrated_pair(walk):
     pair, frames, path = walk
     keyframes = read_keyframes(path)

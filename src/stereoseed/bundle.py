@@ -85,6 +85,8 @@ def _solve_symmetric(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     by Cholesky (half the work of LU), least squares should damping not have made it definite."""
     from scipy.linalg import LinAlgError, cho_factor, cho_solve  # only where cameras are adjusted
 
+    if not np.isfinite(S).all():  # from a singular point block: no step (the cost refuses NaN)
+        return np.full(len(rhs), np.nan)
     try:
         return cho_solve(cho_factor(S, check_finite=False), rhs, check_finite=False)
     except (LinAlgError, ValueError):
@@ -108,7 +110,7 @@ def _eliminate_points(V, gp, gc, W, lam, point, camera):
         c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
         c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
         det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
-        inv_det = 1.0 / det  # a singular block gives inf, and its step is refused by the cost
+        inv_det = 1.0 / det if det != 0.0 else np.inf  # a singular block: a step the cost refuses
         Vinv[p, 0, 0] = c00 * inv_det
         Vinv[p, 1, 0] = c01 * inv_det
         Vinv[p, 2, 0] = c02 * inv_det

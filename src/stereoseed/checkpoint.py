@@ -13,6 +13,7 @@ deterministic, and the correspondence source's caches only save time).
 from __future__ import annotations
 
 import hashlib
+import os
 import json
 import logging
 import pickle
@@ -39,7 +40,7 @@ VERSION = 2  # 2: spilled descriptors named, not copied
 def spill_folder(checkpoint: str | Path) -> Path:
     """The folder beside ``checkpoint`` where the run spills the descriptors of old views
     (:meth:`stereoseed.reconstruction.View.release_pixels`); the checkpoint refers to them."""
-    checkpoint = Path(checkpoint).absolute()
+    checkpoint = Path(os.path.abspath(checkpoint))  # normalised as a memory map's file name is
     return checkpoint.with_name(checkpoint.name + ".spill")
 
 
@@ -111,7 +112,7 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
             features = None if feats is None else _features(feats, spill_folder(path))
             views.append(view)
             states.append((P, features, pof, image, status, rotated, model, zoomed, features is not None))
-    except OSError as e:
+    except (OSError, ValueError, EOFError) as e:  # missing, truncated or empty
         log.warning("%s: the checkpoint's spilled descriptors cannot be read (%s); starting again", path, e)
         return None
     recon = Reconstruction(views)

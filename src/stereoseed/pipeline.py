@@ -175,12 +175,19 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
 
 def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Path | None
                       ) -> tuple[list, list[str]]:
-    """(paths, or keyframe images in memory; their names) of the sources in order."""
+    """(paths, or keyframe images in memory when ``keyframes_to`` is None; their names) of the
+    sources in order."""
     entries: list = []
     names: list[str] = []
 
+    videos: dict[str, Path] = {}
+
     def add(path: Path) -> None:
         if path.suffix.lower() in VIDEO_EXTENSIONS:
+            if path.stem in videos:  # their keyframes would be named, and written, alike
+                raise StereoseedError(f"{path}: a second video named {path.stem!r} (the first: {videos[path.stem]}); "
+                                      f"rename one of them")
+            videos[path.stem] = path
             keyframes = read_keyframes(path, video, keyframes_to)
             entries.extend(k.entry for k in keyframes)
             names.extend(k.name for k in keyframes)
@@ -223,6 +230,11 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     try:
         # a video's keyframes are kept with the result, which names them
         images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
+    except BaseException:
+        if not resume:  # a resumed run's checkpoint outlives a mistyped input
+            results.abandon()
+        raise
+    try:
         recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                     checkpoint=staging / CHECKPOINT, resume=resume)
         if dense:

@@ -26,6 +26,7 @@ import numpy as np
 from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
 from .features import Features
 from .image import to_gray
+from .io import atomic_path
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
 
@@ -107,7 +108,8 @@ class View:
         # a memory map backed by a file (an unpickled one, after a resume, holds its data in RAM)
         if spill_to is not None and getattr(f.desc, "filename", None) is None and f.desc.size:
             path = Path(spill_to) / f"desc_{uuid.uuid4().hex}.npy"  # unique across runs: a resumed run spills beside
-            np.save(path, f.desc)
+            with atomic_path(path) as tmp:  # a checkpoint may name it: never half written
+                np.save(tmp, f.desc)
             changes["desc"] = np.load(path, mmap_mode="r")
         if changes:
             self._features = replace(f, **changes)

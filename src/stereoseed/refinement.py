@@ -133,7 +133,9 @@ def _adjust_everything(recon: Reconstruction, cfg: Config) -> dict[str, Any] | N
         return None
     others = np.setdiff1d(np.flatnonzero(recon.alive & (length > 0)), kept)
     points_ba = adjust(recon, cfg, free_views=[], free_points=others)  # cameras fixed: one 3x3 system a point
+    # the report's RMS and eq. 14 are the camera adjustment's, on the subset's observations
     ba.update(subset_points=len(kept), other_points=len(others),
+              other_points_rms_after_px=points_ba["rms_after_px"] if points_ba else None,
               seconds=ba["seconds"] + (points_ba["seconds"] if points_ba else 0.0),
               observations=ba["observations"] + (points_ba["observations"] if points_ba else 0))
     return ba
