@@ -3,7 +3,7 @@ import numpy as np
 
 from geometry_helpers import box_points, ring_camera
 from stereoseed.camera import camera_center, project
-from stereoseed.config import BundleConfig, Config, PipelineConfig
+from stereoseed.config import Config, PipelineConfig
 from stereoseed.features import Features
 from stereoseed.reconstruction import Reconstruction, View
 from stereoseed.refinement import global_adjust, select_tracks
