@@ -77,3 +77,16 @@ def test_the_spill_folder_is_named_as_memory_maps_name_their_files(tmp_path):
     # a memory map's file name is normalised (os.path.abspath): "sub/.." must not hide the match
     (tmp_path / "sub").mkdir()
     assert spill_folder(tmp_path / "sub" / ".." / "ck.pkl") == tmp_path / "ck.pkl.spill"
+
+
+def test_a_long_run_may_keep_a_memory_map_per_view_open():
+    resource = pytest.importorskip("resource")
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 2048:
+        pytest.skip(f"the hard open-file limit is {hard}")
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, hard))  # a common default
+        pipeline._allow_open_files(2048)
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == 2048
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))

@@ -77,6 +77,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     # descriptors of old views go to files: beside the checkpoint, which then names them instead
     # of copying them, else in a folder that lives as long as the reconstruction (a memory map
     # of a file keeps working once the folder is removed on POSIX systems)
+    _allow_open_files(n + 256)  # every spilled view's memory map holds a file descriptor
     if checkpoint is not None:
         spill = spill_folder(checkpoint)
         spill.mkdir(parents=True, exist_ok=True)
@@ -123,6 +124,27 @@ def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
     for i in recon.registered_views:
         if i not in keep:
             recon.views[i].release_pixels(spill_to)
+
+
+def _allow_open_files(count: int) -> None:
+    """Raise this process's soft limit of open files to ``count`` where the hard limit allows (a
+    memory map keeps its file open; many systems start processes at 1024, too few for a
+    thousand-image run)."""
+    try:
+        import resource
+    except ImportError:  # not POSIX: no such limit to raise
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= count:
+        return
+    wanted = count if hard == resource.RLIM_INFINITY else min(count, hard)
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
+    except (ValueError, OSError) as e:
+        log.warning("cannot raise the open-file limit to %d (%s): a long run may fail to spill", count, e)
+        return
+    if wanted < count:
+        log.warning("the open-file limit is %d; a run of this length may need %d", wanted, count)
 
 
 def _working_set(recon: Reconstruction, cfg: Config) -> set[int]:
