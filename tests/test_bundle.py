@@ -123,10 +123,12 @@ def _reduced_camera_case():
 
 
 def test_reduced_camera_matrix_is_w_vinv_wt():
-    from stereoseed.bundle import _reduced_camera_matrix
+    from stereoseed.bundle import _reduced_camera_matrix, _thread_rows
 
     args, expected = _reduced_camera_case()
-    np.testing.assert_allclose(_reduced_camera_matrix(*args), expected, atol=1e-9)
+    order, starts, cams, _, _, n_cams = args
+    rows = _thread_rows(order, starts, cams, n_cams)
+    np.testing.assert_allclose(_reduced_camera_matrix(*args, rows), expected, atol=1e-9)
 
 
 def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
@@ -134,10 +136,13 @@ def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
     from stereoseed import bundle
 
     args, _ = _reduced_camera_case()
-    single = bundle._reduced_camera_matrix(*args)
+    order, starts, cams, _, _, n_cams = args
+    single = bundle._reduced_camera_matrix(*args, bundle._thread_rows(order, starts, cams, n_cams))
     monkeypatch.setattr(bundle, "_THREADS", 3)
     monkeypatch.setattr(bundle, "PAIRS_PER_THREAD", 1)
-    np.testing.assert_array_equal(bundle._reduced_camera_matrix(*args), single)
+    rows = bundle._thread_rows(order, starts, cams, n_cams)
+    assert len(rows) == 4  # three threads
+    np.testing.assert_array_equal(bundle._reduced_camera_matrix(*args, rows), single)
 
 
 def test_solve_symmetric_falls_back_to_least_squares():

@@ -192,24 +192,31 @@ def _mirror_upper(S, n):
             S[c, r] = S[r, c]
 
 
-def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, Wt: np.ndarray, Y: np.ndarray,
-                           n_cams: int) -> np.ndarray:
-    """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n). Forming it
-    costs the sum over points of (track length)^2 blocks: on a large problem its block rows are
-    shared among threads (the kernel releases the GIL), split so that each adds as many pairs."""
-    n = Wt.shape[2]
-    S = np.zeros((n_cams * n, n_cams * n))
+def _thread_rows(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, n_cams: int) -> np.ndarray:
+    """How :func:`_reduced_camera_matrix` shares its block rows among threads: (T + 1,) camera
+    bounds, thread t owning cameras [bounds[t], bounds[t + 1]), split so that each adds as many
+    observation pairs (one thread below ``PAIRS_PER_THREAD`` pairs). Arguments as
+    :func:`_add_point_pairs`; the layout is the BA's, fixed over its iterations."""
     group_end = np.repeat(starts[1:], np.diff(starts))
     pairs = np.bincount(cams[order], weights=group_end - np.arange(len(order)), minlength=n_cams)  # per first camera
     threads = int(min(_THREADS, max(1, pairs.sum() // PAIRS_PER_THREAD)))
-    if threads == 1:
+    cuts = np.searchsorted(np.cumsum(pairs), pairs.sum() * np.arange(1, threads) / threads)
+    return np.r_[0, cuts + 1, n_cams].astype(np.int64)
+
+
+def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, Wt: np.ndarray, Y: np.ndarray,
+                           n_cams: int, rows: np.ndarray) -> np.ndarray:
+    """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n). Forming it
+    costs the sum over points of (track length)^2 blocks: its block rows are shared among the
+    threads of ``rows`` (:func:`_thread_rows`; the kernel releases the GIL)."""
+    n = Wt.shape[2]
+    S = np.zeros((n_cams * n, n_cams * n))
+    if len(rows) == 2:
         _add_point_pairs(S, order, starts, cams, Wt, Y, 0, n_cams)
     else:
-        cuts = np.searchsorted(np.cumsum(pairs), pairs.sum() * np.arange(1, threads) / threads)
-        bounds = np.r_[0, cuts + 1, n_cams]
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(lambda t: _add_point_pairs(S, order, starts, cams, Wt, Y, bounds[t], bounds[t + 1]),
-                          range(threads)))
+        with ThreadPoolExecutor(len(rows) - 1) as pool:
+            list(pool.map(lambda t: _add_point_pairs(S, order, starts, cams, Wt, Y, rows[t], rows[t + 1]),
+                          range(len(rows) - 1)))
     _mirror_upper(S, n)
     return S
 
@@ -331,6 +338,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     pair_order = np.lexsort((both_camera, both_point))
     grouped = both_point[pair_order]
     point_starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, int)
+    thread_rows = _thread_rows(pair_order, point_starts, both_camera, nC)
     eye_n = np.eye(n)
 
     lam = 1e-3
@@ -345,7 +353,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         while True:
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, Wb, lam, both_point, both_camera)
             if nC:
-                S2 = _reduced_camera_matrix(pair_order, point_starts, both_camera, Wt, Y, nC)
+                S2 = _reduced_camera_matrix(pair_order, point_starts, both_camera, Wt, Y, nC, thread_rows)
                 Ud = U + lam * (U * eye_n) + 1e-12 * eye_n
                 for i in range(nC):
                     S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]

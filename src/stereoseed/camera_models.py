@@ -22,7 +22,7 @@ N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
 __all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection", "projections_from_params",
            "krt_from_params", "projection_from_params", "project_to_model", "projection_derivatives",
-           "rotation_from_vector"]
+           "rotation_from_vector", "rotations_from_vectors", "Ks_from_intrinsics"]
 
 
 def n_params(model: str) -> int:
@@ -56,20 +56,28 @@ def _require_reference(reference_K: np.ndarray | None) -> np.ndarray:
 
 def K_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | None) -> np.ndarray:
     """Build K (3, 3) from the model's intrinsic parameters."""
-    if model == "free":
-        fx, fy, s, cx, cy = intr
-        return np.array([[fx, s, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    if model == "zero-skew":
-        f, cx, cy = intr
-        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-    ref = _require_reference(reference_K)
-    if model == "fixed":
-        return ref.copy()
-    scale = intr[0] / ref[0, 0]
-    K = ref.copy()
-    K[0, 0] *= scale
-    K[0, 1] *= scale
-    K[1, 1] *= scale
+    return Ks_from_intrinsics(np.asarray(intr, np.float64)[None], model, reference_K)[0]
+
+
+def Ks_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | None) -> np.ndarray:
+    """K (B, 3, 3) of B intrinsic vectors (B, N_INTRINSICS[model]); reference_K (3, 3) or
+    (B, 3, 3) for the "focal" and "fixed" models."""
+    B = len(intr)
+    if model in ("free", "zero-skew"):
+        K = np.zeros((B, 3, 3))
+        if model == "free":  # fx, fy, skew, cx, cy
+            K[:, 0, 0], K[:, 1, 1], K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = intr[:, :5].T
+        else:  # f, cx, cy
+            K[:, 0, 0], K[:, 0, 2], K[:, 1, 2] = intr[:, :3].T
+            K[:, 1, 1] = intr[:, 0]
+        K[:, 2, 2] = 1.0
+        return K
+    K = np.broadcast_to(_require_reference(reference_K), (B, 3, 3)).copy()
+    if model == "focal":  # the reference's 2x2 block scaled by f / f_ref
+        scale = intr[:, 0] / K[:, 0, 0]
+        K[:, 0, 0] *= scale
+        K[:, 0, 1] *= scale
+        K[:, 1, 1] *= scale
     return K
 
 
@@ -94,14 +102,23 @@ def params_from_projection(P: np.ndarray, model: str, reference_K: np.ndarray | 
 
 
 def rotation_from_vector(rvec: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula, (3,) -> (3, 3); written out because it runs in the BA's inner loop,
-    where scipy's Rotation object costs ten times more."""
-    theta = float(np.sqrt(rvec[0] ** 2 + rvec[1] ** 2 + rvec[2] ** 2))
-    if theta < 1e-12:
-        return np.eye(3) + np.array([[0.0, -rvec[2], rvec[1]], [rvec[2], 0.0, -rvec[0]], [-rvec[1], rvec[0], 0.0]])
-    k = rvec / theta
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
+    """Rodrigues' formula, (3,) -> (3, 3)."""
+    return rotations_from_vectors(np.asarray(rvec, np.float64)[None])[0]
+
+
+def rotations_from_vectors(rvecs: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for B rotation vectors (B, 3) -> (B, 3, 3); written out because it runs
+    in the BA's and the resection's loops, where scipy's Rotation object costs ten times more.
+    First order below 1e-12 rad."""
+    theta = np.sqrt(np.sum(rvecs ** 2, axis=1))
+    turned = theta >= 1e-12
+    k = np.where(turned[:, None], rvecs / np.where(turned, theta, 1.0)[:, None], rvecs)  # the axis, or the vector itself
+    Kx = np.zeros((len(rvecs), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    sin = np.where(turned, np.sin(theta), 1.0)[:, None, None]
+    one_minus_cos = np.where(turned, 1.0 - np.cos(theta), 0.0)[:, None, None]
+    return np.eye(3) + sin * Kx + one_minus_cos * (Kx @ Kx)
 
 
 def krt_from_params(params: np.ndarray, model: str, reference_K: np.ndarray | None = None
@@ -122,34 +139,9 @@ def projections_from_params(params: np.ndarray, model: str, reference_K: np.ndar
     :func:`projection_from_params` gives them one by one; reference_K (3, 3) or (B, 3, 3). The
     BA evaluates every free camera, and its finite-difference derivatives, each iteration."""
     params = np.asarray(params, np.float64)
-    B, ni = len(params), N_INTRINSICS[_check(model)]
-    if model == "free":
-        K = np.zeros((B, 3, 3))
-        K[:, 0, 0], K[:, 1, 1], K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = params[:, :5].T
-        K[:, 2, 2] = 1.0
-    elif model == "zero-skew":
-        K = np.zeros((B, 3, 3))
-        K[:, 0, 0], K[:, 0, 2], K[:, 1, 2] = params[:, :3].T
-        K[:, 1, 1], K[:, 2, 2] = params[:, 0], 1.0
-    else:
-        K = np.broadcast_to(_require_reference(reference_K), (B, 3, 3)).copy()
-        if model == "focal":
-            scale = params[:, 0] / K[:, 0, 0]
-            K[:, 0, 0] *= scale
-            K[:, 0, 1] *= scale
-            K[:, 1, 1] *= scale
-    rvec = params[:, ni:ni + 3]
-    theta = np.sqrt(np.sum(rvec ** 2, axis=1))
-    turned = theta >= 1e-12
-    k = np.where(turned[:, None], rvec / np.where(turned, theta, 1.0)[:, None], rvec)
-    Kx = np.zeros((B, 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    # Rodrigues' formula; first order below 1e-12 rad (k is then the rotation vector itself)
-    sin = np.where(turned, np.sin(theta), 1.0)[:, None, None]
-    one_minus_cos = np.where(turned, 1.0 - np.cos(theta), 0.0)[:, None, None]
-    R = np.eye(3) + sin * Kx + one_minus_cos * (Kx @ Kx)
-    Rt = np.concatenate([R, params[:, ni + 3:ni + 6, None]], axis=2)
+    ni = N_INTRINSICS[_check(model)]
+    K = Ks_from_intrinsics(params[:, :ni], model, reference_K)
+    Rt = np.concatenate([rotations_from_vectors(params[:, ni:ni + 3]), params[:, ni + 3:ni + 6, None]], axis=2)
     return K @ Rt
 
 
