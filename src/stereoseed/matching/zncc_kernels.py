@@ -175,20 +175,22 @@ def _competitors(indptr, cols, scores, rows, winners, x1, x2, excl2):
             score_of[fill[j]] = scores[p]
             fill[j] += 1
     m = rows.shape[0]
-    comp1 = np.full(m, -np.inf, np.float32)
-    comp2 = np.full(m, -np.inf, np.float32)
+    comp1 = np.empty(m, np.float32)
+    comp2 = np.empty(m, np.float32)
     for k in range(m):
         i, w = rows[k], winners[k]
-        wx, wy = x2[w, 0], x2[w, 1]
-        for p in range(indptr[i], indptr[i + 1]):
-            j = cols[p]
-            dx, dy = x2[j, 0] - wx, x2[j, 1] - wy
-            if dx * dx + dy * dy > excl2 and scores[p] > comp2[k]:
-                comp2[k] = scores[p]
-        ix, iy = x1[i, 0], x1[i, 1]
-        for p in range(colptr[w], colptr[w + 1]):
-            r = row_of[p]
-            dx, dy = x1[r, 0] - ix, x1[r, 1] - iy
-            if dx * dx + dy * dy > excl2 and score_of[p] > comp1[k]:
-                comp1[k] = score_of[p]
+        comp2[k] = _best_beyond(indptr[i], indptr[i + 1], cols, scores, x2, x2[w, 0], x2[w, 1], excl2)
+        comp1[k] = _best_beyond(colptr[w], colptr[w + 1], row_of, score_of, x1, x1[i, 0], x1[i, 1], excl2)
     return comp1, comp2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _best_beyond(first, end, index, score, points, cx, cy, excl2):
+    """The best score[p], p in [first, end), whose point points[index[p]] lies farther than
+    sqrt(excl2) from (cx, cy); -inf when there is none."""
+    best = np.float32(-np.inf)
+    for p in range(first, end):
+        dx, dy = points[index[p], 0] - cx, points[index[p], 1] - cy
+        if dx * dx + dy * dy > excl2 and score[p] > best:
+            best = score[p]
+    return best
