@@ -46,10 +46,11 @@ class HarrisZncc:
         self.cfg = cfg
         self._pair_caches: list[PairCache] = []
 
-    def _cache(self, fa: Features, fb: Features) -> PairCache:
+    def pair_cache(self, fa: Features, fb: Features) -> PairCache:
         """The cache of the pair (fa, fb): an insertion matches its pair up to four times and
         then refines it, over largely the same candidates. The last two pairs only: a cache
-        holds both feature sets (with their grey images) and a scores matrix."""
+        holds both feature sets (with their grey images), their scored candidate pairs and
+        alignments."""
         for c in self._pair_caches:
             if c.covers(fa, fb):
                 return c
@@ -64,7 +65,7 @@ class HarrisZncc:
         (real images: plaster, lighting, strong foreshortening) is matched again with the
         relaxed check and robust estimation takes care of the extra outliers."""
         mc = self.cfg.matching
-        cache = self._cache(fa, fb)
+        cache = self.pair_cache(fa, fb)
         m = match_pair(fa, fb, mc, F=F, image_width=image_width, cache=cache).matches
         if len(m) < mc.relax_below:
             relaxed = match_pair(fa, fb, mc.relaxed(), F=F, image_width=image_width, cache=cache).matches
@@ -76,7 +77,7 @@ class HarrisZncc:
         """fb with its matched points moved onto their partners in fa (sub-pixel affine
         alignment): a track followed pair after pair then carries one physical point, not
         detector noise."""
-        return refine_features(fa, fb, m, self.cfg.matching, cache=self._cache(fa, fb))
+        return refine_features(fa, fb, m, self.cfg.matching, cache=self.pair_cache(fa, fb))
 
     def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
               predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:

@@ -41,8 +41,9 @@ import numpy as np
 from .camera import epipolar_distances, fundamental_from_projections
 from .config import Config
 from .features import Features, describe
-from .matching.alignment import filter_localization
+from .matching.alignment import PairCache, filter_localization
 from .matching.containers import Matches
+from .matching.pair import candidate_config
 from .matching.zncc import match_zncc
 from .propagation import propagate
 from .reconstruction import Reconstruction
@@ -243,17 +244,18 @@ def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoin
     return PairPoints(b, tri.points[ok], q[ok, :2], q[ok, 2:], sc[ok])
 
 
-def localised_candidates(fa: Features, fb: Features, cfg: Config) -> np.ndarray:
+def localised_candidates(fa: Features, fb: Features, cfg: Config, cache: PairCache | None = None) -> np.ndarray:
     """The sparse matcher's candidates without epipolar geometry that pass its relaxed
     localisation check, before any robust F: (S, 4) rows (xa, ya, xb, yb). A robust F needs
     many of them right; propagation only needs a few (a wrong seed grows a region no F
     explains). On the white dinosaur (dinoSparseRing 12 -> 13): 117 candidates, 22 localised,
-    13 right; the robust F keeps none."""
+    13 right; the robust F keeps none. ``cache``: the pair's, where the sparse matcher already
+    scored and aligned these candidates (its first pass)."""
     mc = cfg.matching
     if fa.gray is None or fb.gray is None:
         return np.zeros((0, 4))
-    candidates = dataclasses.replace(mc, min_zncc=mc.candidate_min_zncc, max_ratio=mc.first_pass_ratio)
-    m = filter_localization(match_zncc(fa, fb, candidates, fb.image_shape[1], multiscale=True), fa, fb, mc.relaxed())
+    m = match_zncc(fa, fb, candidate_config(mc, mc.first_pass_ratio), fb.image_shape[1], multiscale=True, cache=cache)
+    m = filter_localization(m, fa, fb, mc.relaxed(), cache=cache)
     return np.hstack(m.points(fa, fb))
 
 
@@ -328,7 +330,9 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     they gave a robust F, else None)."""
     vp, qc = recon.views[prev], cfg.quasi_dense
     t = time.perf_counter()
-    harris = localised_candidates(vp.features, cand.features, cfg)
+    pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
+    harris = localised_candidates(vp.features, cand.features, cfg,
+                                  pair_cache(vp.features, cand.features) if pair_cache else None)
     sift = sift_seeds(vp.image, cand.image, qc.sift_ratio)
     seeds = np.vstack([harris, sift])
     t_seeds = time.perf_counter() - t

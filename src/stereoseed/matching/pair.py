@@ -19,7 +19,7 @@ from .containers import Matches, PairMatches
 from .two_view import filter_epipolar, filter_fundamental_ransac
 from .zncc import match_zncc
 
-__all__ = ["match_pair"]
+__all__ = ["match_pair", "candidate_config"]
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +68,8 @@ def match_pair(
     if not localize:
         log.info("localisation check skipped: Features without grey images (use extract_features)")
         stats["localization"] = "skipped: Features without grey images"
-    first_pass = _candidates(config, config.first_pass_ratio)
-    guided = _candidates(config, config.guided_max_ratio)
+    first_pass = candidate_config(config, config.first_pass_ratio)
+    guided = candidate_config(config, config.guided_max_ratio)
 
     def check(m: Matches) -> Matches:
         return filter_localization(m, f1, f2, config, cache=cache) if localize else m
@@ -107,7 +107,7 @@ def match_pair(
     return result(m, F)
 
 
-def _candidates(config: MatchingConfig, max_ratio: float | None) -> MatchingConfig:
+def candidate_config(config: MatchingConfig, max_ratio: float | None) -> MatchingConfig:
     """What :func:`match_zncc` sees for the recipe's candidates: ``candidate_min_zncc`` as its
     acceptance threshold and the given uniqueness ratio."""
     return dataclasses.replace(config, min_zncc=config.candidate_min_zncc, max_ratio=max_ratio)
