@@ -276,8 +276,12 @@ def test_a_view_left_without_enough_observations_is_dropped_at_the_end():
 def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
     """accurate mode, "focal" model: the BA after an insertion runs on the "fixed" model while no
     image after the pair was found zoomed; then, and in paper mode, on the run's model."""
-    from stereoseed.mapper import _unzoomed_held
+    from stereoseed.modes import mode_of
     from stereoseed.reconstruction import Reconstruction, View
+
+    def _unzoomed_held(recon, cfg):  # the BA configuration the mode gives after an insertion
+        return mode_of(cfg).adjustment_config(recon, cfg)
+
     P = np.hstack([np.eye(3), np.zeros((3, 1))])
     recon = Reconstruction([View(name=f"v{i}", P=P) for i in range(4)])
     cfg = Config().resolved()

@@ -200,7 +200,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
 
     t = time.perf_counter()
-    ba_cfg = _unzoomed_held(recon, cfg)
+    ba_cfg = mode.adjustment_config(recon, cfg)
     if ba_cfg is not cfg:
         report["ba_intrinsics"] = "calibrated (no zoom found yet)"
     if cfg.pipeline.ba == "global":
@@ -213,25 +213,6 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
-
-
-def _unzoomed_held(recon: Reconstruction, cfg: Config) -> Config:
-    """The configuration of the BA after an insertion: ``cfg`` with the "fixed" camera model (the
-    calibrated intrinsics, pose only) while no image after the pair was found zoomed by its
-    resection (``PipelineConfig.hold_unzoomed``, the "focal" model), else ``cfg`` itself.
-
-    The final BA's no-zoom hold, applied from the start: a small object seen with a long focal
-    length barely tells the focal length from the distance, and a free focal length per window
-    drifts. dinoSparseRing (accurate mode): the local BAs took the focal length from 3310 px
-    (the truth) to 3397, 3649, 4401 px over three insertions while the cameras moved away (a
-    camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
-    resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
-    pc = cfg.pipeline
-    if not (pc.mode == "accurate" and pc.hold_unzoomed and pc.camera_model == "focal"):
-        return cfg
-    if any(recon.views[v].zoomed for v in recon.registered_views if v > 1):
-        return cfg
-    return cfg.replace(pipeline={"camera_model": "fixed"})
 
 
 def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:

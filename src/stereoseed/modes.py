@@ -62,6 +62,10 @@ class PaperMode:
             ba["refused"] = f"{view.name}: {why}"
         return ba
 
+    def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
+        """The paper's BA adjusts the run's camera model."""
+        return cfg
+
     def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         """One global BA when asked (``ba="final"``)."""
         return {"final_ba": global_adjust(recon, cfg)[0]} if cfg.pipeline.ba == "final" else {}
@@ -94,6 +98,18 @@ class AccurateMode:
         """The last W registered cameras and every point they see."""
         return ba_report(adjust(recon, cfg, free_views=recon.registered_views[-cfg.pipeline.window:]))
 
+    def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
+        """The configuration of the BA after an insertion: ``cfg`` with the "fixed" camera model
+        (the calibrated intrinsics, pose only) while :func:`_unzoomed`, else ``cfg`` itself.
+
+        The final BA's no-zoom hold, applied from the start: a small object seen with a long
+        focal length barely tells the focal length from the distance, and a free focal length
+        per window drifts. dinoSparseRing: the local BAs took the focal length from 3310 px (the
+        truth) to 3397, 3649, 4401 px over three insertions while the cameras moved away (a
+        camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
+        resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
+        return cfg.replace(pipeline={"camera_model": "fixed"}) if _unzoomed(recon, cfg) else cfg
+
     def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's
         resection found a zoom (``hold_unzoomed``, the "focal" model), that global BA holds
@@ -105,13 +121,20 @@ class AccurateMode:
         if pc.loop_closure:
             closed, out["loop_closure"] = close_loop(recon, cfg)
         later = [v for v in recon.registered_views if v > 1]
-        if (pc.hold_unzoomed and pc.camera_model == "focal" and later and not any(recon.views[v].zoomed for v in later)
-                and (closed or pc.ba == "final")):
+        if later and _unzoomed(recon, cfg) and (closed or pc.ba == "final"):
             out["no_zoom"] = True
             out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": "fixed"}))[0]
         elif pc.ba == "final" and not closed:
             out["final_ba"] = global_adjust(recon, cfg)[0]
         return out
+
+
+def _unzoomed(recon: Reconstruction, cfg: Config) -> bool:
+    """Whether the run holds the calibrated intrinsics: the "focal" model with
+    ``PipelineConfig.hold_unzoomed``, and no image after the pair found zoomed by its resection."""
+    pc = cfg.pipeline
+    return (pc.hold_unzoomed and pc.camera_model == "focal"
+            and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1))
 
 
 def mode_of(cfg: Config) -> PaperMode | AccurateMode:

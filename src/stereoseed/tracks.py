@@ -173,9 +173,8 @@ def retriangulate(recon: Reconstruction, point_ids: np.ndarray, cfg: Config) -> 
     position when it reprojects within the threshold, in front of every camera."""
     sel = np.isin(recon.obs_point, point_ids)
     local = np.searchsorted(point_ids, recon.obs_point[sel])
-    views = np.unique(recon.obs_view[sel])
-    cameras = np.stack([recon.views[v].P for v in views])  # one per view, not one per observation
-    P_obs = cameras[np.searchsorted(views, recon.obs_view[sel])]
+    views, of_view = np.unique(recon.obs_view[sel], return_inverse=True)
+    P_obs = np.stack([recon.views[v].P for v in views])[of_view]  # composed once per view, not per observation
     xy = recon.observation_xy(sel)
     X = triangulate_tracks(P_obs, xy, local, len(point_ids), cfg.triangulation.lm_iterations)
     h, uv = project_per_observation(P_obs, X[local])
