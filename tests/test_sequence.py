@@ -96,3 +96,14 @@ def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch):
         assert (a.P is None) == (b.P is None)
         if a.P is not None:
             np.testing.assert_array_equal(a.P, b.P)
+
+
+def test_the_fingerprint_reads_the_files_without_decoding_them(files, tmp_path):
+    seq = ImageSequence(files)
+    key = seq.fingerprint()
+    assert seq.reads == 0 and ImageSequence(files).fingerprint() == key
+    assert ImageSequence(files, transform_key=b"a lens").fingerprint() != key  # what the transform depends on
+    assert seq[1:].fingerprint() != key
+    changed = tmp_path / "changed.png"
+    write_image(changed, np.zeros((8, 8, 3), np.uint8))
+    assert ImageSequence([files[0], changed] + list(files[2:])).fingerprint() != key

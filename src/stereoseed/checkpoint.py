@@ -18,7 +18,6 @@ import json
 import logging
 import pickle
 from collections.abc import Sequence
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,26 +30,32 @@ from .io import atomic_path
 from .reconstruction import Checkpoint, Reconstruction, View
 from .sequence import ImageSequence
 
-__all__ = ["inputs_key", "save_checkpoint", "load_checkpoint", "spill_folder"]
+__all__ = ["inputs_key", "save_checkpoint", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
 VERSION = 2  # 2: spilled descriptors named, not copied
+SPILL_SUFFIX = ".spill"  # the spill folder: the checkpoint's name with this added
 
 
 def spill_folder(checkpoint: str | Path) -> Path:
     """The folder beside ``checkpoint`` where the run spills the descriptors of old views
     (:meth:`stereoseed.reconstruction.View.release_pixels`); the checkpoint refers to them."""
     checkpoint = Path(os.path.abspath(checkpoint))  # normalised as a memory map's file name is
-    return checkpoint.with_name(checkpoint.name + ".spill")
+    return checkpoint.with_name(checkpoint.name + SPILL_SUFFIX)
 
 
-def inputs_key(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config) -> str:
-    """A digest of everything that decides a run's result."""
+def inputs_key(images: Sequence[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config) -> str:
+    """A digest of everything that decides a run's result (an :class:`ImageSequence` by its
+    files, not decoded)."""
     h = hashlib.sha256()
-    for name, image in zip(names, images):
+    for name in names:
         h.update(name.encode("utf-8"))
-        h.update(str(image.shape).encode())
-        h.update(np.ascontiguousarray(image).tobytes())
+    if isinstance(images, ImageSequence):
+        h.update(images.fingerprint())
+    else:
+        for image in images:
+            h.update(str(image.shape).encode())
+            h.update(np.ascontiguousarray(image).tobytes())
     for P in P_pair:
         h.update(np.asarray(P, np.float64).tobytes())
     h.update(json.dumps(cfg.to_dict(), sort_keys=True).encode())
@@ -103,13 +108,13 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         log.warning("%s: the checkpoint is of other inputs or settings; starting again", path)
         return None
     views, states = [], []
+    lazy, spilled_in = isinstance(images, ImageSequence), spill_folder(path)
     try:
         for i, (name, s) in enumerate(zip(names, payload["views"])):
             P, feats, pof, _, status, rotated, model, zoomed = s
-            lazy = isinstance(images, ImageSequence)
-            view = View(name, load=partial(images.__getitem__, i) if lazy else None, image=None if lazy else images[i])
+            view = View.of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
-            features = None if feats is None else _features(feats, spill_folder(path))
+            features = None if feats is None else _features(feats, spilled_in)
             views.append(view)
             states.append((P, features, pof, image, status, rotated, model, zoomed, features is not None))
     except (OSError, ValueError, EOFError) as e:  # missing, truncated or empty

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import time
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -28,7 +27,6 @@ from .modes import mode_of
 from .reconstruction import Reconstruction, View
 from .quasi_dense_registration import grow_quasi_dense, reconsider
 from .refinement import adjust, ba_report, drop_outliers
-from .sequence import ImageSequence
 from .registration import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
 from .tracks import add_two_view_points, new_points_three_view
 
@@ -61,11 +59,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     when the pair gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
     cfg = cfg.resolved()
-    if isinstance(images, ImageSequence):  # read when needed, not held by the views
-        views = [View(name=n, load=partial(images.__getitem__, i)) for i, n in enumerate(names)]
-    else:
-        views = [View(name=n, image=img) for n, img in zip(names, images)]
-    recon = Reconstruction(views)
+    recon = Reconstruction([View.of_input(n, images, i) for i, n in enumerate(names)])
     recon.source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]

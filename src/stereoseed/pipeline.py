@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from .checkpoint import inputs_key, load_checkpoint, save_checkpoint, spill_folder
+from .checkpoint import SPILL_SUFFIX, inputs_key, load_checkpoint, save_checkpoint, spill_folder
 from .config import Config, VideoConfig
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
@@ -190,7 +190,9 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
             maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
         return undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
 
-    images = ImageSequence(entries, undistort)
+    lens_key = repr([None if lens is None else (lens.K.tobytes(), lens.distortion.tobytes(), lens.image_size)
+                     for lens in lenses]).encode()  # the undistortion decides the pixels the run sees
+    images = ImageSequence(entries, undistort, transform_key=lens_key)
     images[0], images[1]  # noqa: B018 - read now: an unreadable pair image fails before any work
     return images, names, P_pair
 
@@ -264,7 +266,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
 
             report["dense"] = densify(recon, cfg, staging, pool)
         save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
-        results.commit(drop=(CHECKPOINT, spill_folder(CHECKPOINT).name))
+        results.commit(drop=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX))
     except KeyboardInterrupt:
         raise  # the staging folder keeps the checkpoint: resume continues
     except BaseException:

@@ -17,7 +17,9 @@ steps stay vectorised and appending does not copy everything each time.
 from __future__ import annotations
 
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -27,6 +29,7 @@ from .camera import camera_center, decompose_projection, intrinsics_turned_180, 
 from .features import Features
 from .image import to_gray
 from .io import atomic_path
+from .sequence import ImageSequence
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
 
@@ -67,12 +70,21 @@ class View:
         self.status = status
         self.point_of_feature = np.zeros(0, np.int64) if point_of_feature is None else point_of_feature
         self._load = load
+        self._size: tuple[int, int] | None = None
         self.image = image
         self._gray_released = False
         self.rotated_180 = rotated_180
         self.camera_model = camera_model
         self.zoomed = zoomed
         self.P = P
+
+    @classmethod
+    def of_input(cls, name: str, images: Sequence[np.ndarray], index: int) -> "View":
+        """The view of input image ``index``: read when needed from an
+        :class:`~stereoseed.sequence.ImageSequence` (not held), held from a plain list."""
+        if isinstance(images, ImageSequence):
+            return cls(name, load=partial(images.__getitem__, index))
+        return cls(name, image=images[index])
 
     @property
     def features(self) -> Features | None:
@@ -132,7 +144,8 @@ class View:
     @image.setter
     def image(self, image: np.ndarray | None) -> None:
         self._image = image
-        self._size = None if image is None else (image.shape[1], image.shape[0])
+        if image is not None:  # letting go of an image (it is read again) keeps its size known
+            self._size = (image.shape[1], image.shape[0])
 
     @property
     def P(self) -> np.ndarray | None:

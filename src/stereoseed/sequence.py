@@ -8,6 +8,7 @@ prefetches interest points). It is a ``Sequence``: ``reconstruct`` takes it or a
 """
 from __future__ import annotations
 
+import hashlib
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -30,11 +31,13 @@ class ImageSequence(Sequence):
     ``capacity`` decoded images kept. Thread-safe. uint8 BGR (H, W, 3) like
     :func:`stereoseed.io.read_image`."""
 
-    def __init__(self, entries: list[Entry], transform: Transform | None = None, capacity: int = 8):
+    def __init__(self, entries: list[Entry], transform: Transform | None = None, capacity: int = 8,
+                 transform_key: bytes = b""):
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self._entries = list(entries)
         self._transform = transform
+        self._transform_key = transform_key  # what the transform depends on, for fingerprint()
         self._capacity = capacity
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
@@ -48,7 +51,8 @@ class ImageSequence(Sequence):
             subset = list(range(len(self)))[index]
             transform = self._transform
             return ImageSequence([self._entries[i] for i in subset], None if transform is None else
-                                 (lambda j, image: transform(subset[j], image)), self._capacity)
+                                 (lambda j, image: transform(subset[j], image)), self._capacity,
+                                 self._transform_key + repr(subset).encode())
         i = range(len(self))[index]  # IndexError and negative indices as a list has them
         with self._lock:
             image = self._cache.get(i)
@@ -68,6 +72,18 @@ class ImageSequence(Sequence):
             while len(self._cache) > self._capacity:
                 self._cache.popitem(last=False)
         return image
+
+    def fingerprint(self) -> bytes:
+        """A digest of the images the run sees, without decoding them: each file's bytes (an
+        image in memory: its pixels) and what the transform depends on."""
+        h = hashlib.sha256(self._transform_key)
+        for entry in self._entries:
+            if isinstance(entry, np.ndarray):
+                h.update(str(entry.shape).encode())
+                h.update(np.ascontiguousarray(entry).tobytes())
+            else:
+                h.update(Path(entry).read_bytes())
+        return h.digest()
 
     def source(self, index: int) -> str:
         """Where image ``index`` comes from (its path; "memory" for an array)."""
