@@ -16,10 +16,14 @@ import numpy as np
 from ..config import MatchingConfig
 from ..errors import StereoseedError
 from ..features import DEFAULT_MIN_PATCH_STD, Features, describe
+from ..threads import map_chunks, split_rows
 from .alignment_kernel import _align_kernel
 from .containers import Alignment, Matches
 
 __all__ = ["PairCache", "align_matches", "filter_localization", "refine_features"]
+
+# An alignment takes ~30 us: below this many matches per thread, a thread costs more than it saves
+_ALIGNMENTS_PER_THREAD = 64
 
 
 class PairCache:
@@ -104,9 +108,12 @@ def align_matches(
     g2 = np.ascontiguousarray(f2.gray, np.float32)
     gx = cv2.Sobel(g1, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(g1, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    t, A, zncc, converged = _align_kernel(
-        g1, gx, gy, g2, np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
-        patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
+    x1 = np.ascontiguousarray(x1, np.float64)
+    x2 = np.ascontiguousarray(x2, np.float64)
+    args = (patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
+    chunks = map_chunks(lambda a, b: _align_kernel(g1, gx, gy, g2, x1[a:b], x2[a:b], *args),
+                        split_rows(len(x1), _ALIGNMENTS_PER_THREAD))
+    t, A, zncc, converged = (np.concatenate(part) for part in zip(*chunks))
     return Alignment(t, A, zncc, converged)
 
 

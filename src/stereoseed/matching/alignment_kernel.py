@@ -215,9 +215,8 @@ def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
     """Inverse-compositional affine Lucas-Kanade for every match (M,): images g1, gx, gy, g2
     float32, x1, x2 (M, 2), half patch side r; returns t (M, 2), A (M, 2, 2), zncc (M,),
     converged (M,) as :func:`stereoseed.matching.alignment.align_matches` describes them.
-    The scratch arrays are made once: the per-match work allocates nothing. (A threaded version
-    measured 2x faster alone but no faster in the pipeline: its threads and OpenBLAS's compete
-    for the two cores.)"""
+    The scratch arrays are made once: the per-match work allocates nothing. The matches are
+    independent: align_matches gives chunks of them to threads (the GIL is released)."""
     m = x1.shape[0]
     npx = (2 * r + 1) ** 2
     t_out = x2.copy()

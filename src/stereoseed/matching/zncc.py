@@ -17,6 +17,7 @@ import numpy as np
 from ..config import MatchingConfig
 from ..errors import StereoseedError
 from ..features import Features, describe_scaled
+from ..threads import map_chunks, split_rows
 from .containers import Matches, as_points
 from .zncc_kernels import _best_of_pairs, _candidate_kernel, _candidate_pairs, _competitors, _pair_scores
 
@@ -34,6 +35,10 @@ _ZNCC_EPS = 1e-5
 # lowest frequencies of the patch. More terms bound tighter and cost more per pair; the results
 # do not depend on it.
 _BOUND_TERMS = 16
+# Rows of image 1 below which a thread costs more than it saves: listing a row's candidates
+# takes ~2 us, scoring them ~5 us (threads.map_chunks)
+_CANDIDATE_ROWS_PER_THREAD = 256
+_SCORED_ROWS_PER_THREAD = 128
 
 
 def zncc_matrix(desc1: np.ndarray, desc2: np.ndarray) -> np.ndarray:
@@ -72,7 +77,20 @@ def candidate_pairs(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndar
                     band_px: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """The pairs of :func:`candidate_mask` as CSR arrays: indptr (N1 + 1,) int64 and cols (K,)
     int32, the candidates of x1[i] being ``cols[indptr[i]:indptr[i + 1]]`` (increasing)."""
-    return _candidate_pairs(*_candidate_arguments(x1, x2, radius_px, F, band_px))
+    centre, x2, radius2, lines2, norm2, norm1, band = _candidate_arguments(x1, x2, radius_px, F, band_px)
+    parts = map_chunks(lambda a, b: _candidate_pairs(centre[a:b], x2, radius2, lines2[a:b], norm2[a:b], norm1, band),
+                       split_rows(len(centre), _CANDIDATE_ROWS_PER_THREAD))
+    return _join_rows(parts)
+
+
+def _join_rows(parts: list[tuple]) -> tuple:
+    """One CSR matrix (indptr, then per-pair arrays) from the CSR matrices of consecutive row
+    chunks (each ``(indptr, *arrays)`` with indptr starting at 0)."""
+    if len(parts) == 1:
+        return parts[0]
+    offsets = np.cumsum([0] + [p[0][-1] for p in parts[:-1]])
+    indptr = np.concatenate([parts[0][0][:1]] + [p[0][1:] + o for p, o in zip(parts, offsets)])
+    return (indptr, *(np.concatenate(arrays) for arrays in zip(*(p[1:] for p in parts))))
 
 
 @lru_cache(maxsize=8)
@@ -131,7 +149,13 @@ def _score_pairs(f1: Features, f2: Features, v1: np.ndarray, v2: np.ndarray, sca
     else:  # not read by the kernel
         proj1, rest1 = np.zeros((len(v1), 0), np.float32), np.zeros(len(v1), np.float32)
         proj2, rest2 = np.zeros(desc2.shape[:2] + (0,), np.float32), np.zeros(desc2.shape[:2], np.float32)
-    return _pair_scores(desc1, desc2, ok2, *pairs, proj1, rest1, proj2, rest2, float(floor))
+    indptr, cols = pairs
+
+    def rows(a: int, b: int) -> tuple:
+        return _pair_scores(desc1[a:b], desc2, ok2, indptr[a:b + 1] - indptr[a], cols[indptr[a]:indptr[b]],
+                            proj1[a:b], rest1[a:b], proj2, rest2, float(floor))
+
+    return _join_rows(map_chunks(rows, split_rows(len(desc1), _SCORED_ROWS_PER_THREAD)))
 
 
 def match_zncc(

@@ -1,0 +1,49 @@
+"""Sharing a kernel's independent rows among the cores: :func:`split_rows` and :func:`map_chunks`.
+
+The hot loops of matching (ZNCC scores, patch alignment) are Numba kernels that release the GIL
+(``nogil=True``) and treat their rows one by one, independently. Cut into contiguous chunks, one
+per core, they run in threads of one shared pool and their outputs, concatenated in order, are
+the one-call outputs bit for bit. The command line keeps OpenBLAS to one thread
+(:mod:`stereoseed.cli`), so these threads do not compete with BLAS's for the cores.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, TypeVar
+
+import numpy as np
+
+__all__ = ["CORES", "split_rows", "map_chunks"]
+
+T = TypeVar("T")
+
+# The cores this process may use (its affinity, which a batch scheduler or taskset narrows)
+CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+_pool: ThreadPoolExecutor | None = None
+_pool_lock = threading.Lock()
+
+
+def split_rows(n: int, min_rows: int, max_chunks: int = CORES) -> np.ndarray:
+    """Bounds (T + 1,) int64 cutting rows [0, n) into T contiguous chunks of nearly equal size,
+    T = min(max_chunks, n // min_rows) but at least 1: below ``min_rows`` rows a thread costs
+    more than it saves."""
+    chunks = int(max(1, min(max_chunks, n // max(min_rows, 1))))
+    return np.linspace(0, n, chunks + 1).round().astype(np.int64)
+
+
+def map_chunks(work: Callable[[int, int], T], bounds: np.ndarray) -> list[T]:
+    """[work(bounds[t], bounds[t + 1]) for each chunk t], in order; the chunks after the first run
+    in the shared pool's threads while the calling thread does the first (``work`` should spend
+    its time in a kernel that releases the GIL). One chunk: a plain call, no thread."""
+    if len(bounds) <= 2:
+        return [work(int(bounds[0]), int(bounds[-1]))]
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max(CORES - 1, 1), thread_name_prefix="stereoseed-kernel")
+    futures = [_pool.submit(work, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])]
+    first = work(int(bounds[0]), int(bounds[1]))
+    return [first] + [f.result() for f in futures]
