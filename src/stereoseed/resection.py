@@ -16,6 +16,7 @@ from .calibration import (check_correspondences, dlt_projection, normalization_2
 from .camera import decompose_projection, depths, is_finite_camera, normalize_projection, project
 from .config import ResectionConfig
 from .errors import StereoseedError
+from .resection_kernels import choose_samples, score_hypotheses
 
 __all__ = ["ResectionResult", "implausible_intrinsics", "resect"]
 
@@ -33,38 +34,15 @@ class ResectionResult:
     info: dict = field(default_factory=dict)
 
 
-def _batched_dlt(Xn: np.ndarray, xn: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """DLT of every sample at once in normalised coordinates. samples: (S, 6) -> (S, 3, 4)."""
-    Xs = Xn[samples]  # (S, 6, 4)
-    xs = xn[samples]  # (S, 6, 3)
-    S, n = samples.shape
-    A = np.zeros((S, 2 * n, 12))
-    A[:, 0::2, 4:8] = -Xs
-    A[:, 0::2, 8:12] = xs[:, :, 1:2] * Xs
-    A[:, 1::2, 0:4] = Xs
-    A[:, 1::2, 8:12] = -xs[:, :, 0:1] * Xs
-    _, _, Vt = np.linalg.svd(A)
-    return Vt[:, -1].reshape(S, 3, 4)
-
-
 def _draw_samples(rng: np.random.Generator, n_samples: int, weights: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """6-point samples, points drawn with probability ~ weights, from 6 distinct image cells when
-    the points cover enough cells (spread over the image makes the DLT well conditioned)."""
+    """6-point samples (n_samples, 6), points drawn with probability ~ weights, from 6 distinct
+    image cells when the points cover enough cells (spread over the image makes the DLT well
+    conditioned): the first fitting of 12 weighted draws, completed by uniform draws."""
     n = len(weights)
-    p = weights / weights.sum()
-    draws = rng.choice(n, size=(n_samples, 12), p=p)
-    samples = np.empty((n_samples, 6), dtype=np.int64)
-    distinct_cells = len(np.unique(cells)) >= 6
-    for s in range(n_samples):  # cheap: 12 candidates per sample
-        chosen: list[int] = []
-        used_cells: set[int] = set()
-        for idx in draws[s]:
-            if idx in chosen or (distinct_cells and cells[idx] in used_cells):
-                continue
-            chosen.append(int(idx))
-            used_cells.add(int(cells[idx]))
-            if len(chosen) == 6:
-                break
+    draws = rng.choice(n, size=(n_samples, 12), p=weights / weights.sum())
+    samples, filled = choose_samples(draws, cells, len(np.unique(cells)) >= 6)
+    for s in np.flatnonzero(filled < 6):  # rare: 12 draws without 6 fitting ones
+        chosen = list(samples[s, :filled[s]])
         while len(chosen) < 6:
             idx = int(rng.integers(n))
             if idx not in chosen:
@@ -142,6 +120,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
     Xn = np.hstack([X, np.ones((n, 1))]) @ U.T
     xn = np.hstack([x, np.ones((n, 1))]) @ T.T
     Xh = np.hstack([X, np.ones((n, 1))])
+    T_inv = np.linalg.inv(T)
     thr2 = config.ransac_threshold_px ** 2
 
     best_inliers = np.zeros(n, dtype=bool)
@@ -151,16 +130,8 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
     batch = 128
     while tried < max_iters:
         samples = _draw_samples(rng, batch, weights, cells)
-        Pn = _batched_dlt(Xn, xn, samples)
-        Ps = np.einsum("ij,sjk,kl->sil", np.linalg.inv(T), Pn, U)
-        h = np.einsum("sij,nj->sni", Ps, Xh)  # (S, N, 3)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            proj = h[..., :2] / h[..., 2:3]
-            err2 = np.sum((proj - x) ** 2, axis=2)
-            # cheirality: the inliers must lie on the same side of the camera as most points
-            sign = np.sign(h[..., 2]) * np.sign(np.linalg.det(Ps[:, :, :3]))[:, None]
-        inl = (err2 < thr2) & (sign > 0)
-        counts = inl.sum(axis=1)
+        # the DLT of each sample and its inliers (within the threshold, in front of the camera)
+        _, inl, counts = score_hypotheses(Xn, xn, samples, T_inv, U, Xh, np.ascontiguousarray(x), thr2)
         s = int(np.argmax(counts))
         tried += batch
         if counts[s] > best_count:
@@ -181,6 +152,8 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         for _ in range(2):  # refit, re-select inliers, refine: converges in one or two rounds
             P = refine_projection(P, X[inliers], x[inliers], model=model, reference_K=reference_K,
                                   loss="huber", f_scale=config.ransac_threshold_px / 2)
+            if not is_finite_camera(P):  # a rank-deficient start collapses: no camera
+                return P, inliers, np.inf
             err2 = np.sum((project(P, X) - x) ** 2, axis=1)
             new_inliers = (err2 < thr2) & (depths(P, X) > 0)
             if new_inliers.sum() < config.min_inliers or np.array_equal(new_inliers, inliers):
@@ -196,7 +169,8 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         # The DLT is ill-conditioned when the points are nearly planar (one face of an object
         # in view); a constrained camera can start from P3P with the reference intrinsics.
         starts.append(_pnp_start(X, x, reference_K, config))
-    candidates = [polish(*s) for s in starts if s is not None and is_finite_camera(s[0])]
+    candidates = [c for c in (polish(*s) for s in starts if s is not None and is_finite_camera(s[0]))
+                  if np.isfinite(c[2])]
     def plausible(P: np.ndarray) -> bool:
         # a near-planar point set lets the LM run the focal length off to infinity (an affine
         # camera fits a plane): such a camera is no candidate
@@ -209,7 +183,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         start = _pnp_start(X, x, fallback_K, config)
         if start is not None:
             model, reference_K = "fixed", np.asarray(fallback_K, np.float64)
-            candidates = [polish(*start, model=model, reference_K=reference_K)]
+            candidates = [c for c in [polish(*start, model=model, reference_K=reference_K)] if np.isfinite(c[2])]
     if not candidates:
         raise StereoseedError(f"{what}: the {best_count} agreeing 3D-2D pairs are degenerate (no finite camera)")
     P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))
