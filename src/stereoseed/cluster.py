@@ -23,6 +23,7 @@ from contextlib import contextmanager
 from typing import Any, Callable, Iterable, Iterator
 
 from .errors import StereoseedError
+from .threads import CORES, limit_chunks
 
 __all__ = ["JobPool", "executor_for", "CONNECT_TIMEOUT_S"]
 
@@ -88,8 +89,8 @@ def executor_for(scheduler: str | None, workers: int,
 
         methods = multiprocessing.get_all_start_methods()
         ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with_parent,
-                                 initargs=(os.getpid(),)) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_start_worker,
+                                 initargs=(os.getpid(), max(1, CORES // workers))) as pool:
             yield JobPool(workers, pool.submit, f"in {workers} local processes")
         return
     client = _connect(scheduler, connect_timeout)
@@ -167,6 +168,13 @@ def _one_line(e: object) -> str:
 
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _start_worker(parent_pid: int, cores: int) -> None:
+    """Pool initializer: the worker dies with its parent and its kernels share out only its own
+    part of the cores (the other workers run beside it)."""
+    limit_chunks(cores)
+    _die_with_parent(parent_pid)
 
 
 def _die_with_parent(parent_pid: int) -> None:

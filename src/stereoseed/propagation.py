@@ -41,6 +41,7 @@ from .config import PropagationConfig
 from .errors import StereoseedError
 from .image import to_gray
 from .propagation_kernels import _propagate_kernel, _window_stats, _zncc_points
+from .threads import map_chunks, split_rows
 from .propagation_refine import _refine_affine, _refine_quadratic
 
 __all__ = [
@@ -234,8 +235,7 @@ def propagate(
         raise StereoseedError(f"F must be a finite (3, 3) matrix, got shape {Fm.shape}")
 
     # per-pixel statistics; ok = may take part in a match (textured, full window, not flat)
-    mean1, inv1 = _window_stats(I1, half)
-    mean2, inv2 = _window_stats(I2, half)
+    (mean1, inv1), (mean2, inv2) = map_chunks(lambda a, b: _window_stats((I1, I2)[a], half), split_rows(2, 1))
     ok1 = texture_mask(I1, cfg.min_texture) & (inv1 > 0.0)
     ok2 = texture_mask(I2, cfg.min_texture) & (inv2 > 0.0)
 

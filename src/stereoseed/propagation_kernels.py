@@ -14,7 +14,7 @@ from numba import njit
 _FASTMATH = {"reassoc", "contract"}
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _window_stats(img, half):
     """Per-pixel window mean and inverse norm.
 

@@ -15,7 +15,7 @@ from typing import Callable, TypeVar
 
 import numpy as np
 
-__all__ = ["CORES", "split_rows", "map_chunks"]
+__all__ = ["CORES", "limit_chunks", "split_rows", "map_chunks"]
 
 T = TypeVar("T")
 
@@ -24,12 +24,31 @@ CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (o
 
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
+_chunks = CORES  # how many chunks a kernel's rows are cut into (limit_chunks)
 
 
-def split_rows(n: int, min_rows: int, max_chunks: int = CORES) -> np.ndarray:
+def _forget_pool() -> None:
+    """In a forked child: the parent's threads are not there, so neither is its pool."""
+    global _pool, _pool_lock
+    _pool, _pool_lock = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def limit_chunks(n: int) -> None:
+    """Cut kernels' rows into at most ``n`` chunks in this process (the local processes of the
+    dense stage each take one core's share)."""
+    global _chunks
+    _chunks = max(int(n), 1)
+
+
+def split_rows(n: int, min_rows: int, max_chunks: int | None = None) -> np.ndarray:
     """Bounds (T + 1,) int64 cutting rows [0, n) into T contiguous chunks of nearly equal size,
-    T = min(max_chunks, n // min_rows) but at least 1: below ``min_rows`` rows a thread costs
-    more than it saves."""
+    T = min(max_chunks (default: the cores, or :func:`limit_chunks`'s limit), n // min_rows) but
+    at least 1: below ``min_rows`` rows a thread costs more than it saves."""
+    max_chunks = _chunks if max_chunks is None else max_chunks
     chunks = int(max(1, min(max_chunks, n // max(min_rows, 1))))
     return np.linspace(0, n, chunks + 1).round().astype(np.int64)
 
