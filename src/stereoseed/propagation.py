@@ -235,7 +235,8 @@ def propagate(
         raise StereoseedError(f"F must be a finite (3, 3) matrix, got shape {Fm.shape}")
 
     # per-pixel statistics; ok = may take part in a match (textured, full window, not flat)
-    (mean1, inv1), (mean2, inv2) = map_chunks(lambda a, b: _window_stats((I1, I2)[a], half), split_rows(2, 1))
+    parts = map_chunks(lambda a, b: [_window_stats(img, half) for img in (I1, I2)[a:b]], split_rows(2, 1))
+    (mean1, inv1), (mean2, inv2) = [stats for part in parts for stats in part]
     ok1 = texture_mask(I1, cfg.min_texture) & (inv1 > 0.0)
     ok2 = texture_mask(I2, cfg.min_texture) & (inv2 > 0.0)
 
