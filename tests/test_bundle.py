@@ -138,7 +138,9 @@ def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
     args, _ = _reduced_camera_case()
     order, starts, cams, _, _, n_cams = args
     single = bundle._reduced_camera_matrix(*args, bundle._thread_rows(order, starts, cams, n_cams))
-    monkeypatch.setattr(bundle, "_THREADS", 3)
+    from stereoseed import threads
+
+    monkeypatch.setattr(threads, "_chunks", 3)
     monkeypatch.setattr(bundle, "PAIRS_PER_THREAD", 1)
     rows = bundle._thread_rows(order, starts, cams, n_cams)
     assert len(rows) == 4  # three threads

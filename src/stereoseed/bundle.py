@@ -11,9 +11,7 @@ eliminating the points leaves the small reduced camera system S = U - W V^-1 W^T
 """
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,14 +21,15 @@ from . import camera_models
 from .camera import project_per_observation
 from .config import BundleConfig
 from .robust import huber_cost
+from .threads import current_chunks, map_chunks
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
 
-# Threads forming a large reduced camera system: the cores this process may use, at most 4
-# (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a thread
-# costs more than it saves.
-_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
-PAIRS_PER_THREAD = 500_000
+# Threads forming the reduced camera system: the cores this process may use (threads.py), at
+# most 4 (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a
+# thread costs more than it saves (a pair is ~10 ns, a thread's start ~50 us).
+_MAX_THREADS = 4
+PAIRS_PER_THREAD = 20_000
 
 
 @dataclass
@@ -199,7 +198,7 @@ def _thread_rows(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, n_cams
     :func:`_add_point_pairs`; the layout is the BA's, fixed over its iterations."""
     group_end = np.repeat(starts[1:], np.diff(starts))
     pairs = np.bincount(cams[order], weights=group_end - np.arange(len(order)), minlength=n_cams)  # per first camera
-    threads = int(min(_THREADS, max(1, pairs.sum() // PAIRS_PER_THREAD)))
+    threads = int(max(1, min(_MAX_THREADS, current_chunks(), pairs.sum() // PAIRS_PER_THREAD)))
     cuts = np.searchsorted(np.cumsum(pairs), pairs.sum() * np.arange(1, threads) / threads)
     return np.r_[0, cuts + 1, n_cams].astype(np.int64)
 
@@ -211,12 +210,7 @@ def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarr
     threads of ``rows`` (:func:`_thread_rows`; the kernel releases the GIL)."""
     n = Wt.shape[2]
     S = np.zeros((n_cams * n, n_cams * n))
-    if len(rows) == 2:
-        _add_point_pairs(S, order, starts, cams, Wt, Y, 0, n_cams)
-    else:
-        with ThreadPoolExecutor(len(rows) - 1) as pool:
-            list(pool.map(lambda t: _add_point_pairs(S, order, starts, cams, Wt, Y, rows[t], rows[t + 1]),
-                          range(len(rows) - 1)))
+    map_chunks(lambda first, end: _add_point_pairs(S, order, starts, cams, Wt, Y, first, end), rows)
     _mirror_upper(S, n)
     return S
 

@@ -15,7 +15,7 @@ from typing import Callable, TypeVar
 
 import numpy as np
 
-__all__ = ["CORES", "limit_chunks", "split_rows", "map_chunks"]
+__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks"]
 
 T = TypeVar("T")
 
@@ -42,6 +42,11 @@ def limit_chunks(n: int) -> None:
     dense stage each take one core's share)."""
     global _chunks
     _chunks = max(int(n), 1)
+
+
+def current_chunks() -> int:
+    """How many chunks kernels' rows are cut into at most: the cores, or :func:`limit_chunks`'s."""
+    return _chunks
 
 
 def split_rows(n: int, min_rows: int, max_chunks: int | None = None) -> np.ndarray:
