@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from stereoseed import pipeline
-from stereoseed.checkpoint import spill_folder
+from stereoseed.checkpoint import CheckpointWriter, spill_folder
+from stereoseed.errors import StereoseedError
+from stereoseed.reconstruction import Reconstruction, View
 from stereoseed.config import Config
 from stereoseed.synthetic import write_scene
 
@@ -90,3 +92,29 @@ def test_a_long_run_may_keep_a_memory_map_per_view_open():
         assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == 2048
     finally:
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def _small_reconstruction() -> Reconstruction:
+    recon = Reconstruction([View("a"), View("b")])
+    recon.add_points(np.arange(12.0).reshape(4, 3), np.zeros((4, 3), np.uint8))
+    return recon
+
+
+def test_a_background_checkpoint_is_the_state_when_saved(tmp_path):
+    """The run goes on changing the model while the thread writes: the file holds the snapshot."""
+    recon = _small_reconstruction()
+    path = tmp_path / "run.pkl"
+    with CheckpointWriter(path, "key") as writer:
+        writer.save(recon, [{"image": "a"}])
+        recon.points[:] = -1.0
+        recon.add_points(np.ones((2, 3)), np.zeros((2, 3), np.uint8))
+    payload = pickle.loads(path.read_bytes())
+    assert payload["key"] == "key" and payload["per_image"] == [{"image": "a"}]
+    np.testing.assert_array_equal(payload["points"], np.arange(12.0).reshape(4, 3))
+
+
+def test_a_failed_background_checkpoint_is_reported(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(StereoseedError, match="cannot write"):
+        with CheckpointWriter(tmp_path / "a_file" / "run.pkl", "key") as writer:
+            writer.save(_small_reconstruction(), [])

@@ -18,6 +18,7 @@ import json
 import logging
 import pickle
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,7 @@ from .io import atomic_path
 from .reconstruction import Checkpoint, Reconstruction, View
 from .sequence import ImageSequence
 
-__all__ = ["inputs_key", "save_checkpoint", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
+__all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
 VERSION = 2  # 2: spilled descriptors named, not copied
@@ -74,8 +75,9 @@ def _features_state(f: Features | None, spilled_in: Path) -> tuple | None:
     return (f.points, desc, f.valid, f.response, f.image_shape)
 
 
-def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
-    """Pickle the reconstruction's state and the reports so far to ``path`` (atomically)."""
+def _checkpoint_bytes(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> bytes:
+    """The pickled checkpoint of the reconstruction's state and the reports so far (a snapshot:
+    the run may go on changing ``recon``)."""
     state = recon.checkpoint(copy=False)  # pickled at once: no copy needed
     # (P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed) per view;
     # the images are read again on resume, the grey images recomputed from them
@@ -83,9 +85,50 @@ def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dic
     views = [(s[0], _features_state(s[1], spilled_in), s[2], None) + tuple(s[4:8]) for s in state.views]
     payload = {"version": VERSION, "key": key, "per_image": per_image, "points": state.points, "colors": state.colors,
                "alive": state.alive, "observations": state.observations, "views": views}
+    return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _write(path: str | Path, data: bytes) -> None:
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            pickle.dump(payload, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.write_bytes(data)
+
+
+def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
+    """Pickle the reconstruction's state and the reports so far to ``path`` (atomically)."""
+    _write(path, _checkpoint_bytes(path, recon, per_image, key))
+
+
+class CheckpointWriter:
+    """Checkpoints saved while the run goes on: :meth:`save` pickles the state at once (a
+    consistent snapshot) and a thread writes it and puts it in place (atomically: the previous
+    checkpoint stays whole until then) while the next insertion runs; writing and replacing a
+    file of megabytes takes milliseconds of the disk's time, not the run's. Each save first
+    waits for the previous one. Use as a context manager: leaving it waits for the last write;
+    a failed write raises (at the next save or on leaving)."""
+
+    def __init__(self, path: str | Path, key: str):
+        self.path, self.key = path, key
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-checkpoint")
+        self._pending: Future | None = None
+
+    def _wait(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def save(self, recon: Reconstruction, per_image: list[dict[str, Any]]) -> None:
+        data = _checkpoint_bytes(self.path, recon, per_image, self.key)
+        self._wait()
+        self._pending = self._executor.submit(_write, self.path, data)
+
+    def __enter__(self) -> CheckpointWriter:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        try:
+            self._wait()
+        finally:
+            self._executor.shutdown()
 
 
 def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str, source: Any

@@ -8,12 +8,13 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from .checkpoint import SPILL_SUFFIX, inputs_key, load_checkpoint, save_checkpoint, spill_folder
+from .checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
 from .config import Config, VideoConfig
 from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from .errors import StereoseedError
@@ -60,42 +61,44 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     state = None
     if checkpoint is not None and resume:
         state = load_checkpoint(checkpoint, images, names, key, source or HarrisZncc(cfg))
-    if state is not None:
-        recon, per_image = state
-        for i in _working_set(recon, cfg):  # the next insertions read their grey images
-            recon.views[i].restore_gray()
-        log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
-    else:
-        recon, init = initialise(images, names, P_pair, cfg, source)
-        per_image = [{"image": names[0], "status": "calibrated"}, init]
+    # checkpoints are written while the run goes on; leaving waits for the last one
+    with CheckpointWriter(checkpoint, key) if checkpoint is not None else nullcontext() as saver:
+        if state is not None:
+            recon, per_image = state
+            for i in _working_set(recon, cfg):  # the next insertions read their grey images
+                recon.views[i].restore_gray()
+            log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
+        else:
+            recon, init = initialise(images, names, P_pair, cfg, source)
+            per_image = [{"image": names[0], "status": "calibrated"}, init]
+            if saver is not None:
+                saver.save(recon, per_image)
+        resumed = [r["image"] for r in per_image] if state is not None else []
+        if progress:
+            progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
+        source = recon.source
+        # descriptors of old views go to files: beside the checkpoint, which then names them instead
+        # of copying them, else in a folder that lives as long as the reconstruction (a memory map
+        # of a file keeps working once the folder is removed on POSIX systems)
+        _allow_open_files(n + 256)  # every spilled view's memory map holds a file descriptor
         if checkpoint is not None:
-            save_checkpoint(checkpoint, recon, per_image, key)
-    resumed = [r["image"] for r in per_image] if state is not None else []
-    if progress:
-        progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
-    source = recon.source
-    # descriptors of old views go to files: beside the checkpoint, which then names them instead
-    # of copying them, else in a folder that lives as long as the reconstruction (a memory map
-    # of a file keeps working once the folder is removed on POSIX systems)
-    _allow_open_files(n + 256)  # every spilled view's memory map holds a file descriptor
-    if checkpoint is not None:
-        spill = spill_folder(checkpoint)
-        spill.mkdir(parents=True, exist_ok=True)
-    else:
-        recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
-        spill = Path(recon.spill_folder.name)
-    try:
-        with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
-            for k in range(len(per_image), n):
-                rep = insert_view(recon, k, cfg)
-                per_image.append(rep)
-                _release_pixels(recon, cfg, spill)
-                if checkpoint is not None:
-                    save_checkpoint(checkpoint, recon, per_image, key)
-                if progress:
-                    progress(k + 1, n, f"{names[k]}: {rep['status']}")
-    finally:
-        recon.source = source
+            spill = spill_folder(checkpoint)
+            spill.mkdir(parents=True, exist_ok=True)
+        else:
+            recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
+            spill = Path(recon.spill_folder.name)
+        try:
+            with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
+                for k in range(len(per_image), n):
+                    rep = insert_view(recon, k, cfg)
+                    per_image.append(rep)
+                    _release_pixels(recon, cfg, spill)
+                    if saver is not None:
+                        saver.save(recon, per_image)
+                    if progress:
+                        progress(k + 1, n, f"{names[k]}: {rep['status']}")
+        finally:
+            recon.source = source
     final = finish(recon, cfg)
     for r in per_image:  # a view the finishing step could not keep is reported as skipped
         if r.get("image") in final.get("dropped", {}):
