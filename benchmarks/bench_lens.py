@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +124,30 @@ def ring(cals) -> dict:
             "lens, distortion ignored": errors(lensed, lensed.images, P_cal)}
 
 
+def render_seconds(folder: Path) -> dict:
+    """Rendering through a lens against without one (best of three, in-process, after a first
+    call that loads the kernels): the scene's two views and one view of the target."""
+    def best(make) -> float:
+        make()
+        times = []
+        for _ in range(3):
+            start = time.perf_counter()
+            make()
+            times.append(time.perf_counter() - start)
+        return round(min(times), 3)
+
+    texture = load_rendered_target(folder / "target.json")
+    K = np.array([[800.0, 0.0, 321.0], [0.0, 800.0, 238.5], [0.0, 0.0, 1.0]])
+    R, t = _lens_views(K, np.zeros(3), 1)[0]
+    out = {}
+    for label, distortion in (("pinhole", ()), ("lens", LENS)):
+        out[f"scene_2_views/{label}"] = best(lambda: render_scene(SceneConfig(n_images=2, textured=False,
+                                                                              distortion=distortion)))
+        out[f"target_view/{label}"] = best(lambda: render_target(texture, K, R, t, distortion=distortion,
+                                                                 supersample=3))
+    return out
+
+
 def run() -> dict:
     scene = render_scene(SceneConfig(n_images=2, focal_jitter=0.0, distance=DISTANCE))
     out = {}
@@ -132,6 +157,7 @@ def run() -> dict:
             out[f"calibration/sigma{noise:g}"], cals = calibration(noise, scene, Path(folder))
             if noise == 0.0:
                 out["ring12"] = ring(cals)
+        out["render_seconds"] = render_seconds(Path(folder))
     return out
 
 

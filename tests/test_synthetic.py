@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 
 import cv2
 import numpy as np
@@ -553,15 +552,3 @@ def test_write_scene_records_the_lens(plain_pair, tmp_path):
     assert doc["distortion"] == list(LENS)
     assert "distortion" not in json.loads(
         write_scene(pinhole, tmp_path / "pin")["cameras"].read_text())
-
-
-def test_lens_render_time():
-    cfg = SceneConfig(n_images=2, textured=False)
-    lens_cfg = SceneConfig(n_images=2, textured=False, distortion=LENS)
-    times = {False: [], True: []}
-    for _ in range(3):
-        for with_lens, c in ((False, cfg), (True, lens_cfg)):
-            start = time.perf_counter()
-            render_scene(c)
-            times[with_lens].append(time.perf_counter() - start)
-    assert min(times[True]) < 1.5 * min(times[False]), times

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import cv2
 import numpy as np
@@ -184,18 +183,6 @@ def test_background_noise_and_errors(target_dir, tmp_path):
         {"image": "face.png", "origin": [0, 0, 0], "u_axis": [1, 0, 0], "v_axis": [2, 0, 0]}]}))
     with pytest.raises(StereoseedError, match="parallel"):
         load_target(tmp_path / "bad.json")
-
-
-def test_render_time(target_dir):
-    target = load_target(target_dir / "target.json")
-    R, t = _view()
-    render_target(target, K, R, t, SIZE, distortion=LENS)  # compile / load the cache
-    times = []
-    for distortion in ((), LENS, (), LENS):
-        start = time.perf_counter()
-        render_target(target, K, R, t, SIZE, distortion=distortion, supersample=3)
-        times.append(time.perf_counter() - start)
-    assert min(times) < 1.0, times
 
 
 def test_fine_print_is_area_averaged_not_aliased(tmp_path):
