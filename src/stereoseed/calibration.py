@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import camera_models
-from .camera import camera_jacobian, compose_projection, decompose_projection, depths, normalize_projection, project
+from .camera import decompose_projection, depths, normalize_projection, project
+from .calibration_kernels import refine_camera
 from .errors import StereoseedError
-from .robust import huber_cost, huber_weights
 
 __all__ = [
     "normalization_2d",
@@ -116,63 +116,22 @@ def refine_projection(P: np.ndarray, points3d: np.ndarray, points2d: np.ndarray,
     px makes it robust (on each point's 2D error, as the bundle adjustment does; solved by
     iteratively reweighted least squares). Returns the refined P (3, 4).
 
-    The Jacobian is analytic (``camera_models.projection_derivatives`` chained through the
-    projection): resection polishes hundreds of hypotheses in a run, and finite differences
-    cost one projection of every point per parameter.
+    The Jacobian is analytic (the derivatives of ``camera_models.projection_derivatives``
+    chained through the projection) and the loop compiled
+    (:func:`stereoseed.calibration_kernels.refine_camera`): resection polishes hundreds of
+    hypotheses in a run.
     """
     if loss not in ("linear", "huber"):
         raise ValueError(f"loss must be 'linear' or 'huber', not {loss!r}")
     params, fixed = camera_models.params_from_projection(P, model, reference_K)
     _, R, t = camera_models.krt_from_params(params, model, fixed)
-    ni = camera_models.N_INTRINSICS[model]
-    intrinsics = params[:ni]
-    X = np.asarray(points3d, dtype=np.float64)
-    x = np.asarray(points2d, dtype=np.float64)
-    Xh = np.hstack([X, np.ones((len(X), 1))])
-    delta = f_scale if loss == "huber" else np.inf
-
-    def evaluate(intrinsics: np.ndarray, R: np.ndarray, t: np.ndarray):
-        K = camera_models.K_from_intrinsics(intrinsics, model, fixed)
-        Pc = compose_projection(K, R, t)
-        h = Xh @ Pc.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = h[:, :2] / h[:, 2:3]
-        r = uv - x
-        cost = huber_cost(r, delta)
-        return K, Pc, h, uv, r, (cost if np.isfinite(cost) else np.inf)
-
-    K, Pc, h, uv, r, cost = evaluate(intrinsics, R, t)
-    damping = 1e-3
-    for _ in range(max_iterations):
-        if not np.isfinite(cost):
-            break
-        w = huber_weights(r, delta)
-        J = camera_jacobian(camera_models.projection_derivatives(K, R, t, model, fixed), Xh, h, uv)
-        J = J.reshape(-1, J.shape[2])  # (2N, n): rows u0, v0, u1, ...
-        Jw = J * np.repeat(w, 2)[:, None]
-        A = Jw.T @ J
-        g = Jw.T @ r.ravel()
-        improved = False
-        while damping < 1e12:
-            try:
-                step = np.linalg.solve(A + damping * np.diag(np.maximum(np.diag(A), 1e-12)), -g)
-            except np.linalg.LinAlgError:
-                damping *= 10.0
-                continue
-            trial = (intrinsics + step[:ni], camera_models.rotation_from_vector(step[ni:ni + 3]) @ R,
-                     t + step[ni + 3:])
-            K_new, P_new, h_new, uv_new, r_new, cost_new = evaluate(*trial)
-            if cost_new < cost:
-                improved = True
-                converged = cost - cost_new <= 1e-10 * cost  # scipy's ftol is 1e-8
-                intrinsics, R, t = trial
-                K, Pc, h, uv, r, cost = K_new, P_new, h_new, uv_new, r_new, cost_new
-                damping = max(damping / 10.0, 1e-12)
-                break
-            damping *= 10.0
-        if not improved or converged:
-            break
-    return normalize_projection(Pc)
+    intrinsics = params[:camera_models.N_INTRINSICS[model]]
+    K_base, dK = camera_models.linear_K(intrinsics, model, fixed)
+    X = np.ascontiguousarray(points3d, dtype=np.float64).reshape(-1, 3)
+    x = np.ascontiguousarray(points2d, dtype=np.float64).reshape(-1, 2)
+    delta = float(f_scale) if loss == "huber" else np.inf
+    return normalize_projection(refine_camera(K_base, dK, np.ascontiguousarray(intrinsics, np.float64), R,
+                                              np.ascontiguousarray(t, np.float64), X, x, delta, int(max_iterations)))
 
 
 @dataclass

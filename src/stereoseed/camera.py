@@ -186,17 +186,6 @@ def point_jacobian(P_obs: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarr
     return np.stack([Ju, Jv], axis=1)
 
 
-def camera_jacobian(dP: np.ndarray, Xh: np.ndarray, h: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """d(u, v)/dparams of the projections of points Xh (O, 4) by one camera whose derivatives
-    with respect to its n parameters are dP (n, 3, 4); h (O, 3) and uv (O, 2) are the points'
-    homogeneous and pixel projections -> (O, 2, n)."""
-    dh = np.einsum("jik,ok->oij", dP, Xh)  # (O, 3, n)
-    inv = 1.0 / h[:, 2]
-    du = (dh[:, 0] - uv[:, 0:1] * dh[:, 2]) * inv[:, None]
-    dv = (dh[:, 1] - uv[:, 1:2] * dh[:, 2]) * inv[:, None]
-    return np.stack([du, dv], axis=1)
-
-
 def backproject(P: np.ndarray, pixels: np.ndarray, depth: float) -> np.ndarray:
     """World points (N, 3) at depth ``depth`` (Hartley & Zisserman eq. 6.15, world units) on the
     rays of ``pixels`` (N, 2) of a finite camera P (3, 4), for any sign and scale of P."""

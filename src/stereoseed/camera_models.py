@@ -22,7 +22,7 @@ N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
 __all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection", "projections_from_params",
            "krt_from_params", "projection_from_params", "project_to_model", "projection_derivatives",
-           "rotation_from_vector", "rotations_from_vectors", "Ks_from_intrinsics"]
+           "rotation_from_vector", "rotations_from_vectors", "Ks_from_intrinsics", "linear_K"]
 
 
 def n_params(model: str) -> int:
@@ -170,6 +170,14 @@ def projection_derivatives(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: s
     out[ni:ni + 3, :, :3] = np.matmul(K, skew_R)
     out[ni + 3:, :, 3] = K.T
     return out
+
+
+def linear_K(intr: np.ndarray, model: str, reference_K: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """K of the intrinsics ``intr`` as K_base + sum_i intr[i] dK[i]: (K_base (3, 3), dK (n, 3, 3)),
+    K being linear in every model's intrinsics."""
+    dK = np.array(_intrinsic_derivatives(model, reference_K)).reshape(-1, 3, 3)
+    intr = np.asarray(intr, np.float64)
+    return K_from_intrinsics(intr, model, reference_K) - np.tensordot(intr, dK, axes=1), dK
 
 
 def _intrinsic_derivatives(model: str, reference_K: np.ndarray | None) -> list[np.ndarray]:
