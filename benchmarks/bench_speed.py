@@ -168,9 +168,11 @@ def sequence(name: str, data: dict, work: Path) -> dict:
 
 
 def run(only: tuple[str, ...] = ("box14", "temple", "ring36", "dense")) -> dict:
-    results: dict = {"cores": os.cpu_count(),  # the imports a reconstruct process pays, once
-                     "import_seconds": timed_process([sys.executable, "-c", "import stereoseed.cli, "
-                                                      "stereoseed.pipeline, stereoseed.results"])["seconds"]}
+    # the imports a reconstruct process pays, once: the best of three (the first also reads the
+    # files from disk)
+    imports = [timed_process([sys.executable, "-c", "import stereoseed.cli, stereoseed.pipeline, stereoseed.results"])
+               ["seconds"] for _ in range(3)]
+    results: dict = {"cores": os.cpu_count(), "import_seconds": min(imports)}
     with tempfile.TemporaryDirectory(prefix="stereoseed-speed-") as tmp:
         root = Path(tmp)
         if "box14" in only:
