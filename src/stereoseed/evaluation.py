@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from .arrays import unique
 from .camera import camera_center, decompose_projection, project, rotation_angle_deg
 from .features import Features
 from .matching.containers import Matches
@@ -63,7 +64,7 @@ def _triangulate_corners(P_obs: list[np.ndarray], xy: np.ndarray, idx: np.ndarra
     its views: (points (K, 3), indices (K,)); corners seen once are left out."""
     if len(idx) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    seen = np.unique(idx)
+    seen = unique(idx)
     X = triangulate_tracks(np.stack(P_obs), xy, np.searchsorted(seen, idx), len(seen))
     ok = np.all(np.isfinite(X), axis=1)  # NaN: seen in fewer than two views
     return X[ok], seen[ok]

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .arrays import unique
 from .config import FeatureConfig, MatchingConfig
 from .edge_corners import _edge_corners
 from .errors import StereoseedError
@@ -145,7 +146,7 @@ def detect_corners_with_response(
     # peak): one interest point per position, the strongest.
     close = cKDTree(pts).query_pairs(_SAME_POINT_PX, output_type="ndarray")
     if len(close):
-        weaker = np.unique(close.max(axis=1))  # pairs (i, j) with i < j: j is the weaker
+        weaker = unique(close.max(axis=1))  # pairs (i, j) with i < j: j is the weaker
         keep = np.ones(len(pts), bool)
         keep[weaker] = False
         pts, response = pts[keep], response[keep]

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from .arrays import unique
 from .config import Config
 from .loop_closure import close_loop
 from .matching.containers import Matches
@@ -90,7 +91,7 @@ class AccurateMode:
         tracked = np.concatenate(tracked)
         grown = np.concatenate([chain_points, tracked])
         if cfg.pipeline.retriangulate and len(grown):
-            retriangulate(recon, np.unique(grown), cfg)
+            retriangulate(recon, unique(grown), cfg)
         return {"tracked_observations": int(len(tracked))}
 
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,

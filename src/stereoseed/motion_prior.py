@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .arrays import unique
 from .camera import decompose_projection, project
 from .config import Config, MotionPriorConfig, ResectionConfig
 from .features import Features
@@ -64,7 +65,7 @@ def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.nd
     pids, first = np.unique(recon.obs_point[order], return_index=True)
     obs = order[first]
     desc = np.zeros((len(obs), recon.views[prev].features.desc.shape[1]), np.float32)
-    for v in np.unique(recon.obs_view[obs]):
+    for v in unique(recon.obs_view[obs]):
         here = recon.obs_view[obs] == v
         desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
     return pids, desc

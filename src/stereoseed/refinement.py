@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from .arrays import unique
 from .bundle import BundleProblem, bundle_adjust
 from .config import Config
 from .reconstruction import Reconstruction, eq14
@@ -33,7 +34,7 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
     free_views = [v for v in free_views if v not in CALIBRATED]
     in_free_views = np.isin(recon.obs_view, free_views)
     if free_points is None:
-        free_points = np.unique(recon.obs_point[in_free_views])
+        free_points = unique(recon.obs_point[in_free_views])
     involved = np.isin(recon.obs_point, free_points) | in_free_views
     if views_in_cost is not None:
         involved &= np.isin(recon.obs_view, views_in_cost)
@@ -50,8 +51,8 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
     models = set(model_of.values())
     model = models.pop() if len(models) == 1 else run_model
     free_views = [v for v in free_views if model_of[v] == model]
-    cams = np.unique(recon.obs_view[involved])
-    pts = np.unique(recon.obs_point[involved])
+    cams = unique(recon.obs_view[involved])
+    pts = unique(recon.obs_point[involved])
     problem = BundleProblem(
         Ps=np.stack([recon.views[v].P for v in cams]),
         free_cameras=np.isin(cams, free_views),
@@ -162,4 +163,4 @@ def select_tracks(recon: Reconstruction, cells: int) -> np.ndarray:
     error = recon.observation_errors()[rows]
     order = np.lexsort((error, -length, cell))
     first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
-    return np.unique(point[first])
+    return unique(point[first])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..arrays import unique
 from ..config import MatchingConfig
 from ..errors import StereoseedError
 from ..features import DEFAULT_MIN_PATCH_STD, Features, describe
@@ -96,7 +97,7 @@ def align_matches(
         cache.params = params
         stride = max(len(f2), 1)  # a pair (idx1, idx2) is coded idx1 * stride + idx2
         codes = matches.idx1.astype(np.int64) * stride + matches.idx2
-        missing = np.unique(codes[cache.lookup(codes) < 0])
+        missing = unique(codes[cache.lookup(codes) < 0])
         if len(missing):
             todo = Matches(missing // stride, missing % stride, np.zeros(len(missing)))
             cache.add(missing, align_matches(f1, f2, todo, config))
