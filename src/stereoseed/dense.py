@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from .arrays import unique
@@ -25,6 +26,7 @@ from .config import Config, DenseConfig, PropagationConfig
 from .ply import write_ply
 from .propagation import propagate
 from .reconstruction import Reconstruction
+from .threads import map_chunks, split_rows
 from .triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
@@ -117,8 +119,7 @@ def _fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndar
             inverse, counts)
 
 
-def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
-                     chunk: int = 200_000) -> np.ndarray:
+def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10) -> np.ndarray:
     """Unit normals (N, 3) of a point cloud (N, 3): the direction of least spread of each point's
     ``neighbours`` nearest points (PCA), turned towards its ``viewpoints`` (N, 3) (where the
     cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside."""
@@ -127,16 +128,81 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
     if n < 3:
         normals[:, 2] = 1.0
         return normals
-    k = min(neighbours, n)
-    _, idx = cKDTree(points).query(points, k=k, workers=-1)
-    for start in range(0, n, chunk):
-        nb = points[idx[start:start + chunk]]  # (c, k, 3)
-        centred = nb - nb.mean(axis=1, keepdims=True)
-        _, vecs = np.linalg.eigh(np.einsum("cki,ckj->cij", centred, centred))
-        normals[start:start + chunk] = vecs[:, :, 0]  # eigenvalues ascending: least spread first
-    away = np.einsum("ij,ij->i", normals, viewpoints - points) < 0
-    normals[away] *= -1.0
+    points = np.ascontiguousarray(points, np.float64)
+    viewpoints = np.ascontiguousarray(viewpoints, np.float64)
+    _, idx = cKDTree(points).query(points, k=min(neighbours, n), workers=-1)
+    idx = np.ascontiguousarray(idx, np.int64)
+    map_chunks(lambda a, b: _pca_normals(points, idx, viewpoints, normals, a, b), split_rows(n, 50_000))
     return normals
+
+
+@njit(cache=True, nogil=True)
+def _pca_normals(points, idx, viewpoints, normals, first, end):
+    """normals[i] for i in [first, end): the eigenvector of the smallest eigenvalue of the scatter
+    matrix of points[idx[i]], turned towards viewpoints[i]. Closed form for a symmetric 3 x 3
+    (the trigonometric eigenvalues, then the largest cross product of two rows of A - lambda I),
+    not a batched LAPACK call per point."""
+    k = idx.shape[1]
+    for i in range(first, end):
+        mx = my = mz = 0.0
+        for j in range(k):
+            p = idx[i, j]
+            mx += points[p, 0]
+            my += points[p, 1]
+            mz += points[p, 2]
+        mx /= k
+        my /= k
+        mz /= k
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        for j in range(k):
+            p = idx[i, j]
+            dx, dy, dz = points[p, 0] - mx, points[p, 1] - my, points[p, 2] - mz
+            a00 += dx * dx
+            a01 += dx * dy
+            a02 += dx * dz
+            a11 += dy * dy
+            a12 += dy * dz
+            a22 += dz * dz
+        scale = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
+        nx, ny, nz = 0.0, 0.0, 1.0
+        if scale > 0.0:
+            a00, a01, a02, a11, a12, a22 = a00 / scale, a01 / scale, a02 / scale, a11 / scale, a12 / scale, a22 / scale
+            q = (a00 + a11 + a22) / 3.0
+            off = a01 * a01 + a02 * a02 + a12 * a12
+            pp = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * off) / 6.0)
+            lam = q
+            if pp > 0.0:
+                b00, b11, b22 = (a00 - q) / pp, (a11 - q) / pp, (a22 - q) / pp
+                b01, b02, b12 = a01 / pp, a02 / pp, a12 / pp
+                r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
+                phi = np.arccos(min(1.0, max(-1.0, r))) / 3.0
+                lam = q + 2.0 * pp * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest eigenvalue
+            r0 = (a00 - lam, a01, a02)
+            r1 = (a01, a11 - lam, a12)
+            r2 = (a02, a12, a22 - lam)
+            best = 0.0
+            for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+                cx = u[1] * v[2] - u[2] * v[1]
+                cy = u[2] * v[0] - u[0] * v[2]
+                cz = u[0] * v[1] - u[1] * v[0]
+                norm = cx * cx + cy * cy + cz * cz
+                if norm > best:
+                    best, nx, ny, nz = norm, cx, cy, cz
+            if best > 0.0:
+                norm = np.sqrt(best)
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+            else:  # a double smallest eigenvalue (the points on a line): any normal of the line
+                nx, ny, nz = 0.0, 0.0, 1.0
+                for u in (r0, r1, r2):
+                    if u[0] * u[0] + u[1] * u[1] + u[2] * u[2] > 0.0:
+                        cx, cy, cz = (u[1], -u[0], 0.0) if abs(u[2]) < max(abs(u[0]), abs(u[1])) else (0.0, u[2], -u[1])
+                        norm = np.sqrt(cx * cx + cy * cy + cz * cz)
+                        nx, ny, nz = cx / norm, cy / norm, cz / norm
+                        break
+        if (nx * (viewpoints[i, 0] - points[i, 0]) + ny * (viewpoints[i, 1] - points[i, 1])
+                + nz * (viewpoints[i, 2] - points[i, 2])) < 0.0:
+            nx, ny, nz = -nx, -ny, -nz
+        normals[i, 0], normals[i, 1], normals[i, 2] = nx, ny, nz
 
 
 def _auto_voxel(recon: Reconstruction) -> float:
