@@ -67,7 +67,7 @@ def test_dense_on_the_cluster_is_the_local_cloud(scheduler, four_views, tmp_path
         (tmp_path / name).mkdir()
     workers = _workers(scheduler)
     local = densify(copy.copy(recon), cfg, tmp_path / "local")  # densify stores the cloud on recon: copies
-    with executor_for(scheduler, cfg.dense.workers) as pool:
+    with executor_for(scheduler, cfg.dense.pool_size()) as pool:
         assert pool.remote and pool.slots == 2
         remote = densify(copy.copy(recon), cfg, tmp_path / "remote", pool)
     assert _workers(scheduler) == workers  # none died (Dask would rerun its job quietly on a new one)

@@ -69,3 +69,12 @@ def test_whole_numbers_and_sequences_are_normalised():
     prior = MotionPriorConfig(radius_fractions=[0.1, 0.2], pairings_per_point=[2])
     assert prior.radius_fractions == (0.1, 0.2) and prior.pairings_per_point == (2,)
     hash(Config(motion_prior=prior))  # frozen and hashable: usable as a cache key
+
+
+def test_dense_workers_default_to_the_cores():
+    from stereoseed.config import DenseConfig
+    from stereoseed.threads import CORES
+
+    assert DenseConfig().pool_size() == CORES and DenseConfig(workers=3).pool_size() == 3
+    with pytest.raises(ValueError, match="workers"):
+        DenseConfig(workers=-1)

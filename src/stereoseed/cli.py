@@ -235,7 +235,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.scheduler and not args.dense:
         raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
-    with _pool(args, cfg.dense.workers) as pool, _Bar("image", args.quiet) as progress:
+    with _pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress:
         report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
                                        progress=progress, pool=pool)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
@@ -258,7 +258,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root)
-    with _pool(args, cfg.dense.workers) as pool, _Bar("sequence", args.quiet) as progress:
+    with _pool(args, cfg.dense.pool_size()) as pool, _Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
     for o in outcomes:
         if o.ok:

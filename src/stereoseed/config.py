@@ -261,12 +261,19 @@ class DenseConfig:
     # templeSparseRing, 95 % -> see the closing note of issue 5 of the points inside the object's box.
     min_pair_support: int = 2
     support_cell_voxels: float = 4.0
-    workers: int = 2  # process pool size; the target machine has 2 cores
+    workers: int = 0  # local processes for the pair jobs; 0: one per core this process may use
 
     def __post_init__(self) -> None:
-        _positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels", "workers")
+        _positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels")
+        _whole(self, "workers", minimum=0)
         if self.fusion_voxel < 0:
             raise ValueError(f"DenseConfig.fusion_voxel must be >= 0 (0: automatic), got {self.fusion_voxel}")
+
+    def pool_size(self) -> int:
+        """How many local processes run the pair jobs: ``workers``, or one per core."""
+        from .threads import CORES  # here: the configuration module imports nothing heavy
+
+        return self.workers or CORES
 
 
 @dataclass(frozen=True)

@@ -236,7 +236,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     out_dir when given. Returns the report (per pair counts and times, fused count).
 
     pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
-    cluster); default a local pool of ``cfg.dense.workers`` processes. The cloud is the same
+    cluster); default a local pool of ``cfg.dense.pool_size()`` processes. The cloud is the same
     wherever the jobs run."""
     t0 = time.perf_counter()
     reg = recon.registered_views
@@ -248,7 +248,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         cols.append(res["colors"])
         per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
 
-    local = executor_for(None, min(cfg.dense.workers, len(pairs))) if pool is None else nullcontext(pool)
+    local = executor_for(None, min(cfg.dense.pool_size(), len(pairs))) if pool is None else nullcontext(pool)
     with local as jobs:
         for pair, done in zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, cfg))):
             collect(pair, done.result())
