@@ -156,3 +156,16 @@ def test_huber_refinement_ignores_gross_outliers():
     clean = refine_projection(start, X[15:], x[15:])  # the fit without the mismatches
     assert err(robust) < 2 * max(err(clean), 1e-3)
     assert err(plain) > 10 * err(clean)  # the mismatches do matter to least squares
+
+
+def test_refinement_of_a_point_on_the_cameras_plane_does_not_raise():
+    """A point at depth 0 projects to infinity: the cost is infinite, as in NumPy, and the start
+    comes back (the compiled loop follows NumPy's arithmetic, not Python's ZeroDivisionError)."""
+    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+    P = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 5.0], [0.0, 1.0, 6.0], [1.0, 1.0, 7.0], [-1.0, 0.5, 4.0],
+                  [0.5, -1.0, 5.0], [0.2, 0.3, 8.0]])  # the first point at the camera centre's depth
+    x = np.tile([433.0, 189.0], (len(X), 1))
+    for model, ref in (("free", None), ("focal", K)):
+        out = refine_projection(P, X, x, model=model, reference_K=ref, loss="huber")
+        assert out.shape == (3, 4)

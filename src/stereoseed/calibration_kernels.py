@@ -7,7 +7,9 @@ operations. Here the whole loop runs compiled, allocation-free per iteration.
 
 The camera is K [R | t] with K linear in the model's intrinsics (K = K_base + sum_i p_i dK_i,
 :mod:`stereoseed.camera_models`), R moved by rotation increments on the left (R <- exp([w]x) R),
-t free; residuals are weighted by the Huber loss on each point's 2D error (IRLS).
+t free; residuals are weighted by the Huber loss on each point's 2D error (IRLS). NumPy's
+arithmetic (``error_model="numpy"``): a point on the camera's plane gives an infinite cost, as
+in NumPy, not a ZeroDivisionError.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _compose(K_base, dK, intrinsics, R, t, P):
     """P (3, 4) = K [R | t] with K = K_base + sum_i intrinsics[i] dK[i]."""
     K = K_base.copy()
@@ -30,7 +32,7 @@ def _compose(K_base, dK, intrinsics, R, t, P):
     return K
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _residuals(P, X, x, delta, h, r):
     """Homogeneous projections h (N, 3), residuals r (N, 2) and the Huber cost (inf when not
     finite; delta inf: the sum of squares)."""
@@ -46,7 +48,7 @@ def _residuals(P, X, x, delta, h, r):
     return cost if np.isfinite(cost) else np.inf
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _rotation_increment(w):
     """Rodrigues' formula for the rotation vector w (3,) (first order below 1e-12 rad, as
     :func:`stereoseed.camera_models.rotations_from_vectors`)."""
@@ -64,7 +66,7 @@ def _rotation_increment(w):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _solve(A, b, out):
     """out = A^-1 b for a small square A by Gaussian elimination with partial pivoting; False
     when A is singular (a zero pivot)."""
@@ -96,7 +98,7 @@ def _solve(A, b, out):
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def refine_camera(K_base, dK, intrinsics, R, t, X, x, delta, max_iterations):
     """Levenberg-Marquardt on the reprojection error of points X (N, 3) seen at x (N, 2).
 

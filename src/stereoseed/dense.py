@@ -136,7 +136,7 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
     return normals
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pca_normals(points, idx, viewpoints, normals, first, end):
     """normals[i] for i in [first, end): the eigenvector of the smallest eigenvalue of the scatter
     matrix of points[idx[i]], turned towards viewpoints[i]. Closed form for a symmetric 3 x 3

@@ -21,7 +21,7 @@ _INVERSE_ITERATIONS = 6
 _SHIFT = 1e-10
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def choose_samples(draws, cells, distinct_cells):
     """Samples (S, 6) int64 from candidate draws (S, C) int64: for each sample, the first draws
     that repeat neither a chosen point nor, if ``distinct_cells``, a chosen image cell (cells
@@ -49,7 +49,7 @@ def choose_samples(draws, cells, distinct_cells):
     return samples, filled
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _dlt_null_vector(Xn, xn, sample, A, M, L, v, w):
     """Unit null vector v (12,) of the 12 x 12 DLT system of one 6-point sample (rows as in HZ
     eq. 7.2, normalised coordinates Xn (N, 4), xn (N, 3)): the eigenvector of A^T A of the
@@ -106,7 +106,7 @@ def _dlt_null_vector(Xn, xn, sample, A, M, L, v, w):
             v[a] /= norm
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def score_hypotheses(Xn, xn, samples, T_inv, U, Xh, x, threshold2):
     """The DLT camera of every sample and its inliers.
 

@@ -10,6 +10,10 @@ what matching one pair several times would compute again. The Numba kernels are 
 """
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import OrderedDict
+
 import cv2
 import numpy as np
 
@@ -62,6 +66,33 @@ class PairCache:
                               np.concatenate([r.zncc, al.zncc])[order], np.concatenate([r.converged, al.converged])[order])
 
 
+# The gradients of the last few reference images: one image is aligned against its neighbours,
+# tracked into later views and checked again, each time with the same Sobel images
+_GRADIENTS: OrderedDict[int, tuple] = OrderedDict()
+_GRADIENTS_KEPT = 8
+_gradients_lock = threading.Lock()
+
+
+def _with_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A grey image as float32 and its Sobel x and y derivatives (scaled to grey levels per
+    pixel), from the cache while ``gray`` itself is alive (held by a weak reference: an id is
+    only unique among living objects)."""
+    key = id(gray)
+    g = np.ascontiguousarray(gray, np.float32)  # gray itself when it already is
+    with _gradients_lock:
+        hit = _GRADIENTS.get(key)
+        if hit is not None and hit[0]() is gray:
+            _GRADIENTS.move_to_end(key)
+            return g, hit[1], hit[2]
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    with _gradients_lock:  # not the image: a view that lets its image go frees it
+        _GRADIENTS[key] = (weakref.ref(gray), gx, gy)
+        while len(_GRADIENTS) > _GRADIENTS_KEPT:
+            _GRADIENTS.popitem(last=False)
+    return g, gx, gy
+
+
 def align_matches(
     f1: Features,
     f2: Features,
@@ -105,10 +136,8 @@ def align_matches(
         r = cache.rows
         return Alignment(r.x2[rows], r.affine[rows], r.zncc[rows], r.converged[rows])
     x1, x2 = matches.points(f1, f2)
-    g1 = np.ascontiguousarray(f1.gray, np.float32)
+    g1, gx, gy = _with_gradients(f1.gray)
     g2 = np.ascontiguousarray(f2.gray, np.float32)
-    gx = cv2.Sobel(g1, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(g1, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
     x1 = np.ascontiguousarray(x1, np.float64)
     x2 = np.ascontiguousarray(x2, np.float64)
     args = (patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
