@@ -74,6 +74,8 @@ def _temple(folder: Path) -> dict | None:
 def _stages(report: dict) -> dict:
     per = [r.get("seconds", {}) for r in report["per_image"][2:]]
     out = {s: round(sum(p.get(s, 0.0) for p in per), 3) for s in STAGES}
+    # weak insertions registered by match propagation (quasi_dense_seeds, _propagation, ...)
+    out["quasi_dense"] = round(sum(v for p in per for k, v in p.items() if k.startswith("quasi_dense")), 3)
     out["pair"] = round(report["per_image"][1].get("seconds", {}).get("total", 0.0), 3)
     out["final_step"] = round(report["final"].get("seconds", 0.0), 3) if isinstance(report.get("final"), dict) else None
     out["reconstruct_call"] = round(report["seconds"], 3)
