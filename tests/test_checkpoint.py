@@ -118,3 +118,11 @@ def test_a_failed_background_checkpoint_is_reported(tmp_path):
     with pytest.raises(StereoseedError, match="cannot write"):
         with CheckpointWriter(tmp_path / "a_file" / "run.pkl", "key") as writer:
             writer.save(_small_reconstruction(), [])
+
+
+def test_a_failed_background_checkpoint_does_not_hide_the_runs_own_error(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(KeyError, match="the run's"):
+        with CheckpointWriter(tmp_path / "a_file" / "run.pkl", "key") as writer:
+            writer.save(_small_reconstruction(), [])
+            raise KeyError("the run's")

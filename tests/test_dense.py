@@ -105,3 +105,17 @@ def test_normals_are_the_scatter_matrices_least_eigenvectors():
     cos = np.abs(np.einsum("ij,ij->i", normals, vectors[:, :, 0]))
     assert separated.mean() > 0.9 and np.all(cos[separated] > 1 - 1e-6)
     assert np.all(np.einsum("ij,ij->i", normals, views - pts) >= 0)  # turned towards the viewpoints
+
+
+def test_normals_of_points_on_a_line_are_perpendicular_to_it():
+    from stereoseed.dense import _voxel_keys, estimate_normals
+
+    direction = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+    line = np.linspace(0.0, 1.0, 40)[:, None] * direction + [0.3, -0.2, 5.0]
+    normals = estimate_normals(line, line + [0.0, 0.0, -1.0], neighbours=6)
+    assert np.abs(normals @ direction).max() < 1e-6  # any normal of the line, not one tilted along it
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    # a grid too fine for one integer key: far cells keep distinct keys
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1e-9, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    keys = _voxel_keys(pts, 1e-8)
+    assert keys[1] == keys[3] and len(set(keys.tolist())) == 2 + (keys[2] != keys[0])

@@ -698,3 +698,17 @@ def test_the_relaxed_match_reuses_the_pair_cache(textured, monkeypatch):
             assert rows_cached == 0
         else:  # a new robust F guides a few new candidates
             assert rows_cached < 0.25 * rows_alone
+
+
+def test_gradient_cache_lets_a_freed_image_go():
+    import gc
+
+    from stereoseed.matching import alignment
+
+    gray = np.random.default_rng(0).random((60, 80)).astype(np.float32)
+    g, gx, _ = alignment._with_gradients(gray)
+    assert g is gray and alignment._with_gradients(gray)[1] is gx  # the cached gradients
+    key = id(gray)
+    del gray, g
+    gc.collect()
+    assert key not in alignment._GRADIENTS

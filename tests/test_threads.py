@@ -62,3 +62,13 @@ def test_a_forked_child_makes_its_own_pool():
             os._exit(2)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_a_chunk_that_cuts_its_rows_again_runs_them_itself():
+    """Nested calls run inline in the pool's threads: queued behind their caller they would
+    never start (one pool thread on two cores)."""
+    def outer(a, b):
+        inner = threads.map_chunks(lambda c, d: d - c, threads.split_rows(b - a, 1, 2))
+        return sum(inner)
+
+    assert threads.map_chunks(outer, threads.split_rows(8, 1, 4)) == [2, 2, 2, 2]

@@ -124,9 +124,14 @@ class CheckpointWriter:
     def __enter__(self) -> CheckpointWriter:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         try:
             self._wait()
+        except Exception as write_error:
+            if exc is None:
+                raise
+            # the run's own error is the one to report; the last checkpoint stays whole
+            log.warning("%s: the last checkpoint was not written (%s)", self.path, write_error)
         finally:
             self._executor.shutdown()
 

@@ -261,7 +261,9 @@ class DenseConfig:
     # templeSparseRing, 95 % -> see the closing note of issue 5 of the points inside the object's box.
     min_pair_support: int = 2
     support_cell_voxels: float = 4.0
-    workers: int = 0  # local processes for the pair jobs; 0: one per core this process may use
+    # local processes for the pair jobs; 0: one per core this process may use, at most 8 (each
+    # holds a pair's images and match maps, ~100 MB at 640 x 480)
+    workers: int = 0
 
     def __post_init__(self) -> None:
         _positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels")
@@ -270,10 +272,10 @@ class DenseConfig:
             raise ValueError(f"DenseConfig.fusion_voxel must be >= 0 (0: automatic), got {self.fusion_voxel}")
 
     def pool_size(self) -> int:
-        """How many local processes run the pair jobs: ``workers``, or one per core."""
+        """How many local processes run the pair jobs: ``workers``, or one per core (at most 8)."""
         from .threads import CORES  # here: the configuration module imports nothing heavy
 
-        return self.workers or CORES
+        return self.workers or min(CORES, 8)
 
 
 @dataclass(frozen=True)

@@ -67,9 +67,13 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
 
 
 def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
+    """One int64 per point (N, 3), equal for the points of one cell of side ``size``."""
     keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
     span = keys.max(axis=0) + 1
-    return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
+        return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    # a grid too fine for one integer key (it would wrap and merge far cells): the cells' ranks
+    return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
 
 
 def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources: int) -> np.ndarray:
@@ -188,7 +192,7 @@ def _pca_normals(points, idx, viewpoints, normals, first, end):
                 norm = cx * cx + cy * cy + cz * cz
                 if norm > best:
                     best, nx, ny, nz = norm, cx, cy, cz
-            if best > 0.0:
+            if best > 1e-24:  # (the matrix is scaled to entries <= 1) else rounding of a zero
                 norm = np.sqrt(best)
                 nx, ny, nz = nx / norm, ny / norm, nz / norm
             else:  # a double smallest eigenvalue (the points on a line): any normal of the line

@@ -14,7 +14,8 @@ from numba import njit
 # Inverse iterations for the DLT's null vector: each multiplies the error by the ratio of the two
 # smallest eigenvalues of A^T A (small for a non-degenerate sample: noise^2 over the data's
 # spread); after six, the cameras of samples that gather inliers agree with an SVD's to ~1e-12
-# (measured); only degenerate samples, which gather none, come out differently
+# (measured); degenerate and nearly planar noise-free samples come out differently (an SVD's
+# null vector is no better defined there)
 _INVERSE_ITERATIONS = 6
 # Shift making A^T A safely positive definite for its Cholesky factor (relative to its trace):
 # far above the rounding of its smallest eigenvalue, far below the second smallest

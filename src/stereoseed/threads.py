@@ -25,6 +25,11 @@ CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (o
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
 _chunks = CORES  # how many chunks a kernel's rows are cut into (limit_chunks)
+_in_pool = threading.local()  # .yes in the pool's own threads
+
+
+def _mark_pool_thread() -> None:
+    _in_pool.yes = True
 
 
 def _forget_pool() -> None:
@@ -62,12 +67,15 @@ def map_chunks(work: Callable[[int, int], T], bounds: np.ndarray) -> list[T]:
     """[work(bounds[t], bounds[t + 1]) for each chunk t], in order; the chunks after the first run
     in the shared pool's threads while the calling thread does the first (``work`` should spend
     its time in a kernel that releases the GIL). One chunk: a plain call, no thread."""
-    if len(bounds) <= 2:
-        return [work(int(bounds[0]), int(bounds[-1]))]
+    if len(bounds) <= 2 or getattr(_in_pool, "yes", False):
+        # a chunk that cuts its own rows again runs them here: queued behind itself, they would
+        # wait for a pool thread that is waiting for them
+        return [work(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
     global _pool
     with _pool_lock:
         if _pool is None:
-            _pool = ThreadPoolExecutor(max(CORES - 1, 1), thread_name_prefix="stereoseed-kernel")
+            _pool = ThreadPoolExecutor(max(CORES - 1, 1), thread_name_prefix="stereoseed-kernel",
+                                       initializer=_mark_pool_thread)
     futures = [_pool.submit(work, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])]
     first = work(int(bounds[0]), int(bounds[1]))
     return [first] + [f.result() for f in futures]

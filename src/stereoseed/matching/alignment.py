@@ -76,7 +76,8 @@ _gradients_lock = threading.Lock()
 def _with_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A grey image as float32 and its Sobel x and y derivatives (scaled to grey levels per
     pixel), from the cache while ``gray`` itself is alive (held by a weak reference: an id is
-    only unique among living objects)."""
+    only unique among living objects; the entry goes when the image does). Grey images are
+    never changed in place (Features.gray is the image the points were found in)."""
     key = id(gray)
     g = np.ascontiguousarray(gray, np.float32)  # gray itself when it already is
     with _gradients_lock:
@@ -90,7 +91,15 @@ def _with_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
         _GRADIENTS[key] = (weakref.ref(gray), gx, gy)
         while len(_GRADIENTS) > _GRADIENTS_KEPT:
             _GRADIENTS.popitem(last=False)
+    weakref.finalize(gray, _forget_gradients, key, gx)  # and its gradients with it
     return g, gx, gy
+
+
+def _forget_gradients(key: int, gx: np.ndarray) -> None:
+    with _gradients_lock:
+        hit = _GRADIENTS.get(key)
+        if hit is not None and hit[1] is gx:  # not a newer image's entry under a reused id
+            del _GRADIENTS[key]
 
 
 def align_matches(
