@@ -72,3 +72,10 @@ def test_a_chunk_that_cuts_its_rows_again_runs_them_itself():
         return sum(inner)
 
     assert threads.map_chunks(outer, threads.split_rows(8, 1, 4)) == [2, 2, 2, 2]
+
+
+def test_concatenated_chunks_and_mapped_items_keep_the_order(monkeypatch):
+    monkeypatch.setattr(threads, "_chunks", 3)
+    a, b = threads.concat_chunks(lambda lo, hi: (np.arange(lo, hi), -np.arange(lo, hi)), 10, 2)
+    assert a.tolist() == list(range(10)) and b.tolist() == [-i for i in range(10)]
+    assert threads.map_items(lambda x: x * x, (1, 2, 3, 4)) == [1, 4, 9, 16]

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import camera_models
-from .camera import decompose_projection, depths, normalize_projection, project
 from .calibration_kernels import refine_camera
+from .camera import decompose_projection, depths, normalize_projection, project
 from .errors import StereoseedError
 
 __all__ = [

@@ -122,6 +122,7 @@ def refine_camera(K_base, dK, intrinsics, R, t, X, x, delta, max_iterations):
     dP = np.zeros((n, 3, 4))
     A = np.empty((n, n))
     g = np.empty(n)
+    minus_g = np.empty(n)
     Ad = np.empty((n, n))
     step = np.empty(n)
     J = np.empty((2, n))
@@ -174,16 +175,14 @@ def refine_camera(K_base, dK, intrinsics, R, t, X, x, delta, max_iterations):
                 A[p, q] = A[q, p]
         improved = False
         converged = False
+        for p in range(n):
+            minus_g[p] = -g[p]
         while damping < 1e12:
             for p in range(n):
                 for q in range(n):
                     Ad[p, q] = A[p, q]
                 Ad[p, p] += damping * max(A[p, p], 1e-12)
-                g[p] = -g[p]
-            solved = _solve(Ad, g, step)
-            for p in range(n):
-                g[p] = -g[p]
-            if not solved:
+            if not _solve(Ad, minus_g, step):
                 damping *= 10.0
                 continue
             for i in range(ni):

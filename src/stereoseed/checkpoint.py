@@ -104,11 +104,13 @@ class CheckpointWriter:
     checkpoint stays whole until then) while the next insertion runs; writing and replacing a
     file of megabytes takes milliseconds of the disk's time, not the run's. Each save first
     waits for the previous one. Use as a context manager: leaving it waits for the last write;
-    a failed write raises (at the next save or on leaving)."""
+    a failed write raises (at the next save or on leaving). ``path`` None: a run without
+    checkpoints, every save does nothing."""
 
-    def __init__(self, path: str | Path, key: str):
+    def __init__(self, path: str | Path | None, key: str):
         self.path, self.key = path, key
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-checkpoint")
+        self._executor = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-checkpoint")
+                          if path is not None else None)
         self._pending: Future | None = None
 
     def _wait(self) -> None:
@@ -117,6 +119,8 @@ class CheckpointWriter:
             pending.result()
 
     def save(self, recon: Reconstruction, per_image: list[dict[str, Any]]) -> None:
+        if self._executor is None:
+            return
         data = _checkpoint_bytes(self.path, recon, per_image, self.key)
         self._wait()
         self._pending = self._executor.submit(_write, self.path, data)
@@ -133,7 +137,8 @@ class CheckpointWriter:
             # the run's own error is the one to report; the last checkpoint stays whole
             log.warning("%s: the last checkpoint was not written (%s)", self.path, write_error)
         finally:
-            self._executor.shutdown()
+            if self._executor is not None:
+                self._executor.shutdown()
 
 
 def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str, source: Any

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .arrays import unique
+from .arrays import distinct_pair_firsts
 from .camera import camera_center, fundamental_from_projections
 from .cluster import JobPool, executor_for
 from .config import Config, DenseConfig, PropagationConfig
@@ -84,15 +84,7 @@ def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources:
     if len(points) == 0 or min_sources <= 1:
         return np.ones(len(points), bool)
     cell = _voxel_keys(points, size)
-    sources = np.asarray(sources, np.int64)
-    n_sources = int(sources.max()) + 1
-    if cell.max() <= (np.iinfo(np.int64).max - n_sources) // n_sources:  # one key per (cell, source): a plain sort
-        distinct_cells = unique(cell * n_sources + sources) // n_sources
-    else:  # a grid too fine for one key (np.unique(..., axis=1) sorts rows as bytes: ten times slower)
-        order = np.lexsort((sources, cell))
-        c, s = cell[order], sources[order]
-        distinct_cells = c[np.r_[True, (c[1:] != c[:-1]) | (s[1:] != s[:-1])]]
-    cells, count = np.unique(distinct_cells, return_counts=True)
+    cells, count = np.unique(distinct_pair_firsts(cell, sources), return_counts=True)
     return count[np.searchsorted(cells, cell)] >= min_sources
 
 
@@ -290,6 +282,5 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
     # where the pair's two cameras stand, averaged over the voxel's points
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
     viewpoints = _group_mean(stand[sources], inverse, counts)
-    n_sources = int(sources.max()) + 1
-    support = np.bincount(unique(inverse * n_sources + sources) // n_sources, minlength=len(counts))  # distinct pairs
+    support = np.bincount(distinct_pair_firsts(inverse, sources), minlength=len(counts))
     return fused, fused_colors, estimate_normals(fused, viewpoints), support

@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -62,7 +61,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if checkpoint is not None and resume:
         state = load_checkpoint(checkpoint, images, names, key, source or HarrisZncc(cfg))
     # checkpoints are written while the run goes on; leaving waits for the last one
-    with CheckpointWriter(checkpoint, key) if checkpoint is not None else nullcontext() as saver:
+    with CheckpointWriter(checkpoint, key) as saver:
         if state is not None:
             recon, per_image = state
             for i in _working_set(recon, cfg):  # the next insertions read their grey images
@@ -71,8 +70,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         else:
             recon, init = initialise(images, names, P_pair, cfg, source)
             per_image = [{"image": names[0], "status": "calibrated"}, init]
-            if saver is not None:
-                saver.save(recon, per_image)
+            saver.save(recon, per_image)
         resumed = [r["image"] for r in per_image] if state is not None else []
         if progress:
             progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
@@ -93,8 +91,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
                     rep = insert_view(recon, k, cfg)
                     per_image.append(rep)
                     _release_pixels(recon, cfg, spill)
-                    if saver is not None:
-                        saver.save(recon, per_image)
+                    saver.save(recon, per_image)
                     if progress:
                         progress(k + 1, n, f"{names[k]}: {rep['status']}")
         finally:

@@ -41,7 +41,7 @@ from .config import PropagationConfig
 from .errors import StereoseedError
 from .image import to_gray
 from .propagation_kernels import _propagate_kernel, _window_stats, _zncc_points
-from .threads import map_chunks, split_rows
+from .threads import map_items
 from .propagation_refine import _refine_affine, _refine_quadratic
 
 __all__ = [
@@ -235,8 +235,7 @@ def propagate(
         raise StereoseedError(f"F must be a finite (3, 3) matrix, got shape {Fm.shape}")
 
     # per-pixel statistics; ok = may take part in a match (textured, full window, not flat)
-    parts = map_chunks(lambda a, b: [_window_stats(img, half) for img in (I1, I2)[a:b]], split_rows(2, 1))
-    (mean1, inv1), (mean2, inv2) = [stats for part in parts for stats in part]
+    (mean1, inv1), (mean2, inv2) = map_items(lambda img: _window_stats(img, half), (I1, I2))
     ok1 = texture_mask(I1, cfg.min_texture) & (inv1 > 0.0)
     ok2 = texture_mask(I2, cfg.min_texture) & (inv2 > 0.0)
 

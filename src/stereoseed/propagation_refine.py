@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 from .propagation_kernels import _FASTMATH, _dot_window, _epipolar_line, _load_centred
-from .threads import map_chunks, split_rows
+from .threads import concat_chunks
 
 
 @njit(cache=True)
@@ -379,11 +379,9 @@ def _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc
         fy[y1, x1] = cur_y
         aff = _affine_fields(fx, fy, x1, y1, _AFFINE_RADIUS, _AFFINE_MIN_MATCHES)
         prev_x, prev_y = cur_x, cur_y  # the matches are independent: threads share them out
-        parts = map_chunks(lambda a, b: _refine_affine_pass(I1, mean1, inv1, I2, x1[a:b], y1[a:b], aff[a:b], use_f,
-                                                            F, half, _SEARCH_PX, _SEARCH_STEP, min_zncc,
-                                                            prev_x[a:b], prev_y[a:b]),
-                           split_rows(len(x1), _MATCHES_PER_THREAD))
-        cur_x, cur_y, u = (np.concatenate(part) for part in zip(*parts))
+        cur_x, cur_y, u = concat_chunks(lambda a, b: _refine_affine_pass(
+            I1, mean1, inv1, I2, x1[a:b], y1[a:b], aff[a:b], use_f, F, half, _SEARCH_PX, _SEARCH_STEP, min_zncc,
+            prev_x[a:b], prev_y[a:b]), len(x1), _MATCHES_PER_THREAD)
         used |= u
     return cur_x, cur_y, used
 

@@ -34,13 +34,15 @@ class ResectionResult:
     info: dict = field(default_factory=dict)
 
 
-def _draw_samples(rng: np.random.Generator, n_samples: int, weights: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """6-point samples (n_samples, 6), points drawn with probability ~ weights, from 6 distinct
-    image cells when the points cover enough cells (spread over the image makes the DLT well
-    conditioned): the first fitting of 12 weighted draws, completed by uniform draws."""
-    n = len(weights)
-    draws = rng.choice(n, size=(n_samples, 12), p=weights / weights.sum())
-    samples, filled = choose_samples(draws, cells, len(np.unique(cells)) >= 6)
+def _draw_samples(rng: np.random.Generator, n_samples: int, p: np.ndarray, cells: np.ndarray,
+                  distinct_cells: bool) -> np.ndarray:
+    """6-point samples (n_samples, 6), points drawn with probabilities p (N,), from 6 distinct
+    image cells (cells (N,)) when ``distinct_cells`` (the points cover enough cells: spread over
+    the image makes the DLT well conditioned): the first fitting of 12 weighted draws,
+    completed by uniform draws."""
+    n = len(p)
+    draws = rng.choice(n, size=(n_samples, 12), p=p)
+    samples, filled = choose_samples(draws, cells, distinct_cells)
     for s in np.flatnonzero(filled < 6):  # rare: 12 draws without 6 fitting ones
         chosen = list(samples[s, :filled[s]])
         while len(chosen) < 6:
@@ -121,6 +123,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
     xn = np.hstack([x, np.ones((n, 1))]) @ T.T
     Xh = np.hstack([X, np.ones((n, 1))])
     T_inv = np.linalg.inv(T)
+    draw_p, distinct_cells = weights / weights.sum(), len(np.unique(cells)) >= 6
     thr2 = config.ransac_threshold_px ** 2
 
     best_inliers = np.zeros(n, dtype=bool)
@@ -129,7 +132,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
     max_iters = config.ransac_max_iters
     batch = 128
     while tried < max_iters:
-        samples = _draw_samples(rng, batch, weights, cells)
+        samples = _draw_samples(rng, batch, draw_p, cells, distinct_cells)
         # the DLT of each sample and its inliers (within the threshold, in front of the camera)
         _, inl, counts = score_hypotheses(Xn, xn, samples, T_inv, U, Xh, np.ascontiguousarray(x), thr2)
         s = int(np.argmax(counts))
@@ -164,13 +167,19 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         err2 = np.sum((project(P, X[inliers]) - x[inliers]) ** 2, axis=1)
         return P, inliers, float(np.sqrt(np.mean(err2)))
 
+    def polished(starts: list, **model_args) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """The cameras polished from the finite starts (P, inliers) (None: no start), those
+        that did not collapse."""
+        cameras = (polish(*s, **model_args) for s in starts if s is not None and is_finite_camera(s[0]))
+        return [c for c in cameras if np.isfinite(c[2])]
+
     starts = [(dlt_projection(X[best_inliers], x[best_inliers]), best_inliers)]
     if model != "free" and reference_K is not None:
         # The DLT is ill-conditioned when the points are nearly planar (one face of an object
         # in view); a constrained camera can start from P3P with the reference intrinsics.
         starts.append(_pnp_start(X, x, reference_K, config))
-    candidates = [c for c in (polish(*s) for s in starts if s is not None and is_finite_camera(s[0]))
-                  if np.isfinite(c[2])]
+    candidates = polished(starts)
+
     def plausible(P: np.ndarray) -> bool:
         # a near-planar point set lets the LM run the focal length off to infinity (an affine
         # camera fits a plane): such a camera is no candidate
@@ -183,7 +192,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         start = _pnp_start(X, x, fallback_K, config)
         if start is not None:
             model, reference_K = "fixed", np.asarray(fallback_K, np.float64)
-            candidates = [c for c in [polish(*start, model=model, reference_K=reference_K)] if np.isfinite(c[2])]
+            candidates = polished([start], model=model, reference_K=reference_K)
     if not candidates:
         raise StereoseedError(f"{what}: the {best_count} agreeing 3D-2D pairs are degenerate (no finite camera)")
     P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))

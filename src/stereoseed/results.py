@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .arrays import unique
+from .arrays import distinct_pair_firsts
 from .camera import backproject, camera_center, decompose_projection
 from .config import Config
 from .errors import StereoseedError
@@ -159,9 +159,7 @@ def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: 
 
 
 def _views_per_point(tracks: dict[str, np.ndarray], n_points: int) -> np.ndarray:
-    n_images = int(tracks["obs_image"].max()) + 1 if len(tracks["obs_image"]) else 1
-    distinct = unique(tracks["obs_point"].astype(np.int64) * n_images + tracks["obs_image"])  # (point, image) pairs
-    return np.bincount(distinct // n_images, minlength=n_points)
+    return np.bincount(distinct_pair_firsts(tracks["obs_point"], tracks["obs_image"]), minlength=n_points)
 
 
 def _write_cameras_ply(recon: Reconstruction, path: Path, points: np.ndarray) -> Path:

@@ -1,7 +1,9 @@
-"""Sharing a kernel's independent rows among the cores: :func:`split_rows` and :func:`map_chunks`.
+"""Sharing a kernel's independent rows among the cores: :func:`split_rows` and :func:`map_chunks`,
+with :func:`concat_chunks` and :func:`map_items` for the common shapes of work.
 
-The hot loops of matching (ZNCC scores, patch alignment) are Numba kernels that release the GIL
-(``nogil=True``) and treat their rows one by one, independently. Cut into contiguous chunks, one
+The hot loops (ZNCC scores, patch alignment, the quasi-dense refinement, the BA's reduced
+camera system, dense normals) are Numba kernels that release the GIL (``nogil=True``) and treat
+their rows one by one, independently. Cut into contiguous chunks, one
 per core, they run in threads of one shared pool and their outputs, concatenated in order, are
 the one-call outputs bit for bit. The command line keeps OpenBLAS to one thread
 (:mod:`stereoseed.cli`), so these threads do not compete with BLAS's for the cores.
@@ -15,7 +17,7 @@ from typing import Callable, TypeVar
 
 import numpy as np
 
-__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks"]
+__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks", "concat_chunks", "map_items"]
 
 T = TypeVar("T")
 
@@ -79,3 +81,17 @@ def map_chunks(work: Callable[[int, int], T], bounds: np.ndarray) -> list[T]:
     futures = [_pool.submit(work, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])]
     first = work(int(bounds[0]), int(bounds[1]))
     return [first] + [f.result() for f in futures]
+
+
+def concat_chunks(work: Callable[[int, int], tuple], n: int, min_rows: int) -> tuple:
+    """The outputs of ``work(a, b)`` (a tuple of arrays for rows [a, b)) over rows [0, n) cut by
+    :func:`split_rows` (``min_rows``), each output concatenated over the chunks in order."""
+    parts = map_chunks(work, split_rows(n, min_rows))
+    return tuple(parts[0]) if len(parts) == 1 else tuple(np.concatenate(out) for out in zip(*parts))
+
+
+def map_items(fn: Callable[[object], T], items: tuple | list) -> list[T]:
+    """[fn(item) for item in items], the items shared among the cores (``fn`` should spend its
+    time in a kernel that releases the GIL)."""
+    parts = map_chunks(lambda a, b: [fn(item) for item in items[a:b]], split_rows(len(items), 1))
+    return [out for part in parts for out in part]

@@ -21,7 +21,7 @@ from ..arrays import unique
 from ..config import MatchingConfig
 from ..errors import StereoseedError
 from ..features import DEFAULT_MIN_PATCH_STD, Features, describe
-from ..threads import map_chunks, split_rows
+from ..threads import concat_chunks
 from .alignment_kernel import _align_kernel
 from .containers import Alignment, Matches
 
@@ -150,10 +150,8 @@ def align_matches(
     x1 = np.ascontiguousarray(x1, np.float64)
     x2 = np.ascontiguousarray(x2, np.float64)
     args = (patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
-    chunks = map_chunks(lambda a, b: _align_kernel(g1, gx, gy, g2, x1[a:b], x2[a:b], *args),
-                        split_rows(len(x1), _ALIGNMENTS_PER_THREAD))
-    t, A, zncc, converged = (np.concatenate(part) for part in zip(*chunks))
-    return Alignment(t, A, zncc, converged)
+    return Alignment(*concat_chunks(lambda a, b: _align_kernel(g1, gx, gy, g2, x1[a:b], x2[a:b], *args),
+                                    len(x1), _ALIGNMENTS_PER_THREAD))
 
 
 def filter_localization(
