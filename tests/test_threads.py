@@ -79,3 +79,33 @@ def test_concatenated_chunks_and_mapped_items_keep_the_order(monkeypatch):
     a, b = threads.concat_chunks(lambda lo, hi: (np.arange(lo, hi), -np.arange(lo, hi)), 10, 2)
     assert a.tolist() == list(range(10)) and b.tolist() == [-i for i in range(10)]
     assert threads.map_items(lambda x: x * x, (1, 2, 3, 4)) == [1, 4, 9, 16]
+
+
+def test_background_work_runs_in_its_own_thread_and_raises_where_its_result_is_taken(monkeypatch):
+    import threading
+
+    import pytest
+
+    monkeypatch.setattr(threads, "_chunks", 2)
+    with threads.in_background(lambda x: (x * 2, threading.current_thread().name), 21) as job:
+        value, thread = job.result()
+    assert value == 42 and thread.startswith("stereoseed-background")
+
+    def fails():
+        raise ValueError("bad input")
+
+    with threads.in_background(fails) as job:
+        with pytest.raises(ValueError, match="bad input"):
+            job.result()
+
+
+def test_background_work_on_one_core_runs_when_asked_and_not_otherwise(monkeypatch):
+    monkeypatch.setattr(threads, "_chunks", 1)
+    calls = []
+    with threads.in_background(calls.append, 1) as job:
+        assert calls == []  # nothing yet: one core, no thread
+        job.result()
+    assert calls == [1]
+    with threads.in_background(calls.append, 2) as job:
+        job.cancel()
+    assert calls == [1]

@@ -70,7 +70,7 @@ def _dot_window(buf, img, x, y, half):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _zncc_points(I1, mean1, inv1, I2, inv2, pts, half):
     """ZNCC of integer pairs pts (N, 4) int64 (x1, y1, x2, y2); -1 where a window is invalid."""
     H1, W1 = I1.shape
@@ -160,7 +160,7 @@ def _claim(x1, y1, x2, y2, score, m, match_x, match_y, taken2, mx1, my1, mx2, my
     return m + 1, _heap_push(hs, hi, hn, score, m)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, min_zncc,
                       half, radius, grad, use_f, F, band):
     """Best-first propagation. See the module docstring for the algorithm.

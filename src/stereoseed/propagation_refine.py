@@ -19,7 +19,7 @@ from .propagation_kernels import _FASTMATH, _dot_window, _epipolar_line, _load_c
 from .threads import concat_chunks
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f, F):
     """Sub-pixel x2 for each integer match by a quadratic fit of the 3x3 ZNCC surface.
 

@@ -47,6 +47,7 @@ from .matching.pair import candidate_config
 from .matching.zncc import match_zncc
 from .propagation import propagate
 from .reconstruction import Reconstruction
+from .threads import in_background
 from .tracks import colors_at
 from .triangulation import triangulate
 from .registration import Candidate, Registration, RegistrationFailure, _Resector, consistent_chain
@@ -327,29 +328,23 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
                          cfg: Config) -> tuple[Registration | str, QuasiDenseMatches | None]:
     """Steps 1-4 for candidate ``cand`` after the registered view ``prev``: (a
     :class:`Registration` (found_by "quasi-dense") or the reason, the propagated matches when
-    they gave a robust F, else None)."""
-    vp, qc = recon.views[prev], cfg.quasi_dense
-    t = time.perf_counter()
-    pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
-    harris = localised_candidates(vp.features, cand.features, cfg,
-                                  pair_cache(vp.features, cand.features) if pair_cache else None)
-    sift = sift_seeds(vp.image, cand.image, qc.sift_ratio)
-    seeds = np.vstack([harris, sift])
-    t_seeds = time.perf_counter() - t
-    qd = propagate_pair(vp.image, cand.image, seeds, cfg)
-    qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
-    qd.report["seconds"]["seeds"] = t_seeds
-    seconds = qd.report["seconds"]  # seeds, propagation, grid_and_f, resection
-    if qd.F is None:
-        return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
-    t = time.perf_counter()
-    qd = dataclasses.replace(qd, pair=previous_pair_points(recon, prev, cfg))
-    seconds["previous_pair"] = time.perf_counter() - t
+    they gave a robust F, else None). The previous pair's points do not depend on the
+    candidate: they are propagated in a thread of their own while the candidate's seeds are
+    found and propagated (``seconds["previous_pair"]``: the time left to wait for them)."""
+    with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
+        qd, seconds = _propagated_to_candidate(recon, prev, cand, cfg)
+        if qd.F is None:
+            pair_points.cancel()
+            return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
+        t = time.perf_counter()
+        qd = dataclasses.replace(qd, pair=pair_points.result())
+        seconds["previous_pair"] = time.perf_counter() - t
     _, pids, x_prev, x_cand, scores = dense_chain(recon, prev, qd)
     pi, x_pair, s_pair = qd.pair_chain()
     X3 = np.vstack([recon.points[pids], qd.pair.X[pi]])
     x_prev, x_cand = np.vstack([x_prev, qd.pair.xa[pi]]), np.vstack([x_cand, x_pair])
     scores = np.concatenate([scores, s_pair])
+    qc = cfg.quasi_dense
     on_lines = epipolar_distances(qd.F, x_prev, x_cand) <= qc.chain_epipolar_px
     qd.report.update(chained=int(len(pids)), previous_pair_points=int(len(qd.pair.X)), chained_previous_pair=int(len(pi)),
                      chained_on_epipolar_lines=int(on_lines.sum()))
@@ -365,6 +360,24 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     qd.report["resection_inliers"] = int(res.inliers.sum())
     return Registration(cand, res, QUASI_DENSE, len(qd.grid), int(on_lines.sum()), None, refused, seconds,
                         quasi_dense=qd), qd
+
+
+def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate,
+                             cfg: Config) -> tuple[QuasiDenseMatches, dict[str, float]]:
+    """Steps 1-3: the seeds of (prev, cand) and their propagation; (the propagated matches, their
+    report's seconds: seeds, propagation)."""
+    vp = recon.views[prev]
+    t = time.perf_counter()
+    pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
+    harris = localised_candidates(vp.features, cand.features, cfg,
+                                  pair_cache(vp.features, cand.features) if pair_cache else None)
+    sift = sift_seeds(vp.image, cand.image, cfg.quasi_dense.sift_ratio)
+    seeds = np.vstack([harris, sift])
+    t_seeds = time.perf_counter() - t
+    qd = propagate_pair(vp.image, cand.image, seeds, cfg)
+    qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
+    qd.report["seconds"]["seeds"] = t_seeds
+    return qd, qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,

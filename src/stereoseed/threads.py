@@ -1,5 +1,6 @@
 """Sharing a kernel's independent rows among the cores: :func:`split_rows` and :func:`map_chunks`,
-with :func:`concat_chunks` and :func:`map_items` for the common shapes of work.
+with :func:`concat_chunks` and :func:`map_items` for the common shapes of work; and
+:func:`in_background`, one independent step computed while the caller goes on.
 
 The hot loops (ZNCC scores, patch alignment, the quasi-dense refinement, the BA's reduced
 camera system, dense normals) are Numba kernels that release the GIL (``nogil=True``) and treat
@@ -12,12 +13,14 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, TypeVar
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
-__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks", "concat_chunks", "map_items"]
+__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks", "concat_chunks", "map_items",
+           "in_background"]
 
 T = TypeVar("T")
 
@@ -95,3 +98,31 @@ def map_items(fn: Callable[[object], T], items: tuple | list) -> list[T]:
     time in a kernel that releases the GIL)."""
     parts = map_chunks(lambda a, b: [fn(item) for item in items[a:b]], split_rows(len(items), 1))
     return [out for part in parts for out in part]
+
+
+class _Deferred:
+    """A Future's ``result()`` for work run by the caller itself, when it asks for it."""
+
+    def __init__(self, fn: Callable[..., T], args: tuple):
+        self._fn, self._args = fn, args
+
+    def result(self) -> T:
+        return self._fn(*self._args)
+
+    def cancel(self) -> bool:
+        return True
+
+
+@contextmanager
+def in_background(fn: Callable[..., T], *args: object) -> Iterator[Future]:
+    """``fn(*args)`` started in a thread of its own while the ``with`` block goes on; the block
+    takes its value with ``.result()`` (an exception of ``fn`` is raised there). Leaving the
+    block waits for the thread (``fn`` must not outlive what it reads). With one core (or one
+    chunk, :func:`limit_chunks`) there is no thread: ``fn`` runs when ``.result()`` is called,
+    and not at all if it is not. ``fn`` should spend its time where the GIL is released
+    (OpenCV, a ``nogil`` kernel) and must not change what the block reads."""
+    if _chunks < 2 or getattr(_in_pool, "yes", False):
+        yield _Deferred(fn, args)
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="stereoseed-background") as executor:
+        yield executor.submit(fn, *args)
