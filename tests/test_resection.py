@@ -106,3 +106,45 @@ def test_implausible_intrinsics_names_what_no_physical_camera_does():
     X = box_points(rng, 80)
     res = resect(X, project(P, X) + rng.normal(0, 0.3, (80, 2)), image_size=size)
     assert implausible_intrinsics(res.P, ref_K, size) is None
+
+
+def _samples_drawn_in_python(rng, n_samples, p, cells, distinct_cells):
+    """The sampling rule written plainly: the first fitting of 12 weighted draws per sample,
+    then, sample after sample, uniform draws (one rng.integers call each) for a short one."""
+    draws = rng.choice(len(p), size=(n_samples, 12), p=p)
+    samples = []
+    for row in draws:
+        chosen = []
+        for idx in row:
+            if idx not in chosen and not (distinct_cells and cells[idx] in cells[chosen]):
+                chosen.append(int(idx))
+            if len(chosen) == 6:
+                break
+        samples.append(chosen)
+    for chosen in samples:
+        while len(chosen) < 6:
+            idx = int(rng.integers(len(p)))
+            if idx not in chosen:
+                chosen.append(idx)
+    return np.array(samples)
+
+
+@pytest.mark.parametrize("n_cells", [3, 6, 40])
+def test_compiled_sampling_draws_the_plain_rule_s_samples_and_leaves_the_generator_alike(n_cells):
+    """Few image cells make most samples short of 6 distinct cells: their completion draws from
+    the generator inside the kernel, and must give the same samples and the same generator
+    state as the plain rule (the RANSAC's results then do not depend on how it is compiled)."""
+    from stereoseed.resection import _draw_samples
+
+    n = 50
+    gen = np.random.default_rng(7)
+    p = gen.random(n)
+    p /= p.sum()
+    cells = gen.integers(0, n_cells, n)
+    for distinct in (True, False):
+        ours, plain = np.random.default_rng(3), np.random.default_rng(3)
+        got = _draw_samples(ours, 400, p, cells, distinct)
+        want = _samples_drawn_in_python(plain, 400, p, cells, distinct)
+        assert np.array_equal(got, want)
+        assert ours.bit_generator.state == plain.bit_generator.state
+        assert all(len(set(s)) == 6 for s in got.tolist())

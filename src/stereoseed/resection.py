@@ -40,17 +40,8 @@ def _draw_samples(rng: np.random.Generator, n_samples: int, p: np.ndarray, cells
     image cells (cells (N,)) when ``distinct_cells`` (the points cover enough cells: spread over
     the image makes the DLT well conditioned): the first fitting of 12 weighted draws,
     completed by uniform draws."""
-    n = len(p)
-    draws = rng.choice(n, size=(n_samples, 12), p=p)
-    samples, filled = choose_samples(draws, cells, distinct_cells)
-    for s in np.flatnonzero(filled < 6):  # rare: 12 draws without 6 fitting ones
-        chosen = list(samples[s, :filled[s]])
-        while len(chosen) < 6:
-            idx = int(rng.integers(n))
-            if idx not in chosen:
-                chosen.append(idx)
-        samples[s] = chosen
-    return samples
+    draws = rng.choice(len(p), size=(n_samples, 12), p=p)
+    return choose_samples(rng, draws, cells, distinct_cells)
 
 
 def _pnp_start(X: np.ndarray, x: np.ndarray, K: np.ndarray, config: ResectionConfig) -> tuple[np.ndarray, np.ndarray] | None:

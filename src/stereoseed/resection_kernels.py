@@ -23,12 +23,14 @@ _SHIFT = 1e-10
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def choose_samples(draws, cells, distinct_cells):
+def choose_samples(rng, draws, cells, distinct_cells):
     """Samples (S, 6) int64 from candidate draws (S, C) int64: for each sample, the first draws
     that repeat neither a chosen point nor, if ``distinct_cells``, a chosen image cell (cells
-    (N,) int64). Returns the samples and how many points each got (S,): a sample short of 6 is
-    completed by the caller (its generator must draw them, in sample order)."""
+    (N,) int64). A sample short of 6 (rare: C draws without 6 fitting ones) is completed by
+    uniform draws of the generator ``rng`` repeating no chosen point, in sample order: the
+    stream of ``rng.integers(N)`` called one at a time (Numba's Generator draws NumPy's numbers)."""
     n_samples, n_draws = draws.shape
+    n = cells.shape[0]
     samples = np.zeros((n_samples, 6), np.int64)
     filled = np.zeros(n_samples, np.int64)
     for s in range(n_samples):
@@ -47,7 +49,19 @@ def choose_samples(draws, cells, distinct_cells):
             if k == 6:
                 break
         filled[s] = k
-    return samples, filled
+    for s in range(n_samples):
+        k = filled[s]
+        while k < 6:
+            idx = rng.integers(0, n)
+            fresh = True
+            for q in range(k):
+                if samples[s, q] == idx:
+                    fresh = False
+                    break
+            if fresh:
+                samples[s, k] = idx
+                k += 1
+    return samples
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
