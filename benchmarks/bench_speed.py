@@ -35,16 +35,37 @@ def _data_dir() -> Path:
     return Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+# Runs a command and reports its wall seconds and peak RSS on stderr's last line. The command is
+# the child of this small process, not of the benchmark: a child's peak RSS (ru_maxrss) counts
+# the memory its parent had when it forked (Linux records the old address space's high-water
+# mark at exec), so a command started by a benchmark holding rendered scenes "peaked" at the
+# benchmark's size, not its own.
+_TIMER = """
+import os, subprocess, sys, time
+t = time.perf_counter()
+child = subprocess.Popen(sys.argv[1:])
+_, status, usage = os.wait4(child.pid, 0)
+sys.stderr.write(f"\\n{TIMED} {time.perf_counter() - t!r} {usage.ru_maxrss}\\n")
+code = os.waitstatus_to_exitcode(status)
+sys.exit(code if code >= 0 else 128 - code)
+"""
+_TIMED = "stereoseed-bench-timed"
+
+
 def timed_process(args: list[str], env: dict | None = None) -> dict:
-    """Run a command to its end: wall seconds, peak RSS (MB) of the process, exit code."""
-    t = time.perf_counter()
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    seconds = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode(errors="replace")
-    return {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024, "returncode": proc.returncode,
-            "stderr": err.strip().splitlines()[-1:] if proc.returncode else []}
+    """Run a command to its end: wall seconds, its own peak RSS (MB), exit code (and the last
+    line of its stderr when it failed)."""
+    # stderr to a file, not a pipe: waiting on a child that fills an unread pipe never ends
+    with tempfile.TemporaryFile() as stderr:
+        timer = [sys.executable, "-I", "-c", _TIMER.replace("{TIMED}", _TIMED), *args]
+        code = subprocess.run(timer, env=env, stdout=subprocess.DEVNULL, stderr=stderr).returncode
+        stderr.seek(0)
+        lines = stderr.read().decode(errors="replace").strip().splitlines()
+    last = lines.pop().split() if lines and lines[-1].startswith(_TIMED) else None
+    if last is None:
+        raise RuntimeError(f"the timer did not report on {args[0]}: {lines[-1:]}")
+    return {"seconds": float(last[1]), "peak_rss_mb": int(last[2]) / 1024, "returncode": code,
+            "stderr": [line for line in lines if line.strip()][-1:] if code else []}
 
 
 def _synthetic(folder: Path, config: SceneConfig) -> dict:
