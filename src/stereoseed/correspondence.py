@@ -9,7 +9,7 @@ measure the chain alone.
 """
 from __future__ import annotations
 
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Any, Callable, Protocol
 
 import numpy as np
@@ -19,6 +19,7 @@ from .features import Features, describe, extract_features
 from .matching.alignment import PairCache, align_matches, refine_features
 from .matching.containers import Matches
 from .matching.pair import match_pair
+from .threads import current_chunks
 
 __all__ = ["CorrespondenceSource", "HarrisZncc", "Prefetching"]
 
@@ -102,16 +103,21 @@ class HarrisZncc:
 
 
 class Prefetching:
-    """A correspondence source whose interest points of the next images are computed in a
-    background thread while the mapper places the current one (``image_of(index)`` gives the
-    image of view ``index``).
+    """A correspondence source that works ahead of the mapper in background threads
+    (``image_of(index)`` gives the image of view ``index``):
 
-    The interest points of image k depend on image k alone, and OpenCV and the Numba kernels
-    release the GIL: on two cores the detector of the next images runs while the geometry of
-    this one is solved. Everything else is the wrapped source's. ``first``: the first index to
-    prefetch; ``ahead``: how many images ahead (each holds its
-    interest points and grey image until asked for). Use as a context manager: the thread
-    stops (pending work cancelled) on exit."""
+    * the interest points of the next images (they depend on their image alone);
+    * the matches of a view with the next image, once the mapper says the view's interest
+      points are final (:meth:`expect_match`): the next insertion starts with exactly that
+      call (robust F, no camera yet), so it runs while the mapper adjusts the view just placed.
+
+    OpenCV and the Numba kernels release the GIL, so on two cores this work overlaps the
+    geometry. Results are those of the wrapped source, bit for bit: a speculative match is
+    used only for the very feature sets it was computed on, and every other call to the source
+    first waits for it (the source is not shared between threads). ``first``: the first index
+    to prefetch; ``ahead``: how many images ahead (each holds its interest points and grey
+    image until asked for). Use as a context manager: the threads stop (pending work
+    cancelled) on exit."""
 
     def __init__(self, source: Any, image_of: Callable[[int], np.ndarray], n_images: int, first: int, ahead: int = 2):
         self.source = source
@@ -121,10 +127,22 @@ class Prefetching:
         self._ahead = ahead
         self._futures: dict[int, Future] = {}
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-features")
+        self._matcher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-matching")
+        self._speculative: tuple[tuple, Future] | None = None
         self._submit_up_to(first + ahead - 1)
 
-    def __getattr__(self, name: str) -> Any:  # match, refine, track, turns_images: the source's
-        return getattr(self.source, name)
+    def __getattr__(self, name: str) -> Any:
+        """The source's attribute (turns_images; refine, track, pair_cache where it has them),
+        its methods called once the speculative match is over."""
+        attr = getattr(self.source, name)
+        if not callable(attr):
+            return attr
+
+        def settled(*args: Any, **kwargs: Any) -> Any:
+            self._settle()
+            return attr(*args, **kwargs)
+
+        return settled
 
     def _features_of(self, index: int) -> tuple[np.ndarray, Features]:
         image = self._image_of(index)
@@ -144,9 +162,49 @@ class Prefetching:
                 return features
         return self.source.features(index, image)
 
+    def expect_match(self, a: int, fa: Features, image_width: int) -> None:
+        """View a's interest points ``fa`` are final: match them with the next image's (as
+        :meth:`match` with no F will be asked to) in the background."""
+        self._settle()
+        future = self._futures.get(a + 1)
+        if future is None or current_chunks() < 2:  # the last image, or nothing to overlap with on one core
+            return
+
+        def speculate() -> tuple[Features, Matches]:
+            fb = future.result()[1]
+            return fb, self.source.match(a, a + 1, fa, fb, None, image_width)
+
+        self._speculative = ((a, a + 1, fa, image_width), self._matcher.submit(speculate))
+
+    def _settle(self) -> tuple[tuple, Future] | None:
+        """Wait for the speculative match (the source then is this thread's again); it is
+        handed over, once."""
+        speculative, self._speculative = self._speculative, None
+        if speculative is not None:
+            wait([speculative[1]])
+        return speculative
+
+    def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
+        speculative = self._settle()
+        if speculative is not None and F is None and self._answers(speculative, a, b, fa, fb, image_width):
+            return speculative[1].result()[1]
+        return self.source.match(a, b, fa, fb, F, image_width)
+
+    @staticmethod
+    def _answers(speculative: tuple[tuple, Future], a: int, b: int, fa: Features, fb: Features,
+                 image_width: int) -> bool:
+        """Whether the speculative match is this call's: the same views, the very same feature
+        sets and width, and no error (a failed speculation is not reported: the direct call
+        fails the same way if it was this one)."""
+        (sa, sb, sfa, width), future = speculative
+        return ((sa, sb, width) == (a, b, image_width) and sfa is fa and future.exception() is None
+                and future.result()[0] is fb)
+
     def __enter__(self) -> "Prefetching":
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+        self._matcher.shutdown(wait=True, cancel_futures=True)
         self._futures.clear()
+        self._speculative = None
