@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -26,15 +27,22 @@ def _same(m1, m2) -> bool:
     return all(np.array_equal(getattr(m1, k), getattr(m2, k)) for k in ("idx1", "idx2", "score"))
 
 
-def test_the_next_insertion_s_match_is_computed_ahead_and_is_the_direct_match(box_scene, monkeypatch):
-    monkeypatch.setattr(threads, "_chunks", 2)
-    images = box_scene.images
+@contextmanager
+def _view_0_final(scene):
+    """Prefetching over the scene, told that view 0's interest points are final, then asked for
+    view 1's: (the counting source, the wrapper, f0, f1, the image width)."""
+    images = scene.images
     width = images[0].shape[1]
     source = _Counting(Config())
     with Prefetching(source, lambda i: images[i], len(images), first=0) as prefetching:
         f0 = prefetching.features(0, images[0])
-        prefetching.expect_match(0, f0, width)  # view 0's interest points are final
-        f1 = prefetching.features(1, images[1])
+        prefetching.expect_match(0, f0, width)
+        yield source, prefetching, f0, prefetching.features(1, images[1]), width
+
+
+def test_the_next_insertion_s_match_is_computed_ahead_and_is_the_direct_match(box_scene, monkeypatch):
+    monkeypatch.setattr(threads, "_chunks", 2)
+    with _view_0_final(box_scene) as (source, prefetching, f0, f1, width):
         got = prefetching.match(0, 1, f0, f1, None, width)
     assert source.match_threads == ["stereoseed-matching_0"]  # computed ahead, once
     direct = HarrisZncc(Config()).match(0, 1, f0, f1, None, width)
@@ -43,14 +51,8 @@ def test_the_next_insertion_s_match_is_computed_ahead_and_is_the_direct_match(bo
 
 def test_a_match_it_did_not_foresee_is_computed_when_asked(box_scene, monkeypatch):
     monkeypatch.setattr(threads, "_chunks", 2)
-    images = box_scene.images
-    width = images[0].shape[1]
-    source = _Counting(Config())
-    with Prefetching(source, lambda i: images[i], len(images), first=0) as prefetching:
-        f0 = prefetching.features(0, images[0])
-        prefetching.expect_match(0, f0, width)
-        f1 = prefetching.features(1, images[1])
-        F = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    F = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    with _view_0_final(box_scene) as (source, prefetching, f0, f1, width):
         with_f = prefetching.match(0, 1, f0, f1, F, width)  # known F: not the speculated call
         again = prefetching.match(0, 1, f0, f1, None, width)  # the speculation was handed over once
     assert source.match_threads == ["stereoseed-matching_0", "MainThread", "MainThread"]
