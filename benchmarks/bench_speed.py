@@ -45,25 +45,25 @@ import os, subprocess, sys, time
 t = time.perf_counter()
 child = subprocess.Popen(sys.argv[1:])
 _, status, usage = os.wait4(child.pid, 0)
-sys.stderr.write(f"\\n{TIMED} {time.perf_counter() - t!r} {usage.ru_maxrss}\\n")
-code = os.waitstatus_to_exitcode(status)
-sys.exit(code if code >= 0 else 128 - code)
+code = os.waitstatus_to_exitcode(status)  # -N: killed by signal N
+sys.stderr.write(f"\\n{TIMED} {time.perf_counter() - t!r} {usage.ru_maxrss} {code}\\n")
 """
 _TIMED = "stereoseed-bench-timed"
 
 
 def timed_process(args: list[str], env: dict | None = None) -> dict:
-    """Run a command to its end: wall seconds, its own peak RSS (MB), exit code (and the last
-    line of its stderr when it failed)."""
+    """Run a command to its end: wall seconds, its own peak RSS (MB), exit code (-N: killed by
+    signal N, as subprocess says) and the last line of its stderr when it failed."""
     # stderr to a file, not a pipe: waiting on a child that fills an unread pipe never ends
     with tempfile.TemporaryFile() as stderr:
         timer = [sys.executable, "-I", "-c", _TIMER.replace("{TIMED}", _TIMED), *args]
-        code = subprocess.run(timer, env=env, stdout=subprocess.DEVNULL, stderr=stderr).returncode
+        subprocess.run(timer, env=env, stdout=subprocess.DEVNULL, stderr=stderr)
         stderr.seek(0)
         lines = stderr.read().decode(errors="replace").strip().splitlines()
     last = lines.pop().split() if lines and lines[-1].startswith(_TIMED) else None
     if last is None:
         raise RuntimeError(f"the timer did not report on {args[0]}: {lines[-1:]}")
+    code = int(last[3])
     return {"seconds": float(last[1]), "peak_rss_mb": int(last[2]) / 1024, "returncode": code,
             "stderr": [line for line in lines if line.strip()][-1:] if code else []}
 

@@ -26,3 +26,9 @@ def test_a_failing_loud_command_gives_its_code_and_last_error_line_without_hangi
             "sys.exit(3)")
     out = timed_process([sys.executable, "-c", loud])
     assert out["returncode"] == 3 and out["stderr"] == ["the reason"]
+
+
+def test_a_command_killed_by_a_signal_is_told_from_one_that_exits_with_a_code():
+    killed = timed_process([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])
+    exited = timed_process([sys.executable, "-c", "import sys; sys.exit(137)"])
+    assert killed["returncode"] == -9 and exited["returncode"] == 137

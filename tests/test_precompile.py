@@ -13,6 +13,7 @@ def test_every_module_gets_current_bytecode_even_where_imports_may_not_write_it(
     """A container commonly sets PYTHONDONTWRITEBYTECODE: without bytecode beside the sources
     every command would compile the whole package again."""
     monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")  # a reproducible-build setting: still timestamp-checked files
     package = Path(stereoseed.__file__).resolve().parent
     probe = package / "arrays.py"
     cached = Path(importlib.util.cache_from_source(str(probe)))

@@ -114,7 +114,8 @@ class Prefetching:
     OpenCV and the Numba kernels release the GIL, so on two cores this work overlaps the
     geometry. Results are those of the wrapped source, bit for bit: a speculative match is
     used only for the very feature sets it was computed on, and every other call to the source
-    first waits for it (the source is not shared between threads). ``first``: the first index
+    but ``features`` (which keeps no state) first waits for it: the source's caches are never
+    shared between threads. ``first``: the first index
     to prefetch; ``ahead``: how many images ahead (each holds its interest points and grey
     image until asked for). Use as a context manager: the threads stop (pending work
     cancelled) on exit."""

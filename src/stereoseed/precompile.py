@@ -25,8 +25,12 @@ def compile_bytecode() -> bool:
     Python then loads it whether or not it may write bytecode itself. False when some module
     could not be written (a read-only installation: then runs compile in memory, as before)."""
     import compileall
+    import py_compile
 
-    return bool(compileall.compile_dir(str(Path(__file__).resolve().parent), quiet=2))
+    # timestamp-checked, what Python writes itself (SOURCE_DATE_EPOCH would make compileall
+    # write hash-checked files, whose every import hashes the source)
+    return bool(compileall.compile_dir(str(Path(__file__).resolve().parent), quiet=2,
+                                       invalidation_mode=py_compile.PycInvalidationMode.TIMESTAMP))
 
 
 def precompile() -> float:

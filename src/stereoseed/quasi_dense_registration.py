@@ -333,8 +333,7 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     found and propagated (``seconds["previous_pair"]``: the time left to wait for them)."""
     with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
         qd, seconds = _propagated_to_candidate(recon, prev, cand, cfg)
-        if qd.F is None:
-            pair_points.cancel()
+        if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
             return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
         t = time.perf_counter()
         qd = dataclasses.replace(qd, pair=pair_points.result())

@@ -109,9 +109,6 @@ class _Deferred:
     def result(self) -> T:
         return self._fn(*self._args)
 
-    def cancel(self) -> bool:
-        return True
-
 
 @contextmanager
 def in_background(fn: Callable[..., T], *args: object) -> Iterator[Future]:

@@ -72,7 +72,9 @@ class PairCache:
 # tracked into later views and checked again, each time with the same Sobel images
 _GRADIENTS: OrderedDict[int, tuple] = OrderedDict()
 _GRADIENTS_KEPT = 8
-_gradients_lock = threading.Lock()
+# re-entrant: the finalizer that drops an image's entry may run inside a locked section (a
+# garbage collection there freeing a grey image)
+_gradients_lock = threading.RLock()
 
 
 def _with_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
