@@ -10,6 +10,7 @@ measure the chain alone.
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 import numpy as np
@@ -19,7 +20,7 @@ from .features import Features, describe, extract_features
 from .matching.alignment import PairCache, align_matches, refine_features
 from .matching.containers import Matches
 from .matching.pair import match_pair
-from .threads import current_chunks
+from .threads import may_overlap
 
 __all__ = ["CorrespondenceSource", "HarrisZncc", "Prefetching"]
 
@@ -28,7 +29,9 @@ class CorrespondenceSource(Protocol):
     """What the mapper asks of a correspondence source. ``refine`` and ``track`` are optional
     (without them matched points keep their detected positions and nothing is tracked);
     ``turns_images`` says whether matching an image turned by 180 degrees can find more
-    (a rotation-sensitive matcher such as ZNCC)."""
+    (a rotation-sensitive matcher such as ZNCC); ``expect_match(a, fa, image_width)``, optional,
+    hears that view a's interest points are final (:class:`Prefetching` then matches them with
+    the next image's ahead of time)."""
 
     def features(self, index: int, image: np.ndarray) -> Features:
         """Interest points of image ``index``."""
@@ -102,6 +105,24 @@ class HarrisZncc:
         return xy, ok
 
 
+@dataclass(frozen=True)
+class _Speculation:
+    """A match of view a (interest points ``fa``) with the next image, computed ahead: the
+    future gives (the next image's interest points, the matches)."""
+
+    a: int
+    fa: Features
+    image_width: int
+    future: Future
+
+    def answers(self, a: int, b: int, fa: Features, fb: Features, image_width: int) -> bool:
+        """Whether it is this call's: the same views, the very same feature sets and width, and
+        no error (a failed speculation is not reported: the direct call fails the same way if it
+        was this one)."""
+        return ((self.a, self.a + 1, self.image_width) == (a, b, image_width) and self.fa is fa
+                and self.future.exception() is None and self.future.result()[0] is fb)
+
+
 class Prefetching:
     """A correspondence source that works ahead of the mapper in background threads
     (``image_of(index)`` gives the image of view ``index``):
@@ -129,7 +150,7 @@ class Prefetching:
         self._futures: dict[int, Future] = {}
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-features")
         self._matcher = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereoseed-matching")
-        self._speculative: tuple[tuple, Future] | None = None
+        self._speculation: _Speculation | None = None
         self._submit_up_to(first + ahead - 1)
 
     def __getattr__(self, name: str) -> Any:
@@ -168,38 +189,28 @@ class Prefetching:
         :meth:`match` with no F will be asked to) in the background."""
         self._settle()
         future = self._futures.get(a + 1)
-        if future is None or current_chunks() < 2:  # the last image, or nothing to overlap with on one core
+        if future is None or not may_overlap():  # the last image, or nothing to overlap with
             return
 
         def speculate() -> tuple[Features, Matches]:
             fb = future.result()[1]
             return fb, self.source.match(a, a + 1, fa, fb, None, image_width)
 
-        self._speculative = ((a, a + 1, fa, image_width), self._matcher.submit(speculate))
+        self._speculation = _Speculation(a, fa, image_width, self._matcher.submit(speculate))
 
-    def _settle(self) -> tuple[tuple, Future] | None:
+    def _settle(self) -> _Speculation | None:
         """Wait for the speculative match (the source then is this thread's again); it is
         handed over, once."""
-        speculative, self._speculative = self._speculative, None
-        if speculative is not None:
-            wait([speculative[1]])
-        return speculative
+        speculation, self._speculation = self._speculation, None
+        if speculation is not None:
+            wait([speculation.future])
+        return speculation
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
-        speculative = self._settle()
-        if speculative is not None and F is None and self._answers(speculative, a, b, fa, fb, image_width):
-            return speculative[1].result()[1]
+        speculation = self._settle()
+        if speculation is not None and F is None and speculation.answers(a, b, fa, fb, image_width):
+            return speculation.future.result()[1]
         return self.source.match(a, b, fa, fb, F, image_width)
-
-    @staticmethod
-    def _answers(speculative: tuple[tuple, Future], a: int, b: int, fa: Features, fb: Features,
-                 image_width: int) -> bool:
-        """Whether the speculative match is this call's: the same views, the very same feature
-        sets and width, and no error (a failed speculation is not reported: the direct call
-        fails the same way if it was this one)."""
-        (sa, sb, sfa, width), future = speculative
-        return ((sa, sb, width) == (a, b, image_width) and sfa is fa and future.exception() is None
-                and future.result()[0] is fb)
 
     def __enter__(self) -> "Prefetching":
         return self
@@ -208,4 +219,4 @@ class Prefetching:
         self._executor.shutdown(wait=True, cancel_futures=True)
         self._matcher.shutdown(wait=True, cancel_futures=True)
         self._futures.clear()
-        self._speculative = None
+        self._speculation = None

@@ -332,7 +332,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     candidate: they are propagated in a thread of their own while the candidate's seeds are
     found and propagated (``seconds["previous_pair"]``: the time left to wait for them)."""
     with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
-        qd, seconds = _propagated_to_candidate(recon, prev, cand, cfg)
+        qd = _propagated_to_candidate(recon, prev, cand, cfg)
+        seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
         if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
             return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
         t = time.perf_counter()
@@ -362,9 +363,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
 
 
 def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate,
-                             cfg: Config) -> tuple[QuasiDenseMatches, dict[str, float]]:
-    """Steps 1-3: the seeds of (prev, cand) and their propagation; (the propagated matches, their
-    report's seconds: seeds, propagation)."""
+                             cfg: Config) -> QuasiDenseMatches:
+    """Steps 1-3: the seeds of (prev, cand) and their propagation."""
     vp = recon.views[prev]
     t = time.perf_counter()
     pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
@@ -376,7 +376,7 @@ def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate,
     qd = propagate_pair(vp.image, cand.image, seeds, cfg)
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
-    return qd, qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
+    return qd
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,

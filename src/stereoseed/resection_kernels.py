@@ -32,7 +32,6 @@ def choose_samples(rng, draws, cells, distinct_cells):
     n_samples, n_draws = draws.shape
     n = cells.shape[0]
     samples = np.zeros((n_samples, 6), np.int64)
-    filled = np.zeros(n_samples, np.int64)
     for s in range(n_samples):
         k = 0
         for d in range(n_draws):
@@ -48,10 +47,7 @@ def choose_samples(rng, draws, cells, distinct_cells):
             k += 1
             if k == 6:
                 break
-        filled[s] = k
-    for s in range(n_samples):
-        k = filled[s]
-        while k < 6:
+        while k < 6:  # the weighted draws were all made before: the generator's stream goes on
             idx = rng.integers(0, n)
             fresh = True
             for q in range(k):

@@ -19,8 +19,8 @@ from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
-__all__ = ["CORES", "current_chunks", "limit_chunks", "split_rows", "map_chunks", "concat_chunks", "map_items",
-           "in_background"]
+__all__ = ["CORES", "current_chunks", "limit_chunks", "may_overlap", "split_rows", "map_chunks", "concat_chunks",
+           "map_items", "in_background"]
 
 T = TypeVar("T")
 
@@ -57,6 +57,13 @@ def limit_chunks(n: int) -> None:
 def current_chunks() -> int:
     """How many chunks kernels' rows are cut into at most: the cores, or :func:`limit_chunks`'s."""
     return _chunks
+
+
+def may_overlap() -> bool:
+    """Whether work started in another thread can run beside this thread's: more than one core
+    (or chunk, :func:`limit_chunks`), and this thread is not a pool thread (whose work is already
+    someone's second core)."""
+    return _chunks >= 2 and not getattr(_in_pool, "yes", False)
 
 
 def split_rows(n: int, min_rows: int, max_chunks: int | None = None) -> np.ndarray:
@@ -118,7 +125,7 @@ def in_background(fn: Callable[..., T], *args: object) -> Iterator[Future]:
     chunk, :func:`limit_chunks`) there is no thread: ``fn`` runs when ``.result()`` is called,
     and not at all if it is not. ``fn`` should spend its time where the GIL is released
     (OpenCV, a ``nogil`` kernel) and must not change what the block reads."""
-    if _chunks < 2 or getattr(_in_pool, "yes", False):
+    if not may_overlap():
         yield _Deferred(fn, args)
         return
     with ThreadPoolExecutor(1, thread_name_prefix="stereoseed-background") as executor:

@@ -29,7 +29,7 @@ __all__ = ["PairCache", "align_matches", "filter_localization", "refine_features
 
 # An alignment takes 30-80 us (13-16 iterations), handing a chunk to a pool thread 20-60 us: from
 # 8 matches per chunk on, a thread saves more than it costs. Tracking aligns ~100 points per
-# (view, reference) pair, most calls below the 128 a bound of 64 needed to use a second core
+# (view, reference) pair: with 64 per chunk, most of its calls stayed on one core
 _ALIGNMENTS_PER_THREAD = 8
 
 
