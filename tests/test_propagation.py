@@ -156,6 +156,32 @@ def test_affine_pair_subpixel(affine_pair, method, use_f):
         assert d.max() < 1e-6
 
 
+@pytest.mark.parametrize("method", ["quadratic", "affine"])
+@pytest.mark.parametrize("use_f", [False, True])
+def test_refine_rows_gives_those_rows_exactly(affine_pair, method, use_f):
+    """Refining a few chosen rows gives them bit for bit as the full refinement does (the
+    affine passes fit on neighbours refined before); every other row keeps its whole pixel."""
+    img1, img2, A, F, seeds = affine_pair
+    Fu = F if use_f else None
+    full = propagate(img1, img2, seeds, Fu, subpixel=True, subpixel_method=method)
+    asked = {}
+
+    def every_37th(whole, scores):
+        assert np.all(whole == np.round(whole)) and scores.dtype == np.float32 and len(scores) == len(whole)
+        asked["n"] = len(whole)
+        return np.arange(3, len(whole), 37)
+
+    part = propagate(img1, img2, seeds, Fu, subpixel=True, subpixel_method=method, refine_rows=every_37th)
+    rows = np.arange(3, full.n_matches, 37)
+    assert asked["n"] == full.n_matches and len(rows) > 100
+    np.testing.assert_array_equal(part.matches[rows], full.matches[rows])
+    np.testing.assert_array_equal(part.refined_by[rows], full.refined_by[rows])
+    rest = np.setdiff1d(np.arange(full.n_matches), rows)
+    np.testing.assert_array_equal(part.matches[rest], full.integer_matches[rest].astype(np.float64))
+    assert np.all(part.refined_by[rest] == 0)
+    assert np.any(full.matches[rows, 2:] != np.round(full.matches[rows, 2:]))  # something was refined
+
+
 def test_one_match_per_pixel_in_each_image(affine_pair):
     img1, img2, A, F, seeds = affine_pair
     res = propagate(img1, img2, seeds, F)

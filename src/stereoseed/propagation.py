@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -64,7 +65,7 @@ class PropagationResult:
     Attributes:
         matches: (M, 4) float64, rows (x1, y1, x2, y2) in acceptance order (the accepted seeds
             come first). x1, y1 are integers; x2, y2 are integers too, or the refined sub-pixel
-            position when ``subpixel`` is True.
+            position when ``subpixel`` is True (on the rows ``refine_rows`` chose, when given).
         scores: (M,) float32, the ZNCC of each match at its integer position (all > min_zncc).
         match_x, match_y: (H1, W1) int32, the integer pixel of image 2 matched to each pixel of
             image 1, -1 where unmatched.
@@ -165,6 +166,7 @@ def propagate(
     seed_scores: np.ndarray | None = None,
     subpixel: bool | None = None,
     subpixel_method: str = "affine",
+    refine_rows: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> PropagationResult:
     """Quasi-dense match propagation between two images (LQ02, paper §4.4).
 
@@ -199,6 +201,11 @@ def propagate(
               matches that no pass refined (fewer than 12 matched neighbours, or no warped
               ZNCC > min_zncc) get the quadratic fit. Needed on wide-baseline pairs, where the
               shear inside a 5x5 window moves the plain ZNCC peak by a pixel or more.
+        refine_rows: when sub-pixel refinement is on, an optional function of the whole-pixel
+            matches (M, 4) float64 and their scores (M,) float32 returning the rows (R,) int64
+            to refine: a caller that reads a few hundred of tens of thousands of matches
+            refines those alone (each comes out exactly as in a full refinement; the others
+            keep whole pixels, ``refined_by`` 0). None: all rows.
 
     Returns:
         :class:`PropagationResult`. Empty (M = 0) when no seed survives, e.g. for empty seeds or
@@ -263,14 +270,21 @@ def propagate(
 
     refined_by = np.zeros(x1.shape[0], dtype=np.int8)
     if do_subpixel and x1.shape[0] > 0:
+        rows = None
+        if refine_rows is not None:
+            whole = np.stack([x1, y1, x2, y2], axis=1).astype(np.float64)
+            rows = np.unique(np.asarray(refine_rows(whole, sc.astype(np.float32)), np.int64))
+        wanted = np.ones(x1.shape[0], bool) if rows is None else np.isin(np.arange(x1.shape[0]), rows)
         if subpixel_method == "affine":
             fx2, fy2, used = _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, Fm,
-                                            float(cfg.min_zncc))
+                                            float(cfg.min_zncc), rows)
+            used &= wanted  # a wanted row's neighbours were refined on the way: they stay whole
+            fx2[~wanted], fy2[~wanted] = x2[~wanted], y2[~wanted]
             refined_by[used] = 2
-            rest = np.flatnonzero(~used)  # no affine fit or no warped ZNCC > min_zncc
+            rest = np.flatnonzero(wanted & ~used)  # no affine fit or no warped ZNCC > min_zncc
         else:
             fx2, fy2 = x2.astype(np.float64), y2.astype(np.float64)
-            rest = np.arange(x1.shape[0])
+            rest = np.flatnonzero(wanted)
         if rest.size:
             fx2[rest], fy2[rest] = _refine_quadratic(I1, mean1, inv1, I2, inv2, x1[rest], y1[rest],
                                                      x2[rest], y2[rest], half, use_f, Fm)

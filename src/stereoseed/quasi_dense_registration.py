@@ -33,7 +33,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -83,7 +83,8 @@ class PairPoints:
 class QuasiDenseMatches:
     """Propagated matches between a registered view a and a candidate b.
 
-    matches: (M, 4) float64 rows (xa, ya, xb, yb), xa, ya whole pixels, xb, yb sub-pixel;
+    matches: (M, 4) float64 rows (xa, ya, xb, yb), xa, ya whole pixels, xb, yb sub-pixel on the
+    rows that are read (the grid's, the chained pixels': :func:`propagate_pair`), else whole;
     scores: (M,) ZNCC; row_of_pixel: (H, W) int32, the row of ``matches`` of each pixel of a
     (-1: unmatched); grid: (G,) int64 rows of ``matches``, the best one per grid cell of a;
     F: (3, 3) robust F of the grid matches (xb.T F xa = 0) or None; f_inlier: (G,) bool;
@@ -175,16 +176,31 @@ def _grid_and_f(res: Any, qc: Any) -> tuple[np.ndarray, ...]:
     return q, sc, grid, F, inlier
 
 
-def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg: Config) -> QuasiDenseMatches:
-    """Steps 2-3: propagation from seeds (S, 4) without F, the grid resampling, a robust F."""
+def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg: Config,
+                   chained_pixels: Callable[[], np.ndarray] | None = None) -> QuasiDenseMatches:
+    """Steps 2-3: propagation from seeds (S, 4) without F, the grid resampling, a robust F.
+
+    chained_pixels: the pixels (C, 2) of a whose matches are read besides the grid's, asked
+    once the whole-pixel matches are known (it may wait for a result computed meanwhile): only
+    those matches and the grid's get a sub-pixel position, the others keep whole pixels (a
+    weak insertion reads a few thousand of 40-60 thousand). None: every match is refined."""
     qc = cfg.quasi_dense
     t = time.perf_counter()
     img_a, img_b = _foreground(img_a, qc.background_grey), _foreground(img_b, qc.background_grey)
-    res = propagate(img_a, img_b, seeds, None, cfg.propagation)
+
+    def grid_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
+        return grid_best(q[:, :2], sc.astype(np.float64), qc.grid_cell_px)
+
+    def read_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
+        return np.union1d(grid_rows(q, sc), _rows_at(q, chained_pixels(), img_a.shape[1]))
+
+    res = propagate(img_a, img_b, seeds, None, cfg.propagation,
+                    refine_rows=None if chained_pixels is None else grid_rows if qc.second_pass else read_rows)
     q, sc, grid, F, inlier = _grid_and_f(res, qc)
     if qc.second_pass and F is not None:
         res = propagate(img_a, img_b, q[grid[inlier]], F,
-                        dataclasses.replace(cfg.propagation, epipolar_band_px=qc.chain_epipolar_px))
+                        dataclasses.replace(cfg.propagation, epipolar_band_px=qc.chain_epipolar_px),
+                        refine_rows=None if chained_pixels is None else read_rows)
         q, sc, grid, F2, inlier = _grid_and_f(res, qc)
         F = F2 if F2 is not None else F
     t_prop = time.perf_counter() - t
@@ -196,17 +212,22 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
     return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report)
 
 
+def _rows_at(q: np.ndarray, xy: np.ndarray, width: int) -> np.ndarray:
+    """Rows (K,) of the whole-pixel matches q (M, 4) at the pixels of a nearest to xy (C, 2)
+    (rounded as :func:`dense_chain` rounds; pixels outside an image ``width`` wide are none)."""
+    r = np.rint(np.asarray(xy, np.float64).reshape(-1, 2)).astype(np.int64)
+    r = r[(r[:, 0] >= 0) & (r[:, 0] < width) & (r[:, 1] >= 0)]
+    keys = q[:, 1].astype(np.int64) * width + q[:, 0].astype(np.int64)
+    return np.flatnonzero(np.isin(keys, r[:, 1] * width + r[:, 0]))
+
+
 def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[np.ndarray, ...]:
     """Step 4: the live points observed in view a, followed to b by the propagated match of
     their pixel (the sub-pixel offset from the pixel centre carried over).
 
     Returns features (C,) of a observing them, point ids (C,), xa (C, 2), xb (C, 2), scores
     (C,); each point once."""
-    sel = (recon.obs_view == a) & recon.alive[recon.obs_point]
-    feats, pids = recon.obs_feature[sel], recon.obs_point[sel]
-    pids, first = np.unique(pids, return_index=True)  # paper mode: linked and unlinked at one pixel
-    feats = feats[first]
-    xa = recon.views[a].features.points[feats]
+    feats, pids, xa = _observed(recon, a)
     h, w = qd.row_of_pixel.shape
     r = np.rint(xa).astype(np.int64)
     inside = (r[:, 0] >= 0) & (r[:, 0] < w) & (r[:, 1] >= 0) & (r[:, 1] < h)
@@ -215,6 +236,16 @@ def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[n
     ok = row >= 0
     xb = qd.matches[row[ok], 2:] + (xa[ok] - r[ok])
     return feats[ok], pids[ok], xa[ok], xb, qd.scores[row[ok]]
+
+
+def _observed(recon: Reconstruction, a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The live points observed in view a, each once: features (C,) of a, point ids (C,), their
+    pixels xa (C, 2)."""
+    sel = (recon.obs_view == a) & recon.alive[recon.obs_point]
+    feats, pids = recon.obs_feature[sel], recon.obs_point[sel]
+    pids, first = np.unique(pids, return_index=True)  # paper mode: linked and unlinked at one pixel
+    feats = feats[first]
+    return feats, pids, recon.views[a].features.points[feats]
 
 
 def _cell_keys(xy: np.ndarray, cell: int) -> np.ndarray:
@@ -231,14 +262,16 @@ def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoin
     b, cell = before[0], cfg.quasi_dense.grid_cell_px
     va, vb = recon.views[a], recon.views[b]
     bg = cfg.quasi_dense.background_grey
+    observed = _cell_keys(recon.observation_xy(recon.obs_view == a), cell)  # an observation's point is alive
+
+    def free_grid(q: np.ndarray, scores: np.ndarray) -> np.ndarray:  # the rows kept (and refined)
+        free = np.flatnonzero(~np.isin(_cell_keys(q[:, :2], cell), observed))
+        return free[grid_best(q[free, :2], scores[free].astype(np.float64), cell)]
+
     res = propagate(_foreground(va.image, bg), _foreground(vb.image, bg), recon.shared_pixels(a, b),
-                    fundamental_from_projections(va.P, vb.P), cfg.propagation)
-    q, sc = res.matches, res.scores.astype(np.float64)
-    observed = recon.observation_xy(recon.obs_view == a)  # an observation's point is always alive
-    free = ~np.isin(_cell_keys(q[:, :2], cell), _cell_keys(observed, cell))
-    q, sc = q[free], sc[free]
-    rows = grid_best(q[:, :2], sc, cell)
-    q, sc = q[rows], sc[rows]
+                    fundamental_from_projections(va.P, vb.P), cfg.propagation, refine_rows=free_grid)
+    rows = free_grid(res.matches, res.scores)
+    q, sc = res.matches[rows], res.scores[rows].astype(np.float64)
     tc = cfg.triangulation
     tri = triangulate(np.stack([va.P, vb.P]), np.stack([q[:, :2], q[:, 2:]]), iterations=tc.lm_iterations)
     ok = tri.valid(tc.max_reprojection_px, tc.min_angle_deg)
@@ -331,14 +364,25 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     they gave a robust F, else None). The previous pair's points do not depend on the
     candidate: they are propagated in a thread of their own while the candidate's seeds are
     found and propagated (``seconds["previous_pair"]``: the time left to wait for them)."""
+    waited = 0.0
     with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
-        qd = _propagated_to_candidate(recon, prev, cand, cfg)
+
+        def chained_pixels() -> np.ndarray:  # what the chain below reads of prev: its points, the pair's
+            nonlocal waited
+            t = time.perf_counter()
+            pair = pair_points.result()
+            waited += time.perf_counter() - t
+            return np.vstack([_observed(recon, prev)[2], pair.xa])
+
+        # grow_quasi_dense (keep_tracks) reads the pixels of points added after this: all refined
+        qd = _propagated_to_candidate(recon, prev, cand, cfg, None if cfg.quasi_dense.keep_tracks else chained_pixels)
         seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
         if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
             return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
         t = time.perf_counter()
         qd = dataclasses.replace(qd, pair=pair_points.result())
-        seconds["previous_pair"] = time.perf_counter() - t
+        seconds["previous_pair"] = waited + time.perf_counter() - t
+        seconds["propagation"] -= waited
     _, pids, x_prev, x_cand, scores = dense_chain(recon, prev, qd)
     pi, x_pair, s_pair = qd.pair_chain()
     X3 = np.vstack([recon.points[pids], qd.pair.X[pi]])
@@ -362,9 +406,10 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
                         quasi_dense=qd), qd
 
 
-def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate,
-                             cfg: Config) -> QuasiDenseMatches:
-    """Steps 1-3: the seeds of (prev, cand) and their propagation."""
+def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate, cfg: Config,
+                             chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
+    """Steps 1-3: the seeds of (prev, cand) and their propagation (``chained_pixels``: as
+    :func:`propagate_pair`'s)."""
     vp = recon.views[prev]
     t = time.perf_counter()
     pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
@@ -373,7 +418,7 @@ def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate,
     sift = sift_seeds(vp.image, cand.image, cfg.quasi_dense.sift_ratio)
     seeds = np.vstack([harris, sift])
     t_seeds = time.perf_counter() - t
-    qd = propagate_pair(vp.image, cand.image, seeds, cfg)
+    qd = propagate_pair(vp.image, cand.image, seeds, cfg, chained_pixels)
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
     return qd
