@@ -115,7 +115,26 @@ def test_a_run_that_cannot_start_is_recorded_not_raised():
     flat = [np.full_like(im, 128) for im in scene.images]
     seq = _Sequence(flat, scene.names, scene.P[:2], scene_seed=0, P_true=scene.P, corners=scene.corners,
                     visibility=[scene.corner_visibility(i) for i in range(2)])
-    result = _run_job(_Job(seq, 2, "local", 0))
+    results = _run_job(_Job(seq, (2,), "local", 0))
+    assert list(results) == [2]
+    result = results[2]
     assert result["error"] and result["registered"] == 0 and "rms_3d_m" not in result
     assert _stats([None, float("nan")])["valid"] == 0
     assert _json_clean({"x": [float("nan"), 1.0]}) == {"x": [None, 1.0]}
+
+
+def test_one_run_serves_every_count_of_a_job():
+    """A job evaluated at 3 and 5 images gives, at 3, exactly what a run on the first 3 images
+    gives (the finishing step on a copy of the model, then the run goes on): Fig. 7 and the
+    tables take every image count from one run."""
+    from stereoseed.experiments import _Job, _run_job, _synthetic_sequence
+
+    seq = _synthetic_sequence(render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400.0,
+                                                       focal0_px=390.0, supersample=1)))
+    both = _run_job(_Job(seq, (3, 5), "final", 0))
+    alone = {**_run_job(_Job(seq.prefix(3), (3,), "final", 0)), **_run_job(_Job(seq, (5,), "final", 0))}
+    assert sorted(both) == [3, 5]
+    for count in (3, 5):
+        for key in ("registered", "sparse_points", "eq14", "rms_px", "observations", "rms_3d_m", "corners"):
+            assert both[count][key] == alone[count][key], (count, key)
+    assert both[5]["registered"] == 5 and both[5]["rms_3d_m"] < 0.01

@@ -369,3 +369,41 @@ def test_global_adjust_drops_outliers_and_adjusts_again():
     # the cameras up to 6 mm off, and the mismatches it could not see yet still in)
     assert ba["rms_after_px"] < 0.3 < ba["rms_first_round_before_px"]
     assert max(centre) < 0.005, centre
+
+
+def _untimed(report):
+    if isinstance(report, dict):
+        return {k: _untimed(v) for k, v in report.items() if k != "seconds"}
+    return [_untimed(v) for v in report] if isinstance(report, list) else report
+
+
+def _state(recon):
+    return [None if v.P is None else v.P.copy() for v in recon.views], recon.live_points()[0].copy()
+
+
+def test_a_finished_copy_is_the_run_on_the_images_so_far(box_scene):
+    """finished_copy after the 4th image gives what a run on those 4 images gives, to the last
+    bit (the finishing step: loop closure, global BA), and the run then goes on as if nothing
+    happened. The paper bench evaluates every image count of a figure this way."""
+    from stereoseed.pipeline import finished_copy
+
+    images, names, pair = box_scene.images[:5], box_scene.names[:5], box_scene.P[:2]
+    seen = {}
+
+    def after_insertion(recon, per_image):
+        if len(per_image) == 4:
+            with finished_copy(recon, per_image, Config()) as (model, report):
+                seen["state"], seen["report"] = _state(model), report
+            assert len(per_image) == 4 and "final" not in per_image[-1]
+
+    recon5, report5 = reconstruct(images, names, pair, after_insertion=after_insertion)
+    recon4, report4 = reconstruct(images[:4], names[:4], pair)
+    cams, points = seen["state"]
+    assert all(np.array_equal(a, b) for a, b in zip(cams[:4], _state(recon4)[0]))
+    assert np.array_equal(points, _state(recon4)[1]) and len(points) > 500
+    for key in ("registered", "points", "reprojection", "per_image", "final"):  # the timings aside
+        assert _untimed(seen["report"][key]) == _untimed(report4[key]), key
+    plain5, _ = reconstruct(images, names, pair)
+    cams5, points5 = _state(recon5)
+    assert all(np.array_equal(a, b) for a, b in zip(cams5, _state(plain5)[0]))
+    assert np.array_equal(points5, _state(plain5)[1])

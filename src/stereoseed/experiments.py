@@ -18,9 +18,12 @@ How the work is organised:
 * Every reconstruction whose result does not depend on timing (Fig. 7, Fig. 9, the tables) is a
   job run in a pool of ``workers`` spawned processes; jobs asked for by several figures are run
   once. Fig. 8 measures time, so its runs happen in this process alone, before the pool starts.
-* A sequence of n images is always reconstructed from its first n images ("prefix runs"): with a
-  global BA, later insertions move earlier cameras, so evaluating cameras 0..n-1 of a longer run
-  would not measure what a run on n images gives.
+* A sequence of n images is evaluated as a run on its first n images gives it: with a global BA,
+  later insertions move earlier cameras, so the cameras 0..n-1 at the end of a longer run would
+  not measure that. One run per sequence, noise level and variant serves every count: after the
+  n-th image, the finishing step runs on a copy of the model
+  (:func:`stereoseed.pipeline.finished_copy`; the incremental loop never looks ahead, so this is
+  the n-image run's result, to the last bit) and the run goes on.
 * An insertion that fails is reported by the pipeline and skipped; a run that cannot even start
   (:class:`StereoseedError`) is recorded with its message and its numbers are NaN (``null`` in
   the JSON). Nothing here works around such failures.
@@ -72,7 +75,7 @@ class BenchPlan:
 
     ring_images: int  # images rendered of the 20° ring: covers the 14- and 18-image sequences
     fig7_images: int  # the paper's 14 images
-    fig7_counts: tuple[int, ...]  # sequence lengths evaluated in Fig. 7 (prefix runs)
+    fig7_counts: tuple[int, ...]  # sequence lengths evaluated in Fig. 7 (runs on the first n images)
     fig8_images: int  # the long ring of Fig. 8
     fig8_step_deg: float
     fig9_images: int
@@ -182,15 +185,20 @@ def _load_temple(n: int | None) -> _Sequence | None:
 
 @dataclass(frozen=True)
 class _Job:
-    """A pipeline run on the first ``n`` images of a sequence, optionally with image noise, the
-    box-corner evaluation (synthetic) and the dense stage. Picklable, for the process pool."""
+    """One pipeline run on a sequence, optionally with image noise, evaluated at the image
+    counts ``counts`` (its length is the largest): the box-corner evaluation (synthetic) at
+    each, the dense stage at ``dense_counts``. Picklable, for the process pool."""
 
     sequence: _Sequence = field(compare=False)
-    n: int
+    counts: tuple[int, ...]
     variant: str
     seed: int
     noise_sigma: float = 0.0
-    dense: bool = False
+    dense_counts: tuple[int, ...] = ()
+
+    @property
+    def n(self) -> int:
+        return max(self.counts)
 
 
 def _config(variant: str, seed: int) -> Config:
@@ -201,26 +209,48 @@ def _config(variant: str, seed: int) -> Config:
                                                       dense={"workers": 1})
 
 
-def _run_job(job: _Job) -> dict[str, Any]:
-    from .pipeline import reconstruct
+def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
+    """{count: results of a run on the first ``count`` images} for each of the job's counts. One
+    run on the longest prefix: after each count's insertion, the finishing step runs on a copy
+    of the model (:func:`stereoseed.pipeline.finished_copy`), which is what a run on those
+    images alone returns (the loop never looks ahead), at the cost of the finishing steps only.
+    "seconds": the run's time to that count, the other counts' evaluations left out."""
+    from .pipeline import finished_copy, reconstruct
 
     seq, n = job.sequence, job.n
     images = seq.images[:n]
     if job.noise_sigma > 0:
         images = noisy_images(images, job.noise_sigma, seq.scene_seed)
     cfg = _config(job.variant, job.seed)
-    out: dict[str, Any] = {"images": n, "variant": job.variant, "noise_sigma": job.noise_sigma}
+    out: dict[int, dict[str, Any]] = {}
     t0 = time.perf_counter()
+    evaluating = [0.0]  # seconds spent evaluating earlier counts: no count's run time
+
+    def evaluate(recon: Any, report: dict[str, Any], count: int, not_run: float = 0.0) -> dict[str, Any]:
+        r = {"images": count, "variant": job.variant, "noise_sigma": job.noise_sigma, **_sparse_summary(report),
+             "seconds": time.perf_counter() - t0 - evaluating[0] - not_run}
+        if seq.corners is not None:
+            r.update(_corner_error(recon, seq, count))
+        if count in job.dense_counts:
+            r.update(_dense_summary(recon, cfg, synthetic=seq.corners is not None))
+        return r
+
+    def after_insertion(recon: Any, per_image: list[dict[str, Any]]) -> None:
+        count = len(per_image)
+        if count in job.counts and count < n:  # the run's own end gives the last count
+            t = time.perf_counter()
+            with finished_copy(recon, per_image, cfg) as (snapshot, report):
+                copying = time.perf_counter() - t - report["final"]["seconds"]  # the finishing step is the run's
+                out[count] = evaluate(snapshot, report, count, copying)
+            evaluating[0] += time.perf_counter() - t
+
     try:
-        recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg)
+        recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg, after_insertion=after_insertion)
     except StereoseedError as e:
-        out.update(error=str(e), registered=0, seconds=time.perf_counter() - t0)
-        return out
-    out.update(_sparse_summary(report), seconds=time.perf_counter() - t0)
-    if seq.corners is not None:
-        out.update(_corner_error(recon, seq, n))
-    if job.dense:
-        out.update(_dense_summary(recon, cfg, synthetic=seq.corners is not None))
+        seconds = time.perf_counter() - t0
+        return {c: {"images": c, "variant": job.variant, "noise_sigma": job.noise_sigma, "error": str(e),
+                    "registered": 0, "seconds": seconds} for c in job.counts}
+    out[n] = evaluate(recon, report, n)
     return out
 
 
@@ -262,8 +292,8 @@ def _dense_summary(recon: Any, cfg: Config, synthetic: bool) -> dict[str, Any]:
 def _job_cost(job: _Job) -> float:
     """Rough seconds, to start the longest jobs first (the pool then ends evenly)."""
     per_image = {"local": 0.2, "global": 0.03 * job.n, "final": 0.25, "accurate": 0.45}[job.variant]
-    final_ba = 0.05 * job.n ** 2 if job.variant in ("final", "accurate") else 0.0
-    return job.n * per_image + final_ba + (0.5 * job.n if job.dense else 0.0)
+    final_ba = sum(0.05 * c ** 2 for c in job.counts) if job.variant in ("final", "accurate") else 0.0
+    return job.n * per_image + final_ba + sum(0.5 * c for c in job.dense_counts)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -310,7 +340,8 @@ def _timed_run(seq: _Sequence, variant: str, seed: int) -> dict[str, Any]:
 
 
 class _Jobs:
-    """The set of reconstruction jobs, each run once however many figures ask for it."""
+    """The reconstruction jobs: one run per sequence, noise level and variant, evaluated at
+    every image count a figure or table asks for."""
 
     def __init__(self, seed: int):
         self.seed = seed
@@ -318,33 +349,41 @@ class _Jobs:
 
     def want(self, seq_key: tuple, seq: _Sequence, n: int, variant: str, sigma: float = 0.0,
              dense: bool = False) -> tuple:
-        key = (*seq_key, float(sigma), n, variant)
-        job = self.jobs.get(key)
-        if job is None:
-            self.jobs[key] = _Job(seq.prefix(n), n, variant, self.seed, float(sigma), dense)
-        elif dense and not job.dense:
-            self.jobs[key] = dataclasses.replace(job, dense=True)
-        return key
+        """The key of the results of a run on the first n images (``results[key]``)."""
+        run = (*seq_key, float(sigma), variant)
+        job = self.jobs.get(run, _Job(seq, (), variant, self.seed, float(sigma)))
+        self.jobs[run] = dataclasses.replace(job, counts=tuple(sorted({*job.counts, n})),
+                                             dense_counts=tuple(sorted({*job.dense_counts, *([n] if dense else [])})))
+        return (*seq_key, float(sigma), n, variant)
+
+
+def _shipped(job: _Job) -> _Job:
+    """The job with the images it uses only (what a worker receives)."""
+    return dataclasses.replace(job, sequence=job.sequence.prefix(job.n))
 
 
 def _run_pool(jobs: dict[tuple, _Job], workers: int, tick: Callable[[str], None]) -> dict[tuple, dict]:
+    """{(*sequence key, sigma, n, variant): results} of every job, for each of its counts."""
     order = sorted(jobs, key=lambda k: -_job_cost(jobs[k]))
     results: dict[tuple, dict] = {}
+
+    def done(run: tuple, by_count: dict[int, dict]) -> None:
+        for count, r in by_count.items():
+            results[(*run[:-1], count, run[-1])] = r
+        tick(f"{run[-1]}, {jobs[run].n} images")
+
     if workers <= 1:
-        for key in order:
-            results[key] = _run_job(jobs[key])
-            tick(f"{key[-1]}, {key[-2]} images")
+        for run in order:
+            done(run, _run_job(_shipped(jobs[run])))
         return results
     # "spawn": the workers start clean instead of inheriting this process's OpenMP (renderer) and
     # OpenCV thread pools, which are not fork-safe.
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
     try:
-        futures = {pool.submit(_run_job, jobs[key]): key for key in order}
+        futures = {pool.submit(_run_job, _shipped(jobs[run])): run for run in order}
         for fut in as_completed(futures):
-            key = futures[fut]
-            results[key] = fut.result()
-            tick(f"{key[-1]}, {key[-2]} images")
+            done(futures[fut], fut.result())
     except BaseException:
         # A bug in a run (or Ctrl-C): report it now rather than after every queued job has run.
         pool.shutdown(wait=False, cancel_futures=True)

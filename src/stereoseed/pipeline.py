@@ -5,11 +5,13 @@ mapper's.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
@@ -30,19 +32,22 @@ from .results import ResultSet, write_result
 if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
     from .cluster import JobPool
 
-__all__ = ["reconstruct", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
+__all__ = ["reconstruct", "finished_copy", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 
 log = logging.getLogger(__name__)
 
 # progress(done, total, message): called after the pair and after each insertion
 Progress = Callable[[int, int, str], None]
+# after_insertion(recon, per_image): likewise, with the model as it stands (see reconstruct)
+AfterInsertion = Callable[[Reconstruction, list[dict[str, Any]]], None]
 
 CHECKPOINT = ".checkpoint.pkl"  # in the staging folder, kept after an interruption for resume
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
                 progress: Progress | None = None, source: CorrespondenceSource | None = None,
-                checkpoint: str | Path | None = None, resume: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
+                checkpoint: str | Path | None = None, resume: bool = False,
+                after_insertion: AfterInsertion | None = None) -> tuple[Reconstruction, dict[str, Any]]:
     """The incremental loop over an ordered sequence whose first two images are the calibrated
     pair (P_pair: their two (3, 4) cameras). An image that cannot be placed is reported and
     skipped; the next one is placed from the last registered images. Returns the
@@ -50,7 +55,10 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
 
     checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.checkpoint`);
     resume: continue from it when it was written for these inputs and settings (the result is
-    the uninterrupted run's; the report lists the images that were resumed)."""
+    the uninterrupted run's; the report lists the images that were resumed).
+    after_insertion: called after the pair and after each insertion with the model and the
+    per-image reports so far; it must leave both as it found them (:func:`finished_copy` gives
+    what a run on the images so far would return, without disturbing this one)."""
     t0 = time.perf_counter()
     n = len(images)
     if n < 2:
@@ -71,6 +79,8 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             recon, init = initialise(images, names, P_pair, cfg, source)
             per_image = [{"image": names[0], "status": "calibrated"}, init]
             saver.save(recon, per_image)
+            if after_insertion:
+                after_insertion(recon, per_image)
         resumed = [r["image"] for r in per_image] if state is not None else []
         if progress:
             progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
@@ -94,24 +104,49 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
                     saver.save(recon, per_image)
                     if progress:
                         progress(k + 1, n, f"{names[k]}: {rep['status']}")
+                    if after_insertion:
+                        after_insertion(recon, per_image)
         finally:
             recon.source = source
-    final = finish(recon, cfg)
-    for r in per_image:  # a view the finishing step could not keep is reported as skipped
-        if r.get("image") in final.get("dropped", {}):
-            r.update(status="failed", reason=final["dropped"][r["image"]])
-    pc = cfg.pipeline
-    report = {
-        "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,
-        "images": n, "registered": len(recon.registered_views),
-        "points": int(len(recon.live_points()[0])), "reprojection": recon.reprojection_summary(),
-        "per_image": per_image, "final": final, "seconds": time.perf_counter() - t0,
-        "config": cfg.to_dict(),
-    }
+    report = _finished(recon, per_image, cfg, t0)
     if resumed:
         report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
+
+
+def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float) -> dict[str, Any]:
+    """The finishing step (:func:`stereoseed.mapper.finish`) on ``recon`` after the views of
+    ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
+    not keep is reported as skipped)."""
+    final = finish(recon, cfg)
+    for r in per_image:
+        if r.get("image") in final.get("dropped", {}):
+            r.update(status="failed", reason=final["dropped"][r["image"]])
+    pc = cfg.pipeline
+    return {
+        "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,
+        "images": len(per_image), "registered": len(recon.registered_views),
+        "points": int(len(recon.live_points()[0])), "reprojection": recon.reprojection_summary(),
+        "per_image": per_image, "final": final, "seconds": time.perf_counter() - t0,
+        "config": cfg.to_dict(),
+    }
+
+
+@contextmanager
+def finished_copy(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
+                  t0: float | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
+    """Inside an ``after_insertion`` call: (the model, the report) that :func:`reconstruct`
+    would return for the images so far (the finishing step run on the model as it stands), for
+    the block's duration; the model is then put back as it was and the run goes on. The
+    incremental loop never looks ahead, so this is a run on the first ``len(per_image)``
+    images without running them again (``t0``: the run's start, for the report's seconds)."""
+    state = recon.checkpoint()
+    started = time.perf_counter() if t0 is None else t0
+    try:
+        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolved(), started)
+    finally:
+        recon.restore(state)
 
 
 def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
