@@ -50,7 +50,7 @@ import numpy as np
 
 from .config import Config, PipelineConfig
 from .errors import StereoseedError
-from .experiments_report import LABELS, _plot_fig7, _plot_fig8, _plot_fig9, _plot_table2, _summary_md
+from .experiments_report import LABELS, _json_clean, _plot_fig7, _plot_fig8, _plot_fig9, _plot_table2, _summary_md
 from .io import write_json, write_text
 
 __all__ = ["VARIANTS", "BenchPlan", "FULL_PLAN", "QUICK_PLAN", "run_paper_bench", "noisy_images",
@@ -200,6 +200,10 @@ class _Job:
     def n(self) -> int:
         return max(self.counts)
 
+    def shipped(self) -> "_Job":
+        """The job with the images it uses only (what a worker receives)."""
+        return dataclasses.replace(self, sequence=self.sequence.prefix(self.n))
+
 
 def _config(variant: str, seed: int) -> Config:
     # The seed also drives RANSAC, so one seed fixes every random choice of the run. The dense
@@ -226,9 +230,11 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
     t0 = time.perf_counter()
     evaluating = [0.0]  # seconds spent evaluating earlier counts: no count's run time
 
+    def header(count: int) -> dict[str, Any]:
+        return {"images": count, "variant": job.variant, "noise_sigma": job.noise_sigma}
+
     def evaluate(recon: Any, report: dict[str, Any], count: int, not_run: float = 0.0) -> dict[str, Any]:
-        r = {"images": count, "variant": job.variant, "noise_sigma": job.noise_sigma, **_sparse_summary(report),
-             "seconds": time.perf_counter() - t0 - evaluating[0] - not_run}
+        r = {**header(count), **_sparse_summary(report), "seconds": time.perf_counter() - t0 - evaluating[0] - not_run}
         if seq.corners is not None:
             r.update(_corner_error(recon, seq, count))
         if count in job.dense_counts:
@@ -247,9 +253,8 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
     try:
         recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg, after_insertion=after_insertion)
     except StereoseedError as e:
-        seconds = time.perf_counter() - t0
-        return {c: {"images": c, "variant": job.variant, "noise_sigma": job.noise_sigma, "error": str(e),
-                    "registered": 0, "seconds": seconds} for c in job.counts}
+        return {c: {**header(c), "error": str(e), "registered": 0, "seconds": time.perf_counter() - t0}
+                for c in job.counts}
     out[n] = evaluate(recon, report, n)
     return out
 
@@ -357,11 +362,6 @@ class _Jobs:
         return (*seq_key, float(sigma), n, variant)
 
 
-def _shipped(job: _Job) -> _Job:
-    """The job with the images it uses only (what a worker receives)."""
-    return dataclasses.replace(job, sequence=job.sequence.prefix(job.n))
-
-
 def _run_pool(jobs: dict[tuple, _Job], workers: int, tick: Callable[[str], None]) -> dict[tuple, dict]:
     """{(*sequence key, sigma, n, variant): results} of every job, for each of its counts."""
     order = sorted(jobs, key=lambda k: -_job_cost(jobs[k]))
@@ -374,14 +374,14 @@ def _run_pool(jobs: dict[tuple, _Job], workers: int, tick: Callable[[str], None]
 
     if workers <= 1:
         for run in order:
-            done(run, _run_job(_shipped(jobs[run])))
+            done(run, _run_job(jobs[run].shipped()))
         return results
     # "spawn": the workers start clean instead of inheriting this process's OpenMP (renderer) and
     # OpenCV thread pools, which are not fork-safe.
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
     try:
-        futures = {pool.submit(_run_job, _shipped(jobs[run])): run for run in order}
+        futures = {pool.submit(_run_job, jobs[run].shipped()): run for run in order}
         for fut in as_completed(futures):
             done(futures[fut], fut.result())
     except BaseException:
@@ -584,20 +584,3 @@ def _assemble(plan: BenchPlan, seed: int, layout: dict[str, Any], fig8: dict, re
         "temple_found": has_temple,
         "data_dir": str(shared_data_dir()),
     }
-
-
-def _json_clean(obj: Any) -> Any:
-    """NaN and infinities become null (strict JSON has no NaN); tuples become lists."""
-    if isinstance(obj, dict):
-        return {str(k): _json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_clean(obj.tolist())
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj

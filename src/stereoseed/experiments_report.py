@@ -3,7 +3,7 @@
 Every function takes the bench's JSON-able data (``paper_bench.json``: metres and seconds, None
 for a missing value) and writes or returns one output: ``_plot_fig7``, ``_plot_fig8``,
 ``_plot_fig9``, ``_plot_table2`` a PNG each (Matplotlib's Agg canvas, no pyplot state),
-``_summary_md`` the Markdown tables.
+``_summary_md`` the Markdown tables; ``_json_clean`` makes the data strict JSON.
 """
 from __future__ import annotations
 
@@ -240,3 +240,20 @@ def _summary_md(d: dict) -> str:
     if not d["temple_found"]:
         parts.append(f"\ntempleSparseRing not found in {d['data_dir']} (set STEREOSEED_DATA): no real sequence.\n")
     return "".join(parts)
+
+
+def _json_clean(obj: Any) -> Any:
+    """NaN and infinities become null (strict JSON has no NaN); tuples become lists."""
+    if isinstance(obj, dict):
+        return {str(k): _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_clean(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
