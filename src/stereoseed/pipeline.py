@@ -56,8 +56,9 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.checkpoint`);
     resume: continue from it when it was written for these inputs and settings (the result is
     the uninterrupted run's; the report lists the images that were resumed).
-    after_insertion: called after the pair and after each insertion with the model and the
-    per-image reports so far; it must leave both as it found them (:func:`finished_copy` gives
+    after_insertion: called after the pair and after each insertion this run performs (not those
+    a resumed run takes from its checkpoint) with the model and the per-image reports so far; it
+    must leave both as it found them (:func:`finished_copy` gives
     what a run on the images so far would return, without disturbing this one)."""
     t0 = time.perf_counter()
     n = len(images)
