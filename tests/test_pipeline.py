@@ -381,18 +381,18 @@ def _state(recon):
     return [None if v.P is None else v.P.copy() for v in recon.views], recon.live_points()[0].copy()
 
 
-def test_a_finished_copy_is_the_run_on_the_images_so_far(box_scene):
-    """finished_copy after the 4th image gives what a run on those 4 images gives, to the last
+def test_a_run_as_finished_midway_is_the_run_on_the_images_so_far(box_scene):
+    """as_finished after the 4th image gives what a run on those 4 images gives, to the last
     bit (the finishing step: loop closure, global BA), and the run then goes on as if nothing
     happened. The paper bench evaluates every image count of a figure this way."""
-    from stereoseed.pipeline import finished_copy
+    from stereoseed.pipeline import as_finished
 
     images, names, pair = box_scene.images[:5], box_scene.names[:5], box_scene.P[:2]
     seen = {}
 
     def after_insertion(recon, per_image):
         if len(per_image) == 4:
-            with finished_copy(recon, per_image, Config()) as (model, report):
+            with as_finished(recon, per_image, Config()) as (model, report):
                 seen["state"], seen["report"] = _state(model), report
             assert len(per_image) == 4 and "final" not in per_image[-1]
 

@@ -105,6 +105,7 @@ def test_background_work_on_one_core_runs_when_asked_and_not_otherwise(monkeypat
     with threads.in_background(calls.append, 1) as job:
         assert calls == []  # nothing yet: one core, no thread
         job.result()
+        job.result()  # as a Future's: the same value, not computed again
     assert calls == [1]
     with threads.in_background(calls.append, 2):
         pass  # not asked for: never computed

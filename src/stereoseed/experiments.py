@@ -21,8 +21,8 @@ How the work is organised:
 * A sequence of n images is evaluated as a run on its first n images gives it: with a global BA,
   later insertions move earlier cameras, so the cameras 0..n-1 at the end of a longer run would
   not measure that. One run per sequence, noise level and variant serves every count: after the
-  n-th image, the finishing step runs on a copy of the model
-  (:func:`stereoseed.pipeline.finished_copy`; the incremental loop never looks ahead, so this is
+  n-th image, the finishing step runs on the model, which is then put back
+  (:func:`stereoseed.pipeline.as_finished`; the incremental loop never looks ahead, so this is
   the n-image run's result, to the last bit) and the run goes on.
 * An insertion that fails is reported by the pipeline and skipped; a run that cannot even start
   (:class:`StereoseedError`) is recorded with its message and its numbers are NaN (``null`` in
@@ -215,11 +215,13 @@ def _config(variant: str, seed: int) -> Config:
 
 def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
     """{count: results of a run on the first ``count`` images} for each of the job's counts. One
-    run on the longest prefix: after each count's insertion, the finishing step runs on a copy
-    of the model (:func:`stereoseed.pipeline.finished_copy`), which is what a run on those
-    images alone returns (the loop never looks ahead), at the cost of the finishing steps only.
-    "seconds": the run's time to that count, the other counts' evaluations left out."""
-    from .pipeline import finished_copy, reconstruct
+    run on the longest prefix: after each count's insertion, the finishing step runs on the
+    model, which is then put back (:func:`stereoseed.pipeline.as_finished`): what a run on
+    those images alone returns (the loop never looks ahead), at the cost of the finishing
+    steps only. An error fails the counts it reaches, not those evaluated before it.
+    "seconds": the run's time to that count, the other counts' evaluations left out (about a
+    separate run's: the images after it are being read ahead meanwhile)."""
+    from .pipeline import as_finished, reconstruct
 
     seq, n = job.sequence, job.n
     images = seq.images[:n]
@@ -241,21 +243,26 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
             r.update(_dense_summary(recon, cfg, synthetic=seq.corners is not None))
         return r
 
+    def failed(count: int, e: StereoseedError) -> dict[str, Any]:
+        return {**header(count), "error": str(e), "registered": 0, "seconds": time.perf_counter() - t0}
+
     def after_insertion(recon: Any, per_image: list[dict[str, Any]]) -> None:
         count = len(per_image)
         if count in job.counts and count < n:  # the run's own end gives the last count
             t = time.perf_counter()
-            with finished_copy(recon, per_image, cfg) as (snapshot, report):
-                copying = time.perf_counter() - t - report["final"]["seconds"]  # the finishing step is the run's
-                out[count] = evaluate(snapshot, report, count, copying)
+            try:
+                with as_finished(recon, per_image, cfg) as (model, report):
+                    copying = time.perf_counter() - t - report["final"]["seconds"]  # the finishing step is the run's
+                    out[count] = evaluate(model, report, count, copying)
+            except StereoseedError as e:  # as a run on these images would have failed
+                out[count] = failed(count, e)
             evaluating[0] += time.perf_counter() - t
 
     try:
         recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg, after_insertion=after_insertion)
+        out[n] = evaluate(recon, report, n)
     except StereoseedError as e:
-        return {c: {**header(c), "error": str(e), "registered": 0, "seconds": time.perf_counter() - t0}
-                for c in job.counts}
-    out[n] = evaluate(recon, report, n)
+        return {c: out[c] if c in out else failed(c, e) for c in job.counts}
     return out
 
 

@@ -32,7 +32,7 @@ from .results import ResultSet, write_result
 if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
     from .cluster import JobPool
 
-__all__ = ["reconstruct", "finished_copy", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
+__all__ = ["reconstruct", "as_finished", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     the uninterrupted run's; the report lists the images that were resumed).
     after_insertion: called after the pair and after each insertion this run performs (not those
     a resumed run takes from its checkpoint) with the model and the per-image reports so far; it
-    must leave both as it found them (:func:`finished_copy` gives
+    must leave both as it found them (:func:`as_finished` gives
     what a run on the images so far would return, without disturbing this one)."""
     t0 = time.perf_counter()
     n = len(images)
@@ -119,7 +119,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float) -> dict[str, Any]:
     """The finishing step (:func:`stereoseed.mapper.finish`) on ``recon`` after the views of
     ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
-    not keep is reported as skipped)."""
+    not keep is reported as failed, with the reason)."""
     final = finish(recon, cfg)
     for r in per_image:
         if r.get("image") in final.get("dropped", {}):
@@ -135,11 +135,12 @@ def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Confi
 
 
 @contextmanager
-def finished_copy(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
-                  t0: float | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
+def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
+                t0: float | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
     """Inside an ``after_insertion`` call: (the model, the report) that :func:`reconstruct`
-    would return for the images so far (the finishing step run on the model as it stands), for
-    the block's duration; the model is then put back as it was and the run goes on. The
+    would return for the images so far, for the block's duration: the finishing step runs on
+    the model itself, which is then put back as it was (points, observations, views; arrays
+    read in the block are overwritten: copy what you keep) and the run goes on. The
     incremental loop never looks ahead, so this is a run on the first ``len(per_image)``
     images without running them again (``t0``: the run's start, for the report's seconds)."""
     state = recon.checkpoint()

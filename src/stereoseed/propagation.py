@@ -203,7 +203,7 @@ def propagate(
               shear inside a 5x5 window moves the plain ZNCC peak by a pixel or more.
         refine_rows: when sub-pixel refinement is on, an optional function of the whole-pixel
             matches (M, 4) float64 and their scores (M,) float32 returning the rows (R,) int64
-            to refine: a caller that reads a few hundred of tens of thousands of matches
+            (in [0, M)) to refine: a caller that reads a few hundred of tens of thousands of matches
             refines those alone (each comes out exactly as in a full refinement; the others
             keep whole pixels, ``refined_by`` 0). None: all rows.
 
@@ -274,6 +274,8 @@ def propagate(
         if refine_rows is not None:
             whole = np.stack([x1, y1, x2, y2], axis=1).astype(np.float64)
             rows = np.unique(np.asarray(refine_rows(whole, sc.astype(np.float32)), np.int64))
+            if len(rows) and (rows[0] < 0 or rows[-1] >= len(whole)):
+                raise StereoseedError(f"refine_rows gave rows outside [0, {len(whole)})")
         wanted = np.ones(x1.shape[0], bool) if rows is None else np.isin(np.arange(x1.shape[0]), rows)
         if subpixel_method == "affine":
             fx2, fy2, used = _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, Fm,

@@ -366,7 +366,7 @@ def _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc
 
     x1, y1, x2, y2: (M,) int32 integer matches; rows: (R,) int64 the matches whose position is
     wanted, or None for all. A later pass fits each match's affine map on its neighbours'
-    positions from the pass before, so pass p runs on the matches within
+    positions from the pass before, so pass p (1, 2, ...) runs on the matches within
     ``(_AFFINE_PASSES - p) * _AFFINE_RADIUS`` px (Chebyshev) of a wanted one: the wanted rows come
     out exactly as in a run over all matches, at a fraction of the cost when few are wanted.
     Returns x2, y2 (M,) float64 and used (M,) bool, False where no pass produced a position

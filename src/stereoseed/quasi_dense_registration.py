@@ -84,7 +84,8 @@ class QuasiDenseMatches:
     """Propagated matches between a registered view a and a candidate b.
 
     matches: (M, 4) float64 rows (xa, ya, xb, yb), xa, ya whole pixels, xb, yb sub-pixel on the
-    rows that are read (the grid's, the chained pixels': :func:`propagate_pair`), else whole;
+    rows the registration reads (the grid's, the chained pixels'; every row with
+    ``keep_tracks``: :func:`propagate_pair`), else whole;
     scores: (M,) ZNCC; row_of_pixel: (H, W) int32, the row of ``matches`` of each pixel of a
     (-1: unmatched); grid: (G,) int64 rows of ``matches``, the best one per grid cell of a;
     F: (3, 3) robust F of the grid matches (xb.T F xa = 0) or None; f_inlier: (G,) bool;
@@ -363,7 +364,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     :class:`Registration` (found_by "quasi-dense") or the reason, the propagated matches when
     they gave a robust F, else None). The previous pair's points do not depend on the
     candidate: they are propagated in a thread of their own while the candidate's seeds are
-    found and propagated (``seconds["previous_pair"]``: the time left to wait for them)."""
+    found and propagated, until the propagation's sub-pixel step asks for the pixels they
+    chain through (``seconds["previous_pair"]``: the time left to wait for them)."""
     waited = 0.0
     with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
 
@@ -377,12 +379,12 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
         # grow_quasi_dense (keep_tracks) reads the pixels of points added after this: all refined
         qd = _propagated_to_candidate(recon, prev, cand, cfg, None if cfg.quasi_dense.keep_tracks else chained_pixels)
         seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
+        seconds["propagation"] -= waited
         if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
             return f"{cand.name}: {len(qd.grid)} quasi-dense grid matches, no fundamental matrix fits them", None
         t = time.perf_counter()
         qd = dataclasses.replace(qd, pair=pair_points.result())
         seconds["previous_pair"] = waited + time.perf_counter() - t
-        seconds["propagation"] -= waited
     _, pids, x_prev, x_cand, scores = dense_chain(recon, prev, qd)
     pi, x_pair, s_pair = qd.pair_chain()
     X3 = np.vstack([recon.points[pids], qd.pair.X[pi]])

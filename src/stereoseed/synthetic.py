@@ -271,13 +271,14 @@ def _textures(cfg: SceneConfig) -> tuple[np.ndarray, np.ndarray]:
     """Face textures (6, T, T) (label-indexed; index 0 unused) and ground texture (1, G, G).
 
     Side faces and the top share one square array size (the largest face) so that the kernel
-    indexes a single 3D array. They depend on the seed alone and are shared (read, never
-    written) by the scenes of one seed: a third of a short scene's rendering time.
+    indexes a single 3D array. They depend on the seed alone: made once per seed (a third of
+    a short scene's rendering time), each caller gets its own copy.
     """
     if not cfg.textured:
         # Albedo amplitudes are zero then; tiny arrays keep the kernel's code path unchanged.
         return np.zeros((6, 2, 2), np.float32), np.zeros((1, 2, 2), np.float32)
-    return _seeded_textures(cfg.seed)
+    faces, ground = _seeded_textures(cfg.seed)
+    return faces.copy(), ground.copy()
 
 
 @lru_cache(maxsize=2)

@@ -108,13 +108,23 @@ def map_items(fn: Callable[[object], T], items: tuple | list) -> list[T]:
 
 
 class _Deferred:
-    """A Future's ``result()`` for work run by the caller itself, when it asks for it."""
+    """A Future's ``result()`` for work run by the caller itself, the first time it asks for
+    it (as a Future's, later calls give the same value, or raise the same exception)."""
 
     def __init__(self, fn: Callable[..., T], args: tuple):
         self._fn, self._args = fn, args
+        self._done: tuple[bool, object] | None = None  # (ok, value or exception)
 
     def result(self) -> T:
-        return self._fn(*self._args)
+        if self._done is None:
+            try:
+                self._done = (True, self._fn(*self._args))
+            except Exception as e:
+                self._done = (False, e)
+        ok, value = self._done
+        if not ok:
+            raise value
+        return value
 
 
 @contextmanager
