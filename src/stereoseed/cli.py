@@ -107,7 +107,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
     if not args.noise >= 0:
         raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
-
+    _say_if_compiling(quiet=False)
     return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=print)
 
 
@@ -229,12 +229,22 @@ class _Bar:
             self.bar.close()
 
 
+def _say_if_compiling(quiet: bool) -> None:
+    """One line before a first run on this installation: it compiles the kernels first."""
+    from .precompile import kernels_cached
+
+    if not quiet and kernels_cached() is False:
+        print("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
+              "two cores; `stereoseed precompile` does it ahead)", file=sys.stderr)
+
+
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from .pipeline import reconstruct_to_folder
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
         raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
+    _say_if_compiling(args.quiet)
     with _pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress:
         report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
                                        progress=progress, pool=pool)
@@ -258,6 +268,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root)
+    _say_if_compiling(args.quiet)
     with _pool(args, cfg.dense.pool_size()) as pool, _Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
     for o in outcomes:

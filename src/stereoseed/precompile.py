@@ -33,6 +33,19 @@ def compile_bytecode() -> bool:
                                        invalidation_mode=py_compile.PycInvalidationMode.TIMESTAMP))
 
 
+def kernels_cached() -> bool | None:
+    """Whether Numba's cache holds machine code of the first kernel a reconstruction calls (the
+    interest points') for its current source: False after a fresh install until a run or
+    :func:`precompile` compiled them (the first run then spends about a minute compiling);
+    None when the cache cannot be read."""
+    try:
+        from .edge_corners import _edge_corner_kernel
+
+        return bool(_edge_corner_kernel._cache._cache_file._load_index())
+    except Exception:  # Numba's cache internals (its version is pinned): no answer rather than a failure
+        return None
+
+
 def precompile() -> float:
     """Compile the bytecode and run the three-image demo in a temporary folder; returns the
     seconds it took."""
