@@ -230,13 +230,13 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
     cfg = _config(job.variant, job.seed)
     out: dict[int, dict[str, Any]] = {}
     t0 = time.perf_counter()
-    evaluating = [0.0]  # seconds spent evaluating earlier counts: no count's run time
+    evaluating = 0.0  # seconds spent evaluating earlier counts: no count's run time
 
     def header(count: int) -> dict[str, Any]:
         return {"images": count, "variant": job.variant, "noise_sigma": job.noise_sigma}
 
-    def evaluate(recon: Any, report: dict[str, Any], count: int, not_run: float = 0.0) -> dict[str, Any]:
-        r = {**header(count), **_sparse_summary(report), "seconds": time.perf_counter() - t0 - evaluating[0] - not_run}
+    def evaluate(recon: Any, report: dict[str, Any], count: int, seconds: float) -> dict[str, Any]:
+        r = {**header(count), **_sparse_summary(report), "seconds": seconds}
         if seq.corners is not None:
             r.update(_corner_error(recon, seq, count))
         if count in job.dense_counts:
@@ -247,20 +247,21 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
         return {**header(count), "error": str(e), "registered": 0, "seconds": time.perf_counter() - t0}
 
     def after_insertion(recon: Any, per_image: list[dict[str, Any]]) -> None:
+        nonlocal evaluating
         count = len(per_image)
         if count in job.counts and count < n:  # the run's own end gives the last count
             t = time.perf_counter()
             try:
                 with as_finished(recon, per_image, cfg) as (model, report):
-                    copying = time.perf_counter() - t - report["final"]["seconds"]  # the finishing step is the run's
-                    out[count] = evaluate(model, report, count, copying)
+                    run_time = t - t0 - evaluating + report["final"]["seconds"]  # insertions so far, finishing step
+                    out[count] = evaluate(model, report, count, run_time)
             except StereoseedError as e:  # as a run on these images would have failed
                 out[count] = failed(count, e)
-            evaluating[0] += time.perf_counter() - t
+            evaluating += time.perf_counter() - t
 
     try:
         recon, report = reconstruct(images, seq.names[:n], seq.P_pair, cfg, after_insertion=after_insertion)
-        out[n] = evaluate(recon, report, n)
+        out[n] = evaluate(recon, report, n, time.perf_counter() - t0 - evaluating)
     except StereoseedError as e:
         return {c: out[c] if c in out else failed(c, e) for c in job.counts}
     return out
@@ -364,8 +365,9 @@ class _Jobs:
         """The key of the results of a run on the first n images (``results[key]``)."""
         run = (*seq_key, float(sigma), variant)
         job = self.jobs.get(run, _Job(seq, (), variant, self.seed, float(sigma)))
+        dense_counts = {*job.dense_counts, n} if dense else set(job.dense_counts)
         self.jobs[run] = dataclasses.replace(job, counts=tuple(sorted({*job.counts, n})),
-                                             dense_counts=tuple(sorted({*job.dense_counts, *([n] if dense else [])})))
+                                             dense_counts=tuple(sorted(dense_counts)))
         return (*seq_key, float(sigma), n, variant)
 
 

@@ -135,18 +135,17 @@ def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Confi
 
 
 @contextmanager
-def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
-                t0: float | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
+def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]],
+                cfg: Config) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
     """Inside an ``after_insertion`` call: (the model, the report) that :func:`reconstruct`
     would return for the images so far, for the block's duration: the finishing step runs on
     the model itself, which is then put back as it was (points, observations, views; arrays
     read in the block are overwritten: copy what you keep) and the run goes on. The
     incremental loop never looks ahead, so this is a run on the first ``len(per_image)``
-    images without running them again (``t0``: the run's start, for the report's seconds)."""
+    images without running them again (the report's "seconds": the finishing step's)."""
     state = recon.checkpoint()
-    started = time.perf_counter() if t0 is None else t0
     try:
-        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolved(), started)
+        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolved(), time.perf_counter())
     finally:
         recon.restore(state)
 

@@ -276,7 +276,10 @@ def propagate(
             rows = np.unique(np.asarray(refine_rows(whole, sc.astype(np.float32)), np.int64))
             if len(rows) and (rows[0] < 0 or rows[-1] >= len(whole)):
                 raise StereoseedError(f"refine_rows gave rows outside [0, {len(whole)})")
-        wanted = np.ones(x1.shape[0], bool) if rows is None else np.isin(np.arange(x1.shape[0]), rows)
+        wanted = np.ones(x1.shape[0], bool)
+        if rows is not None:
+            wanted[:] = False
+            wanted[rows] = True
         if subpixel_method == "affine":
             fx2, fy2, used = _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, Fm,
                                             float(cfg.min_zncc), rows)

@@ -105,8 +105,7 @@ class QuasiDenseMatches:
         scores (C,))."""
         if self.pair is None or len(self.pair.X) == 0:
             return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
-        r = self.pair.xa.astype(np.int64)  # whole pixels of a, as the propagation's
-        row = self.row_of_pixel[r[:, 1], r[:, 0]]
+        row = _rows_at(self.row_of_pixel, self.pair.xa)  # whole pixels of a, as the propagation's
         idx = np.flatnonzero(row >= 0)
         return idx, self.matches[row[idx], 2:], self.scores[row[idx]]
 
@@ -193,7 +192,8 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
         return grid_best(q[:, :2], sc.astype(np.float64), qc.grid_cell_px)
 
     def read_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
-        return np.union1d(grid_rows(q, sc), _rows_at(q, chained_pixels(), img_a.shape[1]))
+        chained = _rows_at(_row_of_pixel(q, img_a.shape[:2]), chained_pixels())
+        return np.union1d(grid_rows(q, sc), chained[chained >= 0])
 
     res = propagate(img_a, img_b, seeds, None, cfg.propagation,
                     refine_rows=None if chained_pixels is None else grid_rows if qc.second_pass else read_rows)
@@ -205,21 +205,29 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
         q, sc, grid, F2, inlier = _grid_and_f(res, qc)
         F = F2 if F2 is not None else F
     t_prop = time.perf_counter() - t
-    row_of_pixel = np.full(res.match_x.shape, -1, np.int32)
-    row_of_pixel[q[:, 1].astype(np.int64), q[:, 0].astype(np.int64)] = np.arange(len(q), dtype=np.int32)
+    row_of_pixel = _row_of_pixel(q, res.match_x.shape)
     report = {"seeds": int(len(seeds)), "seeds_used": res.n_seeds_used, "propagated": int(len(q)),
               "grid": int(len(grid)), "f_inliers": int(inlier.sum()),
               "seconds": {"propagation": t_prop}}
     return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report)
 
 
-def _rows_at(q: np.ndarray, xy: np.ndarray, width: int) -> np.ndarray:
-    """Rows (K,) of the whole-pixel matches q (M, 4) at the pixels of a nearest to xy (C, 2)
-    (rounded as :func:`dense_chain` rounds; pixels outside an image ``width`` wide are none)."""
+def _row_of_pixel(q: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) int32: the row of the whole-pixel matches q (M, 4) at each pixel of a (-1: unmatched)."""
+    row_of_pixel = np.full(shape, -1, np.int32)
+    row_of_pixel[q[:, 1].astype(np.int64), q[:, 0].astype(np.int64)] = np.arange(len(q), dtype=np.int32)
+    return row_of_pixel
+
+
+def _rows_at(row_of_pixel: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(C,) int64: the match row at the pixel nearest to each point xy (C, 2) of a, -1 where
+    that pixel is unmatched or outside the image."""
+    h, w = row_of_pixel.shape
     r = np.rint(np.asarray(xy, np.float64).reshape(-1, 2)).astype(np.int64)
-    r = r[(r[:, 0] >= 0) & (r[:, 0] < width) & (r[:, 1] >= 0)]
-    keys = q[:, 1].astype(np.int64) * width + q[:, 0].astype(np.int64)
-    return np.flatnonzero(np.isin(keys, r[:, 1] * width + r[:, 0]))
+    inside = (r[:, 0] >= 0) & (r[:, 0] < w) & (r[:, 1] >= 0) & (r[:, 1] < h)
+    row = np.full(len(r), -1, np.int64)
+    row[inside] = row_of_pixel[r[inside, 1], r[inside, 0]]
+    return row
 
 
 def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[np.ndarray, ...]:
@@ -229,13 +237,9 @@ def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[n
     Returns features (C,) of a observing them, point ids (C,), xa (C, 2), xb (C, 2), scores
     (C,); each point once."""
     feats, pids, xa = _observed(recon, a)
-    h, w = qd.row_of_pixel.shape
-    r = np.rint(xa).astype(np.int64)
-    inside = (r[:, 0] >= 0) & (r[:, 0] < w) & (r[:, 1] >= 0) & (r[:, 1] < h)
-    row = np.full(len(xa), -1, np.int64)
-    row[inside] = qd.row_of_pixel[r[inside, 1], r[inside, 0]]
+    row = _rows_at(qd.row_of_pixel, xa)
     ok = row >= 0
-    xb = qd.matches[row[ok], 2:] + (xa[ok] - r[ok])
+    xb = qd.matches[row[ok], 2:] + (xa[ok] - np.rint(xa[ok]))
     return feats[ok], pids[ok], xa[ok], xb, qd.scores[row[ok]]
 
 

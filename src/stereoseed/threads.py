@@ -108,23 +108,20 @@ def map_items(fn: Callable[[object], T], items: tuple | list) -> list[T]:
 
 
 class _Deferred:
-    """A Future's ``result()`` for work run by the caller itself, the first time it asks for
-    it (as a Future's, later calls give the same value, or raise the same exception)."""
+    """A Future for work run by the caller itself, the first time it asks for its result."""
 
     def __init__(self, fn: Callable[..., T], args: tuple):
         self._fn, self._args = fn, args
-        self._done: tuple[bool, object] | None = None  # (ok, value or exception)
+        self._future: Future | None = None
 
     def result(self) -> T:
-        if self._done is None:
+        if self._future is None:
+            self._future = Future()
             try:
-                self._done = (True, self._fn(*self._args))
+                self._future.set_result(self._fn(*self._args))
             except Exception as e:
-                self._done = (False, e)
-        ok, value = self._done
-        if not ok:
-            raise value
-        return value
+                self._future.set_exception(e)
+        return self._future.result()
 
 
 @contextmanager
