@@ -62,9 +62,5 @@ def test_a_match_it_did_not_foresee_is_computed_when_asked(box_scene, monkeypatc
 
 def test_one_core_matches_only_when_asked(box_scene, monkeypatch):
     monkeypatch.setattr(threads, "_chunks", 1)
-    images = box_scene.images
-    source = _Counting(Config())
-    with Prefetching(source, lambda i: images[i], len(images), first=0) as prefetching:
-        f0 = prefetching.features(0, images[0])
-        prefetching.expect_match(0, f0, images[0].shape[1])
+    with _view_0_final(box_scene) as (source, *_):
         assert source.match_threads == []
