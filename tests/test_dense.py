@@ -107,6 +107,24 @@ def test_normals_are_the_scatter_matrices_least_eigenvectors():
     assert np.all(np.einsum("ij,ij->i", normals, views - pts) >= 0)  # turned towards the viewpoints
 
 
+def test_grid_neighbours_are_the_k_d_trees():
+    """The grid search against SciPy's k-d tree (the oracle): whatever the step, one point per
+    cell or many, duplicates, and points farther than the grid looks (the tree finishes them)."""
+    from scipy.spatial import cKDTree
+
+    from stereoseed.dense import estimate_normals, nearest_neighbours
+
+    rng = np.random.default_rng(4)
+    blobs = rng.normal(size=(3000, 3)) * rng.uniform(0.01, 1.0, (3000, 3))
+    cloud = np.vstack([blobs, blobs[:50], [[40.0, 0.0, 0.0], [0.0, -35.0, 3.0]]])  # duplicates, strays
+    distances, _ = cKDTree(cloud).query(cloud, k=8)
+    for step in (1e-3, 0.02, 0.3, 100.0):  # strays beyond 32 cells; about one point per cell; all in one
+        idx = nearest_neighbours(cloud, 8, step)
+        np.testing.assert_allclose(np.linalg.norm(cloud[idx] - cloud[:, None], axis=2), distances, atol=1e-12)
+    views = cloud + 1.0  # same neighbours, same normals (ties between duplicates would differ in order only)
+    np.testing.assert_allclose(estimate_normals(cloud, views, 8, cell=0.02), estimate_normals(cloud, views, 8), atol=1e-9)
+
+
 def test_normals_of_points_on_a_line_are_perpendicular_to_it():
     from stereoseed.dense import _voxel_keys, estimate_normals
 

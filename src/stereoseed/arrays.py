@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["unique", "distinct_pair_firsts"]
+__all__ = ["unique", "distinct_pair_firsts", "group_keys", "sort_order"]
 
 
 def unique(values: np.ndarray) -> np.ndarray:
@@ -33,3 +33,45 @@ def distinct_pair_firsts(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     order = np.lexsort((second, first))
     first, second = first[order], second[order]
     return first[np.r_[True, (first[1:] != first[:-1]) | (second[1:] != second[:-1])]]
+
+
+def _packed_sort(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(order, sorted keys) of int64 keys (N,) >= 0 by one sort of each key with its index in
+    the low bits, or None when the two do not fit one int64. NumPy sorts int64 with SIMD, 3-4x
+    faster than its argsort (0.08 against 0.3 s on 2M voxel keys of the dense stage); the
+    index bits make equal keys keep their order, as a stable argsort does."""
+    n = len(keys)
+    bits = max(int(n).bit_length(), 1)
+    if n == 0 or keys.min() < 0 or int(keys.max()) >= 1 << (63 - bits):
+        return None
+    packed = (keys << bits) | np.arange(n, dtype=np.int64)
+    packed.sort()
+    order = packed & ((1 << bits) - 1)
+    packed >>= bits
+    return order, packed
+
+
+def sort_order(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of int64 keys (N,), by :func:`_packed_sort` when it can."""
+    keys = np.asarray(keys, np.int64).ravel()
+    packed = _packed_sort(keys)
+    return packed[0] if packed is not None else np.argsort(keys, kind="stable")
+
+
+def group_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The group of each key (N,) int64 among the sorted distinct keys, and the groups' sizes
+    (K,): ``np.unique(keys, return_inverse=True, return_counts=True)[1:]``, by
+    :func:`_packed_sort` when it can."""
+    keys = np.asarray(keys, np.int64).ravel()
+    packed = _packed_sort(keys)
+    if packed is None:
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        return inverse.reshape(-1).astype(np.int64), counts
+    order, ordered = packed
+    n = len(keys)
+    first = np.empty(n, bool)
+    first[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    inverse = np.empty(n, np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return inverse, np.diff(np.append(np.flatnonzero(first), n))

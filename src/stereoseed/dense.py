@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .arrays import distinct_pair_firsts
+from .arrays import distinct_pair_firsts, group_keys, sort_order
 from .camera import camera_center, fundamental_from_projections
 from .cluster import JobPool, executor_for
 from .config import Config, DenseConfig, PropagationConfig
@@ -31,7 +31,7 @@ from .triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["densify_pair", "fuse", "estimate_normals", "densify"]
+__all__ = ["densify_pair", "fuse", "estimate_normals", "nearest_neighbours", "densify"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -68,12 +68,39 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
 
 def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     """One int64 per point (N, 3), equal for the points of one cell of side ``size``."""
-    keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
-        return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    points = np.ascontiguousarray(points, np.float64)
+    keys, cells, fits = _cell_keys(points, float(size))
+    if fits:
+        return keys
     # a grid too fine for one integer key (it would wrap and merge far cells): the cells' ranks
-    return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+    return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _cell_keys(points, size):
+    """The cell of each point (N, 3), floor((p - min) / size) per axis, and, when the grid's
+    cell count stays below 2**62, its row-major key (N,); fits says whether it did. One pass
+    each instead of NumPy's five temporaries of the cloud's size (0.3 s on 2M points)."""
+    n = points.shape[0]
+    low = np.empty(3)
+    for a in range(3):
+        low[a] = np.inf
+    for i in range(n):
+        for a in range(3):
+            low[a] = min(low[a], points[i, a])
+    cells = np.empty((n, 3), np.int64)
+    span = np.zeros(3, np.int64)
+    for i in range(n):
+        for a in range(3):
+            c = np.int64(np.floor((points[i, a] - low[a]) / size))
+            cells[i, a] = c
+            span[a] = max(span[a], c + 1)
+    keys = np.empty(n, np.int64)
+    fits = float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62
+    if fits:
+        for i in range(n):
+            keys[i] = (cells[i, 0] * span[1] + cells[i, 1]) * span[2] + cells[i, 2]
+    return keys, cells, fits
 
 
 def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources: int) -> np.ndarray:
@@ -90,8 +117,7 @@ def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources:
 
 def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """The voxel (side ``voxel``) of each point (N, 3) as a group index (N,), and the group sizes (K,)."""
-    _, inverse, counts = np.unique(_voxel_keys(points, voxel), return_inverse=True, return_counts=True)
-    return inverse.reshape(-1), counts
+    return group_keys(_voxel_keys(points, voxel))
 
 
 def _group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -115,10 +141,15 @@ def _fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndar
             inverse, counts)
 
 
-def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10) -> np.ndarray:
+def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
+                     cell: float | None = None) -> np.ndarray:
     """Unit normals (N, 3) of a point cloud (N, 3): the direction of least spread of each point's
     ``neighbours`` nearest points (PCA), turned towards its ``viewpoints`` (N, 3) (where the
-    cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside."""
+    cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside.
+
+    cell: a grid step for the neighbour search, e.g. the fusion voxel of a fused cloud (about
+    one point per cell); the neighbours are the same, found about twice as fast as by a k-d
+    tree. None: a k-d tree."""
     n = len(points)
     normals = np.zeros((n, 3))
     if n < 3:
@@ -126,10 +157,109 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
         return normals
     points = np.ascontiguousarray(points, np.float64)
     viewpoints = np.ascontiguousarray(viewpoints, np.float64)
-    _, idx = cKDTree(points).query(points, k=min(neighbours, n), workers=-1)
-    idx = np.ascontiguousarray(idx, np.int64)
+    idx = nearest_neighbours(points, min(neighbours, n), cell)
     map_chunks(lambda a, b: _pca_normals(points, idx, viewpoints, normals, a, b), split_rows(n, 50_000))
     return normals
+
+
+# The grid search looks at most this many cells away; points with fewer neighbours that near
+# (isolated stray points) are searched by a k-d tree. The column table may take this many entries.
+_GRID_MAX_RADIUS = 32
+_GRID_MAX_COLUMNS = 1 << 24
+
+
+def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) -> np.ndarray:
+    """The indices (N, k) int64 of the k nearest points of each point of ``points`` (N, 3)
+    (itself included), nearest first, as ``cKDTree(points).query(points, k)[1]`` (equal distances
+    may come in another order).
+
+    cell: when given, the search runs on a grid of that step (a compiled kernel, exact: it stops
+    once the k-th distance is within the cells it has scanned), the points sorted by column
+    (x, y cell) then z; a k-d tree finishes the points without k neighbours within
+    ``_GRID_MAX_RADIUS`` cells, and does it all when the grid's column table would be too large."""
+    points = np.ascontiguousarray(points, np.float64)
+    n = len(points)
+    if cell is not None and n:
+        _, cells, _ = _cell_keys(points, float(cell))
+        span = cells.max(axis=0) + 1
+        if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62 and span[0] * span[1] < _GRID_MAX_COLUMNS:
+            column = cells[:, 0] * span[1] + cells[:, 1]
+            order = sort_order(column * span[2] + cells[:, 2])
+            ordered, ordered_cells = points[order], np.ascontiguousarray(cells[order])
+            starts = np.concatenate([[0], np.cumsum(np.bincount(column, minlength=span[0] * span[1]))])
+            found = np.empty((n, k), np.int64)
+            map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, int(span[1]), float(cell), a, b,
+                                                     _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
+            missing = np.flatnonzero(found[:, 0] < 0)
+            if len(missing):
+                found[missing] = cKDTree(ordered).query(ordered[missing], k=k, workers=-1)[1].reshape(len(missing), k)
+            idx = np.empty_like(found)
+            idx[order] = order[found]
+            return idx
+    return cKDTree(points).query(points, k=k, workers=-1)[1].reshape(n, k).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _grid_neighbours(points, cells, starts, span_y, step, first, end, max_radius, found):
+    """found[i] for i in [first, end): the k = found.shape[1] nearest of the points (N, 3),
+    sorted by column (x cell * span_y + y cell) then z cell (cells (N, 3)); starts (C + 1,) the
+    first row of each column. The cells are scanned in growing cubes of radius r around the
+    point's own; after the cube of radius r every point left out is at least r * step away, so
+    the search stops once the k-th distance is within that. -1 in found[i, 0]: not within
+    max_radius cells."""
+    k = found.shape[1]
+    n_x = (starts.shape[0] - 1) // span_y
+    best_d = np.empty(k)
+    best_i = np.empty(k, np.int64)
+    for i in range(first, end):
+        cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        count = 0
+        scanned = -1  # the cube of this radius is in best already
+        r = 2  # the cube of radius 1 (27 cells) rarely holds a surface point's ten nearest
+        while True:
+            for x in range(max(cx - r, 0), min(cx + r, n_x - 1) + 1):
+                for y in range(max(cy - r, 0), min(cy + r, span_y - 1) + 1):
+                    ring = max(abs(x - cx), abs(y - cy))
+                    column = x * span_y + y
+                    lo, hi = starts[column], starts[column + 1]
+                    while lo < hi:  # the column's first point at z >= cz - r (a wall along z fills it)
+                        mid = (lo + hi) // 2
+                        if cells[mid, 2] < cz - r:
+                            lo = mid + 1
+                        else:
+                            hi = mid
+                    for j in range(lo, starts[column + 1]):
+                        z = cells[j, 2]
+                        if z > cz + r:
+                            break
+                        if max(ring, abs(z - cz)) <= scanned:
+                            continue
+                        dx, dy, dz = points[j, 0] - px, points[j, 1] - py, points[j, 2] - pz
+                        d = dx * dx + dy * dy + dz * dz
+                        if count < k:
+                            m = count
+                            count += 1
+                        elif d < best_d[k - 1]:
+                            m = k - 1
+                        else:
+                            continue
+                        while m > 0 and best_d[m - 1] > d:  # insertion into the sorted k best
+                            best_d[m] = best_d[m - 1]
+                            best_i[m] = best_i[m - 1]
+                            m -= 1
+                        best_d[m] = d
+                        best_i[m] = j
+            scanned = r
+            reach = r * step
+            if (count == k and best_d[k - 1] <= reach * reach) or r >= max_radius:
+                break
+            r += 1
+        if count == k and best_d[k - 1] <= (scanned * step) ** 2:
+            for m in range(k):
+                found[i, m] = best_i[m]
+        else:
+            found[i, 0] = -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -283,4 +413,4 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
     viewpoints = _group_mean(stand[sources], inverse, counts)
     support = np.bincount(distinct_pair_firsts(inverse, sources), minlength=len(counts))
-    return fused, fused_colors, estimate_normals(fused, viewpoints), support
+    return fused, fused_colors, estimate_normals(fused, viewpoints, cell=voxel), support
