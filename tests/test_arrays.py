@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereoseed.arrays import distinct_pair_firsts, group_keys, sort_order, unique
+from stereoseed.arrays import distinct_pair_firsts, sort_order, sorted_groups, unique
 
 
 def test_unique_is_numpys():
@@ -21,14 +21,16 @@ def test_distinct_pair_firsts_counts_each_pair_once():
     assert distinct_pair_firsts(huge, np.array([1, 4, 1])).tolist() == [5, 2**62, 2**62]
 
 
-def test_group_keys_and_sort_order_are_numpys():
+def test_sorted_groups_and_sort_order_are_numpys():
     rng = np.random.default_rng(0)
     # few distinct keys (ties kept in order), many, and keys too large to share an int64 with an index
     for keys in (rng.integers(0, 50, 1000), rng.integers(0, 2**40, 5000), rng.integers(0, 2**62, 300)):
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        got_inverse, got_counts = group_keys(keys)
-        np.testing.assert_array_equal(got_inverse, inverse)
-        np.testing.assert_array_equal(got_counts, counts)
-        np.testing.assert_array_equal(sort_order(keys), np.argsort(keys, kind="stable"))
-    empty_inverse, empty_counts = group_keys(np.zeros(0, np.int64))
-    assert len(empty_inverse) == len(empty_counts) == len(sort_order(np.zeros(0, np.int64))) == 0
+        stable = np.argsort(keys, kind="stable")
+        np.testing.assert_array_equal(sort_order(keys), stable)
+        order, starts = sorted_groups(keys)
+        np.testing.assert_array_equal(order, stable)
+        _, first, counts = np.unique(keys[stable], return_index=True, return_counts=True)
+        np.testing.assert_array_equal(starts, np.append(first, len(keys)))
+        np.testing.assert_array_equal(np.diff(starts), counts)
+    order, starts = sorted_groups(np.zeros(0, np.int64))
+    assert len(order) == len(sort_order(np.zeros(0, np.int64))) == 0 and starts.tolist() == [0]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["unique", "distinct_pair_firsts", "group_keys", "sort_order"]
+__all__ = ["unique", "distinct_pair_firsts", "sorted_groups", "sort_order"]
 
 
 def unique(values: np.ndarray) -> np.ndarray:
@@ -58,20 +58,18 @@ def sort_order(keys: np.ndarray) -> np.ndarray:
     return packed[0] if packed is not None else np.argsort(keys, kind="stable")
 
 
-def group_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The group of each key (N,) int64 among the sorted distinct keys, and the groups' sizes
-    (K,): ``np.unique(keys, return_inverse=True, return_counts=True)[1:]``, by
-    :func:`_packed_sort` when it can."""
+def sorted_groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stable sort order (N,) of int64 keys (N,) and where each run of equal keys starts in
+    it (K + 1,), the last entry N: group g is ``order[starts[g]:starts[g + 1]]``, the groups in
+    increasing key order, each group's indices increasing."""
     keys = np.asarray(keys, np.int64).ravel()
+    n = len(keys)
     packed = _packed_sort(keys)
     if packed is None:
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        return inverse.reshape(-1).astype(np.int64), counts
-    order, ordered = packed
-    n = len(keys)
-    first = np.empty(n, bool)
-    first[0] = True
+        order = np.argsort(keys, kind="stable")
+        ordered = keys[order]
+    else:
+        order, ordered = packed
+    first = np.ones(n, bool)
     np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
-    inverse = np.empty(n, np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return inverse, np.diff(np.append(np.flatnonzero(first), n))
+    return order, np.append(np.flatnonzero(first), n)

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .arrays import distinct_pair_firsts, group_keys, sort_order
+from .arrays import sort_order, sorted_groups
 from .camera import camera_center, fundamental_from_projections
 from .cluster import JobPool, executor_for
 from .config import Config, DenseConfig, PropagationConfig
@@ -105,25 +105,32 @@ def _cell_keys(points, size):
 
 def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources: int) -> np.ndarray:
     """(N,) bool: points whose cell (side ``size``) holds points from at least ``min_sources``
-    distinct sources (pairs). A wrong propagated match lands at a random depth along its
-    epipolar line, where no other pair puts a point; a true surface point is seen by every pair
-    that sees the surface there."""
+    distinct sources (pairs, integers >= 0). A wrong propagated match lands at a random depth
+    along its epipolar line, where no other pair puts a point; a true surface point is seen by
+    every pair that sees the surface there."""
     if len(points) == 0 or min_sources <= 1:
         return np.ones(len(points), bool)
-    cell = _voxel_keys(points, size)
-    cells, count = np.unique(distinct_pair_firsts(cell, sources), return_counts=True)
-    return count[np.searchsorted(cells, cell)] >= min_sources
+    sources = np.ascontiguousarray(sources, np.int64)
+    order, starts = sorted_groups(_voxel_keys(points, size))
+    keep = np.empty(len(points), bool)
+    _keep_supported(order, starts, sources, int(sources.max()) + 1, min_sources, keep)
+    return keep
 
 
-def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """The voxel (side ``voxel``) of each point (N, 3) as a group index (N,), and the group sizes (K,)."""
-    return group_keys(_voxel_keys(points, voxel))
-
-
-def _group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Mean of ``values`` (N, D) per group -> (K, D) float64."""
-    return np.stack([np.bincount(inverse, weights=values[:, i].astype(np.float64), minlength=len(counts))
-                     for i in range(values.shape[1])], axis=1) / counts[:, None]
+@njit(cache=True, nogil=True)
+def _keep_supported(order, starts, sources, n_sources, min_sources, keep):
+    """keep[i] = whether the group of point i (groups as :func:`~stereoseed.arrays.sorted_groups`
+    gives them) has points of at least min_sources distinct sources."""
+    last_group = np.full(n_sources, -1, np.int64)
+    for g in range(starts.shape[0] - 1):
+        distinct = 0
+        for j in range(starts[g], starts[g + 1]):
+            s = sources[order[j]]
+            if last_group[s] != g:
+                last_group[s] = g
+                distinct += 1
+        for j in range(starts[g], starts[g + 1]):
+            keep[order[j]] = distinct >= min_sources
 
 
 def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -131,14 +138,49 @@ def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarr
     replaced by their mean position and mean colour. (N, 3), (N, 3) -> (K, 3), (K, 3)."""
     if len(points) == 0:
         return points, colors
-    return _fuse(points, colors, voxel)[:2]
+    return _fuse(points, colors, np.zeros(len(points), np.int64), np.zeros((1, 3)), voxel)[:2]
 
 
-def _fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`fuse` of a non-empty cloud, with each point's voxel index (N,) and the voxels' sizes (K,)."""
-    inverse, counts = _voxel_groups(points, voxel)
-    return (_group_mean(points, inverse, counts), np.rint(_group_mean(colors, inverse, counts)).astype(np.uint8),
-            inverse, counts)
+def _fuse(points: np.ndarray, colors: np.ndarray, sources: np.ndarray, stand: np.ndarray,
+          voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fuse` of a non-empty cloud whose points come from sources (N,) int (pairs, whose
+    cameras stand at stand (S, 3)): the fused points (K, 3), colours (K, 3) uint8, where the
+    cameras that saw each stand on average (K, 3) and how many distinct sources each has (K,)."""
+    order, starts = sorted_groups(_voxel_keys(points, voxel))
+    fused, mean_colors, viewpoints, support = _voxel_means(
+        order, starts, np.ascontiguousarray(points, np.float64), np.ascontiguousarray(colors),
+        np.ascontiguousarray(sources, np.int64), np.ascontiguousarray(stand, np.float64))
+    return fused, np.rint(mean_colors).astype(np.uint8), viewpoints, support
+
+
+@njit(cache=True, nogil=True)
+def _voxel_means(order, starts, points, colors, sources, stand):
+    """Per group (as :func:`~stereoseed.arrays.sorted_groups` gives them): the mean point, mean
+    colour, mean stand[source], and the number of distinct sources. One pass; each group's sums
+    run in increasing point order, as np.bincount's do (the same bits)."""
+    k = starts.shape[0] - 1
+    fused = np.zeros((k, 3))
+    mean_colors = np.zeros((k, 3))
+    viewpoints = np.zeros((k, 3))
+    support = np.zeros(k, np.int64)
+    last_group = np.full(stand.shape[0], -1, np.int64)
+    for g in range(k):
+        for j in range(starts[g], starts[g + 1]):
+            i = order[j]
+            s = sources[i]
+            for a in range(3):
+                fused[g, a] += points[i, a]
+                mean_colors[g, a] += float(colors[i, a])
+                viewpoints[g, a] += stand[s, a]
+            if last_group[s] != g:
+                last_group[s] = g
+                support[g] += 1
+        count = float(starts[g + 1] - starts[g])
+        for a in range(3):
+            fused[g, a] /= count
+            mean_colors[g, a] /= count
+            viewpoints[g, a] /= count
+    return fused, mean_colors, viewpoints, support
 
 
 def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
@@ -408,9 +450,7 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
     produced it) and its support (how many pairs put a point in its voxel)."""
     if len(points) == 0:
         return points, colors, np.zeros((0, 3)), np.zeros(0, np.int64)
-    fused, fused_colors, inverse, counts = _fuse(points, colors, voxel)
     # where the pair's two cameras stand, averaged over the voxel's points
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
-    viewpoints = _group_mean(stand[sources], inverse, counts)
-    support = np.bincount(distinct_pair_firsts(inverse, sources), minlength=len(counts))
+    fused, fused_colors, viewpoints, support = _fuse(points, colors, sources, stand, voxel)
     return fused, fused_colors, estimate_normals(fused, viewpoints, cell=voxel), support
