@@ -34,3 +34,13 @@ def test_sorted_groups_and_sort_order_are_numpys():
         np.testing.assert_array_equal(np.diff(starts), counts)
     order, starts = sorted_groups(np.zeros(0, np.int64))
     assert len(order) == len(sort_order(np.zeros(0, np.int64))) == 0 and starts.tolist() == [0]
+
+
+def test_sort_order_at_the_packing_limit():
+    """Keys that just fit beside the index bits (the packed sort), one above (NumPy's argsort),
+    negative ones (argsort too): each the stable order."""
+    n = 100  # 7 index bits
+    for top in (2**56 - 1, 2**56, -5):
+        keys = np.random.default_rng(1).integers(0, 3, n) + top - 2
+        np.testing.assert_array_equal(sort_order(keys), np.argsort(keys, kind="stable"))
+        np.testing.assert_array_equal(sorted_groups(keys)[0], np.argsort(keys, kind="stable"))

@@ -118,11 +118,57 @@ def test_grid_neighbours_are_the_k_d_trees():
     blobs = rng.normal(size=(3000, 3)) * rng.uniform(0.01, 1.0, (3000, 3))
     cloud = np.vstack([blobs, blobs[:50], [[40.0, 0.0, 0.0], [0.0, -35.0, 3.0]]])  # duplicates, strays
     distances, _ = cKDTree(cloud).query(cloud, k=8)
-    for step in (1e-3, 0.02, 0.3, 100.0):  # strays beyond 32 cells; about one point per cell; all in one
+    # a column table too large for the cloud (the tree does it all); strays beyond 32 cells;
+    # about one point per cell; all in one cell
+    for step in (1e-3, 0.02, 0.3, 100.0):
         idx = nearest_neighbours(cloud, 8, step)
         np.testing.assert_allclose(np.linalg.norm(cloud[idx] - cloud[:, None], axis=2), distances, atol=1e-12)
     views = cloud + 1.0  # same neighbours, same normals (ties between duplicates would differ in order only)
     np.testing.assert_allclose(estimate_normals(cloud, views, 8, cell=0.02), estimate_normals(cloud, views, 8), atol=1e-9)
+    with pytest.raises(ValueError):
+        nearest_neighbours(cloud[:3], 4, 0.02)
+
+
+def test_grid_search_looks_past_a_near_point_in_its_cube():
+    """After the cube of radius 2 cells, a point 2.9 cells away may not be the nearest: one 2.06
+    cells away can sit in the next cube (diagonal geometry aside, along one axis here)."""
+    from stereoseed.dense import nearest_neighbours
+
+    query = [10.99, 10.5, 10.5]  # cell (10, 10, 10), the cells counted from the anchor at 0
+    inside = [8.09, 10.5, 10.5]  # cell 8: in the cube of radius 2, 2.9 away
+    outside = [13.05, 10.5, 10.5]  # cell 13: outside it, 2.06 away, the nearest
+    cloud = np.array([[0.0, 0.0, 0.0], query, inside, outside])
+    assert nearest_neighbours(cloud, 2, 1.0)[1].tolist() == [1, 3]
+
+
+def test_support_and_fusion_are_the_numpy_sums():
+    """The compiled passes give what np.unique and np.bincount give, to the bit: support, mean
+    point, colour and viewpoint per voxel, and the sources' count per voxel."""
+    from stereoseed.dense import _fuse, _voxel_keys
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(20000, 3)) * 0.05
+    pts[::3] = pts[1::3] + rng.normal(size=pts[::3].shape) * 1e-4  # voxels shared by several points
+    colors = rng.integers(0, 256, pts.shape, dtype=np.uint8)
+    sources = rng.integers(0, 7, len(pts))
+    stand = rng.normal(size=(7, 3))
+    keys = _voxel_keys(pts, 0.004)
+    cells, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    distinct = np.bincount(np.unique(inverse * 7 + sources) // 7, minlength=len(cells))
+    np.testing.assert_array_equal(supported(pts, sources, 0.004, 3), distinct[inverse] >= 3)
+    np.testing.assert_array_equal(supported(pts, sources - 5, 0.004, 3), distinct[inverse] >= 3)  # any labels
+
+    def mean(values):
+        return np.stack([np.bincount(inverse, weights=v, minlength=len(counts)) for v in values.T.astype(np.float64)],
+                        axis=1) / counts[:, None]
+
+    fused, fused_colors, viewpoints, support = _fuse(pts, colors, sources, stand, 0.004)
+    np.testing.assert_array_equal(fused, mean(pts))
+    np.testing.assert_array_equal(fused_colors, np.rint(mean(colors)).astype(np.uint8))
+    np.testing.assert_array_equal(viewpoints, mean(stand[sources]))
+    np.testing.assert_array_equal(support, distinct)
+    with pytest.raises(ValueError):
+        _voxel_keys(np.array([[0.0, 0.0, np.nan]]), 0.01)
 
 
 def test_normals_of_points_on_a_line_are_perpendicular_to_it():

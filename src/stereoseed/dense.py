@@ -69,6 +69,8 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
 def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     """One int64 per point (N, 3), equal for the points of one cell of side ``size``."""
     points = np.ascontiguousarray(points, np.float64)
+    if not np.isfinite(points).all():  # a NaN has no cell (the compiled min skips it)
+        raise ValueError("voxel keys of points that are not all finite")
     keys, fits = _cell_keys(points, float(size))
     if fits:
         return keys
@@ -119,13 +121,15 @@ def _cell_keys(points, size):
 
 
 def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources: int) -> np.ndarray:
-    """(N,) bool: points whose cell (side ``size``) holds points from at least ``min_sources``
-    distinct sources (pairs, integers >= 0). A wrong propagated match lands at a random depth
+    """(N,) bool: points (N, 3), finite, whose cell (side ``size``) holds points from at least
+    ``min_sources`` distinct sources (N,) (pairs: integer labels). A wrong propagated match lands at a random depth
     along its epipolar line, where no other pair puts a point; a true surface point is seen by
     every pair that sees the surface there."""
     if len(points) == 0 or min_sources <= 1:
         return np.ones(len(points), bool)
     sources = np.ascontiguousarray(sources, np.int64)
+    if sources.min() < 0 or sources.max() >= len(sources):  # any labels: their ranks
+        sources = np.unique(sources, return_inverse=True)[1].reshape(-1).astype(np.int64)
     order, starts = sorted_groups(_voxel_keys(points, size))
     keep = np.empty(len(points), bool)
     _keep_supported(order, starts, sources, int(sources.max()) + 1, min_sources, keep)
@@ -205,8 +209,8 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
     cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside.
 
     cell: a grid step for the neighbour search, e.g. the fusion voxel of a fused cloud (about
-    one point per cell); the neighbours are the same, found about twice as fast as by a k-d
-    tree. None: a k-d tree."""
+    one point per cell): the same neighbours as a k-d tree's (:func:`nearest_neighbours`), found
+    about twice as fast on the dense stage's clouds. None: a k-d tree."""
     n = len(points)
     normals = np.zeros((n, 3))
     if n < 3:
@@ -220,49 +224,55 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
 
 
 # The grid search looks at most this many cells away; points with fewer neighbours that near
-# (isolated stray points) are searched by a k-d tree. The column table may take this many entries.
+# (isolated stray points) are searched by a k-d tree. Its column table (one int64 per x, y cell)
+# may have this many entries per point, or 2**20 (8 MB), whichever is more: a fused surface
+# needs a few; a cloud spread thin over a wide grid goes to the k-d tree.
 _GRID_MAX_RADIUS = 32
-_GRID_MAX_COLUMNS = 1 << 24
+_GRID_COLUMNS_PER_POINT = 8
 
 
 def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) -> np.ndarray:
-    """The indices (N, k) int64 of the k nearest points of each point of ``points`` (N, 3)
-    (itself included), nearest first, as ``cKDTree(points).query(points, k)[1]`` (equal distances
-    may come in another order).
+    """The indices (N, k) int64 of the k nearest points of each point of ``points`` (N, 3),
+    finite, 1 <= k <= N (itself included), nearest first, as
+    ``cKDTree(points).query(points, k)[1]`` gives them (points at exactly the same distance may
+    come in another order, or another of them be taken at the k-th place).
 
-    cell: when given, the search runs on a grid of that step (a compiled kernel, exact: it stops
-    once the k-th distance is within the cells it has scanned), the points sorted by column
-    (x, y cell) then z; a k-d tree finishes the points without k neighbours within
+    cell: when given, the search runs on a grid of that step (a compiled kernel that stops once
+    the k-th distance is within the cells it has scanned), the points sorted by column (x, y
+    cell) then z; a k-d tree finishes the points without k neighbours within
     ``_GRID_MAX_RADIUS`` cells, and does it all when the grid's column table would be too large."""
     points = np.ascontiguousarray(points, np.float64)
     n = len(points)
-    if cell is not None and n:
+    if not 1 <= k <= n:
+        raise ValueError(f"nearest_neighbours: k = {k} neighbours of {n} points")
+    if cell is not None:
         cells = _cells(points, float(cell))
         span = cells.max(axis=0) + 1
-        if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62 and span[0] * span[1] < _GRID_MAX_COLUMNS:
+        columns = float(span[0]) * float(span[1])
+        if columns * float(span[2]) < 2.0 ** 62 and columns <= max(_GRID_COLUMNS_PER_POINT * n, 1 << 20):
             column = cells[:, 0] * span[1] + cells[:, 1]
             order = sort_order(column * span[2] + cells[:, 2])
             ordered, ordered_cells = points[order], np.ascontiguousarray(cells[order])
-            starts = np.concatenate([[0], np.cumsum(np.bincount(column, minlength=span[0] * span[1]))])
-            found = np.empty((n, k), np.int64)
-            map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, int(span[1]), float(cell), a, b,
-                                                     _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
+            starts = np.zeros(span[0] * span[1] + 1, np.int64)
+            np.cumsum(np.bincount(column, minlength=span[0] * span[1]), out=starts[1:])
+            found = np.empty((n, k), np.int64)  # in the points' own order: no remapped copies
+            map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, order, int(span[1]), float(cell),
+                                                     a, b, _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
             missing = np.flatnonzero(found[:, 0] < 0)
             if len(missing):
-                found[missing] = cKDTree(ordered).query(ordered[missing], k=k, workers=-1)[1].reshape(len(missing), k)
-            idx = np.empty_like(found)
-            idx[order] = order[found]
-            return idx
+                found[missing] = cKDTree(points).query(points[missing], k=k, workers=-1)[1].reshape(len(missing), k)
+            return found
     return cKDTree(points).query(points, k=k, workers=-1)[1].reshape(n, k).astype(np.int64)
 
 
 @njit(cache=True, nogil=True)
-def _grid_neighbours(points, cells, starts, span_y, step, first, end, max_radius, found):
-    """found[i] for i in [first, end): the k = found.shape[1] nearest of the points (N, 3),
-    sorted by column (x cell * span_y + y cell) then z cell (cells (N, 3)); starts (C + 1,) the
-    first row of each column. The cells are scanned in growing cubes of radius r around the
-    point's own; after the cube of radius r every point left out is at least r * step away, so
-    the search stops once the k-th distance is within that. -1 in found[i, 0]: not within
+def _grid_neighbours(points, cells, starts, order, span_y, step, first, end, max_radius, found):
+    """The k = found.shape[1] nearest of points i in [first, end) of the points (N, 3) sorted by
+    column (x cell * span_y + y cell) then z cell (cells (N, 3)); starts (C + 1,) the first row
+    of each column; order (N,) each sorted point's index in the caller's order, in which found
+    (N, k) is written. The cells are scanned in growing cubes of radius r around the point's
+    own; after the cube of radius r every point left out is at least r * step away, so the
+    search stops once the k-th distance is within that. -1 in found's first column: not within
     max_radius cells."""
     k = found.shape[1]
     n_x = (starts.shape[0] - 1) // span_y
@@ -314,9 +324,9 @@ def _grid_neighbours(points, cells, starts, span_y, step, first, end, max_radius
             r += 1
         if count == k and best_d[k - 1] <= (scanned * step) ** 2:
             for m in range(k):
-                found[i, m] = best_i[m]
+                found[order[i], m] = order[best_i[m]]
         else:
-            found[i, 0] = -1
+            found[order[i], 0] = -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
