@@ -19,7 +19,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io import write_json
 from stereoseed.pipeline import reconstruct
 from stereoseed.ply import read_ply_vertices
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic import write_scene
 
 
 @pytest.fixture(scope="module")
@@ -31,9 +31,9 @@ def scheduler():
 
 
 @pytest.fixture(scope="module")
-def four_views():
+def four_views(box_scene):
     """Four views of the textured box: three dense pairs."""
-    return render_scene(SceneConfig(n_images=4))
+    return box_scene.prefix(4)
 
 
 @pytest.fixture(scope="module")

@@ -9,12 +9,11 @@ from stereoseed.dense import densify, fuse, supported
 from stereoseed.evaluation import TrueCorrespondences, surface_distance, surface_normal
 from stereoseed.ply import read_ply, read_ply_vertices
 from stereoseed.pipeline import reconstruct
-from stereoseed.synthetic import SceneConfig, render_scene
 
 
 @pytest.fixture(scope="module")
-def short_ring():
-    return render_scene(SceneConfig(n_images=4))
+def short_ring(box_scene):
+    return box_scene.prefix(4)
 
 
 def test_fuse_gives_each_voxel_the_mean_of_its_members():

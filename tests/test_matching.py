@@ -34,7 +34,6 @@ from stereoseed.matching.pair import match_pair
 from stereoseed.matching.two_view import epipolar_band_mask, filter_epipolar, filter_fundamental_ransac
 from stereoseed.matching.zncc import match_zncc, zncc_matrix
 from stereoseed.visualize import draw_matches
-from stereoseed.synthetic import SceneConfig, render_scene
 
 from geometry_helpers import band_noise
 
@@ -386,14 +385,14 @@ def test_align_matches_needs_grey_images(warped_features, caplog):
 
 # --- the synthetic box: quality targets ------------------------------------------------------
 @pytest.fixture(scope="module", params=[0.0, 2.0], ids=["sigma0", "sigma2"])
-def textured(request):
-    scene = render_scene(SceneConfig(n_images=3, noise_sigma=request.param))
+def textured(request, box_scene, box_scene_noisy):
+    scene = {0.0: box_scene, 2.0: box_scene_noisy}[request.param].prefix(3)
     return scene, [extract_features(im) for im in scene.images]
 
 
 @pytest.fixture(scope="module")
-def plain():
-    scene = render_scene(SceneConfig(n_images=3, textured=False))
+def plain(plain_box_scene):
+    scene = plain_box_scene.prefix(3)
     return scene, [extract_features(im) for im in scene.images]
 
 

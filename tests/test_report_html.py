@@ -18,7 +18,6 @@ from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.pipeline import reconstruct
 from stereoseed.report_html import write_report_html
-from stereoseed.synthetic import SceneConfig, render_scene
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -28,9 +27,9 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
 
 
 @pytest.fixture(scope="module")
-def run():
+def run(box_scene):
     """A 6-image synthetic ring with a blank image inserted as the 4th: one image fails."""
-    scene = render_scene(SceneConfig(n_images=6))
+    scene = box_scene.prefix(6)
     images, names = list(scene.images), list(scene.names)
     images.insert(3, np.zeros_like(images[0]))
     names.insert(3, "blank.png")

@@ -332,13 +332,24 @@ def test_calibration_points(box_scene):
 # --- determinism, noise, files -----------------------------------------------------------------
 
 
-def test_deterministic_and_independent_of_n_images(box_scene):
+def test_deterministic_and_independent_of_n_images(box_scene, box_scene_noisy):
     short = render_scene(SceneConfig(n_images=2))
     for i in range(2):
         np.testing.assert_array_equal(short.images[i], box_scene.images[i])
         np.testing.assert_array_equal(short.P[i], box_scene.P[i])
     other = render_scene(SceneConfig(n_images=2, seed=1))
     assert not np.array_equal(other.images[1], short.images[1])
+    # so a scene's prefix is the shorter scene (the tests take theirs from the session's rings),
+    # image noise included, and a copy
+    for scene, rendered in ((box_scene, short), (box_scene_noisy, render_scene(SceneConfig(n_images=2, noise_sigma=2.0)))):
+        prefix = scene.prefix(2)
+        assert prefix.config == rendered.config and prefix.names == rendered.names
+        for got, want in ((prefix.images, rendered.images), (prefix.P, rendered.P), (prefix.K, rendered.K),
+                          (prefix.R, rendered.R), (prefix.t, rendered.t)):
+            for a, b in zip(got, want, strict=True):
+                np.testing.assert_array_equal(a, b)
+        prefix.images[0][:] = 0
+        assert scene.images[0].any()
 
 
 def test_add_noise_has_requested_sigma():

@@ -14,13 +14,13 @@ import pytest
 
 from stereoseed.cli import main
 from stereoseed.results import MANIFEST
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic import write_scene
 
 
 @pytest.fixture(scope="module")
-def seq(tmp_path_factory):
+def seq(tmp_path_factory, box_scene):
     """A 5-image synthetic ring on disk: (paths of write_scene, scene, calib.json with the true pair)."""
-    scene = render_scene(SceneConfig(n_images=5))
+    scene = box_scene.prefix(5)
     folder = tmp_path_factory.mktemp("seq")
     paths = write_scene(scene, folder / "images")
     calib = folder / "calib.json"

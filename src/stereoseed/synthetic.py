@@ -45,7 +45,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -345,6 +345,18 @@ class SyntheticScene:
     @property
     def n_images(self) -> int:
         return len(self.images)
+
+    def prefix(self, n: int) -> SyntheticScene:
+        """The scene of the first n images: what :func:`render_scene` gives for the same config
+        with ``n_images=n`` (each image and camera depends on its index alone), without rendering
+        again. Arrays are copies: changing them leaves this scene as it is."""
+        if not 1 <= n <= self.n_images:
+            raise ValueError(f"a prefix of {n} images of a {self.n_images}-image scene")
+        return SyntheticScene(
+            config=replace(self.config, n_images=n), images=[im.copy() for im in self.images[:n]],
+            P=[a.copy() for a in self.P[:n]], K=[a.copy() for a in self.K[:n]], R=[a.copy() for a in self.R[:n]],
+            t=[np.array(a, copy=True) for a in self.t[:n]], corners=self.corners.copy(), names=list(self.names[:n]),
+            corner_labels=self.corner_labels.copy())
 
     @property
     def centers(self) -> np.ndarray:
