@@ -75,8 +75,7 @@ __all__ = [
     "write_scene",
 ]
 
-# --------------------------------------------------------------------------------------------
-# Fixed geometry of the target (paper section 5); not configurable because 228 corners is the
+# ---- Fixed geometry of the target (paper section 5); not configurable because 228 corners is the
 # paper's number and other modules' tests rely on it.
 BOX_HALF = 0.17  # half of the 34 cm base side, metres
 BOX_HEIGHT = 0.44
@@ -174,8 +173,7 @@ class SceneConfig:
             raise ValueError("texture_amplitude must be in [0, 0.5] (an albedo standard deviation) or None")
 
 
-# --------------------------------------------------------------------------------------------
-# Ground-truth geometry
+# ---- Ground-truth geometry -------------------------------------------------------------------
 
 
 def box_corners() -> tuple[np.ndarray, np.ndarray]:
@@ -252,8 +250,7 @@ def _cameras(cfg: SceneConfig) -> tuple[list, list, list]:
     return Ks, Rs, ts
 
 
-# --------------------------------------------------------------------------------------------
-# Textures
+# ---- Textures --------------------------------------------------------------------------------
 
 
 def _band_noise(shape: tuple[int, int], texel: float, rng: np.random.Generator) -> np.ndarray:
@@ -316,8 +313,7 @@ def noise_generator(scene_seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng([scene_seed, _STREAM_NOISE, index])
 
 
-# --------------------------------------------------------------------------------------------
-# The scene
+# ---- The scene -------------------------------------------------------------------------------
 
 
 @dataclass(eq=False)  # holds arrays: identity equality only
@@ -347,16 +343,13 @@ class SyntheticScene:
         return len(self.images)
 
     def prefix(self, n: int) -> SyntheticScene:
-        """The scene of the first n images: what :func:`render_scene` gives for the same config
-        with ``n_images=n`` (each image and camera depends on its index alone), without rendering
-        again. Arrays are copies: changing them leaves this scene as it is."""
+        """The first n images: what :func:`render_scene` gives with ``n_images=n`` (an image and
+        its camera depend on their index alone), without rendering again; arrays are copies."""
         if not 1 <= n <= self.n_images:
             raise ValueError(f"a prefix of {n} images of a {self.n_images}-image scene")
-        return SyntheticScene(
-            config=replace(self.config, n_images=n), images=[im.copy() for im in self.images[:n]],
-            P=[a.copy() for a in self.P[:n]], K=[a.copy() for a in self.K[:n]], R=[a.copy() for a in self.R[:n]],
-            t=[np.array(a, copy=True) for a in self.t[:n]], corners=self.corners.copy(), names=list(self.names[:n]),
-            corner_labels=self.corner_labels.copy())
+        first = {k: [np.array(a, copy=True) for a in getattr(self, k)[:n]] for k in ("images", "P", "K", "R", "t")}
+        return SyntheticScene(config=replace(self.config, n_images=n), corners=self.corners.copy(),
+                              names=list(self.names[:n]), corner_labels=self.corner_labels.copy(), **first)
 
     @property
     def centers(self) -> np.ndarray:
