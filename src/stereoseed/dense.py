@@ -79,18 +79,29 @@ def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _cells(points, size):
-    """The cell (N, 3) int64 of each point (N, 3): floor((p - min) / size) per axis, the min
-    over the points."""
-    n = points.shape[0]
+def _grid_origin(points):
+    """The lowest coordinate per axis (3,) of the points (N, 3): the corner of cell (0, 0, 0)."""
     low = np.full(3, np.inf)
-    for i in range(n):
+    for i in range(points.shape[0]):
         for a in range(3):
             low[a] = min(low[a], points[i, a])
-    cells = np.empty((n, 3), np.int64)
-    for i in range(n):
+    return low
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_of(points, i, a, low, size):
+    """Point i's cell index along axis a: floor((p - low) / size)."""
+    return np.int64(np.floor((points[i, a] - low[a]) / size))
+
+
+@njit(cache=True, nogil=True)
+def _cells(points, size):
+    """The cell (N, 3) int64 of each point (N, 3), counted from :func:`_grid_origin`."""
+    low = _grid_origin(points)
+    cells = np.empty((points.shape[0], 3), np.int64)
+    for i in range(points.shape[0]):
         for a in range(3):
-            cells[i, a] = np.int64(np.floor((points[i, a] - low[a]) / size))
+            cells[i, a] = _cell_of(points, i, a, low, size)
     return cells
 
 
@@ -101,22 +112,17 @@ def _cell_keys(points, size):
     without the cells array: NumPy's way made five temporaries of the cloud's size (0.3 s on 2M
     points)."""
     n = points.shape[0]
-    low = np.full(3, np.inf)
-    for i in range(n):
-        for a in range(3):
-            low[a] = min(low[a], points[i, a])
+    low = _grid_origin(points)
     span = np.zeros(3, np.int64)
     for i in range(n):
         for a in range(3):
-            span[a] = max(span[a], np.int64(np.floor((points[i, a] - low[a]) / size)) + 1)
+            span[a] = max(span[a], _cell_of(points, i, a, low, size) + 1)
     keys = np.empty(n, np.int64)
     fits = float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62
     if fits:
         for i in range(n):
-            c0 = np.int64(np.floor((points[i, 0] - low[0]) / size))
-            c1 = np.int64(np.floor((points[i, 1] - low[1]) / size))
-            c2 = np.int64(np.floor((points[i, 2] - low[2]) / size))
-            keys[i] = (c0 * span[1] + c1) * span[2] + c2
+            keys[i] = ((_cell_of(points, i, 0, low, size) * span[1] + _cell_of(points, i, 1, low, size)) * span[2]
+                       + _cell_of(points, i, 2, low, size))
     return keys, fits
 
 
@@ -136,20 +142,28 @@ def supported(points: np.ndarray, sources: np.ndarray, size: float, min_sources:
     return keep
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _distinct_sources(order, starts, sources, g, last_group):
+    """How many distinct sources the points of group g have (groups as
+    :func:`~stereoseed.arrays.sorted_groups` gives them); last_group (S,) is scratch shared by
+    the groups, -1 at first: each source's last group seen."""
+    distinct = 0
+    for j in range(starts[g], starts[g + 1]):
+        s = sources[order[j]]
+        if last_group[s] != g:
+            last_group[s] = g
+            distinct += 1
+    return distinct
+
+
 @njit(cache=True, nogil=True)
 def _keep_supported(order, starts, sources, n_sources, min_sources, keep):
-    """keep[i] = whether the group of point i (groups as :func:`~stereoseed.arrays.sorted_groups`
-    gives them) has points of at least min_sources distinct sources."""
+    """keep[i] = whether the group of point i has points of at least min_sources distinct sources."""
     last_group = np.full(n_sources, -1, np.int64)
     for g in range(starts.shape[0] - 1):
-        distinct = 0
+        enough = _distinct_sources(order, starts, sources, g, last_group) >= min_sources
         for j in range(starts[g], starts[g + 1]):
-            s = sources[order[j]]
-            if last_group[s] != g:
-                last_group[s] = g
-                distinct += 1
-        for j in range(starts[g], starts[g + 1]):
-            keep[order[j]] = distinct >= min_sources
+            keep[order[j]] = enough
 
 
 def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -175,8 +189,8 @@ def _fuse(points: np.ndarray, colors: np.ndarray, sources: np.ndarray, stand: np
 @njit(cache=True, nogil=True)
 def _voxel_means(order, starts, points, colors, sources, stand):
     """Per group (as :func:`~stereoseed.arrays.sorted_groups` gives them): the mean point, mean
-    colour, mean stand[source], and the number of distinct sources. One pass; each group's sums
-    run in increasing point order, as np.bincount's do (the same bits)."""
+    colour, mean stand[source], and the number of distinct sources. Each group's sums run in
+    increasing point order, as np.bincount's do (the same bits)."""
     k = starts.shape[0] - 1
     fused = np.zeros((k, 3))
     mean_colors = np.zeros((k, 3))
@@ -186,14 +200,11 @@ def _voxel_means(order, starts, points, colors, sources, stand):
     for g in range(k):
         for j in range(starts[g], starts[g + 1]):
             i = order[j]
-            s = sources[i]
             for a in range(3):
                 fused[g, a] += points[i, a]
                 mean_colors[g, a] += float(colors[i, a])
-                viewpoints[g, a] += stand[s, a]
-            if last_group[s] != g:
-                last_group[s] = g
-                support[g] += 1
+                viewpoints[g, a] += stand[sources[i], a]
+        support[g] = _distinct_sources(order, starts, sources, g, last_group)
         count = float(starts[g + 1] - starts[g])
         for a in range(3):
             fused[g, a] /= count
@@ -283,6 +294,7 @@ def _grid_neighbours(points, cells, starts, order, span_y, step, first, end, max
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         count = 0
         scanned = -1  # the cube of this radius is in best already
+        done = False
         r = 2  # the cube of radius 1 (27 cells) rarely holds a surface point's ten nearest
         while True:
             for x in range(max(cx - r, 0), min(cx + r, n_x - 1) + 1):
@@ -318,11 +330,11 @@ def _grid_neighbours(points, cells, starts, order, span_y, step, first, end, max
                         best_d[m] = d
                         best_i[m] = j
             scanned = r
-            reach = r * step
-            if (count == k and best_d[k - 1] <= reach * reach) or r >= max_radius:
+            done = count == k and best_d[k - 1] <= (r * step) ** 2
+            if done or r >= max_radius:
                 break
             r += 1
-        if count == k and best_d[k - 1] <= (scanned * step) ** 2:
+        if done:
             for m in range(k):
                 found[order[i], m] = order[best_i[m]]
         else:
