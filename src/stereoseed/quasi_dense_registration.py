@@ -162,11 +162,12 @@ def _foreground(image: np.ndarray, background_grey: int | None) -> np.ndarray:
     return out
 
 
-def _grid_and_f(res: Any, qc: Any) -> tuple[np.ndarray, ...]:
+def _grid_and_f(res: Any, qc: Any, grid: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Matches (M, 4), scores (M,), grid rows (G,), robust F or None, F inliers (G,) of a
-    :class:`~stereoseed.propagation.PropagationResult`."""
+    :class:`~stereoseed.propagation.PropagationResult` (grid: its grid rows when known)."""
     q, sc = res.matches, res.scores.astype(np.float64)
-    grid = grid_best(q[:, :2], sc, qc.grid_cell_px)
+    if grid is None:
+        grid = grid_best(q[:, :2], sc, qc.grid_cell_px)
     F, inlier = None, np.zeros(len(grid), bool)
     if len(grid) >= 8:  # the 8-point minimal set of OpenCV's USAC estimators
         F_est, mask = cv2.findFundamentalMat(q[grid, :2], q[grid, 2:], cv2.USAC_MAGSAC, qc.f_threshold_px,
@@ -188,24 +189,31 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
     t = time.perf_counter()
     img_a, img_b = _foreground(img_a, qc.background_grey), _foreground(img_b, qc.background_grey)
 
+    # the grid and the row map the refine_rows callbacks make (on the whole-pixel matches, whose
+    # pixels of a and scores are the result's) serve the result too
+    known: dict[str, np.ndarray] = {}
+
     def grid_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
-        return grid_best(q[:, :2], sc.astype(np.float64), qc.grid_cell_px)
+        known["grid"] = grid_best(q[:, :2], sc.astype(np.float64), qc.grid_cell_px)
+        return known["grid"]
 
     def read_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
-        chained = _rows_at(_row_of_pixel(q, img_a.shape[:2]), chained_pixels())
+        known["row_of_pixel"] = _row_of_pixel(q, img_a.shape[:2])
+        chained = _rows_at(known["row_of_pixel"], chained_pixels())
         return np.union1d(grid_rows(q, sc), chained[chained >= 0])
 
     res = propagate(img_a, img_b, seeds, None, cfg.propagation,
                     refine_rows=None if chained_pixels is None else grid_rows if qc.second_pass else read_rows)
-    q, sc, grid, F, inlier = _grid_and_f(res, qc)
+    q, sc, grid, F, inlier = _grid_and_f(res, qc, known.get("grid"))
     if qc.second_pass and F is not None:
+        known.clear()
         res = propagate(img_a, img_b, q[grid[inlier]], F,
                         dataclasses.replace(cfg.propagation, epipolar_band_px=qc.chain_epipolar_px),
                         refine_rows=None if chained_pixels is None else read_rows)
-        q, sc, grid, F2, inlier = _grid_and_f(res, qc)
+        q, sc, grid, F2, inlier = _grid_and_f(res, qc, known.get("grid"))
         F = F2 if F2 is not None else F
     t_prop = time.perf_counter() - t
-    row_of_pixel = _row_of_pixel(q, res.match_x.shape)
+    row_of_pixel = known["row_of_pixel"] if "row_of_pixel" in known else _row_of_pixel(q, res.match_x.shape)
     report = {"seeds": int(len(seeds)), "seeds_used": res.n_seeds_used, "propagated": int(len(q)),
               "grid": int(len(grid)), "f_inliers": int(inlier.sum()),
               "seconds": {"propagation": t_prop}}
