@@ -396,7 +396,6 @@ def test_a_run_as_finished_midway_is_the_run_on_the_images_so_far(box_scene):
     """as_finished after the 4th image gives what a run on those 4 images gives, to the last
     bit (the finishing step: loop closure, global BA), and the run then goes on as if nothing
     happened. The paper bench evaluates every image count of a figure this way."""
-
     images, names, pair = box_scene.images[:5], box_scene.names[:5], box_scene.P[:2]
     seen = {}
 
