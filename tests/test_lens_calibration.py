@@ -53,6 +53,31 @@ def test_the_lens_model_the_calibration_fits_is_opencvs():
     np.testing.assert_allclose(project_distorted(K, R, t, LENS, X), ocv, atol=1e-9)
 
 
+@pytest.mark.parametrize("n_lens,known", [(4, False), (5, False), (4, True)])
+def test_the_analytic_jacobian_is_the_residuals_derivative(n_lens, known):
+    """cv2.projectPoints's derivatives, placed in the parameter layout of _unpack, against
+    central differences of the residuals that calibrate_lens minimises."""
+    from scipy.optimize._numdiff import approx_derivative
+
+    from stereoseed.lens_calibration import _jacobian, _unpack
+
+    views, K, poses = _views(2)
+    rng = np.random.default_rng(1)
+    fixed = (K, LENS) if known else None
+    intrinsics = [] if known else [810.0, 790.0, 318.0, 241.0, *(LENS[:n_lens] * 0.8)]
+    pose = [v for R, t in poses for v in (*cv2.Rodrigues(R)[0].ravel() + rng.normal(0, 0.01, 3), *t + rng.normal(0, 5, 3))]
+    p = np.array(intrinsics + pose)
+
+    def residuals(q):
+        Kq, d, Rs, ts = _unpack(q, len(views), n_lens, fixed)
+        return np.concatenate([(project_distorted(Kq, R, t, d, X) - x).ravel() for (X, x), R, t in zip(views, Rs, ts)])
+
+    numeric = approx_derivative(residuals, p, method="3-point")
+    analytic = _jacobian(p, views, n_lens, fixed)
+    assert analytic.shape == numeric.shape
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-5 * np.abs(numeric).max())
+
+
 def test_one_view_gives_the_camera_and_the_lens_under_the_pattern():
     views, K, poses = _views(1)
     cal = calibrate_lens(views[:1], SIZE)

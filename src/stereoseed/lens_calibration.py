@@ -71,6 +71,30 @@ def _unpack(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tu
     return K, d, [cv2.Rodrigues(v[:3])[0] for v in poses], [v[3:] for v in poses]
 
 
+def _jacobian(p: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]], n_lens: int, fixed: tuple | None
+              ) -> np.ndarray:
+    """Jacobian (2 N_total, len(p)) of calibrate_lens's residuals (u, v per point, view after
+    view) with respect to its parameters p (:func:`_unpack`), from ``cv2.projectPoints``: its
+    model is :func:`project_distorted`'s and it returns the derivatives with respect to the
+    rotation vector, the translation, fx, fy, cx, cy and k1, k2, p1, p2, k3, analytically (a
+    finite-difference Jacobian cost a projection per parameter: 20 for two views)."""
+    K, d, _, _ = _unpack(p, len(views), n_lens, fixed)
+    n_intrinsics = 0 if fixed is not None else 4 + n_lens
+    poses = p[n_intrinsics:].reshape(len(views), 6)
+    J = np.zeros((2 * sum(len(X) for X, _ in views), len(p)))
+    row = 0
+    for i, ((X, _), pose) in enumerate(zip(views, poses)):
+        # columns of cv2's Jacobian: rvec (3), tvec (3), fx, fy, cx, cy, the 5 lens terms
+        _, dp = cv2.projectPoints(X, pose[:3], pose[3:], K, d)
+        rows = slice(row, row + 2 * len(X))
+        if fixed is None:
+            J[rows, :4] = dp[:, 6:10]
+            J[rows, 4:n_intrinsics] = dp[:, 10:10 + n_lens]
+        J[rows, n_intrinsics + 6 * i:n_intrinsics + 6 * i + 6] = dp[:, :6]
+        row += 2 * len(X)
+    return J
+
+
 def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int, int] | None = None,
                    k3: bool = False, intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
                    what: list[str] | None = None) -> LensCalibration:
@@ -102,7 +126,8 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
 
     from scipy.optimize import least_squares  # here: a reconstruction that only reads a lens need not load it
 
-    sol = least_squares(residuals, np.asarray(p0, np.float64), method="lm", x_scale="jac", max_nfev=2000)
+    sol = least_squares(residuals, np.asarray(p0, np.float64), jac=lambda p: _jacobian(p, checked, n_lens, fixed),
+                        method="lm", x_scale="jac", max_nfev=2000)
     K, d, Rs, ts = _unpack(sol.x, len(checked), n_lens, fixed)
     rms, counts = [], []
     for (X, x), R, t, name in zip(checked, Rs, ts, what):
