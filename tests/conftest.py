@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from stereoseed.experiments import noisy_images
 from stereoseed.synthetic import SceneConfig, SyntheticScene, render_scene
 
 
@@ -52,10 +54,23 @@ def plain_box_scene() -> SyntheticScene:
     return render_scene(SceneConfig(textured=False))
 
 
+def _with_noise(scene: SyntheticScene, sigma: float) -> SyntheticScene:
+    """What render_scene gives with noise_sigma=sigma, from the noise-free render: the renderer
+    adds its noise after rendering, from a stream of its own (test_synthetic checks the bytes)."""
+    return replace(scene, config=replace(scene.config, noise_sigma=sigma),
+                   images=noisy_images(scene.images, sigma, scene.config.seed))
+
+
 @pytest.fixture(scope="session")
-def box_scene_noisy() -> SyntheticScene:
+def box_scene_noisy(box_scene) -> SyntheticScene:
     """The default ring with Gaussian image noise sigma = 2 grey levels."""
-    return render_scene(SceneConfig(noise_sigma=2.0))
+    return _with_noise(box_scene, 2.0)
+
+
+@pytest.fixture(scope="session")
+def plain_box_scene_noisy(plain_box_scene) -> SyntheticScene:
+    """The plain box with Gaussian image noise sigma = 2 grey levels."""
+    return _with_noise(plain_box_scene, 2.0)
 
 
 @pytest.fixture(scope="session")

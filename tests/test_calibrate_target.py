@@ -9,7 +9,7 @@ import pytest
 from stereoseed.camera import camera_center
 from stereoseed.cli import main
 from stereoseed.synthetic import SceneConfig, render_scene, write_scene
-from stereoseed.synthetic_target import render_target
+from stereoseed.synthetic_target import load_target, render_target
 from stereoseed.target import make_target
 
 LENS = (-0.12, 0.03, 0.001, -0.0005)
@@ -32,6 +32,7 @@ def photos(tmp_path_factory):
     target = make_target(folder / "target", "A3", 3)
     scene = render_scene(SceneConfig(n_images=5, focal_jitter=0.0, distance=1.0, distortion=LENS))
     files = {}
+    pages = load_target(target)  # read once for the six photos
     for cam in (0, 1):
         K, R = scene.K[cam], scene.R[cam]
         t = scene.t[cam] * 1000.0 + R @ TARGET_AT
@@ -41,7 +42,7 @@ def photos(tmp_path_factory):
         files[cam] = []
         for k, (Rv, tv) in enumerate(views):
             path = folder / f"cam{cam}_{k}.png"
-            cv2.imwrite(str(path), render_target(target, K, Rv, tv, distortion=LENS))
+            cv2.imwrite(str(path), render_target(pages, K, Rv, tv, distortion=LENS))
             files[cam].append(path)
     return folder, target, scene, files
 

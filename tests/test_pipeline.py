@@ -171,12 +171,12 @@ def test_a_lens_that_does_not_zoom_is_best_held_fixed():
         assert _centre_errors(recon, scene).mean() < 0.004
 
 
-def test_noisy_plain_box_registers_every_image():
+def test_noisy_plain_box_registers_every_image(plain_box_scene_noisy):
     # sigma 2, squares only: an earlier version slipped by one period here (corners 5.8 cm off)
     # when the motion prediction missed the squares by 55 px; the wide search that fixed it is
     # tested on its own in test_mapper.py (this rendering no longer needs it: each image is
     # placed by the near search)
-    scene = render_scene(SceneConfig(textured=False, noise_sigma=2.0))
+    scene = plain_box_scene_noisy
     recon, report = _run(scene, "accurate")
     assert report["registered"] == scene.n_images, [r.get("reason") for r in report["per_image"]]
     assert all(r["registered_by"] == "motion prior" for r in report["per_image"][2:])
