@@ -2,9 +2,12 @@
 cluster of two worker processes on the loopback interface; the local pool; the sequence list."""
 import copy
 import json
+import os
 import re
 import socket
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,6 +192,54 @@ def test_in_order_hands_back_results_in_job_order():
     failed = JobPool().submit(int, "x")
     with pytest.raises(ValueError):
         failed.result()
+
+
+_BUSY_POOL = """
+import sys, time
+from stereoseed.cluster import executor_for
+with executor_for(None, 2) as pool:
+    for _ in range(2):
+        pool.submit(time.sleep, 60)
+    print("busy", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux-only; the test reads /proc")
+def test_a_local_pools_busy_workers_die_when_their_parent_is_killed():
+    """End to end: a command's local pool (executor_for) with a job running in each worker, its
+    process alone killed (SIGKILL: nothing of its own runs): the workers go at once, not when
+    their 60 s jobs end (a worker of a killed run would otherwise hold its core and memory)."""
+    import signal
+    import subprocess
+
+    parent = subprocess.Popen([sys.executable, "-c", _BUSY_POOL], start_new_session=True, stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert parent.stdout.readline().strip() == "busy"
+        time.sleep(0.5)  # the workers have taken their jobs
+        assert len(_group(parent.pid)) == 3  # the parent and two workers
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 10.0
+        while _group(parent.pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _group(parent.pid), "a worker outlived its parent"
+    finally:
+        os.killpg(parent.pid, signal.SIGKILL) if _group(parent.pid) else None
+
+
+def _group(pgid: int) -> list[int]:
+    """Live (not zombie) processes of process group pgid."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            alive.append(int(stat.parent.name))
+    return alive
 
 
 def test_pool_workers_die_with_their_parent():

@@ -14,7 +14,7 @@ import pytest
 
 from stereoseed.cli import main
 from stereoseed.results import MANIFEST
-from stereoseed.synthetic import write_scene
+from stereoseed.synthetic import SceneConfig, render_scene, write_scene
 
 
 @pytest.fixture(scope="module")
@@ -22,6 +22,18 @@ def seq(tmp_path_factory, box_scene):
     """A 5-image synthetic ring on disk: (paths of write_scene, scene, calib.json with the true pair)."""
     scene = box_scene.prefix(5)
     folder = tmp_path_factory.mktemp("seq")
+    paths = write_scene(scene, folder / "images")
+    calib = folder / "calib.json"
+    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
+    return paths, scene, calib
+
+
+@pytest.fixture(scope="module")
+def small_seq(tmp_path_factory):
+    """A 5-image ring of 320x240 images on disk, as ``seq``: for the tests that run whole
+    commands again and again (what they check does not depend on the image size)."""
+    scene = render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
+    folder = tmp_path_factory.mktemp("small_seq")
     paths = write_scene(scene, folder / "images")
     calib = folder / "calib.json"
     calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
@@ -155,8 +167,8 @@ def test_the_results_never_overwrite_what_the_user_made(seq, capsys):
     assert {p: p.read_bytes() for p in folder.iterdir()} == before  # the ground-truth cameras.json intact
 
 
-def test_a_rerun_replaces_the_whole_result_set(seq, tmp_path, capsys):
-    paths, _, calib = seq
+def test_a_rerun_replaces_the_whole_result_set(small_seq, tmp_path, capsys):
+    paths, _, calib = small_seq
     out = tmp_path / "o"
     assert run(capsys, *reconstruct_args(paths, calib, out, "--dense"))[0] == 0
     assert (out / "dense.ply").is_file()
@@ -205,8 +217,8 @@ def _alive_in_group(pgid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kill test reads /proc")
-def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(seq, tmp_path):
-    paths, _, calib = seq
+def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(small_seq, tmp_path):
+    paths, _, calib = small_seq
     reference = tmp_path / "reference"
     # a first run compiles what Numba has not cached yet; the runs compared must all be warm (the
     # fastmath alignment kernel differs by ~1e-6 between a fresh compile and its cached code)
@@ -231,15 +243,18 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(seq
                                             if p.is_file() and p.name != MANIFEST)
             np.testing.assert_allclose(_cameras(out), expected, atol=1e-9)
         assert not [p for p in tmp_path.iterdir() if p.name not in ("reference", "o", ".o.partial")]
-    # a kill once every image is placed (the checkpoint says so), then --resume: only the dense
-    # stage and the writing are left to do
-    proc = subprocess.Popen(_cli(*reconstruct_args(paths, calib, out, "--dense")), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    # a kill of the parent alone once every image is placed (the checkpoint says so), so in the
+    # dense stage, whose workers must follow it; then --resume: only the dense stage and the
+    # writing are left to do
+    proc = subprocess.Popen(_cli(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     checkpoint = tmp_path / ".o.partial" / ".checkpoint.pkl"
     while proc.poll() is None and _images_done(checkpoint) < len(paths["images"]):
         time.sleep(0.05)
     proc.kill()
     proc.wait()
+    time.sleep(0.5)
+    assert not _alive_in_group(proc.pid), "a dense worker outlived its parent"
     t = time.perf_counter()
     done = subprocess.run(_cli(*reconstruct_args(paths, calib, out, "--dense", "--resume")), capture_output=True,
                           text=True)
