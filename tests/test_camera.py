@@ -108,3 +108,30 @@ def test_projections_from_params_are_the_ones_of_each_camera(model):
     np.testing.assert_array_equal(camera_models.projections_from_params(params, model, refs), one_by_one)
     shared = np.stack([camera_models.projection_from_params(p, model, refs[0]) for p in params])
     np.testing.assert_array_equal(camera_models.projections_from_params(params, model, refs[0]), shared)
+
+
+def test_quaternions_and_rotation_vectors_are_scipys_at_every_angle():
+    """camera_models' rotation conversions against scipy's Rotation (the oracle): random
+    rotations, tiny angles and half turns (where an inverse cosine would lose half the digits)."""
+    from scipy.spatial.transform import Rotation
+
+    from stereoseed import camera_models
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    rotations = [Rotation.random(random_state=i) for i in range(300)]
+    rotations += [Rotation.from_rotvec(axis * a) for a in (0.0, 1e-13, 1e-6, np.pi - 1e-9, np.pi)]
+    rotations += [Rotation.from_matrix(np.diag(d)) for d in ([1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]
+    for rot in rotations:
+        R = rot.as_matrix()
+        q = camera_models.quaternion_from_rotation(R)
+        x, y, z, w = rot.as_quat()
+        want = np.array([w, x, y, z])
+        assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-15
+        assert min(np.abs(q - want).max(), np.abs(q + want).max()) < 1e-14  # q and -q: the same rotation
+        np.testing.assert_allclose(camera_models.rotation_from_quaternion(q), R, atol=1e-14)
+        rvec = camera_models.rotation_vector(R)
+        assert np.linalg.norm(rvec) <= np.pi + 1e-12
+        np.testing.assert_allclose(camera_models.rotation_from_vector(rvec), R, atol=1e-14)
+        if np.linalg.norm(rvec) < np.pi - 1e-6:  # a half turn's vector is +-(axis pi)
+            np.testing.assert_allclose(rvec, rot.as_rotvec(), atol=1e-14)
+    np.testing.assert_allclose(camera_models.rotation_from_quaternion([2.0, 0, 0, 0]), np.eye(3))  # normalised first

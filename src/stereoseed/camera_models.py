@@ -13,7 +13,6 @@ intrinsics are free:
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .camera import compose_projection, decompose_projection
 
@@ -85,7 +84,7 @@ def params_from_krt(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: str,
                     reference_K: np.ndarray | None = None) -> np.ndarray:
     """Parameter vector (n_params(model),) of a camera K, R, t under ``model``."""
     _check(model)
-    rvec = Rotation.from_matrix(R).as_rotvec()
+    rvec = rotation_vector(R)
     return np.concatenate([_intrinsics_from_K(K, model, reference_K), rvec, np.asarray(t, float).ravel()])
 
 
@@ -104,6 +103,45 @@ def params_from_projection(P: np.ndarray, model: str, reference_K: np.ndarray | 
 def rotation_from_vector(rvec: np.ndarray) -> np.ndarray:
     """Rodrigues' formula, (3,) -> (3, 3)."""
     return rotations_from_vectors(np.asarray(rvec, np.float64)[None])[0]
+
+
+def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) (w, x, y, z) of the rotation R (3, 3), w >= 0 (COLMAP's order).
+
+    Markley's method (J. Guidance 2008, what scipy's Rotation.from_matrix does): the quaternion
+    is built from the largest of R's diagonal terms and its trace, so no square root or inverse
+    cosine loses precision, near a half turn included."""
+    R = np.asarray(R, np.float64)
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    choice = int(np.argmax([R[0, 0], R[1, 1], R[2, 2], trace]))
+    q = np.empty(4)  # (x, y, z, w) while it is built
+    if choice < 3:
+        i, j, k = choice, (choice + 1) % 3, (choice + 2) % 3
+        q[i] = 1.0 - trace + 2.0 * R[i, i]
+        q[j] = R[j, i] + R[i, j]
+        q[k] = R[k, i] + R[i, k]
+        q[3] = R[k, j] - R[j, k]
+    else:
+        q[:] = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 1.0 + trace
+    q /= np.linalg.norm(q)
+    return np.array([q[3], q[0], q[1], q[2]]) * (1.0 if q[3] >= 0 else -1.0)
+
+
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) (axis times angle, angle in [0, pi]) of R (3, 3): the inverse of
+    :func:`rotation_from_vector`, from the quaternion (precise at every angle)."""
+    w, *v = quaternion_from_rotation(R)
+    s = float(np.linalg.norm(v))
+    angle = 2.0 * np.arctan2(s, w)
+    return np.asarray(v) * (angle / s if s > 1e-300 else 2.0)
+
+
+def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) of the quaternion q (4,) (w, x, y, z), normalised first."""
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def rotations_from_vectors(rvecs: np.ndarray) -> np.ndarray:

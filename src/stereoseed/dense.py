@@ -17,7 +17,6 @@ from typing import Any, Iterator
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from .arrays import sort_order, sorted_groups
 from .camera import camera_center, fundamental_from_projections
@@ -252,6 +251,8 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
     the k-th distance is within the cells it has scanned), the points sorted by column (x, y
     cell) then z; a k-d tree finishes the points without k neighbours within
     ``_GRID_MAX_RADIUS`` cells, and does it all when the grid's column table would be too large."""
+    from scipy.spatial import cKDTree  # here: a reconstruction without the dense stage need not load it
+
     points = np.ascontiguousarray(points, np.float64)
     n = len(points)
     if not 1 <= k <= n:

@@ -14,9 +14,9 @@ import struct
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .camera import compose_projection, decompose_projection
+from .camera_models import quaternion_from_rotation, rotation_from_quaternion
 from .errors import StereoseedError
 from .io import atomic_path, write_text
 from .lens import distort_pixels
@@ -75,8 +75,7 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distorti
         model, params = "SIMPLE_PINHOLE", [K[0, 0], cx, cy]
     else:
         model, params = "PINHOLE", [K[0, 0], K[1, 1], cx, cy]
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
+    q = quaternion_from_rotation(R)
     return model, [float(p) for p in params], q, t, warning
 
 
@@ -216,7 +215,7 @@ def write_nvm(result: Result, path: str | Path) -> list[str]:
     cams, warnings = _single_focal_cameras(result, "NVM")
     lines = ["NVM_V3", "", str(len(cams))]
     for i, (f, R, t, _) in cams.items():
-        x, y, z, w = Rotation.from_matrix(R).as_quat()
+        w, x, y, z = quaternion_from_rotation(R)
         lines.append(f"{result.names[i]} {_num(f)} " + " ".join(_num(v) for v in (w, x, y, z, *(-R.T @ t))) + " 0 0")
     lines.append(str(len(tr["point_xyz"])))
     counts = np.diff(_observations_by_point(result)[0])
@@ -284,8 +283,7 @@ def read_colmap_cameras(folder: str | Path) -> dict[str, np.ndarray]:
             raise StereoseedError(f"{folder}: camera {cam} ({model}) has lens distortion {list(distortion)}, which "
                                   f"stereoseed does not model yet; undistort the images (colmap image_undistorter)")
         K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-        w, x, y, z = q
-        out[name] = compose_projection(K, Rotation.from_quat([x, y, z, w]).as_matrix(), np.asarray(t))
+        out[name] = compose_projection(K, rotation_from_quaternion(q), np.asarray(t))
     return out
 
 

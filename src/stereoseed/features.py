@@ -19,13 +19,12 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-from .arrays import unique
 from .config import FeatureConfig, MatchingConfig
 from .edge_corners import _edge_corners
 from .errors import StereoseedError
 from .image import sample_bilinear, to_gray
+from .neighbours import repeats_earlier
 
 _log = logging.getLogger(__name__)
 
@@ -144,12 +143,9 @@ def detect_corners_with_response(
     pts, response = pts[order], response[order]
     # Two Harris maxima of one corner can refine to the same position (both arms of an L corner
     # peak): one interest point per position, the strongest.
-    close = cKDTree(pts).query_pairs(_SAME_POINT_PX, output_type="ndarray")
-    if len(close):
-        weaker = unique(close.max(axis=1))  # pairs (i, j) with i < j: j is the weaker
-        keep = np.ones(len(pts), bool)
-        keep[weaker] = False
-        pts, response = pts[keep], response[keep]
+    weaker = repeats_earlier(pts, _SAME_POINT_PX)  # within the distance of a stronger one
+    if weaker.any():
+        pts, response = pts[~weaker], response[~weaker]
     return pts, response
 
 

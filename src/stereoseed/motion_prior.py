@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .arrays import unique
 from .camera import decompose_projection, project
 from .config import Config, MotionPriorConfig, ResectionConfig
 from .features import Features
+from .neighbours import nearest_within
 from .reconstruction import Reconstruction
 
 __all__ = ["predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
@@ -153,12 +153,11 @@ def explained_points(features: Features, cameras: list[np.ndarray], points: np.n
     ``min_zncc``). A camera shifted by one period of a repeated pattern explains its own
     correspondences as well as the true one, but loses the points at the pattern's ends and
     everything else in view. -> (len(cameras),) int64."""
-    tree = cKDTree(features.points)
     counts = np.zeros(len(cameras), np.int64)
     for i, P in enumerate(cameras):
         x = project(P, points)
         seen = np.flatnonzero(np.all(np.isfinite(x), axis=1))
-        dist, nearest = tree.query(x[seen], distance_upper_bound=max_px)
+        dist, nearest = nearest_within(features.points, x[seen], max_px)
         close = np.isfinite(dist)
         zncc = np.einsum("nd,nd->n", desc[seen[close]], features.desc[nearest[close]])
         counts[i] = int(np.sum(zncc >= min_zncc))

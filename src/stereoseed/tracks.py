@@ -5,13 +5,13 @@ confirmed by a third view where repeated patterns defeat two-view matching.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .camera import fundamental_from_projections, project, project_homogeneous, project_per_observation
 from .config import Config
 from .features import Features, describe
 from .matching.containers import Matches
 from .matching.two_view import epipolar_band_mask
+from .neighbours import nearest_within
 from .reconstruction import Reconstruction, View
 from .triangulation import triangulate, triangulate_tracks
 
@@ -77,7 +77,7 @@ def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Co
     ia, ib = kept.idx1, kept.idx2
     if len(ia) == 0:
         return none
-    dist, nearest = cKDTree(vc.features.points[fc]).query(project(vc.P, X))
+    dist, nearest = nearest_within(vc.features.points[fc], project(vc.P, X), tc.three_view_max_px)
     ic = fc[np.minimum(nearest, len(fc) - 1)]
     score = np.minimum(np.einsum("ij,ij->i", va.features.desc[ia], vc.features.desc[ic]),
                        np.einsum("ij,ij->i", va.features.desc[ia], vb.features.desc[ib]))
@@ -117,13 +117,11 @@ def _tracked_features(view: View, xy: np.ndarray) -> Features:
     return Features(xy, desc, valid, np.zeros(len(xy)), f.image_shape, f.gray)
 
 
-def _distance_to_linked(view: View, xy: np.ndarray) -> np.ndarray:
-    """Distance (K,) from pixels xy (K, 2) to the nearest interest point of ``view`` that
-    stands for a 3D point."""
+def _clear_of_linked(view: View, xy: np.ndarray, radius: float) -> np.ndarray:
+    """Whether no interest point of ``view`` that stands for a 3D point lies within ``radius``
+    of each pixel of xy (K, 2): (K,) bool."""
     linked = view.features.points[view.point_of_feature >= 0]
-    if len(linked) == 0 or len(xy) == 0:
-        return np.full(len(xy), np.inf)
-    return cKDTree(linked).query(xy)[0]
+    return np.isinf(nearest_within(linked, xy, radius)[0])
 
 
 def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg: Config) -> np.ndarray:
@@ -158,7 +156,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
         if len(pids) == 0:
             continue
         found, ok = track(j, target, recon.views[j].features, feats, vt.features, xy, thr)
-        ok &= _distance_to_linked(vt, found) > cfg.tracking.min_distance_to_other_px
+        ok &= _clear_of_linked(vt, found, cfg.tracking.min_distance_to_other_px)
         if not ok.any():
             continue
         idx = vt.append_features(_tracked_features(vt, found[ok]))
