@@ -135,3 +135,6 @@ def test_quaternions_and_rotation_vectors_are_scipys_at_every_angle():
         if np.linalg.norm(rvec) < np.pi - 1e-6:  # a half turn's vector is +-(axis pi)
             np.testing.assert_allclose(rvec, rot.as_rotvec(), atol=1e-14)
     np.testing.assert_allclose(camera_models.rotation_from_quaternion([2.0, 0, 0, 0]), np.eye(3))  # normalised first
+    for bad in ([0.0, 0, 0, 0], [np.nan, 1, 0, 0]):
+        with pytest.raises(ValueError):
+            camera_models.rotation_from_quaternion(bad)

@@ -137,8 +137,13 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """Rotation (3, 3) of the quaternion q (4,) (w, x, y, z), normalised first."""
-    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    """Rotation (3, 3) of the quaternion q (4,) (w, x, y, z), normalised first. Raises
+    ValueError for a zero or non-finite q (scipy's Rotation.from_quat does too)."""
+    q = np.asarray(q, np.float64)
+    norm = float(np.linalg.norm(q))
+    if not (np.isfinite(norm) and norm > 0):
+        raise ValueError(f"{q.tolist()} is not a rotation's quaternion")
+    w, x, y, z = q / norm
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
