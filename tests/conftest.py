@@ -57,8 +57,10 @@ def plain_box_scene() -> SyntheticScene:
 def _with_noise(scene: SyntheticScene, sigma: float) -> SyntheticScene:
     """What render_scene gives with noise_sigma=sigma, from the noise-free render: the renderer
     adds its noise after rendering, from a stream of its own (test_synthetic checks the bytes)."""
-    return replace(scene, config=replace(scene.config, noise_sigma=sigma),
-                   images=noisy_images(scene.images, sigma, scene.config.seed))
+    copies = {k: [a.copy() for a in getattr(scene, k)] for k in ("P", "K", "R", "t")}  # no array shared
+    return replace(scene, config=replace(scene.config, noise_sigma=sigma), corners=scene.corners.copy(),
+                   corner_labels=scene.corner_labels.copy(), images=noisy_images(scene.images, sigma, scene.config.seed),
+                   **copies)
 
 
 @pytest.fixture(scope="session")

@@ -7,12 +7,12 @@ import re
 import socket
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 from distributed import Client, LocalCluster
 
+from process_helpers import alive_in_group, wait_until
 from stereoseed.batch import read_sequence_list, run_batch
 from stereoseed.cli import main
 from stereoseed.cluster import JobPool, executor_for
@@ -217,29 +217,15 @@ def test_a_local_pools_busy_workers_die_when_their_parent_is_killed():
                               text=True)
     try:
         assert parent.stdout.readline().strip() == "busy"
-        time.sleep(0.5)  # the workers have taken their jobs
-        assert len(_group(parent.pid)) == 3  # the parent and two workers
+        assert wait_until(lambda: len(alive_in_group(parent.pid)) == 3, 10.0)  # the parent and its two workers
+        time.sleep(0.2)  # the workers take their jobs
         parent.send_signal(signal.SIGKILL)
         parent.wait()
-        deadline = time.monotonic() + 10.0
-        while _group(parent.pid) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not _group(parent.pid), "a worker outlived its parent"
+        assert wait_until(lambda: not alive_in_group(parent.pid), 10.0), "a worker outlived its parent"
     finally:
-        os.killpg(parent.pid, signal.SIGKILL) if _group(parent.pid) else None
-
-
-def _group(pgid: int) -> list[int]:
-    """Live (not zombie) processes of process group pgid."""
-    alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            alive.append(int(stat.parent.name))
-    return alive
+        parent.stdout.close()
+        if alive_in_group(parent.pid):
+            os.killpg(parent.pid, signal.SIGKILL)
 
 
 def test_pool_workers_die_with_their_parent():

@@ -39,8 +39,22 @@ def test_a_point_at_exactly_the_radius_is_within_and_ties_take_the_lowest_index(
     assert np.isinf(dist[1]) and index[1] == len(points)
     assert nearest_within(points, np.zeros((0, 2)), 1.0)[0].shape == (0,)
     assert np.all(nearest_within(np.zeros((0, 2)), points, 1.0)[1] == 0)
+    for radius in (0.0, -1.0, np.inf):
+        with pytest.raises(ValueError):
+            nearest_within(points, np.zeros((0, 2)), radius)
     with pytest.raises(ValueError):
-        nearest_within(points, points, 0.0)
+        nearest_within(np.array([[0.0, np.nan]]), points, 1.0)
+
+
+def test_a_tiny_radius_over_a_wide_span_stays_exact():
+    """Cells are never smaller than span / 2^20: the int64 cell keys cannot overflow, and the
+    searches stay exact (a coarser grid only scans more points)."""
+    rng = np.random.default_rng(7)
+    points = np.vstack([rng.uniform(0, 1e9, (300, 2)), [[5e8, 5e8], [5e8 + 3e-4, 5e8]]])
+    dist, index = nearest_within(points, np.array([[5e8 + 1e-4, 5e8], [1e9 + 1.0, 0.0]]), 1e-3)
+    assert index[0] == len(points) - 2 and abs(dist[0] - 1e-4) < 1e-6 and np.isinf(dist[1])
+    repeats = repeats_earlier(points, 1e-3)
+    assert repeats[-1] and repeats.sum() == 1
 
 
 @pytest.mark.parametrize("seed,radius", [(0, 1.0), (4, 0.5), (5, 3.0)])

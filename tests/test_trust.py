@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from process_helpers import alive_in_group, wait_until
 from stereoseed.cli import main
 from stereoseed.results import MANIFEST
 from stereoseed.synthetic import SceneConfig, render_scene, write_scene
@@ -204,18 +205,6 @@ def _cameras(out: Path) -> np.ndarray:
     return np.array([im["P"] for im in images])
 
 
-def _alive_in_group(pgid: int) -> list[int]:
-    alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            alive.append(int(stat.parent.name))
-    return alive
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kill test reads /proc")
 def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(small_seq, tmp_path):
     paths, _, calib = small_seq
@@ -235,8 +224,7 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(sma
         time.sleep(fraction * full_time)
         os.killpg(proc.pid, signal.SIGKILL) if attempt == 0 else proc.send_signal(signal.SIGKILL)
         proc.wait()
-        time.sleep(0.5)
-        assert not _alive_in_group(proc.pid), "a dense worker outlived its parent"
+        assert wait_until(lambda: not alive_in_group(proc.pid), 5.0), "a dense worker outlived its parent"
         if out.exists():  # a complete result set, never a mix: every file the manifest lists, nothing else
             listed = json.loads((out / MANIFEST).read_text())["files"]
             assert sorted(listed) == sorted(str(p.relative_to(out)) for p in out.rglob("*")
@@ -249,12 +237,12 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(sma
     proc = subprocess.Popen(_cli(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     checkpoint = tmp_path / ".o.partial" / ".checkpoint.pkl"
-    while proc.poll() is None and _images_done(checkpoint) < len(paths["images"]):
-        time.sleep(0.05)
+    wait_until(lambda: proc.poll() is not None or _images_done(checkpoint) == len(paths["images"]), 60.0)
+    # the dense stage's workers have started (unless the run is over already)
+    wait_until(lambda: proc.poll() is not None or len(alive_in_group(proc.pid)) > 1, 10.0, poll=0.01)
     proc.kill()
     proc.wait()
-    time.sleep(0.5)
-    assert not _alive_in_group(proc.pid), "a dense worker outlived its parent"
+    assert wait_until(lambda: not alive_in_group(proc.pid), 5.0), "a dense worker outlived its parent"
     t = time.perf_counter()
     done = subprocess.run(_cli(*reconstruct_args(paths, calib, out, "--dense", "--resume")), capture_output=True,
                           text=True)

@@ -86,6 +86,9 @@ def _jacobian(p: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]], n_lens:
     for i, ((X, _), pose) in enumerate(zip(views, poses)):
         # columns of cv2's Jacobian: rvec (3), tvec (3), fx, fy, cx, cy, the 5 lens terms
         _, dp = cv2.projectPoints(X, pose[:3], pose[3:], K, d)
+        # OpenCV leaves out K's skew s (a known K may have one): u = fx x + s y + cx and
+        # v = fy y + cy for the distorted normalised (x, y), so du gains s / fy dv
+        dp[0::2] += K[0, 1] / K[1, 1] * dp[1::2]
         rows = slice(row, row + 2 * len(X))
         if fixed is None:
             J[rows, :4] = dp[:, 6:10]

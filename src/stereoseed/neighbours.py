@@ -19,21 +19,28 @@ __all__ = ["nearest_within", "repeats_earlier"]
 
 # cells a little larger than the radius: a point at exactly the radius stays in the 3 x 3 cells
 # whatever the rounding of its cell coordinate
-_CELL_MARGIN = 1.0 + 1e-9
+_CELL_MARGIN = 1.0 + 1e-6
+# at most this many cells along an axis: any cell of at least the radius is correct, and bounded
+# cell coordinates keep the int64 keys exact (a tiny radius over a wide span would overflow them)
+_MAX_CELLS = 1 << 20
+
+
+def _check_radius(radius: float) -> None:
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be positive and finite, got {radius}")
 
 
 def _grid(points: np.ndarray, radius: float) -> tuple:
     """(origin (2,), cell size, columns, sorted cell keys (N,), order (N,)) of points (N, 2)."""
-    if not (np.isfinite(radius) and radius > 0):
-        raise ValueError(f"radius must be positive and finite, got {radius}")
     if not np.isfinite(points).all():
         raise ValueError("points must be finite")
-    cell = radius * _CELL_MARGIN
     origin = points.min(axis=0)
-    ij = np.floor((points - origin) / cell).astype(np.int64)
+    span = float((points.max(axis=0) - origin).max())
+    cell = max(radius * _CELL_MARGIN, span / _MAX_CELLS)
+    ij = np.minimum(np.floor((points - origin) / cell), _MAX_CELLS).astype(np.int64)
     columns = int(ij[:, 0].max()) + 1
     keys = ij[:, 1] * columns + ij[:, 0]
-    order = np.argsort(keys, kind="stable")  # ties by index: the scans meet points in index order
+    order = np.argsort(keys, kind="stable")  # by cell; the kernels break distance ties by index
     return origin, cell, columns, keys[order], order
 
 
@@ -43,8 +50,10 @@ def nearest_within(points: np.ndarray, queries: np.ndarray, radius: float) -> tu
     points: (N, 2) float64, finite; queries: (M, 2) float64 (a non-finite query has none);
     radius: > 0, finite. Returns distance (M,) float64, inf where no point is within radius,
     and index (M,) int64, N there (cKDTree.query's convention). Of points at the same distance
-    the one of lowest index is taken.
+    the one of lowest index is taken. Raises ValueError for a radius that is not positive and
+    finite, or points that are not finite.
     """
+    _check_radius(radius)
     points = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
     queries = np.ascontiguousarray(queries, np.float64).reshape(-1, 2)
     dist = np.full(len(queries), np.inf)
@@ -61,7 +70,9 @@ def repeats_earlier(points: np.ndarray, radius: float) -> np.ndarray:
 
     points: (N, 2) float64, finite, strongest first: the True ones are what keeping one point
     per position drops (the pairs of cKDTree.query_pairs(radius), the higher index of each).
+    Raises ValueError as :func:`nearest_within` does.
     """
+    _check_radius(radius)
     points = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
     out = np.zeros(len(points), np.bool_)
     if len(points) > 1:
