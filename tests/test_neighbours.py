@@ -42,8 +42,13 @@ def test_a_point_at_exactly_the_radius_is_within_and_ties_take_the_lowest_index(
     for radius in (0.0, -1.0, np.inf):
         with pytest.raises(ValueError):
             nearest_within(points, np.zeros((0, 2)), radius)
-    with pytest.raises(ValueError):
-        nearest_within(np.array([[0.0, np.nan]]), points, 1.0)
+    # a point that is not finite is nobody's neighbour, and repeats nothing
+    with_nan = np.vstack([[[0.5, 0.0]], [[np.nan, 0.0]], points, [[np.inf, 5.0]]])
+    dist, index = nearest_within(with_nan, np.array([[0.0, 0.0], [9.0, 9.0]]), 1.0)
+    assert index[0] == 0 and dist[0] == 0.5 and index[1] == len(with_nan)
+    assert np.all(np.isinf(nearest_within(np.full((3, 2), np.nan), points, 1.0)[0]))
+    np.testing.assert_array_equal(repeats_earlier(np.array([[0.0, 0.0], [np.nan, 0.0], [0.1, 0.0], [np.nan, 0.0]]), 1.0),
+                                  [False, False, True, False])
 
 
 def test_a_tiny_radius_over_a_wide_span_stays_exact():

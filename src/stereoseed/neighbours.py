@@ -30,54 +30,56 @@ def _check_radius(radius: float) -> None:
         raise ValueError(f"radius must be positive and finite, got {radius}")
 
 
-def _grid(points: np.ndarray, radius: float) -> tuple:
-    """(origin (2,), cell size, columns, sorted cell keys (N,), order (N,)) of points (N, 2)."""
-    if not np.isfinite(points).all():
-        raise ValueError("points must be finite")
-    origin = points.min(axis=0)
-    span = float((points.max(axis=0) - origin).max())
+def _grid(points: np.ndarray, radius: float) -> tuple | None:
+    """(origin (2,), cell size, columns, sorted cell keys (F,), order (F,)) of the F finite
+    points of points (N, 2), order holding their indices in points; None when none is finite."""
+    finite = np.flatnonzero(np.isfinite(points).all(axis=1))
+    if len(finite) == 0:
+        return None
+    kept = points[finite]
+    origin = kept.min(axis=0)
+    span = float((kept.max(axis=0) - origin).max())
     cell = max(radius * _CELL_MARGIN, span / _MAX_CELLS)
-    ij = np.minimum(np.floor((points - origin) / cell), _MAX_CELLS).astype(np.int64)
+    ij = np.minimum(np.floor((kept - origin) / cell), _MAX_CELLS).astype(np.int64)
     columns = int(ij[:, 0].max()) + 1
     keys = ij[:, 1] * columns + ij[:, 0]
     order = np.argsort(keys, kind="stable")  # by cell; the kernels break distance ties by index
-    return origin, cell, columns, keys[order], order
+    return origin, cell, columns, keys[order], finite[order]
 
 
 def nearest_within(points: np.ndarray, queries: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """For each query the nearest point at distance <= radius.
 
-    points: (N, 2) float64, finite; queries: (M, 2) float64 (a non-finite query has none);
-    radius: > 0, finite. Returns distance (M,) float64, inf where no point is within radius,
-    and index (M,) int64, N there (cKDTree.query's convention). Of points at the same distance
-    the one of lowest index is taken. Raises ValueError for a radius that is not positive and
-    finite, or points that are not finite.
+    points: (N, 2) float64 (a non-finite point is nobody's neighbour); queries: (M, 2) float64
+    (a non-finite query has none); radius: > 0, finite, else ValueError. Returns distance (M,)
+    float64, inf where no point is within radius, and index (M,) int64, N there
+    (cKDTree.query's convention). Of points at the same distance the one of lowest index is
+    taken.
     """
     _check_radius(radius)
     points = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
     queries = np.ascontiguousarray(queries, np.float64).reshape(-1, 2)
     dist = np.full(len(queries), np.inf)
     index = np.full(len(queries), len(points), np.int64)
-    if len(points) == 0 or len(queries) == 0:
-        return dist, index
-    origin, cell, columns, keys, order = _grid(points, radius)
-    _nearest_kernel(points, queries, float(radius), origin, cell, columns, keys, order, dist, index)
+    grid = _grid(points, radius) if len(queries) else None
+    if grid is not None:
+        _nearest_kernel(points, queries, float(radius), *grid, dist, index)
     return dist, index
 
 
 def repeats_earlier(points: np.ndarray, radius: float) -> np.ndarray:
     """Whether each point has a point of lower index at distance <= radius: (N,) bool.
 
-    points: (N, 2) float64, finite, strongest first: the True ones are what keeping one point
-    per position drops (the pairs of cKDTree.query_pairs(radius), the higher index of each).
-    Raises ValueError as :func:`nearest_within` does.
+    points: (N, 2) float64, strongest first (a non-finite point repeats none and none repeats
+    it): the True ones are what keeping one point per position drops (the pairs of
+    cKDTree.query_pairs(radius), the higher index of each). radius as :func:`nearest_within`'s.
     """
     _check_radius(radius)
     points = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
     out = np.zeros(len(points), np.bool_)
-    if len(points) > 1:
-        origin, cell, columns, keys, order = _grid(points, radius)
-        _repeats_kernel(points, float(radius), origin, cell, columns, keys, order, out)
+    grid = _grid(points, radius) if len(points) > 1 else None
+    if grid is not None:
+        _repeats_kernel(points, float(radius), *grid, out)
     return out
 
 
@@ -133,6 +135,8 @@ def _repeats_kernel(points, radius, origin, cell, columns, keys, order, out):
     rows = keys[-1] // columns + 1
     r2 = radius * radius
     for j in range(points.shape[0]):
+        if not (np.isfinite(points[j, 0]) and np.isfinite(points[j, 1])):
+            continue
         x0, x1 = _cell_range(points[j, 0], origin[0], cell, columns)
         y0, y1 = _cell_range(points[j, 1], origin[1], cell, rows)
         for row in range(y0, y1 + 1):
