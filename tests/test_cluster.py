@@ -22,7 +22,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io import write_json
 from stereoseed.pipeline import reconstruct
 from stereoseed.ply import read_ply_vertices
-from stereoseed.synthetic import write_scene
+from stereoseed.synthetic import SceneConfig, render_scene, write_scene
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +34,10 @@ def scheduler():
 
 
 @pytest.fixture(scope="module")
-def four_views(box_scene):
-    """Four views of the textured box: three dense pairs."""
-    return box_scene.prefix(4)
+def four_views():
+    """Four 320x240 views of the textured box: three dense pairs (what the cluster tests check
+    does not depend on the image size; small images keep their many whole runs short)."""
+    return render_scene(SceneConfig(n_images=4, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +75,7 @@ def test_dense_on_the_cluster_is_the_local_cloud(scheduler, four_views, tmp_path
         assert pool.remote and pool.slots == 2
         remote = densify(copy.copy(recon), cfg, tmp_path / "remote", pool)
     assert _workers(scheduler) == workers  # none died (Dask would rerun its job quietly on a new one)
-    assert remote["points"] == local["points"] > 100_000
+    assert remote["points"] == local["points"] > 30_000  # measured 65,908
     assert [p["wide_angle"] for p in remote["pairs"]] == [p["wide_angle"] for p in local["pairs"]]
     assert [p["pair"] for p in remote["pairs"]] == [[a, b] for a, b in zip(four_views.names, four_views.names[1:])]
     a, b = read_ply_vertices(tmp_path / "local" / "dense.ply"), read_ply_vertices(tmp_path / "remote" / "dense.ply")
@@ -115,7 +116,7 @@ def test_batch_on_the_cluster_reports_the_bad_sequence_and_writes_the_others(sch
             np.testing.assert_allclose(c["P"], w["P"], rtol=1e-9, atol=1e-9)
         dense_got = read_ply_vertices(res / name / "dense.ply")
         dense_want = read_ply_vertices(tmp_path / f"local_{name}" / "dense.ply")
-        assert len(dense_got) == len(dense_want) > 50_000
+        assert len(dense_got) == len(dense_want) > 20_000  # measured 43,313 (four)
         report = json.loads((res / name / "report.json").read_text())
         assert report["dense"]["points"] == len(dense_got)
         assert report["config"]["dense"]["workers"] == 1  # a Dask worker runs its pairs itself
