@@ -251,8 +251,6 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
     the k-th distance is within the cells it has scanned), the points sorted by column (x, y
     cell) then z; a k-d tree finishes the points without k neighbours within
     ``_GRID_MAX_RADIUS`` cells, and does it all when the grid's column table would be too large."""
-    from scipy.spatial import cKDTree  # here: a reconstruction without the dense stage need not load it
-
     points = np.ascontiguousarray(points, np.float64)
     n = len(points)
     if not 1 <= k <= n:
@@ -272,9 +270,17 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
                                                      a, b, _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
             missing = np.flatnonzero(found[:, 0] < 0)
             if len(missing):
-                found[missing] = cKDTree(points).query(points[missing], k=k, workers=-1)[1].reshape(len(missing), k)
+                found[missing] = _tree_neighbours(points, points[missing], k)
             return found
-    return cKDTree(points).query(points, k=k, workers=-1)[1].reshape(n, k).astype(np.int64)
+    return _tree_neighbours(points, points, k)
+
+
+def _tree_neighbours(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+    """The indices (M, k) int64 of the k nearest points (N, 3) of each query (M, 3), by scipy's
+    k-d tree: loaded here only, where the grid search cannot do it."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points).query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int64)
 
 
 @njit(cache=True, nogil=True)

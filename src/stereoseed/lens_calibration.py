@@ -57,30 +57,32 @@ class LensCalibration:
         return out
 
 
+def _split(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tuple:
+    """K (3, 3), the lens (5,) and the poses (n_views, 6) (rotation vector, translation) of the
+    parameters p: fx, fy, cx, cy and n_lens lens terms first unless ``fixed`` = (K, lens)."""
+    if fixed is not None:
+        return fixed[0], fixed[1], p.reshape(n_views, 6)
+    fx, fy, cx, cy = p[:4]
+    d = np.zeros(5)
+    d[:n_lens] = p[4:4 + n_lens]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), d, p[4 + n_lens:].reshape(n_views, 6)
+
+
 def _unpack(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tuple:
-    if fixed is None:
-        fx, fy, cx, cy = p[:4]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        d = np.zeros(5)
-        d[:n_lens] = p[4:4 + n_lens]
-        poses = p[4 + n_lens:]
-    else:
-        K, d = fixed
-        poses = p
-    poses = poses.reshape(n_views, 6)
+    """K, the lens, and per view R (3, 3) and t (3,) of the parameters p (:func:`_split`)."""
+    K, d, poses = _split(p, n_views, n_lens, fixed)
     return K, d, [cv2.Rodrigues(v[:3])[0] for v in poses], [v[3:] for v in poses]
 
 
 def _jacobian(p: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]], n_lens: int, fixed: tuple | None
               ) -> np.ndarray:
     """Jacobian (2 N_total, len(p)) of calibrate_lens's residuals (u, v per point, view after
-    view) with respect to its parameters p (:func:`_unpack`), from ``cv2.projectPoints``: its
+    view) with respect to its parameters p (:func:`_split`), from ``cv2.projectPoints``: its
     model is :func:`project_distorted`'s and it returns the derivatives with respect to the
     rotation vector, the translation, fx, fy, cx, cy and k1, k2, p1, p2, k3, analytically (a
     finite-difference Jacobian cost a projection per parameter: 20 for two views)."""
-    K, d, _, _ = _unpack(p, len(views), n_lens, fixed)
-    n_intrinsics = 0 if fixed is not None else 4 + n_lens
-    poses = p[n_intrinsics:].reshape(len(views), 6)
+    K, d, poses = _split(p, len(views), n_lens, fixed)
+    n_intrinsics = len(p) - poses.size
     J = np.zeros((2 * sum(len(X) for X, _ in views), len(p)))
     row = 0
     for i, ((X, _), pose) in enumerate(zip(views, poses)):
