@@ -56,17 +56,25 @@ def plain_box_scene() -> SyntheticScene:
 
 def _with_noise(scene: SyntheticScene, sigma: float) -> SyntheticScene:
     """What render_scene gives with noise_sigma=sigma, from the noise-free render: the renderer
-    adds its noise after rendering, from a stream of its own (test_synthetic checks the bytes)."""
-    copies = {k: [a.copy() for a in getattr(scene, k)] for k in ("P", "K", "R", "t")}  # no array shared
-    return replace(scene, config=replace(scene.config, noise_sigma=sigma), corners=scene.corners.copy(),
-                   corner_labels=scene.corner_labels.copy(), images=noisy_images(scene.images, sigma, scene.config.seed),
-                   **copies)
+    adds its noise after rendering, from a stream of its own (test_synthetic checks the bytes).
+    A copy of the scene (its whole prefix): no array is shared with the clean one."""
+    copy = scene.prefix(scene.n_images)
+    return replace(copy, config=replace(copy.config, noise_sigma=sigma),
+                   images=noisy_images(scene.images, sigma, scene.config.seed))
 
 
 @pytest.fixture(scope="session")
 def box_scene_noisy(box_scene) -> SyntheticScene:
     """The default ring with Gaussian image noise sigma = 2 grey levels."""
     return _with_noise(box_scene, 2.0)
+
+
+@pytest.fixture(scope="session")
+def small_box_scene() -> SyntheticScene:
+    """The textured 14-image ring at 320 x 240 (one sample per pixel): for the tests whose
+    subject does not depend on the image size and that run whole reconstructions again and
+    again (kills, resumes, clusters); they take a prefix."""
+    return render_scene(SceneConfig(width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
 
 
 @pytest.fixture(scope="session")

@@ -11,14 +11,14 @@ from stereoseed.checkpoint import CheckpointWriter, spill_folder
 from stereoseed.errors import StereoseedError
 from stereoseed.reconstruction import Reconstruction, View
 from stereoseed.config import Config
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic import write_scene
 
 
 @pytest.fixture(scope="module")
-def ring_on_disk(tmp_path_factory):
+def ring_on_disk(small_box_scene, tmp_path_factory):
     """A 14-image box ring of 320x240 images written as PNGs with its true pair: (images.txt,
     calib.json). Small images: the spilling and resuming do not depend on the size."""
-    scene = render_scene(SceneConfig(n_images=14, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
+    scene = small_box_scene
     folder = tmp_path_factory.mktemp("ring")
     paths = write_scene(scene, folder)
     calib = folder / "calib.json"

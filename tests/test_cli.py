@@ -91,15 +91,14 @@ def test_demo_runs_end_to_end_and_reports_against_the_truth(tmp_path, capsys):
         assert (out / name).is_file()
 
 
-def test_a_first_run_says_it_compiles_the_kernels_first(tmp_path, capsys, monkeypatch):
+def test_a_first_run_says_it_compiles_the_kernels_first(tmp_path, capsys, monkeypatch, small_box_scene):
     """After a fresh install the first run compiles the Numba kernels (about a minute): it says so
     on stderr before any work, unless --quiet. The check reads Numba's cache index."""
     from stereoseed import precompile
     from stereoseed.edge_corners import _edge_corner_kernel
     from stereoseed.features import extract_features
-    from stereoseed.synthetic import SceneConfig, render_scene
 
-    small = render_scene(SceneConfig(n_images=2, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
+    small = small_box_scene.prefix(2)
     extract_features(small.images[0])  # its corners call the kernel: compiled and cached if they were not
     assert _edge_corner_kernel.signatures and precompile.kernels_cached() is True
     monkeypatch.setattr(_edge_corner_kernel._cache._cache_file, "_index_path", str(tmp_path / "none.nbi"))

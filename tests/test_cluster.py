@@ -22,7 +22,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io import write_json
 from stereoseed.pipeline import reconstruct
 from stereoseed.ply import read_ply_vertices
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic import write_scene
 
 
 @pytest.fixture(scope="module")
@@ -34,10 +34,10 @@ def scheduler():
 
 
 @pytest.fixture(scope="module")
-def four_views():
+def four_views(small_box_scene):
     """Four 320x240 views of the textured box: three dense pairs (what the cluster tests check
     does not depend on the image size; small images keep their many whole runs short)."""
-    return render_scene(SceneConfig(n_images=4, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
+    return small_box_scene.prefix(4)
 
 
 @pytest.fixture(scope="module")

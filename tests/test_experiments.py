@@ -123,14 +123,13 @@ def test_a_run_that_cannot_start_is_recorded_not_raised():
     assert _json_clean({"x": [float("nan"), 1.0]}) == {"x": [None, 1.0]}
 
 
-def test_one_run_serves_every_count_of_a_job():
+def test_one_run_serves_every_count_of_a_job(small_box_scene):
     """A job evaluated at 3 and 5 images gives, at 3, exactly what a run on the first 3 images
     gives (the finishing step on a copy of the model, then the run goes on): Fig. 7 and the
     tables take every image count from one run."""
     from stereoseed.experiments import _Job, _run_job, _synthetic_sequence
 
-    seq = _synthetic_sequence(render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400.0,
-                                                       focal0_px=390.0, supersample=1)))
+    seq = _synthetic_sequence(small_box_scene.prefix(5))
     both = _run_job(_Job(seq, (3, 5), "final", 0))
     alone = {**_run_job(_Job(seq.prefix(3), (3,), "final", 0)), **_run_job(_Job(seq, (5,), "final", 0))}
     assert sorted(both) == [3, 5]

@@ -253,14 +253,13 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
     assert report["new_points"] >= 100
 
 
-def test_a_view_left_without_enough_observations_is_dropped_at_the_end():
+def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box_scene):
     # a weakly placed view can lose its observations to outlier removal until nothing determines
     # its camera; the finishing step then deregisters it and says why
     from stereoseed.mapper import _drop_undetermined_views
     from stereoseed.pipeline import reconstruct
-    from stereoseed.synthetic import SceneConfig, render_scene
 
-    scene = render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400, focal0_px=390, supersample=1))
+    scene = small_box_scene.prefix(5)
     recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], Config())
     assert _drop_undetermined_views(recon, Config()) == {}  # a sound run keeps every view
     seen = np.flatnonzero(recon.obs_view == 3)

@@ -79,14 +79,13 @@ def test_descriptors_spill_to_a_file_and_read_back_the_same(files, tmp_path):
     assert list(tmp_path.glob("desc_*.npy"))
 
 
-def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch):
+def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch, small_box_scene):
     """Views out of the working set give up their grey images and descriptors during the run;
     the cameras are those of a run that keeps everything in memory."""
     from stereoseed import pipeline
     from stereoseed.config import Config
-    from stereoseed.synthetic import SceneConfig, render_scene
 
-    scene = render_scene(SceneConfig(n_images=12, width=320, height=240, focal_px=400, focal0_px=390, supersample=1))
+    scene = small_box_scene.prefix(12)
     spilled, _ = pipeline.reconstruct(scene.images, scene.names, scene.P[:2], Config())
     assert sum(isinstance(v.features.desc, np.memmap) for v in spilled.views) >= 2
     monkeypatch.setattr(pipeline, "_release_pixels", lambda recon, cfg, folder: None)

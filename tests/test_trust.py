@@ -15,30 +15,29 @@ import pytest
 from process_helpers import alive_in_group, wait_until
 from stereoseed.cli import main
 from stereoseed.results import MANIFEST
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic import write_scene
+
+
+def _on_disk(scene, folder: Path) -> tuple:
+    """The scene's images written to folder / images and a calib.json of its true pair:
+    (paths of write_scene, scene, calib.json)."""
+    paths = write_scene(scene, folder / "images")
+    calib = folder / "calib.json"
+    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
+    return paths, scene, calib
 
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory, box_scene):
     """A 5-image synthetic ring on disk: (paths of write_scene, scene, calib.json with the true pair)."""
-    scene = box_scene.prefix(5)
-    folder = tmp_path_factory.mktemp("seq")
-    paths = write_scene(scene, folder / "images")
-    calib = folder / "calib.json"
-    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
-    return paths, scene, calib
+    return _on_disk(box_scene.prefix(5), tmp_path_factory.mktemp("seq"))
 
 
 @pytest.fixture(scope="module")
-def small_seq(tmp_path_factory):
+def small_seq(tmp_path_factory, small_box_scene):
     """A 5-image ring of 320x240 images on disk, as ``seq``: for the tests that run whole
     commands again and again (what they check does not depend on the image size)."""
-    scene = render_scene(SceneConfig(n_images=5, width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1))
-    folder = tmp_path_factory.mktemp("small_seq")
-    paths = write_scene(scene, folder / "images")
-    calib = folder / "calib.json"
-    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
-    return paths, scene, calib
+    return _on_disk(small_box_scene.prefix(5), tmp_path_factory.mktemp("small_seq"))
 
 
 def run(capsys, *args):
