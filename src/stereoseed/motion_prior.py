@@ -153,12 +153,13 @@ def explained_points(features: Features, cameras: list[np.ndarray], points: np.n
     ``min_zncc``). A camera shifted by one period of a repeated pattern explains its own
     correspondences as well as the true one, but loses the points at the pattern's ends and
     everything else in view. -> (len(cameras),) int64."""
-    counts = np.zeros(len(cameras), np.int64)
-    for i, P in enumerate(cameras):
-        x = project(P, points)
-        seen = np.flatnonzero(np.all(np.isfinite(x), axis=1))
-        dist, nearest = nearest_within(features.points, x[seen], max_px)
-        close = np.isfinite(dist)
-        zncc = np.einsum("nd,nd->n", desc[seen[close]], features.desc[nearest[close]])
-        counts[i] = int(np.sum(zncc >= min_zncc))
-    return counts
+    n = len(points)
+    if n == 0 or not cameras:
+        return np.zeros(len(cameras), np.int64)
+    # every camera's projections in one search (one grid of the interest points; a projection
+    # that is not finite finds none)
+    dist, nearest = nearest_within(features.points, np.concatenate([project(P, points) for P in cameras]), max_px)
+    close = np.flatnonzero(np.isfinite(dist))
+    camera, point = np.divmod(close, n)
+    zncc = np.einsum("nd,nd->n", desc[point], features.desc[nearest[close]])
+    return np.bincount(camera[zncc >= min_zncc], minlength=len(cameras)).astype(np.int64)
