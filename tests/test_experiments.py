@@ -63,8 +63,8 @@ def test_quick_bench_values_are_sane(quick_bench):
     for variant, values in fig7["rms_3d_m"].items():
         assert len(values) == len(fig7["images"])
         assert _finite(values) == values, variant  # the quick scene registers every image
-        # eq. 13, metres; measured 1.01-1.48 mm on the quick plan (seed 0)
-        assert all(0.3e-3 < v < 3.5e-3 for v in values), (variant, values)
+        # eq. 13, metres; measured 1.8-2.9 mm on the quick plan's half-size images (seed 0)
+        assert all(0.3e-3 < v < 5e-3 for v in values), (variant, values)
 
     ratio = data["global_local_time_ratio"]
     assert ratio is not None and ratio > 0
@@ -79,8 +79,8 @@ def test_quick_bench_values_are_sane(quick_bench):
     assert {"local", "accurate"} <= set(fig9["variants"])
     for variant, r in fig9["variants"].items():
         assert len(r["mean_m"]) == len(fig9["sigmas"])
-        # measured 1.03-1.14 mm (sigma 0 and 2, quick plan)
-        assert all(0.3e-3 < m < 3e-3 for m in r["mean_m"]), (variant, r["mean_m"])
+        # measured 1.96-2.53 mm (sigma 0 and 2, quick plan, half-size images)
+        assert all(0.3e-3 < m < 4.5e-3 for m in r["mean_m"]), (variant, r["mean_m"])
         assert all(s >= 0 for s in r["std_m"])
 
 
@@ -95,12 +95,13 @@ def test_quick_bench_tables_have_a_row_per_sequence(quick_bench):
     for r in rows3:
         if r["sequence"] != "temple":
             assert r["registered"] == r["images"]
-            # measured: 1393-2732 points, reprojection RMS 0.039-0.048 px, eq. 14 0.00064-0.0008
-            assert r["sparse_points"] > 1000
-            assert 0.01 < r["rms_px"] < 0.12 and 0.0002 < r["eq14"] < 0.002
+            # measured on the quick plan's half-size images: 380-809 points, reprojection RMS
+            # 0.057-0.083 px, eq. 14 0.0014-0.0027
+            assert r["sparse_points"] > 250
+            assert 0.01 < r["rms_px"] < 0.15 and 0.0002 < r["eq14"] < 0.005
     # the quick plan densifies the 14-image ring with the paper's variant
     dense = [r for r in rows3 if r["sequence"] == "box14" and r["variant"] == "local"]
-    assert len(dense) == 1 and dense[0]["dense_points"] > 150_000  # measured 325,777
+    assert len(dense) == 1 and dense[0]["dense_points"] > 50_000  # measured 99,408 (half-size images)
     summary = (out / "summary.md").read_text()
     for name in expected:
         assert f"| {name} |" in summary

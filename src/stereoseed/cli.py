@@ -436,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="reproduce the paper's experiments (figures, JSON, Markdown)")
     p.add_argument("which", choices=["paper"])
     p.add_argument("--out", default="paper_bench", help="output folder (default: %(default)s)")
-    p.add_argument("--quick", action="store_true", help="a reduced run (few images, one seed)")
+    p.add_argument("--quick", action="store_true", help="a reduced run (few half-size images, two seeds)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_bench)
 

@@ -2,7 +2,7 @@
 comparison the paper draws against global bundle adjustment.
 
     run_paper_bench("paper_bench")              # full run (< 10 min on 2 cores)
-    run_paper_bench("paper_bench", quick=True)  # smaller sequences (< 1 min), same outputs
+    run_paper_bench("paper_bench", quick=True)  # short sequences of half-size images (~20 s), same outputs
 
 Four pipeline variants are compared (:data:`VARIANTS`): the paper's local BA, a global BA after
 every insertion (Pollefeys; Fitzgibbon & Zisserman, the paper's foils), local BA plus one final
@@ -71,7 +71,7 @@ TABLE_VARIANTS = ("local", "accurate")  # the two modes of the pipeline
 @dataclass(frozen=True)
 class BenchPlan:
     """Sizes of every experiment. :data:`FULL_PLAN` reproduces the paper; :data:`QUICK_PLAN`
-    runs the same code on short sequences (for tests)."""
+    runs the same code on short sequences of half-size images (for tests)."""
 
     ring_images: int  # images rendered of the 20° ring: covers the 14- and 18-image sequences
     fig7_images: int  # the paper's 14 images
@@ -88,6 +88,7 @@ class BenchPlan:
     dense_sequences: tuple[str, ...]  # sequences whose full-length runs are densified ...
     dense_variants: tuple[str, ...]  # ... with these variants
     quick: bool = False
+    scene_scale: float = 1.0  # rendered image size and focal lengths, relative to the paper's 640 x 480
 
 
 FULL_PLAN = BenchPlan(
@@ -104,7 +105,7 @@ QUICK_PLAN = BenchPlan(
     fig9_images=4, fig9_sigmas=(0.0, 2.0), fig9_seeds=2,
     fig9_variants=("local", "accurate"),
     box14_images=6, box18_images=8, temple_images=6,
-    dense_sequences=("box14",), dense_variants=("local",), quick=True,
+    dense_sequences=("box14",), dense_variants=("local",), quick=True, scene_scale=0.5,
 )
 
 SEQUENCE_TITLES = {"box14": "synthetic box, 14-image ring", "box18": "synthetic box, 18-image closed ring",
@@ -444,16 +445,22 @@ def _run_all(plan: BenchPlan, seed: int, bar: Any, workers: int) -> tuple[dict[s
         bar.update(1)
 
     # 1. scenes, each rendered once
-    ring_cfg = SceneConfig(n_images=plan.ring_images, seed=seed)
+    def scene_config(**kw: Any) -> SceneConfig:  # the plan's image size, the same field of view
+        base, scale = SceneConfig(), plan.scene_scale
+        return SceneConfig(width=round(base.width * scale), height=round(base.height * scale),
+                           focal_px=base.focal_px * scale, focal0_px=base.focal0_px * scale,
+                           principal_offset0_px=tuple(o * scale for o in base.principal_offset0_px), **kw)
+
+    ring_cfg = scene_config(n_images=plan.ring_images, seed=seed)
     ring = _synthetic_sequence(render_scene(ring_cfg))
     tick("rendered the 20° ring")
-    long_cfg = SceneConfig(n_images=plan.fig8_images, step_deg=plan.fig8_step_deg, seed=seed)
+    long_cfg = scene_config(n_images=plan.fig8_images, step_deg=plan.fig8_step_deg, seed=seed)
     long_ring = _synthetic_sequence(render_scene(long_cfg))
     tick(f"rendered the {plan.fig8_images}-image ring")
     seeds = [seed + j for j in range(plan.fig9_seeds)]
     noise_rings = {seed: ring}
     for s in seeds[1:]:
-        noise_rings[s] = _synthetic_sequence(render_scene(SceneConfig(n_images=plan.fig9_images, seed=s)))
+        noise_rings[s] = _synthetic_sequence(render_scene(scene_config(n_images=plan.fig9_images, seed=s)))
         tick(f"rendered scene seed {s}")
     temple = _load_temple(plan.temple_images)
     tick("loaded templeSparseRing" if temple else "templeSparseRing not found")
@@ -534,16 +541,13 @@ def _assemble(plan: BenchPlan, seed: int, layout: dict[str, Any], fig8: dict, re
         "registered": {v: [results[k].get("registered") for k in keys] for v, keys in fig7_keys.items()},
         "errors": {v: [results[k].get("error") for k in keys if results[k].get("error")] for v, keys in fig7_keys.items()},
     }
-    local_t = fig8["local"].get("total_s")
-    global_t = fig8["global"].get("total_s")
+    local_t, global_t = fig8["local"].get("total_s"), fig8["global"].get("total_s")
     ratio = global_t / local_t if local_t and global_t else math.nan
     fig8_data = {
         "description": "wall-clock seconds to reconstruct the first n images (one run per variant; the pipeline is "
                        "incremental, so the time after n images is that of a run on n images), the time of each "
                        "insertion, and the finishing step (final global BA or loop closure) after the last one",
-        "scene": dataclasses.asdict(long_cfg),
-        "variants": fig8,
-        "global_local_time_ratio": ratio,
+        "scene": dataclasses.asdict(long_cfg), "variants": fig8, "global_local_time_ratio": ratio,
     }
     fig9 = {
         "description": "3D RMS (eq. 13, metres) of the box corners against Gaussian image noise (grey levels, "
