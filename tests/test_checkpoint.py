@@ -1,6 +1,5 @@
 """Checkpoints of a long run: the descriptors of old views named, not copied, and a resumed run
 that reads its images from disk ends where the uninterrupted one does."""
-import json
 import pickle
 
 import numpy as np
@@ -11,18 +10,14 @@ from stereoseed.checkpoint import CheckpointWriter, spill_folder
 from stereoseed.errors import StereoseedError
 from stereoseed.reconstruction import Reconstruction, View
 from stereoseed.config import Config
-from stereoseed.synthetic import write_scene
+from scene_helpers import scene_on_disk
 
 
 @pytest.fixture(scope="module")
 def ring_on_disk(small_box_scene, tmp_path_factory):
     """A 14-image box ring of 320x240 images written as PNGs with its true pair: (images.txt,
     calib.json). Small images: the spilling and resuming do not depend on the size."""
-    scene = small_box_scene
-    folder = tmp_path_factory.mktemp("ring")
-    paths = write_scene(scene, folder)
-    calib = folder / "calib.json"
-    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
+    paths, calib = scene_on_disk(small_box_scene, tmp_path_factory.mktemp("ring"))
     return str(paths["images_txt"]), str(calib)
 
 

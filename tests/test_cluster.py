@@ -13,16 +13,15 @@ import pytest
 from distributed import Client, LocalCluster
 
 from process_helpers import alive_in_group, wait_until
+from scene_helpers import scene_on_disk
 from stereoseed.batch import read_sequence_list, run_batch
 from stereoseed.cli import main
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense import densify
 from stereoseed.errors import StereoseedError
-from stereoseed.io import write_json
 from stereoseed.pipeline import reconstruct
 from stereoseed.ply import read_ply_vertices
-from stereoseed.synthetic import write_scene
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +44,7 @@ def sequence_files(tmp_path_factory, four_views):
     """The scene on disk as `reconstruct` reads it: images, images.txt (four), first3.txt (three),
     calib.json (the pair's true cameras)."""
     folder = tmp_path_factory.mktemp("seq")
-    write_scene(four_views, folder)
-    write_json(folder / "calib.json", {"cameras": [{"P": P.tolist()} for P in four_views.P[:2]]})
+    scene_on_disk(four_views, folder)
     (folder / "first3.txt").write_text("".join(f"{n}\n" for n in four_views.names[:3]))
     return folder
 

@@ -563,3 +563,22 @@ def test_write_scene_records_the_lens(plain_pair, tmp_path):
     assert doc["distortion"] == list(LENS)
     assert "distortion" not in json.loads(
         write_scene(pinhole, tmp_path / "pin")["cameras"].read_text())
+
+
+def test_a_scaled_config_sees_the_same_views_in_smaller_images():
+    """SceneConfig.scaled: the same poses, the pixel geometry scaled (the quick paper bench's
+    half-size images)."""
+    from stereoseed.synthetic import _cameras
+
+    full = SceneConfig(n_images=4, seed=3)
+    half = full.scaled(0.5)
+    assert (half.width, half.height, half.n_images, half.seed) == (320, 240, 4, 3)
+    assert SceneConfig().scaled(1.0) == SceneConfig()
+    (Ks_f, Rs_f, ts_f), (Ks_h, Rs_h, ts_h) = _cameras(full), _cameras(half)
+    for Kf, Kh, Rf, Rh, tf, th in zip(Ks_f, Ks_h, Rs_f, Rs_h, ts_f, ts_h):
+        np.testing.assert_allclose(Rh, Rf)
+        np.testing.assert_allclose(th, tf)
+        np.testing.assert_allclose(Kh[:2, :2], 0.5 * Kf[:2, :2])
+        # the principal point where the full image's falls, to a quarter pixel (the centre of
+        # an image of even size sits half a pixel off its halved one's)
+        np.testing.assert_allclose(Kh[:2, 2] + 0.5, 0.5 * (Kf[:2, 2] + 0.5), atol=0.25)

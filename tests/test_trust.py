@@ -13,17 +13,15 @@ import numpy as np
 import pytest
 
 from process_helpers import alive_in_group, wait_until
+from scene_helpers import scene_on_disk
 from stereoseed.cli import main
 from stereoseed.results import MANIFEST
-from stereoseed.synthetic import write_scene
 
 
 def _on_disk(scene, folder: Path) -> tuple:
     """The scene's images written to folder / images and a calib.json of its true pair:
     (paths of write_scene, scene, calib.json)."""
-    paths = write_scene(scene, folder / "images")
-    calib = folder / "calib.json"
-    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
+    paths, calib = scene_on_disk(scene, folder, images=folder / "images")
     return paths, scene, calib
 
 

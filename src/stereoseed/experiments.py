@@ -446,10 +446,7 @@ def _run_all(plan: BenchPlan, seed: int, bar: Any, workers: int) -> tuple[dict[s
 
     # 1. scenes, each rendered once
     def scene_config(**kw: Any) -> SceneConfig:  # the plan's image size, the same field of view
-        base, scale = SceneConfig(), plan.scene_scale
-        return SceneConfig(width=round(base.width * scale), height=round(base.height * scale),
-                           focal_px=base.focal_px * scale, focal0_px=base.focal0_px * scale,
-                           principal_offset0_px=tuple(o * scale for o in base.principal_offset0_px), **kw)
+        return SceneConfig(**kw).scaled(plan.scene_scale)
 
     ring_cfg = scene_config(n_images=plan.ring_images, seed=seed)
     ring = _synthetic_sequence(render_scene(ring_cfg))

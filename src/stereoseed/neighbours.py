@@ -94,9 +94,7 @@ def _cell_range(value, origin, cell, count):
     """Cells value's neighbours can be in along one axis, clipped to 0..count-1: (lo, hi),
     lo > hi when none."""
     c = (value - origin) / cell
-    if c < -2.0:  # far outside the grid (and no overflow of the integer cast below)
-        return 1, 0
-    if c > count + 1.0:
+    if c < -2.0 or c > count + 1.0:  # far outside the grid (and no overflow of the integer cast below)
         return 1, 0
     i = int(np.floor(c))
     return max(i - 1, 0), min(i + 1, count - 1)

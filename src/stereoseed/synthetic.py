@@ -57,23 +57,9 @@ from .io import write_image, write_text
 from .lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
 from .synthetic_render import _cast_kernel, _render_kernel, add_noise  # the sensor's noise lives with the renderer
 
-__all__ = [
-    "BOX_HALF",
-    "BOX_HEIGHT",
-    "SQUARE_SIZE",
-    "SQUARE_GAP",
-    "GROUND_RADIUS",
-    "FACE_LABELS",
-    "FACE_NORMALS",
-    "FACE_ORIGIN",
-    "FACE_U",
-    "FACE_V",
-    "SceneConfig",
-    "SyntheticScene",
-    "box_corners",
-    "render_scene",
-    "write_scene",
-]
+__all__ = ["BOX_HALF", "BOX_HEIGHT", "SQUARE_SIZE", "SQUARE_GAP", "GROUND_RADIUS", "FACE_LABELS", "FACE_NORMALS",
+           "FACE_ORIGIN", "FACE_U", "FACE_V", "SceneConfig", "SyntheticScene", "box_corners", "render_scene",
+           "write_scene"]
 
 # ---- Fixed geometry of the target (paper section 5); not configurable because 228 corners is the
 # paper's number and other modules' tests rely on it.
@@ -171,6 +157,13 @@ class SceneConfig:
             raise ValueError("focal_jitter must be in [0, 1)")
         if self.texture_amplitude is not None and not 0.0 <= self.texture_amplitude <= 0.5:
             raise ValueError("texture_amplitude must be in [0, 0.5] (an albedo standard deviation) or None")
+
+    def scaled(self, factor: float) -> SceneConfig:
+        """The same views in images ``factor`` times the size: width, height, the focal lengths
+        and camera 0's principal-point offset scaled, so the field of view is the same."""
+        return replace(self, width=round(self.width * factor), height=round(self.height * factor),
+                       focal_px=self.focal_px * factor, focal0_px=self.focal0_px * factor,
+                       principal_offset0_px=tuple(o * factor for o in self.principal_offset0_px))
 
 
 # ---- Ground-truth geometry -------------------------------------------------------------------

@@ -1,0 +1,17 @@
+"""A rendered scene written as a user's folder, for the tests that run commands on files."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from stereoseed.io import write_json
+from stereoseed.synthetic import SyntheticScene, write_scene
+
+
+def scene_on_disk(scene: SyntheticScene, folder: Path, images: Path | None = None) -> tuple[dict, Path]:
+    """The scene's images and images.txt (:func:`write_scene`, into ``images``, default
+    ``folder``) and ``folder``/calib.json holding its true pair. Returns (write_scene's paths,
+    the calib.json path)."""
+    paths = write_scene(scene, folder if images is None else images)
+    calib = Path(folder) / "calib.json"
+    write_json(calib, {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
+    return paths, calib
