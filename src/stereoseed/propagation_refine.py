@@ -122,44 +122,25 @@ _UNSEEN = -3.0  # search-grid cell not evaluated yet
 _MATCHES_PER_THREAD = 2048  # a match's search takes ~2 us: fewer per thread cost more than they save
 
 
-def _affine_fields(fx, fy, x1, y1, radius, min_count):
-    """Local affine map x1 -> x2 around each match, fitted on its neighbours' matches.
+def _fit_system(matched, x1, y1, radius, min_count):
+    """The least-squares system of each match's local affine fit (:func:`_affine_fields`):
+    it depends only on which pixels of image 1 are matched, so the passes share it.
 
-    fx, fy: (H1, W1) float64 positions in image 2 of the matched pixels of image 1, NaN where
-    unmatched; x1, y1: (M,) int32 the matched pixels. For each match p, fits by least squares
-    x2(q) = c + J (q - p) over the matched q of the (2 radius + 1)^2 window of p.
-    Returns (M, 6) float64 (cx, cy, J00, J01, J10, J11), c being the fitted x2 at p itself;
-    NaN rows where fewer than min_count neighbours are matched or they lie (nearly) on a line.
-
-    The fit is written on the disparity d(q) = x2(q) - q, which is small, and every window sum
-    is a separable filter of a per-pixel image (sum_q m(q) (qx - px)^a (qy - py)^b d(q)), so
-    all matches are fitted at once at the cost of 12 separable filters of image 1's size.
-    Plain least squares: a robust re-weighting costs 3x the time for no measurable gain
-    (docs/propagation.md).
-    """
-    H, W = fx.shape
-    m = np.isfinite(fx)
-    grid_y, grid_x = np.mgrid[0:H, 0:W]
-    dx = np.where(m, fx - grid_x, 0.0)
-    dy = np.where(m, fy - grid_y, 0.0)
-    mf = m.astype(np.float64)
-    o = np.arange(-radius, radius + 1, dtype=np.float64)
-    k0, k1, k2 = np.ones_like(o), o, o * o
-
+    matched: (H1, W1) bool; x1, y1: (M,) int32 the matched pixels to fit at. Returns their flat
+    indices ``at`` (M,) int64, the cofactors (6, M) (c00, c01, c02, c11, c12, c22) of each
+    symmetric 3x3 normal matrix [[s0 s1 s2] [s1 s11 s12] [s2 s12 s22]] (s_ab = sum over the
+    matched q of the window of (qx - px)^a (qy - py)^b) and its determinant (M,), NaN where
+    fewer than min_count neighbours are matched or they lie (nearly) on a line."""
+    W = matched.shape[1]
     at = y1.astype(np.int64) * W + x1  # flat indices: one gather per filtered image, 5x faster than [y1, x1]
-
-    def filt(img, kx, ky):
-        # correlation: out(p) = sum_o kx(ox) ky(oy) img(p + o), zero outside the image
-        return cv2.sepFilter2D(img, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).reshape(-1)[at]
-
-    s0 = filt(mf, k0, k0)
-    s1 = filt(mf, k1, k0)
-    s2 = filt(mf, k0, k1)
-    s11 = filt(mf, k2, k0)
-    s12 = filt(mf, k1, k1)
-    s22 = filt(mf, k0, k2)
-    rhs = [(filt(d, k0, k0), filt(d, k1, k0), filt(d, k0, k1)) for d in (dx, dy)]
-    # symmetric 3x3 normal equations [[s0 s1 s2] [s1 s11 s12] [s2 s12 s22]], by cofactors
+    mf = matched.astype(np.float64)
+    k0, k1, k2 = _window_kernels(radius)
+    s0 = _filter_at(mf, at, k0, k0)
+    s1 = _filter_at(mf, at, k1, k0)
+    s2 = _filter_at(mf, at, k0, k1)
+    s11 = _filter_at(mf, at, k2, k0)
+    s12 = _filter_at(mf, at, k1, k1)
+    s22 = _filter_at(mf, at, k0, k2)
     c00 = s11 * s22 - s12 * s12
     c01 = s2 * s12 - s1 * s22
     c02 = s1 * s12 - s2 * s11
@@ -168,9 +149,48 @@ def _affine_fields(fx, fy, x1, y1, radius, min_count):
     c22 = s0 * s11 - s1 * s1
     det = s0 * c00 + s1 * c01 + s2 * c02
     ok = (s0 >= min_count - 0.5) & (det > 1e-9 * s0 * s11 * s22)
-    det = np.where(ok, det, np.nan)
+    return at, np.stack([c00, c01, c02, c11, c12, c22]), np.where(ok, det, np.nan)
+
+
+def _window_kernels(radius):
+    """The separable kernels 1, o, o^2 over the window offsets o in [-radius, radius]."""
+    o = np.arange(-radius, radius + 1, dtype=np.float64)
+    return np.ones_like(o), o, o * o
+
+
+def _filter_at(img, at, kx, ky):
+    """The correlation out(p) = sum_o kx(ox) ky(oy) img(p + o) (zero outside the image) at the
+    flat pixel indices ``at``."""
+    return cv2.sepFilter2D(img, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).reshape(-1)[at]
+
+
+def _affine_fields(fx, fy, x1, y1, radius, system):
+    """Local affine map x1 -> x2 around each match, fitted on its neighbours' matches.
+
+    fx, fy: (H1, W1) float64 positions in image 2 of the matched pixels of image 1, NaN where
+    unmatched; x1, y1: (M,) int32 the matched pixels; system: :func:`_fit_system` of the
+    matched pixels at x1, y1. For each match p, fits by least squares
+    x2(q) = c + J (q - p) over the matched q of the (2 radius + 1)^2 window of p.
+    Returns (M, 6) float64 (cx, cy, J00, J01, J10, J11), c being the fitted x2 at p itself;
+    NaN rows where the system refuses the fit.
+
+    The fit is written on the disparity d(q) = x2(q) - q, which is small, and every window sum
+    is a separable filter of a per-pixel image (sum_q m(q) (qx - px)^a (qy - py)^b d(q)), so
+    all matches are fitted at once at the cost of 12 separable filters of image 1's size (6
+    of them, the system's, shared by the passes).
+    Plain least squares: a robust re-weighting costs 3x the time for no measurable gain
+    (docs/propagation.md).
+    """
+    H, W = fx.shape
+    m = np.isfinite(fx)
+    grid_y, grid_x = np.mgrid[0:H, 0:W]
+    dx = np.where(m, fx - grid_x, 0.0)
+    dy = np.where(m, fy - grid_y, 0.0)
+    k0, k1, _ = _window_kernels(radius)
+    at, (c00, c01, c02, c11, c12, c22), det = system
     out = np.empty((x1.shape[0], 6))
-    for row, (b0, b1, b2) in enumerate(rhs):
+    for row, d in enumerate((dx, dy)):
+        b0, b1, b2 = _filter_at(d, at, k0, k0), _filter_at(d, at, k1, k0), _filter_at(d, at, k0, k1)
         out[:, row] = (c00 * b0 + c01 * b1 + c02 * b2) / det + (x1 if row == 0 else y1)
         out[:, 2 + 2 * row] = (c01 * b0 + c11 * b1 + c12 * b2) / det + (1.0 if row == 0 else 0.0)
         out[:, 3 + 2 * row] = (c02 * b0 + c12 * b1 + c22 * b2) / det + (0.0 if row == 0 else 1.0)
@@ -377,15 +397,20 @@ def _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc
     cur_x = x2.astype(np.float64)
     cur_y = y2.astype(np.float64)
     used = np.zeros(x1.shape[0], dtype=bool)
+    matched = np.zeros((H1, W1), bool)
+    matched[y1, x1] = True
+    system, system_sel = None, None
     for p in range(_AFFINE_PASSES):
         sel = _within(x1, y1, rows, (_AFFINE_PASSES - 1 - p) * _AFFINE_RADIUS, (H1, W1))
         xs, ys = x1[sel], y1[sel]
+        if system is None or not _same_selection(sel, system_sel):  # the matched pixels do not change
+            system, system_sel = _fit_system(matched, xs, ys, _AFFINE_RADIUS, _AFFINE_MIN_MATCHES), sel
         # pass 1 fits the integer matches, later passes the refined positions
         fx = np.full((H1, W1), np.nan)
         fy = np.full((H1, W1), np.nan)
         fx[y1, x1] = cur_x
         fy[y1, x1] = cur_y
-        aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, _AFFINE_MIN_MATCHES)
+        aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, system)
         prev_x, prev_y = cur_x[sel], cur_y[sel]  # the matches are independent: threads share them out
         new_x, new_y, u = concat_chunks(lambda a, b: _refine_affine_pass(
             I1, mean1, inv1, I2, xs[a:b], ys[a:b], aff[a:b], use_f, F, half, _SEARCH_PX, _SEARCH_STEP, min_zncc,
@@ -394,6 +419,13 @@ def _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc
         cur_x[sel], cur_y[sel] = new_x, new_y
         used[sel] |= u
     return cur_x, cur_y, used
+
+
+def _same_selection(a, b):
+    """Whether two selections of :func:`_within` pick the same matches."""
+    if isinstance(a, slice) or isinstance(b, slice):
+        return isinstance(a, slice) and isinstance(b, slice)
+    return np.array_equal(a, b)
 
 
 def _within(x1, y1, rows, radius, shape):
