@@ -18,9 +18,7 @@ import numpy as np
 from numba import njit
 
 from . import camera_models
-from .camera import project_per_observation
 from .config import BundleConfig
-from .robust import huber_cost
 from .threads import current_chunks, map_chunks
 
 __all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
@@ -270,6 +268,29 @@ def _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row,
     return U, gc, V, gp, W
 
 
+@njit(cache=True, nogil=True, error_model="numpy")  # a zero depth divides to inf, not an exception
+def _reprojection_costs(Ps, X, oc, op, xy, delta):
+    """The robust cost (:func:`stereoseed.robust.huber_cost`, Huber on each 2D error norm,
+    ``delta`` px; inf: squares) and the sum of squared errors of the observations (O,) of
+    points X (M, 3) by cameras Ps (C, 3, 4) at pixels xy (O, 2), in one pass: the LM judges
+    every trial step by it, and gathering (O, 3, 4) cameras for it cost more than the pass.
+    NaN or inf when a point projects at infinity."""
+    cost = 0.0
+    squares = 0.0
+    for o in range(oc.shape[0]):
+        c, p = oc[o], op[o]
+        x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
+        h0 = Ps[c, 0, 0] * x0 + Ps[c, 0, 1] * x1 + Ps[c, 0, 2] * x2 + Ps[c, 0, 3]
+        h1 = Ps[c, 1, 0] * x0 + Ps[c, 1, 1] * x1 + Ps[c, 1, 2] * x2 + Ps[c, 1, 3]
+        h2 = Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3]
+        ru, rv = h0 / h2 - xy[o, 0], h1 / h2 - xy[o, 1]
+        n2 = ru * ru + rv * rv
+        norm = np.sqrt(n2)
+        squares += n2
+        cost += n2 if norm <= delta else 2.0 * delta * norm - delta * delta
+    return cost, squares
+
+
 def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:
     """Minimise the robust reprojection error over the free cameras and free points.
 
@@ -294,11 +315,11 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
 
     all_oc, all_op, all_xy = oc, op, xy
 
-    def residuals(Ps_: np.ndarray, X_: np.ndarray) -> np.ndarray:
-        return project_per_observation(Ps_[all_oc], X_[all_op])[1] - all_xy
+    def rms(Ps_: np.ndarray, X_: np.ndarray) -> float:
+        return float(np.sqrt(_reprojection_costs(Ps_, X_, all_oc, all_op, all_xy, np.inf)[1] / len(all_oc))) \
+            if len(all_oc) else 0.0
 
-    r = residuals(Ps, X)
-    rms_before = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else 0.0
+    rms_before = rms(Ps, X)
     # Only observations touching something free matter; the others add a constant.
     relevant = np.isin(oc, free_cams) | free_pts[op]
     oc, op, xy = oc[relevant], op[relevant], xy[relevant]
@@ -336,7 +357,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     eye_n = np.eye(n)
 
     lam = 1e-3
-    cost = huber_cost(project_per_observation(Ps[oc], X[op])[1] - xy, delta)
+    cost = _reprojection_costs(Ps, X, oc, op, xy, delta)[0]
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
         dP = _projection_derivatives(params, model, free_ref_K) if nC else np.zeros((0, n, 3, 4))
@@ -362,8 +383,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
                 Ps_new[free_cams] = camera_models.projections_from_params(new_params, model, free_ref_K)
             X_new = X.copy()
             X_new[free_pt_idx] += dp
-            with np.errstate(all="ignore"):
-                new_cost = huber_cost(project_per_observation(Ps_new[oc], X_new[op])[1] - xy, delta)
+            new_cost = _reprojection_costs(Ps_new, X_new, oc, op, xy, delta)[0]
             if np.isfinite(new_cost) and new_cost < cost:
                 improvement = (cost - new_cost) / max(cost, 1e-300)
                 params, Ps, X, cost = new_params, Ps_new, X_new, new_cost
@@ -376,7 +396,6 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         if improvement < 1e-6:
             break
 
-    r = residuals(Ps, X)
-    rms_after = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else 0.0
+    rms_after = rms(Ps, X)
     return BundleResult(Ps, X, rms_before, rms_after, iterations, time.perf_counter() - t0,
                         info={"free_cameras": int(nC), "free_points": int(nP), "observations": int(len(oc))})
