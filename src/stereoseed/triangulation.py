@@ -440,7 +440,19 @@ def triangulate_two_view(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.
     worst = np.empty(len(x1))
     _two_view_kernel(P1, P2, x1, x2, iterations, X, worst)
     errors = np.stack([worst, worst])
-    Ps = np.stack([P1, P2])
     return TriangulationResult(points=X, errors=errors,
-                               depths=np.stack([camera_depths(P, X) for P in Ps]),
-                               angles=triangulation_angles(Ps, X))
+                               depths=np.stack([camera_depths(P, X) for P in (P1, P2)]),
+                               angles=_ray_angles(camera_center(P1), camera_center(P2), X))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _ray_angles(c1, c2, X):
+    """:func:`triangulation_angles` of two cameras centred at c1, c2 (3,), every point (N, 3)
+    seen by both, in one pass (NaN for a non-finite point)."""
+    out = np.empty(X.shape[0])
+    for i in range(X.shape[0]):
+        a0, a1, a2 = c1[0] - X[i, 0], c1[1] - X[i, 1], c1[2] - X[i, 2]
+        b0, b1, b2 = c2[0] - X[i, 0], c2[1] - X[i, 1], c2[2] - X[i, 2]
+        cos = (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt((a0 * a0 + a1 * a1 + a2 * a2) * (b0 * b0 + b1 * b1 + b2 * b2))
+        out[i] = np.degrees(np.arccos(min(1.0, max(-1.0, cos)))) if np.isfinite(cos) else np.nan
+    return out
