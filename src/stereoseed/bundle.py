@@ -213,6 +213,14 @@ def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarr
     return S
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _homogeneous(Ps, c, x0, x1, x2):
+    """Ps[c] @ (x0, x1, x2, 1): the homogeneous pixel of a point in camera c of Ps (C, 3, 4)."""
+    return (Ps[c, 0, 0] * x0 + Ps[c, 0, 1] * x1 + Ps[c, 0, 2] * x2 + Ps[c, 0, 3],
+            Ps[c, 1, 0] * x0 + Ps[c, 1, 1] * x1 + Ps[c, 1, 2] * x2 + Ps[c, 1, 3],
+            Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3])
+
+
 @njit(cache=True, nogil=True)
 def _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row, n_cams, n_points, n_both):
     """The Gauss-Newton blocks of the robust (Huber, IRLS) reprojection error, one pass over the
@@ -233,9 +241,7 @@ def _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row,
     for o in range(oc.shape[0]):
         c, p = oc[o], op[o]
         x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
-        h0 = Ps[c, 0, 0] * x0 + Ps[c, 0, 1] * x1 + Ps[c, 0, 2] * x2 + Ps[c, 0, 3]
-        h1 = Ps[c, 1, 0] * x0 + Ps[c, 1, 1] * x1 + Ps[c, 1, 2] * x2 + Ps[c, 1, 3]
-        h2 = Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3]
+        h0, h1, h2 = _homogeneous(Ps, c, x0, x1, x2)
         u, v = h0 / h2, h1 / h2
         ru, rv = u - xy[o, 0], v - xy[o, 1]
         norm = np.sqrt(ru * ru + rv * rv)
@@ -278,11 +284,7 @@ def _reprojection_costs(Ps, X, oc, op, xy, delta):
     cost = 0.0
     squares = 0.0
     for o in range(oc.shape[0]):
-        c, p = oc[o], op[o]
-        x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
-        h0 = Ps[c, 0, 0] * x0 + Ps[c, 0, 1] * x1 + Ps[c, 0, 2] * x2 + Ps[c, 0, 3]
-        h1 = Ps[c, 1, 0] * x0 + Ps[c, 1, 1] * x1 + Ps[c, 1, 2] * x2 + Ps[c, 1, 3]
-        h2 = Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3]
+        h0, h1, h2 = _homogeneous(Ps, oc[o], X[op[o], 0], X[op[o], 1], X[op[o], 2])
         ru, rv = h0 / h2 - xy[o, 0], h1 / h2 - xy[o, 1]
         n2 = ru * ru + rv * rv
         norm = np.sqrt(n2)
