@@ -343,3 +343,31 @@ def test_text_starting_like_an_ascii_pnm_is_still_text(tmp_path):
     g = tmp_path / "frames"
     g.write_bytes(b"P2\n4 3\n255\n" + b"0 " * 12)  # a text PGM without extension
     refused(lambda: list_images(g), g, "PNM image")
+
+
+def test_images_read_in_threads_leave_stderr_where_it_was(tmp_path, capfd):
+    """The mapper reads images in background threads while the main thread reads others: each
+    read routes file descriptor 2 to a file for a moment, and overlapping routings used to
+    restore each other's file, losing the run's stderr (progress bars, error lines) for good."""
+    import os
+    import threading
+
+    import cv2
+
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    before = os.fstat(2)
+
+    def read_many():
+        for _ in range(40):
+            read_image(path)
+
+    threads = [threading.Thread(target=read_many) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    after = os.fstat(2)
+    assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+    os.write(2, b"still here\n")
+    assert "still here" in capfd.readouterr().err

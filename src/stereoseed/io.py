@@ -13,6 +13,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -208,29 +209,38 @@ def _missing_message(path: Path, what: str) -> str:
 
 
 # ---------------------------------------------------------------- images
+# One redirection of file descriptor 2 at a time: the images are read in background threads
+# too (the mapper's prefetching), and two overlapping redirections would each save and restore
+# the other's temporary file, leaving the process's stderr (progress bars, error lines) pointed
+# at a deleted file for the rest of the run.
+_STDERR_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _captured_stderr():
     """Route the process's standard error (file descriptor 2, where libpng, libjpeg and OpenCV's
     log write) to a temporary file for the block; yields a list that then holds what was written.
-    Anything another thread writes to stderr meanwhile is captured too (decoding takes ms)."""
+    Anything another thread writes to stderr meanwhile is captured too (decoding takes ms);
+    threads capturing at once take turns (:data:`_STDERR_LOCK`)."""
     captured: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):
-        yield captured  # no file descriptor 2 to redirect (embedded interpreter): leave it
-        return
-    try:
-        with tempfile.TemporaryFile() as tmp:
-            os.dup2(tmp.fileno(), 2)
-            try:
-                yield captured
-            finally:
-                os.dup2(saved, 2)
-                tmp.seek(0)
-                captured.append(tmp.read(4000).decode("utf-8", "replace"))
-    finally:
-        os.close(saved)
+    with _STDERR_LOCK:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
+            yield captured  # no file descriptor 2 to redirect (embedded interpreter): leave it
+            return
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield captured
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    captured.append(tmp.read(4000).decode("utf-8", "replace"))
+        finally:
+            os.close(saved)
 
 
 _CV_LOG_PREFIX = re.compile(r"^\[\s*\w+:[^\]]*\]\s*(?:global\s+)?\S+:\d+\s+\S+\s+")
