@@ -44,9 +44,14 @@ def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):
     cfg = Config()
     recon, _ = reconstruct(short_ring.images, short_ring.names, short_ring.P[:2], cfg,
                            source=TrueCorrespondences(short_ring))
-    report = densify(recon, cfg, tmp_path)
+    calls = []
+    report = densify(recon, cfg, tmp_path, progress=lambda *call: calls.append(call))
     pts, cols = read_ply(tmp_path / "dense.ply")
     assert len(pts) == report["points"] > 200_000
+    # the progress callback hears of every pair as it comes in, then of the fusion
+    pairs = len(report["pairs"])
+    assert [c[:2] for c in calls] == [(i, pairs) for i in range(1, pairs + 1)] + [(pairs, pairs)]
+    assert calls[0][2] == f"{report['pairs'][0]['matches']} matches" and calls[-1][2] == "fusing"
     assert report["points_before_fusion"] >= report["points"]
     for pair in report["pairs"]:
         assert pair["matches"] >= pair["in_front"] >= pair["small_reprojection"] >= pair["wide_angle"] > 50_000

@@ -208,25 +208,31 @@ def _pool(args: argparse.Namespace, workers: int):
 
 class _Bar:
     """The progress callback (done, total, message) as a tqdm bar on stderr, shown from the
-    first report on: a run refused before any work leaves only its error line."""
+    first report on: a run refused before any work leaves only its error line. ``after``: the
+    bar of the stage before, closed (its time stopped) when this one starts."""
 
-    def __init__(self, unit: str, quiet: bool):
-        self.unit, self.quiet, self.bar = unit, quiet, None
+    def __init__(self, unit: str, quiet: bool, after: "_Bar | None" = None):
+        self.unit, self.quiet, self.after, self.bar = unit, quiet, after, None
 
     def __call__(self, done: int, total: int, message: str) -> None:
         from tqdm import tqdm
 
         if self.bar is None:
+            if self.after is not None:
+                self.after.close()
             self.bar = tqdm(total=total, unit=self.unit, file=sys.stderr, disable=self.quiet)
         self.bar.total, self.bar.n = total, done
         self.bar.set_postfix_str(message[:40])
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
     def __enter__(self) -> "_Bar":
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.bar is not None:
-            self.bar.close()
+        self.close()
 
 
 def _say_if_compiling(quiet: bool) -> None:
@@ -245,9 +251,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.scheduler and not args.dense:
         raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
     _say_if_compiling(args.quiet)
-    with _pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress:
+    with (_pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress,
+          _Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
-                                       progress=progress, pool=pool)
+                                       progress=progress, pool=pool, dense_progress=dense_progress)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         print(f"resumed after {len(report['resumed_images'])} images already placed")

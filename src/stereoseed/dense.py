@@ -13,7 +13,7 @@ import os
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 from numba import njit
@@ -455,13 +455,14 @@ def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
 
 
 def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None,
-            pool: JobPool | None = None) -> dict[str, Any]:
+            pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
     """Quasi-dense stage over every consecutive registered pair; writes ``dense.ply`` in
     out_dir when given. Returns the report (per pair counts and times, fused count).
 
     pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
     cluster); default a local pool of ``cfg.dense.pool_size()`` processes. The cloud is the same
-    wherever the jobs run."""
+    wherever the jobs run. progress(done, total, message): called as each pair's cloud comes in
+    (total: the pairs) and once more when the fusion starts."""
     t0 = time.perf_counter()
     reg = recon.registered_views
     pairs = list(zip(reg[:-1], reg[1:]))
@@ -474,8 +475,12 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
 
     local = executor_for(None, min(cfg.dense.pool_size(), len(pairs))) if pool is None else nullcontext(pool)
     with local as jobs:
-        for pair, done in zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, cfg))):
+        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, cfg)))):
             collect(pair, done.result())
+            if progress:
+                progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
+    if progress and pairs:
+        progress(len(pairs), len(pairs), "fusing")
     points = np.vstack(clouds) if clouds else np.zeros((0, 3))
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)

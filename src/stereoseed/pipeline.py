@@ -278,12 +278,14 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
 
 def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: str | Path, cfg: Config = Config(),
                           dense: bool = False, resume: bool = False, progress: Progress | None = None,
-                          pool: JobPool | None = None) -> dict[str, Any]:
+                          pool: JobPool | None = None, dense_progress: Progress | None = None) -> dict[str, Any]:
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
     (:class:`stereoseed.results.ResultSet`): on failure it keeps what it held, and after an
-    interruption the staging folder keeps the checkpoint for ``resume``. Returns the report."""
+    interruption the staging folder keeps the checkpoint for ``resume``. Returns the report.
+    progress: called after the pair and after each insertion; dense_progress: as each of the
+    dense stage's pairs comes in (:func:`stereoseed.dense.densify`)."""
     results = ResultSet(out)
     results.check()  # before any work: never clobber what the user made
     staging = results.open(keep=resume)
@@ -300,7 +302,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         if dense:
             from .dense import densify  # the dense stage's modules only for a dense run
 
-            report["dense"] = densify(recon, cfg, staging, pool)
+            report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
         save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
         results.commit(drop=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX))
     except KeyboardInterrupt:
