@@ -213,7 +213,7 @@ def _missing_message(path: Path, what: str) -> str:
 # too (the mapper's prefetching), and two overlapping redirections would each save and restore
 # the other's temporary file, leaving the process's stderr (progress bars, error lines) pointed
 # at a deleted file for the rest of the run.
-_STDERR_LOCK = threading.Lock()
+_STDERR_LOCK = threading.RLock()  # re-entrant: a nested capture in one thread nests properly
 
 
 @contextlib.contextmanager
