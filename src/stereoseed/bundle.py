@@ -21,7 +21,7 @@ from . import camera_models
 from .config import BundleConfig
 from .threads import current_chunks, map_chunks
 
-__all__ = ["BundleProblem", "BundleResult", "bundle_adjust"]
+__all__ = ["BundleProblem", "BundleResult", "bundle_adjust", "reprojection_errors"]
 
 # Threads forming the reduced camera system: the cores this process may use (threads.py), at
 # most 4 (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a
@@ -291,6 +291,26 @@ def _reprojection_costs(Ps, X, oc, op, xy, delta):
         squares += n2
         cost += n2 if norm <= delta else 2.0 * delta * norm - delta * delta
     return cost, squares
+
+
+def reprojection_errors(Ps: np.ndarray, points: np.ndarray, obs_camera: np.ndarray, obs_point: np.ndarray,
+                        obs_xy: np.ndarray) -> np.ndarray:
+    """Reprojection distance (O,) px of each observation: camera obs_camera (O,) of Ps (C, 3, 4)
+    seeing point obs_point (O,) of points (M, 3) at pixel obs_xy (O, 2); NaN or inf for a point
+    at infinity or a NaN camera. One compiled pass: no (O, 3, 4) array of gathered cameras."""
+    out = np.empty(len(obs_camera))
+    _reprojection_errors(np.ascontiguousarray(Ps, np.float64), np.ascontiguousarray(points, np.float64),
+                         np.ascontiguousarray(obs_camera, np.int64), np.ascontiguousarray(obs_point, np.int64),
+                         np.ascontiguousarray(obs_xy, np.float64), out)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _reprojection_errors(Ps, X, oc, op, xy, out):
+    for o in range(oc.shape[0]):
+        h0, h1, h2 = _homogeneous(Ps, oc[o], X[op[o], 0], X[op[o], 1], X[op[o], 2])
+        ru, rv = h0 / h2 - xy[o, 0], h1 / h2 - xy[o, 1]
+        out[o] = np.sqrt(ru * ru + rv * rv)
 
 
 def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:

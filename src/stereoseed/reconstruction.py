@@ -25,7 +25,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .camera import camera_center, decompose_projection, intrinsics_turned_180, project
+from .bundle import reprojection_errors
+from .camera import camera_center, decompose_projection, intrinsics_turned_180
 from .features import Features
 from .image import to_gray
 from .io import atomic_path
@@ -436,11 +437,9 @@ class Reconstruction:
 
     def observation_errors(self) -> np.ndarray:
         """Reprojection distance (px) of every observation, (O,)."""
-        err = np.empty(len(self.obs_view))
-        for v, rows in _rows_by_value(self.obs_view):  # one grouping for the pixels and the cameras
-            xy = self.views[v].features.points[self.obs_feature[rows]]
-            err[rows] = np.linalg.norm(project(self.views[v].P, self.points[self.obs_point[rows]]) - xy, axis=1)
-        return err
+        no_camera = np.full((3, 4), np.nan)
+        Ps = np.stack([no_camera if v.P is None else v.P for v in self.views]) if self.views else no_camera[None]
+        return reprojection_errors(Ps, self.points, self.obs_view, self.obs_point, self.observation_xy())
 
     def shared_pixels(self, a: int, b: int) -> np.ndarray:
         """(S, 4) float64 (xa, ya, xb, yb): the pixels in views a and b of the points both
