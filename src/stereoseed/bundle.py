@@ -19,9 +19,10 @@ from numba import njit
 
 from . import camera_models
 from .config import BundleConfig
+from .robust import huber_cost_of_norms
 from .threads import current_chunks, map_chunks
 
-__all__ = ["BundleProblem", "BundleResult", "bundle_adjust", "reprojection_errors"]
+__all__ = ["BundleProblem", "BundleResult", "bundle_adjust", "observation_errors"]
 
 # Threads forming the reduced camera system: the cores this process may use (threads.py), at
 # most 4 (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a
@@ -274,39 +275,22 @@ def _normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row,
     return U, gc, V, gp, W
 
 
-@njit(cache=True, nogil=True, error_model="numpy")  # a zero depth divides to inf, not an exception
-def _reprojection_costs(Ps, X, oc, op, xy, delta):
-    """The robust cost (:func:`stereoseed.robust.huber_cost`, Huber on each 2D error norm,
-    ``delta`` px; inf: squares) and the sum of squared errors of the observations (O,) of
-    points X (M, 3) by cameras Ps (C, 3, 4) at pixels xy (O, 2), in one pass: the LM judges
-    every trial step by it, and gathering (O, 3, 4) cameras for it cost more than the pass.
-    NaN or inf when a point projects at infinity."""
-    cost = 0.0
-    squares = 0.0
-    for o in range(oc.shape[0]):
-        h0, h1, h2 = _homogeneous(Ps, oc[o], X[op[o], 0], X[op[o], 1], X[op[o], 2])
-        ru, rv = h0 / h2 - xy[o, 0], h1 / h2 - xy[o, 1]
-        n2 = ru * ru + rv * rv
-        norm = np.sqrt(n2)
-        squares += n2
-        cost += n2 if norm <= delta else 2.0 * delta * norm - delta * delta
-    return cost, squares
-
-
-def reprojection_errors(Ps: np.ndarray, points: np.ndarray, obs_camera: np.ndarray, obs_point: np.ndarray,
-                        obs_xy: np.ndarray) -> np.ndarray:
+def observation_errors(Ps: np.ndarray, points: np.ndarray, obs_camera: np.ndarray, obs_point: np.ndarray,
+                       obs_xy: np.ndarray) -> np.ndarray:
     """Reprojection distance (O,) px of each observation: camera obs_camera (O,) of Ps (C, 3, 4)
     seeing point obs_point (O,) of points (M, 3) at pixel obs_xy (O, 2); NaN or inf for a point
-    at infinity or a NaN camera. One compiled pass: no (O, 3, 4) array of gathered cameras."""
+    at infinity or a NaN camera. One compiled pass, without the (O, 3, 4) array of gathered
+    cameras that :func:`stereoseed.camera.project_per_observation` needs: the LM judges every
+    trial step by it, and the mapper drops outliers by it after every insertion."""
     out = np.empty(len(obs_camera))
-    _reprojection_errors(np.ascontiguousarray(Ps, np.float64), np.ascontiguousarray(points, np.float64),
-                         np.ascontiguousarray(obs_camera, np.int64), np.ascontiguousarray(obs_point, np.int64),
-                         np.ascontiguousarray(obs_xy, np.float64), out)
+    _observation_errors(np.ascontiguousarray(Ps, np.float64), np.ascontiguousarray(points, np.float64),
+                        np.ascontiguousarray(obs_camera, np.int64), np.ascontiguousarray(obs_point, np.int64),
+                        np.ascontiguousarray(obs_xy, np.float64), out)
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _reprojection_errors(Ps, X, oc, op, xy, out):
+@njit(cache=True, nogil=True, error_model="numpy")  # a zero depth divides to inf, not an exception
+def _observation_errors(Ps, X, oc, op, xy, out):
     for o in range(oc.shape[0]):
         h0, h1, h2 = _homogeneous(Ps, oc[o], X[op[o], 0], X[op[o], 1], X[op[o], 2])
         ru, rv = h0 / h2 - xy[o, 0], h1 / h2 - xy[o, 1]
@@ -338,8 +322,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     all_oc, all_op, all_xy = oc, op, xy
 
     def rms(Ps_: np.ndarray, X_: np.ndarray) -> float:
-        return float(np.sqrt(_reprojection_costs(Ps_, X_, all_oc, all_op, all_xy, np.inf)[1] / len(all_oc))) \
-            if len(all_oc) else 0.0
+        return float(np.sqrt(np.mean(observation_errors(Ps_, X_, all_oc, all_op, all_xy) ** 2))) if len(all_oc) else 0.0
 
     rms_before = rms(Ps, X)
     # Only observations touching something free matter; the others add a constant.
@@ -379,7 +362,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     eye_n = np.eye(n)
 
     lam = 1e-3
-    cost = _reprojection_costs(Ps, X, oc, op, xy, delta)[0]
+    cost = huber_cost_of_norms(observation_errors(Ps, X, oc, op, xy), delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
         dP = _projection_derivatives(params, model, free_ref_K) if nC else np.zeros((0, n, 3, 4))
@@ -405,7 +388,8 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
                 Ps_new[free_cams] = camera_models.projections_from_params(new_params, model, free_ref_K)
             X_new = X.copy()
             X_new[free_pt_idx] += dp
-            new_cost = _reprojection_costs(Ps_new, X_new, oc, op, xy, delta)[0]
+            with np.errstate(all="ignore"):  # a trial step may put a point at infinity: refused below
+                new_cost = huber_cost_of_norms(observation_errors(Ps_new, X_new, oc, op, xy), delta)
             if np.isfinite(new_cost) and new_cost < cost:
                 improvement = (cost - new_cost) / max(cost, 1e-300)
                 params, Ps, X, cost = new_params, Ps_new, X_new, new_cost

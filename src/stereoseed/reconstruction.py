@@ -25,7 +25,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .bundle import reprojection_errors
+from .bundle import observation_errors
 from .camera import camera_center, decompose_projection, intrinsics_turned_180
 from .features import Features
 from .image import to_gray
@@ -439,7 +439,7 @@ class Reconstruction:
         """Reprojection distance (px) of every observation, (O,)."""
         no_camera = np.full((3, 4), np.nan)
         Ps = np.stack([no_camera if v.P is None else v.P for v in self.views]) if self.views else no_camera[None]
-        return reprojection_errors(Ps, self.points, self.obs_view, self.obs_point, self.observation_xy())
+        return observation_errors(Ps, self.points, self.obs_view, self.obs_point, self.observation_xy())
 
     def shared_pixels(self, a: int, b: int) -> np.ndarray:
         """(S, 4) float64 (xa, ya, xb, yb): the pixels in views a and b of the points both
