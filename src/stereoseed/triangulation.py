@@ -114,20 +114,39 @@ def refine_points(Ps: np.ndarray, x: np.ndarray, X0: np.ndarray, mask: np.ndarra
 
 
 def triangulation_angles(Ps: np.ndarray, X: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Largest angle (degrees) between the rays from the observing cameras to each point. -> (N,)."""
+    """Largest angle (degrees) between the rays from the observing cameras to each point. -> (N,).
+
+    Ps: (V, 3, 4); X: (N, 3); mask: (V, N) bool (which cameras observe each point) or None (all).
+    0 for a point seen by fewer than two cameras, NaN for a point at a camera centre or not finite."""
     Ps = np.asarray(Ps, dtype=np.float64).reshape(-1, 3, 4)
-    V = len(Ps)
-    if mask is None:
-        mask = np.ones((V, len(X)), dtype=bool)
-    rays = np.stack([camera_center(P) for P in Ps])[:, None, :] - X[None]  # (V, N, 3)
-    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    best = np.zeros(len(X))
-    for a in range(V):
-        for b in range(a + 1, V):
-            c = np.clip(np.sum(rays[a] * rays[b], axis=1), -1.0, 1.0)
-            ang = np.where(mask[a] & mask[b], np.degrees(np.arccos(c)), 0.0)
-            best = np.maximum(best, ang)
-    return best
+    X = np.ascontiguousarray(X, np.float64).reshape(-1, 3)
+    mask = np.ones((len(Ps), len(X)), dtype=bool) if mask is None else np.ascontiguousarray(mask, bool)
+    out = np.empty(len(X))
+    _largest_angles(np.stack([camera_center(P) for P in Ps]), X, mask, out)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _largest_angles(C, X, mask, out):
+    """out[i] = :func:`triangulation_angles` of point X[i] seen from the centres C (V, 3) that
+    mask[:, i] selects, one pass over the points (the dense stage asks it of every match)."""
+    V = C.shape[0]
+    for i in range(X.shape[0]):
+        best = 0.0
+        for a in range(V):
+            if not mask[a, i]:
+                continue
+            a0, a1, a2 = C[a, 0] - X[i, 0], C[a, 1] - X[i, 1], C[a, 2] - X[i, 2]
+            for b in range(a + 1, V):
+                if not mask[b, i]:
+                    continue
+                b0, b1, b2 = C[b, 0] - X[i, 0], C[b, 1] - X[i, 1], C[b, 2] - X[i, 2]
+                cos = (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt((a0 * a0 + a1 * a1 + a2 * a2)
+                                                              * (b0 * b0 + b1 * b1 + b2 * b2))
+                angle = np.degrees(np.arccos(min(1.0, max(-1.0, cos)))) if np.isfinite(cos) else np.nan
+                if angle != angle or angle > best:  # a NaN stays, as np.maximum keeps it
+                    best = angle if best == best else best
+        out[i] = best
 
 
 @dataclass
@@ -442,17 +461,5 @@ def triangulate_two_view(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.
     errors = np.stack([worst, worst])
     return TriangulationResult(points=X, errors=errors,
                                depths=np.stack([camera_depths(P, X) for P in (P1, P2)]),
-                               angles=_ray_angles(camera_center(P1), camera_center(P2), X))
+                               angles=triangulation_angles(np.stack([P1, P2]), X))
 
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _ray_angles(c1, c2, X):
-    """:func:`triangulation_angles` of two cameras centred at c1, c2 (3,), every point (N, 3)
-    seen by both, in one pass (NaN for a non-finite point)."""
-    out = np.empty(X.shape[0])
-    for i in range(X.shape[0]):
-        a0, a1, a2 = c1[0] - X[i, 0], c1[1] - X[i, 1], c1[2] - X[i, 2]
-        b0, b1, b2 = c2[0] - X[i, 0], c2[1] - X[i, 1], c2[2] - X[i, 2]
-        cos = (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt((a0 * a0 + a1 * a1 + a2 * a2) * (b0 * b0 + b1 * b1 + b2 * b2))
-        out[i] = np.degrees(np.arccos(min(1.0, max(-1.0, cos)))) if np.isfinite(cos) else np.nan
-    return out
