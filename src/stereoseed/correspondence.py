@@ -31,7 +31,8 @@ class CorrespondenceSource(Protocol):
     ``turns_images`` says whether matching an image turned by 180 degrees can find more
     (a rotation-sensitive matcher such as ZNCC); ``expect_match(a, fa, image_width)``, optional,
     hears that view a's interest points are final (:class:`Prefetching` then matches them with
-    the next image's ahead of time)."""
+    the next image's ahead of time, while ``track`` may be called: tracking must not change
+    what matching reads or writes)."""
 
     def features(self, index: int, image: np.ndarray) -> Features:
         """Interest points of image ``index``."""
@@ -105,6 +106,14 @@ class HarrisZncc:
         return xy, ok
 
 
+# The source's methods that may run while a speculative match does: tracking only reads interest
+# points and images (HarrisZncc.track aligns patches without the pair caches matching fills;
+# TrueCorrespondences.track reads the ids its features recorded). The mapper tracks the older
+# views' points into the new view, announces its interest points final, then tracks the new
+# view's points back into the older views: that second half overlaps the next match.
+_BESIDE_MATCHING = ("track",)
+
+
 @dataclass(frozen=True)
 class _Speculation:
     """A match of view a (interest points ``fa``) with the next image, computed ahead: the
@@ -135,8 +144,8 @@ class Prefetching:
     OpenCV and the Numba kernels release the GIL, so on two cores this work overlaps the
     geometry. Results are those of the wrapped source, bit for bit: a speculative match is
     used only for the very feature sets it was computed on, and every other call to the source
-    but ``features`` (which keeps no state) first waits for it: the source's caches are never
-    shared between threads. ``first``: the first index
+    but ``features`` (which keeps no state) and ``track`` (which shares nothing with matching)
+    first waits for it: the source's caches are never shared between threads. ``first``: the first index
     to prefetch; ``ahead``: how many images ahead (each holds its interest points and grey
     image until asked for). Use as a context manager: the threads stop (pending work
     cancelled) on exit."""
@@ -155,9 +164,10 @@ class Prefetching:
 
     def __getattr__(self, name: str) -> Any:
         """The source's attribute (turns_images; refine, track, pair_cache where it has them),
-        its methods called once the speculative match is over."""
+        its methods called once the speculative match is over, but ``track``, which runs beside
+        it (:data:`_BESIDE_MATCHING`)."""
         attr = getattr(self.source, name)
-        if not callable(attr):
+        if not callable(attr) or name in _BESIDE_MATCHING:
             return attr
 
         def settled(*args: Any, **kwargs: Any) -> Any:

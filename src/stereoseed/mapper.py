@@ -189,10 +189,13 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
             more = new_points_three_view(recon, prev, k, before[0], cfg)
             ids = np.concatenate([ids, more])
             report["three_view_points"] = int(len(more))
-    report.update(mode.grow_tracks(recon, k, chain_points, cfg))
     expect_match = getattr(recon.source, "expect_match", None)
-    if expect_match is not None:  # k's interest points are final: the next insertion's matching may start
-        expect_match(k, view.features, view.image_size[0])
+
+    def features_final() -> None:  # k's interest points are final: the next insertion's matching may start
+        if expect_match is not None:
+            expect_match(k, view.features, view.image_size[0])
+
+    report.update(mode.grow_tracks(recon, k, chain_points, cfg, features_final))
     timing["triangulation"] = time.perf_counter() - t
     report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
 

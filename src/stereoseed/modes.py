@@ -12,7 +12,7 @@
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -42,8 +42,10 @@ class PaperMode:
         recon.add_observations(k, m.idx2[consistent], chain_points, link=False)
         return add_two_view_points(recon, prev, k, m, cfg, colour_view=k, link_a=False)
 
-    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
-        """The paper's points stay two-view points."""
+    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
+                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
+        """The paper's points stay two-view points (k's interest points are final already)."""
+        features_final()
         return {}
 
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
@@ -82,11 +84,15 @@ class AccurateMode:
         new = m.subset(~chained & (recon.views[k].point_of_feature[m.idx2] < 0))
         return add_two_view_points(recon, prev, k, new, cfg, colour_view=k)
 
-    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
+    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
+                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
         """The points of the window's older views searched in k and k's points in them; every
-        point whose track grew (``chain_points`` too) re-triangulated from its whole track."""
+        point whose track grew (``chain_points`` too) re-triangulated from its whole track.
+        ``features_final`` is called as soon as k's interest points are (once the points are
+        tracked into k: the rest adds interest points to the older views only)."""
         older = recon.registered_before(k, cfg.pipeline.window + 1)
         tracked = [track_by_projection(recon, k, older, cfg)]
+        features_final()
         tracked += [track_by_projection(recon, j, [k], cfg) for j in older]
         tracked = np.concatenate(tracked)
         grown = np.concatenate([chain_points, tracked])
