@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from stereoseed.camera import camera_center
+from stereoseed import cli
 from stereoseed.cli import main
 from stereoseed.synthetic import write_scene
 
@@ -61,6 +62,17 @@ def test_reconstruct_bad_inputs(tmp_path, capsys, scene_files):
     bad.write_text('{"cameras": [{"P": [[1, 0, 0, 0]]}]}')
     assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "give both cameras of the pair" in capsys.readouterr().err
+
+
+def test_the_command_exits_with_mains_code_after_freezing_the_collector(tmp_path, capsys, monkeypatch):
+    frozen = []
+    monkeypatch.setattr(cli.gc, "freeze", lambda: frozen.append(True))  # not this test process's collector
+    monkeypatch.setattr("sys.argv", ["stereoseed", "reconstruct", str(tmp_path / "nothing"), "--calib", "x.json",
+                                     "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit) as exit_:
+        cli.run()
+    assert exit_.value.code == 2 and frozen == [True]
+    assert "not found" in capsys.readouterr().err
 
 
 def test_match_on_a_textureless_image_warns_in_one_line(tmp_path, capsys, scene_files):
