@@ -66,18 +66,25 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolved()
     key = inputs_key(images, names, P_pair, cfg) if checkpoint is not None else ""
+    source = source or HarrisZncc(cfg)
     state = None
     if checkpoint is not None and resume:
-        state = load_checkpoint(checkpoint, images, names, key, source or HarrisZncc(cfg))
+        state = load_checkpoint(checkpoint, images, names, key, source)
+    # The background threads start with the run: the pair's second image and the next ones are
+    # read and given their interest points while this thread does the first image, then the pair
+    # (the calibrated pair's matching and triangulation left the second core idle).
+    first_prefetched = len(state[1]) if state is not None else 1
     # checkpoints are written while the run goes on; leaving waits for the last one
-    with CheckpointWriter(checkpoint, key) as saver:
+    with CheckpointWriter(checkpoint, key) as saver, \
+            Prefetching(source, images.__getitem__, n, first=first_prefetched) as prefetching:
         if state is not None:
             recon, per_image = state
             for i in _working_set(recon, cfg):  # the next insertions read their grey images
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
-            recon, init = initialise(images, names, P_pair, cfg, source)
+            recon, init = initialise(images, names, P_pair, cfg, prefetching)
+            recon.source = source
             per_image = [{"image": names[0], "status": "calibrated"}, init]
             saver.save(recon, per_image)
             if after_insertion:
@@ -85,7 +92,6 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         resumed = [r["image"] for r in per_image] if state is not None else []
         if progress:
             progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
-        source = recon.source
         # descriptors of old views go to files: beside the checkpoint, which then names them instead
         # of copying them, else in a folder that lives as long as the reconstruction (a memory map
         # of a file keeps working once the folder is removed on POSIX systems)
@@ -96,17 +102,17 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         else:
             recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(recon.spill_folder.name)
+        recon.source = prefetching
         try:
-            with Prefetching(source, lambda i: recon.views[i].image, n, first=len(per_image)) as recon.source:
-                for k in range(len(per_image), n):
-                    rep = insert_view(recon, k, cfg)
-                    per_image.append(rep)
-                    _release_pixels(recon, cfg, spill)
-                    saver.save(recon, per_image)
-                    if progress:
-                        progress(k + 1, n, f"{names[k]}: {rep['status']}")
-                    if after_insertion:
-                        after_insertion(recon, per_image)
+            for k in range(len(per_image), n):
+                rep = insert_view(recon, k, cfg)
+                per_image.append(rep)
+                _release_pixels(recon, cfg, spill)
+                saver.save(recon, per_image)
+                if progress:
+                    progress(k + 1, n, f"{names[k]}: {rep['status']}")
+                if after_insertion:
+                    after_insertion(recon, per_image)
         finally:
             recon.source = source
     report = _finished(recon, per_image, cfg, t0)
