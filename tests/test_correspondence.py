@@ -64,3 +64,37 @@ def test_one_core_matches_only_when_asked(box_scene, monkeypatch):
     monkeypatch.setattr(threads, "_chunks", 1)
     with _view_0_final(box_scene) as (source, *_):
         assert source.match_threads == []
+
+
+class _HeldMatch(HarrisZncc):
+    """HarrisZncc whose match waits (at most 5 s) until released, recording when it ran."""
+
+    def __init__(self, cfg, events: list[str]):
+        super().__init__(cfg)
+        self.events = events
+        self.release = threading.Event()
+
+    def match(self, *args):
+        self.release.wait(5.0)
+        self.events.append("match")
+        return super().match(*args)
+
+
+def test_tracking_runs_beside_the_speculative_match(box_scene, monkeypatch):
+    # the mapper tracks the new view's points into the older views while the next match runs
+    monkeypatch.setattr(threads, "_chunks", 2)
+    images, events = box_scene.images, []
+    width = images[0].shape[1]
+    source = _HeldMatch(Config(), events)
+    with Prefetching(source, lambda i: images[i], len(images), first=0) as prefetching:
+        f0, f1 = prefetching.features(0, images[0]), prefetching.features(1, images[1])
+        prefetching.expect_match(1, f1, width)  # view 1 with view 2, held
+        m = HarrisZncc(Config()).match(0, 1, f0, f1, None, width)  # where view 1's points are in view 0
+        idx, predicted = m.idx2, f0.points[m.idx1]
+        xy, ok = prefetching.track(1, 0, f1, idx, f0, predicted, 2.0)
+        events.append("tracked")
+        source.release.set()
+        prefetching.match(1, 2, f1, prefetching.features(2, images[2]), None, width)
+    assert events == ["tracked", "match"]  # tracking did not wait for the held match
+    xy_direct, ok_direct = HarrisZncc(Config()).track(1, 0, f1, idx, f0, predicted, 2.0)
+    assert ok.sum() > 50 and np.array_equal(ok, ok_direct) and np.array_equal(xy, xy_direct)
