@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_speed import timed_process  # noqa: E402
+from bench_speed import median_run, timed_process  # noqa: E402
 
 
 def test_peak_memory_is_the_command_s_own_not_the_benchmark_s():
@@ -32,3 +32,8 @@ def test_a_command_killed_by_a_signal_is_told_from_one_that_exits_with_a_code():
     killed = timed_process([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])
     exited = timed_process([sys.executable, "-c", "import sys; sys.exit(137)"])
     assert killed["returncode"] == -9 and exited["returncode"] == 137
+
+
+def test_the_warm_figure_is_the_median_run_with_every_run_s_time():
+    runs = [{"seconds": 5.5, "stages": "a"}, {"seconds": 4.3, "stages": "b"}, {"seconds": 4.6, "stages": "c"}]
+    assert median_run(runs) == {"seconds": 4.6, "stages": "c", "all_seconds": [5.5, 4.3, 4.6]}
