@@ -147,8 +147,7 @@ def stereoseed_runs(data: dict, work: Path, extra: tuple[str, ...] = ()) -> dict
                                 "pairs": len(report["dense"]["pairs"])}
         return run
 
-    cold = one("cold")
-    return {"cold": cold, "warm": median_run([one("warm") for _ in range(WARM_RUNS)])}
+    return {"cold": one("cold"), "warm": median_run([one("warm") for _ in range(WARM_RUNS)])}  # cold first
 
 
 COLMAP_SCRIPT = """

@@ -84,7 +84,6 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
             recon, init = initialise(images, names, P_pair, cfg, prefetching)
-            recon.source = source
             per_image = [{"image": names[0], "status": "calibrated"}, init]
             saver.save(recon, per_image)
             if after_insertion:
@@ -102,7 +101,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         else:
             recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(recon.spill_folder.name)
-        recon.source = prefetching
+        recon.source = prefetching  # a resumed model comes with the plain source
         try:
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)

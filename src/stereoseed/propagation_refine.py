@@ -127,7 +127,7 @@ def _fit_system(matched, x1, y1, radius, min_count):
     it depends only on which pixels of image 1 are matched, so the passes share it.
 
     matched: (H1, W1) bool; x1, y1: (M,) int32 the matched pixels to fit at. Returns their flat
-    indices ``at`` (M,) int64, the cofactors (6, M) (c00, c01, c02, c11, c12, c22) of each
+    indices ``at`` (M,) int64, the six cofactors (c00, c01, c02, c11, c12, c22), each (M,), of each
     symmetric 3x3 normal matrix [[s0 s1 s2] [s1 s11 s12] [s2 s12 s22]] (s_ab = sum over the
     matched q of the window of (qx - px)^a (qy - py)^b) and its determinant (M,), NaN where
     fewer than min_count neighbours are matched or they lie (nearly) on a line."""
@@ -149,7 +149,7 @@ def _fit_system(matched, x1, y1, radius, min_count):
     c22 = s0 * s11 - s1 * s1
     det = s0 * c00 + s1 * c01 + s2 * c02
     ok = (s0 >= min_count - 0.5) & (det > 1e-9 * s0 * s11 * s22)
-    return at, np.stack([c00, c01, c02, c11, c12, c22]), np.where(ok, det, np.nan)
+    return at, (c00, c01, c02, c11, c12, c22), np.where(ok, det, np.nan)
 
 
 def _window_kernels(radius):

@@ -143,9 +143,12 @@ def _largest_angles(C, X, mask, out):
                 b0, b1, b2 = C[b, 0] - X[i, 0], C[b, 1] - X[i, 1], C[b, 2] - X[i, 2]
                 cos = (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt((a0 * a0 + a1 * a1 + a2 * a2)
                                                               * (b0 * b0 + b1 * b1 + b2 * b2))
-                angle = np.degrees(np.arccos(min(1.0, max(-1.0, cos)))) if np.isfinite(cos) else np.nan
-                if angle != angle or angle > best:  # a NaN stays, as np.maximum keeps it
-                    best = angle if best == best else best
+                if not np.isfinite(cos):  # a point at a centre or not finite: NaN, as np.maximum keeps it
+                    best = np.nan
+                    continue
+                angle = np.degrees(np.arccos(min(1.0, max(-1.0, cos))))
+                if angle > best:  # never true once best is NaN
+                    best = angle
         out[i] = best
 
 
