@@ -181,6 +181,56 @@ def test_square_corners_meet_where_their_edges_do(blur, within):
     assert np.median(errors[True]) < 0.15 < np.median(errors[False])
 
 
+def _junction_residual_numpy(gx, gy, q, win, strong_fraction=0.0):
+    """The junction residual's formula in NumPy: sum (g . (q - p))^2 / sum |g|^2 |q - p|^2."""
+    h, w = gx.shape
+    qi = np.rint(q).astype(np.int64)
+    qi[:, 0] = np.clip(qi[:, 0], win, w - 1 - win)
+    qi[:, 1] = np.clip(qi[:, 1], win, h - 1 - win)
+    dy, dx = np.meshgrid(np.arange(-win, win + 1), np.arange(-win, win + 1), indexing="ij")
+    g_x = gx[qi[:, 1:2] + dy.reshape(1, -1), qi[:, 0:1] + dx.reshape(1, -1)]
+    g_y = gy[qi[:, 1:2] + dy.reshape(1, -1), qi[:, 0:1] + dx.reshape(1, -1)]
+    vx = (q[:, 0:1] - qi[:, 0:1] - dx.reshape(1, -1)).astype(np.float32)
+    vy = (q[:, 1:2] - qi[:, 1:2] - dy.reshape(1, -1)).astype(np.float32)
+    g2 = g_x * g_x + g_y * g_y
+    along, full = (g_x * vx + g_y * vy) ** 2, g2 * (vx * vx + vy * vy)
+    if strong_fraction > 0:
+        weak = g2 < np.float32(strong_fraction**2) * g2.max(axis=1, keepdims=True)
+        along[weak], full[weak] = 0.0, 0.0
+    num, den = along.sum(axis=1, dtype=np.float64), full.sum(axis=1, dtype=np.float64)
+    return np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+
+
+@pytest.mark.parametrize("win", [5, 3, 2])
+@pytest.mark.parametrize("strong_fraction", [0.0, 0.5])
+def test_junction_residual_kernel_is_the_numpy_formula_bit_for_bit(win, strong_fraction):
+    """The compiled residual sums as NumPy does: the interest points of the default windows
+    did not move when it replaced NumPy (points near and on the border included)."""
+    from stereoseed.features import _junction_residual
+
+    img, _ = dark_squares_on_texture()
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    rng = np.random.default_rng(win)
+    h, w = img.shape
+    q = np.vstack([rng.uniform([0, 0], [w - 1, h - 1], (500, 2)), [[0, 0], [w - 1, h - 1], [-3, 5], [w + 2, 7]]])
+    got = _junction_residual(gx, gy, q, win, strong_fraction)
+    assert np.array_equal(got, _junction_residual_numpy(gx, gy, q, win, strong_fraction))
+    assert np.all((got >= 0) & (got <= 1))
+
+
+def test_junction_residual_is_zero_at_an_ideal_junction_and_grows_off_it():
+    from stereoseed.features import _junction_residual
+
+    img = np.zeros((64, 64), np.float32)
+    img[32:, 32:] = 1.0  # a square's corner: the edges meet at (31.5, 31.5)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    at, *off = _junction_residual(gx, gy, np.array([[31.5, 31.5], [32, 32], [33.5, 32.5], [35, 31.5]]), 5)
+    assert at < 0.05 < off[0] < 0.2 < off[1] < off[2]  # the blur rounds the apex: not exactly 0
+
+
 def test_one_interest_point_per_position():
     # two Harris maxima of one corner (its two arms) refine to the same point: kept once
     img, _ = dark_squares_on_texture()

@@ -138,12 +138,13 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
     thr = cfg.tracking.max_shift_px
     h, w = vt.features.image_shape
     margin = vt.features.patch_size
-    taken = set(recon.obs_point[recon.obs_view == target].tolist())
+    taken = np.zeros(len(recon.points), bool)  # the points the target sees
+    taken[recon.obs_point[recon.obs_view == target]] = True
     grown = []
     for j in refs:
         sel = (recon.obs_view == j) & recon.alive[recon.obs_point]
         pids, feats = recon.obs_point[sel], recon.obs_feature[sel]
-        fresh = ~np.isin(pids, list(taken))
+        fresh = ~taken[pids]
         pids, feats = pids[fresh], feats[fresh]
         if len(pids) == 0:
             continue
@@ -162,7 +163,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
         idx = vt.append_features(_tracked_features(vt, found[ok]))
         recon.add_observations(target, idx, pids[ok])
         grown.append(pids[ok])
-        taken.update(pids[ok].tolist())
+        taken[pids[ok]] = True
     return np.concatenate(grown) if grown else np.zeros(0, np.int64)
 
 
