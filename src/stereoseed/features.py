@@ -214,10 +214,8 @@ def _junction_residual_kernel(gx, gy, q, win, strong_fraction, out):
     float32 as the gradients are, the sums in float64."""
     h, w = gx.shape
     k = (2 * win + 1) ** 2
-    along32 = np.empty(k, np.float32)
-    full32 = np.empty(k, np.float32)
     g2 = np.empty(k, np.float32)
-    along = np.empty(k)
+    along = np.empty(k)  # float32 products, widened exactly
     full = np.empty(k)
     for i in range(q.shape[0]):
         qx = min(max(np.int64(np.rint(q[i, 0])), win), w - 1 - win)
@@ -230,15 +228,16 @@ def _junction_residual_kernel(gx, gy, q, win, strong_fraction, out):
                 vx, vy = np.float32(q[i, 0] - qx - dx), np.float32(q[i, 1] - qy - dy)
                 g2[n] = g_x * g_x + g_y * g_y
                 dot = g_x * vx + g_y * vy
-                along32[n] = dot * dot
-                full32[n] = g2[n] * (vx * vx + vy * vy)
+                along[n] = dot * dot
+                full[n] = g2[n] * (vx * vx + vy * vy)
                 strongest = max(strongest, g2[n])
                 n += 1
-        weak_below = np.float32(strong_fraction ** 2) * strongest
-        for j in range(k):
-            weak = strong_fraction > 0.0 and g2[j] < weak_below
-            along[j] = 0.0 if weak else np.float64(along32[j])
-            full[j] = 0.0 if weak else np.float64(full32[j])
+        if strong_fraction > 0.0:
+            weak_below = np.float32(strong_fraction ** 2) * strongest
+            for j in range(k):
+                if g2[j] < weak_below:
+                    along[j] = 0.0
+                    full[j] = 0.0
         num, den = _eightfold_sum(along, k), _eightfold_sum(full, k)
         out[i] = num / max(den, 1e-300) if den > 0 else 1.0
 
