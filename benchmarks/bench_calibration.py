@@ -5,9 +5,9 @@ import json
 
 import numpy as np
 
-from stereoseed.calibration import calibrate_camera, refine_projection, reprojection_rms
-from stereoseed.camera import camera_center, project
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.estimators.calibration import calibrate_camera, refine_projection, reprojection_rms
+from stereoseed.geometry.camera import camera_center, project
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 
 def run(seeds: int = 20) -> dict:

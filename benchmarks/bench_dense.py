@@ -9,10 +9,10 @@ import time
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.dense import densify
-from stereoseed.evaluation import TrueCorrespondences, camera_errors, surface_distance
+from stereoseed.dense.densify import densify
+from stereoseed.experiments.evaluation import TrueCorrespondences, camera_errors, surface_distance
 from stereoseed.pipeline import reconstruct
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 
 def _peak_rss_mb() -> dict:

@@ -16,15 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.evaluation import camera_errors
-from stereoseed.camera import camera_center, compose_projection
-from stereoseed.lens import project_distorted, undistort_image, undistort_pixels, undistortion_maps
-from stereoseed.lens_calibration import calibrate_from_target
+from stereoseed.experiments.evaluation import camera_errors
+from stereoseed.geometry.camera import camera_center, compose_projection
+from stereoseed.geometry.lens import project_distorted, undistort_image, undistort_pixels, undistortion_maps
+from stereoseed.calibration.lens_calibration import calibrate_from_target
 from stereoseed.pipeline import reconstruct
-from stereoseed.synthetic import SceneConfig, render_scene
-from stereoseed.synthetic_target import load_target as load_rendered_target
-from stereoseed.synthetic_target import render_target
-from stereoseed.target import load_target, make_target
+from stereoseed.synthetic.scene import SceneConfig, render_scene
+from stereoseed.synthetic.target import load_target as load_rendered_target
+from stereoseed.synthetic.target import render_target
+from stereoseed.calibration.target import load_target, make_target
 
 LENS = (-0.12, 0.03, 0.001, -0.0005)
 MM = 1000.0  # the target is in mm, the box scene in metres

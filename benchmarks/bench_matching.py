@@ -15,19 +15,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stereoseed.camera import (
+from stereoseed.geometry.camera import (
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,
 )
 from stereoseed.config import FeatureConfig, MatchingConfig
-from stereoseed.features import extract_features
-from stereoseed.io import read_middlebury_par
+from stereoseed.features.harris import extract_features
+from stereoseed.io.files import read_middlebury_par
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import match_pair
 from stereoseed.matching.two_view import filter_epipolar
 from stereoseed.matching.zncc import match_zncc
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 
 def accuracy(scene, i: int, j: int, f1, f2, m: Matches) -> dict:

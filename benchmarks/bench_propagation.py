@@ -16,11 +16,11 @@ import time
 import cv2
 import numpy as np
 
-from stereoseed.camera import fundamental_from_projections, project
+from stereoseed.geometry.camera import fundamental_from_projections, project
 from stereoseed.config import PropagationConfig
-from stereoseed.image import to_gray
-from stereoseed.propagation import PropagationResult, propagate, texture_mask, warm_up
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.features.image import to_gray
+from stereoseed.matching.propagation.core import PropagationResult, propagate, texture_mask, warm_up
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 N_SEEDS = 50  # the reference measurement: ~138k matches from ~50 seeds
 REPEATS = 3  # best of: the machine is shared

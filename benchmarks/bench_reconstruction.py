@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.config import Config, PipelineConfig
-from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
+from stereoseed.experiments.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
 from stereoseed.pipeline import load_sequence, reconstruct
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 
 def _cfg(mode: str, **kw) -> Config:
@@ -135,7 +135,7 @@ def _middlebury(folder: str, par: str, data_dir: Path | None, paths: bool = Fals
     seq = data_dir / folder
     if not seq.is_dir():
         return {"skipped": f"{seq} not found"}
-    from stereoseed.io import read_middlebury_par
+    from stereoseed.io.files import read_middlebury_par
     images, names, P_pair = load_sequence(str(seq / "ring_order.txt"), str(seq / par))
     truth = read_middlebury_par(seq / par)
     out = {}

@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from stereoseed.calibration import calibrate_camera
-from stereoseed.evaluation import camera_errors
-from stereoseed.io import list_images, read_middlebury_par, write_json
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.estimators.calibration import calibrate_camera
+from stereoseed.experiments.evaluation import camera_errors
+from stereoseed.io.files import list_images, read_middlebury_par, write_json
+from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 
 STAGES = ("features", "matching", "resection", "triangulation", "bundle")
 BIN = Path(sys.executable).parent
@@ -209,7 +209,7 @@ def sequence(name: str, data: dict, work: Path) -> dict:
 def run(only: tuple[str, ...] = ("box14", "temple", "ring36", "dense")) -> dict:
     # the imports a reconstruct process pays, once: the best of three (the first also reads the
     # files from disk)
-    imports = [timed_process([sys.executable, "-c", "import stereoseed.cli, stereoseed.pipeline, stereoseed.results"])
+    imports = [timed_process([sys.executable, "-c", "import stereoseed.cli, stereoseed.pipeline, stereoseed.output.results"])
                ["seconds"] for _ in range(3)]
     results: dict = {"cores": os.cpu_count(), "import_seconds": min(imports)}
     with tempfile.TemporaryDirectory(prefix="stereoseed-speed-") as tmp:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.config import Config, PipelineConfig
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 COUNTS = ("status", "matches", "chained_points", "resection_inliers", "resection_model", "new_points",
           "tracked_observations", "removed_observations", "motion_prior_correspondences", "three_view_points")

@@ -25,7 +25,7 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {"machine": {"python": platform.python_version(), "platform": platform.platform()}}
-    from stereoseed.io import write_json
+    from stereoseed.io.files import write_json
 
     for name in args.only.split(","):
         module = importlib.import_module(f"bench_{name}")

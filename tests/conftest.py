@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from stereoseed.experiments import noisy_images
-from stereoseed.synthetic import SceneConfig, SyntheticScene, render_scene
+from stereoseed.experiments.paper import noisy_images
+from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene
 
 
 # --- SHARED_DATA ------------------------------------------------------------------------------
@@ -87,7 +87,7 @@ def plain_box_scene_noisy(plain_box_scene) -> SyntheticScene:
 def temple_run(temple_dir):
     """templeSparseRing reconstructed in ring order, seeded by the par file's first two cameras
     (default config). Returns (reconstruction, report, true cameras in ring order)."""
-    from stereoseed.io import read_middlebury_par
+    from stereoseed.io.files import read_middlebury_par
     from stereoseed.pipeline import load_sequence, reconstruct
 
     images, names, P_pair = load_sequence(str(temple_dir / "ring_order.txt"), str(temple_dir / "templeSR_par.txt"))

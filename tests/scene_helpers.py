@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stereoseed.io import write_json
-from stereoseed.synthetic import SyntheticScene, write_scene
+from stereoseed.io.files import write_json
+from stereoseed.synthetic.scene import SyntheticScene, write_scene
 
 
 def scene_on_disk(scene: SyntheticScene, folder: Path, images: Path | None = None) -> tuple[dict, Path]:

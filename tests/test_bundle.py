@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from stereoseed import camera_models
-from stereoseed.bundle import BundleProblem, bundle_adjust
-from stereoseed.camera import camera_center, project
+from stereoseed.geometry import models as camera_models
+from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
+from stereoseed.geometry.camera import camera_center, project
 from stereoseed.config import BundleConfig
 from geometry_helpers import box_points, ring_camera
 
@@ -123,7 +123,7 @@ def _reduced_camera_case():
 
 
 def test_reduced_camera_matrix_is_w_vinv_wt():
-    from stereoseed.bundle import _reduced_camera_matrix, _thread_rows
+    from stereoseed.estimators.bundle import _reduced_camera_matrix, _thread_rows
 
     args, expected = _reduced_camera_case()
     order, starts, cams, _, _, n_cams = args
@@ -133,7 +133,7 @@ def test_reduced_camera_matrix_is_w_vinv_wt():
 
 def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
     # each thread owns whole block rows: the same additions in the same order, bit for bit
-    from stereoseed import bundle
+    from stereoseed.estimators import bundle
 
     args, _ = _reduced_camera_case()
     order, starts, cams, _, _, n_cams = args
@@ -148,7 +148,7 @@ def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
 
 
 def test_solve_symmetric_falls_back_to_least_squares():
-    from stereoseed.bundle import _solve_symmetric
+    from stereoseed.estimators.bundle import _solve_symmetric
 
     A = np.random.default_rng(0).normal(size=(6, 6))
     S = A @ A.T + np.eye(6)
@@ -160,7 +160,7 @@ def test_solve_symmetric_falls_back_to_least_squares():
 
 
 def test_a_singular_point_block_gives_no_step_instead_of_an_error():
-    from stereoseed.bundle import _eliminate_points, _solve_symmetric
+    from stereoseed.estimators.bundle import _eliminate_points, _solve_symmetric
 
     V = np.zeros((1, 3, 3))
     V[0] -= 1e-12 * np.eye(3)  # cancels the damping's 1e-12: det 0

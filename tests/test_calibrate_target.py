@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center
+from stereoseed.geometry.camera import camera_center
 from stereoseed.cli import main
-from stereoseed.synthetic import SceneConfig, render_scene, write_scene
-from stereoseed.synthetic_target import load_target, render_target
-from stereoseed.target import make_target
+from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
+from stereoseed.synthetic.target import load_target, render_target
+from stereoseed.calibration.target import make_target
 
 LENS = (-0.12, 0.03, 0.001, -0.0005)
 TARGET_AT = np.array([0.0, 0.0, 420.0])  # mm: the target's corner at the box's height

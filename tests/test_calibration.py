@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from stereoseed.calibration import (calibrate_camera, check_correspondences, dlt_projection,
+from stereoseed.estimators.calibration import (calibrate_camera, check_correspondences, dlt_projection,
                                     refine_projection, reprojection_rms)
-from stereoseed.camera import camera_center, normalize_projection, project
+from stereoseed.geometry.camera import camera_center, normalize_projection, project
 from stereoseed.errors import StereoseedError
 from geometry_helpers import box_points, ring_camera
 
@@ -118,7 +118,7 @@ def test_refinement_reaches_scipys_least_squares_optimum(model):
     """The analytic-Jacobian LM finds the same optimum as SciPy's MINPACK LM (finite-difference
     Jacobian) on the same parameterisation: an oracle for the whole refinement."""
     from scipy.optimize import least_squares
-    from stereoseed import camera_models
+    from stereoseed.geometry import models as camera_models
 
     rng = np.random.default_rng(7)
     K, R, t, P = ring_camera(20.0, f=780.0, skew=0.6, aspect=1.004, pp=(318.0, 243.0))

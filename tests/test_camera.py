@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from stereoseed.camera import (camera_center, decompose_projection, depths, epipolar_distances,
+from stereoseed.geometry.camera import (camera_center, decompose_projection, depths, epipolar_distances,
                                fundamental_from_projections, normalize_projection, project)
 from geometry_helpers import box_points, ring_camera
 
@@ -67,7 +67,7 @@ def test_decompose_roundtrip_property(angle, f, skew, aspect, scale):
 
 @pytest.mark.parametrize("model", ["free", "zero-skew", "focal", "fixed"])
 def test_projection_derivatives_match_central_differences(model):
-    from stereoseed import camera_models
+    from stereoseed.geometry import models as camera_models
 
     rng = np.random.default_rng(3)
     ref = np.array([[800.0, 0.5, 320.0], [0.0, 790.0, 240.0], [0.0, 0.0, 1.0]])
@@ -96,7 +96,7 @@ def test_projection_derivatives_match_central_differences(model):
 def test_projections_from_params_are_the_ones_of_each_camera(model):
     # the batched form the BA uses gives each camera exactly as the one-camera form does,
     # a rotation below the first-order threshold included
-    from stereoseed import camera_models
+    from stereoseed.geometry import models as camera_models
 
     rng = np.random.default_rng(4)
     n, ni = camera_models.n_params(model), camera_models.N_INTRINSICS[model]
@@ -115,7 +115,7 @@ def test_quaternions_and_rotation_vectors_are_scipys_at_every_angle():
     rotations, tiny angles and half turns (where an inverse cosine would lose half the digits)."""
     from scipy.spatial.transform import Rotation
 
-    from stereoseed import camera_models
+    from stereoseed.geometry import models as camera_models
 
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     rotations = [Rotation.random(random_state=i) for i in range(300)]

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from stereoseed import pipeline
-from stereoseed.checkpoint import CheckpointWriter, spill_folder
+from stereoseed.sfm.checkpoint import CheckpointWriter, spill_folder
 from stereoseed.errors import StereoseedError
-from stereoseed.reconstruction import Reconstruction, View
+from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.config import Config
 from scene_helpers import scene_on_disk
 
@@ -61,7 +61,7 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
 
 def test_a_resume_with_a_mistyped_input_keeps_its_checkpoint(ring_on_disk, tmp_path):
     from stereoseed.errors import StereoseedError
-    from stereoseed.results import ResultSet
+    from stereoseed.output.results import ResultSet
 
     images_txt, _ = ring_on_disk
     out = tmp_path / "out"

@@ -3,10 +3,10 @@ import json
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center
+from stereoseed.geometry.camera import camera_center
 from stereoseed import cli
 from stereoseed.cli import main
-from stereoseed.synthetic import write_scene
+from stereoseed.synthetic.scene import write_scene
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +107,8 @@ def test_a_first_run_says_it_compiles_the_kernels_first(tmp_path, capsys, monkey
     """After a fresh install the first run compiles the Numba kernels (about a minute): it says so
     on stderr before any work, unless --quiet. The check reads Numba's cache index."""
     from stereoseed import precompile
-    from stereoseed.edge_corners import _edge_corner_kernel
-    from stereoseed.features import extract_features
+    from stereoseed.features.edge_corners import _edge_corner_kernel
+    from stereoseed.features.harris import extract_features
 
     small = small_box_scene.prefix(2)
     extract_features(small.images[0])  # its corners call the kernel: compiled and cached if they were not

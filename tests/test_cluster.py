@@ -18,10 +18,10 @@ from stereoseed.batch import read_sequence_list, run_batch
 from stereoseed.cli import main
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
-from stereoseed.dense import densify
+from stereoseed.dense.densify import densify
 from stereoseed.errors import StereoseedError
 from stereoseed.pipeline import reconstruct
-from stereoseed.ply import read_ply_vertices
+from stereoseed.io.ply import read_ply_vertices
 
 
 @pytest.fixture(scope="module")

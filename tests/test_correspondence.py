@@ -8,7 +8,7 @@ import numpy as np
 
 from stereoseed import threads
 from stereoseed.config import Config
-from stereoseed.correspondence import HarrisZncc, Prefetching
+from stereoseed.sfm.correspondence import HarrisZncc, Prefetching
 
 
 class _Counting(HarrisZncc):

@@ -1,4 +1,4 @@
-"""The paper bench (stereoseed.experiments): one quick run checked end to end, and the two
+"""The paper bench (stereoseed.experiments.paper): one quick run checked end to end, and the two
 shortcuts it takes with the synthetic scenes (prefix rings, noise added after rendering)."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from stereoseed.experiments import VARIANTS, noisy_images, run_paper_bench
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.experiments.paper import VARIANTS, noisy_images, run_paper_bench
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 # A small, fast scene: the shortcuts do not depend on the image size.
 _TINY = dict(width=160, height=120, supersample=1, focal_px=200.0, focal0_px=195.0)
@@ -110,7 +110,7 @@ def test_quick_bench_tables_have_a_row_per_sequence(quick_bench):
 def test_a_run_that_cannot_start_is_recorded_not_raised():
     """A sequence the pipeline cannot even initialise (no texture to match) gives a result with
     the pipeline's message and no numbers; the bench carries on and writes null there."""
-    from stereoseed.experiments import _Job, _json_clean, _run_job, _Sequence, _stats
+    from stereoseed.experiments.paper import _Job, _json_clean, _run_job, _Sequence, _stats
 
     scene = render_scene(SceneConfig(n_images=2, **_TINY))
     flat = [np.full_like(im, 128) for im in scene.images]
@@ -128,7 +128,7 @@ def test_one_run_serves_every_count_of_a_job(small_box_scene):
     """A job evaluated at 3 and 5 images gives, at 3, exactly what a run on the first 3 images
     gives (the finishing step on a copy of the model, then the run goes on): Fig. 7 and the
     tables take every image count from one run."""
-    from stereoseed.experiments import _Job, _run_job, _synthetic_sequence
+    from stereoseed.experiments.paper import _Job, _run_job, _synthetic_sequence
 
     seq = _synthetic_sequence(small_box_scene.prefix(5))
     both = _run_job(_Job(seq, (3, 5), "final", 0))

@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center
+from stereoseed.geometry.camera import camera_center
 from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
-from stereoseed.io import read_calibration
-from stereoseed.ply import read_ply_vertices
+from stereoseed.io.files import read_calibration
+from stereoseed.io.ply import read_ply_vertices
 from stereoseed.pipeline import reconstruct, save_outputs
-from stereoseed.results import FORMAT_VERSION, exported_points, load_result
+from stereoseed.output.results import FORMAT_VERSION, exported_points, load_result
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (the test extra) is the COLMAP oracle")
 

@@ -1,4 +1,4 @@
-"""Interest points and ZNCC descriptors (stereoseed.features)."""
+"""Interest points and ZNCC descriptors (stereoseed.features.harris)."""
 from __future__ import annotations
 
 import logging
@@ -13,7 +13,7 @@ from hypothesis.extra import numpy as hnp
 
 from stereoseed.config import FeatureConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.features import (
+from stereoseed.features.harris import (
     Features,
     describe,
     describe_scaled,
@@ -206,7 +206,7 @@ def _junction_residual_numpy(gx, gy, q, win, strong_fraction=0.0):
 def test_junction_residual_kernel_is_the_numpy_formula_bit_for_bit(win, strong_fraction):
     """The compiled residual sums as NumPy does: the interest points of the default windows
     did not move when it replaced NumPy (points near and on the border included)."""
-    from stereoseed.features import _junction_residual
+    from stereoseed.features.harris import _junction_residual
 
     img, _ = dark_squares_on_texture()
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
@@ -220,7 +220,7 @@ def test_junction_residual_kernel_is_the_numpy_formula_bit_for_bit(win, strong_f
 
 
 def test_junction_residual_is_zero_at_an_ideal_junction_and_grows_off_it():
-    from stereoseed.features import _junction_residual
+    from stereoseed.features.harris import _junction_residual
 
     img = np.zeros((64, 64), np.float32)
     img[32:, 32:] = 1.0  # a square's corner: the edges meet at (31.5, 31.5)
@@ -265,7 +265,7 @@ def test_detect_corners_repeatable_under_subpixel_shift():
     ],
 )
 def test_detect_corners_empty_or_flat_logs(image, caplog):
-    caplog.set_level(logging.INFO, logger="stereoseed.features")
+    caplog.set_level(logging.INFO, logger="stereoseed.features.harris")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a log record, not a warning
         pts = detect_corners(image)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from stereoseed.errors import StereoseedError
-from stereoseed.io import list_images, read_calibration, read_image, read_middlebury_par, read_points_file, write_json
-from stereoseed.ply import read_ply, write_ply
+from stereoseed.io.files import list_images, read_calibration, read_image, read_middlebury_par, read_points_file, write_json
+from stereoseed.io.ply import read_ply, write_ply
 
 
 def test_points_file_reader(tmp_path):

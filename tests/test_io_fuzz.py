@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, event, example, given, settings, strategies as st
 
 from stereoseed.errors import StereoseedError
-from stereoseed.io import (MAX_MAGNITUDE, SINGULAR_RATIO, list_images, read_calibration, read_image,
+from stereoseed.io.files import (MAX_MAGNITUDE, SINGULAR_RATIO, list_images, read_calibration, read_image,
                            read_middlebury_par, read_points_file)
 
 # STEREOSEED_FUZZ_EXAMPLES=5000 for a longer soak (about 1 minute)

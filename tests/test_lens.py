@@ -1,11 +1,11 @@
-"""The lens model (stereoseed.lens) against OpenCV as an oracle, and its round trips."""
+"""The lens model (stereoseed.geometry.lens) against OpenCV as an oracle, and its round trips."""
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
 
-from stereoseed.lens import (
+from stereoseed.geometry.lens import (
     distort_normalized,
     distort_pixels,
     lens_coefficients,

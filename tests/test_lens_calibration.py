@@ -7,8 +7,8 @@ import pytest
 
 from geometry_helpers import box_points, look_at_camera
 from stereoseed.errors import StereoseedError
-from stereoseed.lens import project_distorted
-from stereoseed.lens_calibration import calibrate_lens, read_lenses, read_opencv_intrinsics
+from stereoseed.geometry.lens import project_distorted
+from stereoseed.calibration.lens_calibration import calibrate_lens, read_lenses, read_opencv_intrinsics
 
 LENS = np.array([-0.12, 0.03, 0.001, -0.0005, 0.0])
 SIZE = (640, 480)
@@ -58,7 +58,7 @@ def test_the_analytic_jacobian_is_the_residuals_derivative(n_lens, known):
     """cv2.projectPoints's derivatives, placed in the parameter layout of _unpack (OpenCV's
     missing skew term added), against central differences of the residuals that calibrate_lens
     minimises."""
-    from stereoseed.lens_calibration import _jacobian, _unpack
+    from stereoseed.calibration.lens_calibration import _jacobian, _unpack
 
     views, K, poses = _views(2)
     rng = np.random.default_rng(1)

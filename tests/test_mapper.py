@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from geometry_helpers import ring_camera
-from stereoseed.camera import camera_center, project
+from stereoseed.geometry.camera import camera_center, project
 from stereoseed.config import Config, PipelineConfig
-from stereoseed.features import Features
-from stereoseed.mapper import finish, initialise, insert_view
+from stereoseed.features.harris import Features
+from stereoseed.sfm.mapper import finish, initialise, insert_view
 from stereoseed.matching.containers import Matches
-from stereoseed.registration import CHAIN, MOTION_PRIOR, Registration, RegistrationFailure, register_view
+from stereoseed.sfm.registration.base import CHAIN, MOTION_PRIOR, Registration, RegistrationFailure, register_view
 
 SHAPE = (480, 640)
 
@@ -216,7 +216,7 @@ def _raising(error):
     return raise_it
 
 
-@pytest.mark.parametrize("module, function", [("registration", "implausible_motion"), ("modes", "adjust")])
+@pytest.mark.parametrize("module, function", [("sfm.registration.base", "implausible_motion"), ("sfm.modes", "adjust")])
 def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkeypatch, module, function):
     # during the registration (nothing committed yet) or after the commit (rolled back)
     import importlib
@@ -232,11 +232,11 @@ def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkey
 
 
 def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored(started, monkeypatch):
-    import stereoseed.modes
+    import stereoseed.sfm.modes
 
     recon, Ps, cfg = started
     before = state(recon)
-    monkeypatch.setattr(stereoseed.modes, "adjust", _raising(RuntimeError("a bug")))
+    monkeypatch.setattr(stereoseed.sfm.modes, "adjust", _raising(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):
         insert_view(recon, 4, cfg)
     assert_same_state(before, state(recon))
@@ -246,7 +246,7 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
     # plain box, scene seed 5: the pair's 32 matches found without the calibration follow a
     # robust F fitted to period-shifted squares (12 % on the calibrated epipolar lines); the
     # calibration itself matches 118 points, and the pair must be accepted
-    from stereoseed.synthetic import SceneConfig, render_scene
+    from stereoseed.synthetic.scene import SceneConfig, render_scene
 
     scene = render_scene(SceneConfig(textured=False, seed=5, n_images=2))
     recon, report = initialise(scene.images, scene.names, scene.P[:2], Config())
@@ -256,7 +256,7 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
 def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box_scene):
     # a weakly placed view can lose its observations to outlier removal until nothing determines
     # its camera; the finishing step then deregisters it and says why
-    from stereoseed.mapper import _drop_undetermined_views
+    from stereoseed.sfm.mapper import _drop_undetermined_views
     from stereoseed.pipeline import reconstruct
 
     scene = small_box_scene.prefix(5)
@@ -275,8 +275,8 @@ def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box
 def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
     """accurate mode, "focal" model: the BA after an insertion runs on the "fixed" model while no
     image after the pair was found zoomed; then, and in paper mode, on the run's model."""
-    from stereoseed.modes import mode_of
-    from stereoseed.reconstruction import Reconstruction, View
+    from stereoseed.sfm.modes import mode_of
+    from stereoseed.sfm.reconstruction import Reconstruction, View
 
     def _unzoomed_held(recon, cfg):  # the BA configuration the mode gives after an insertion
         return mode_of(cfg).adjustment_config(recon, cfg)

@@ -2,7 +2,7 @@
 configuration (stereoseed.matching, MatchingConfig).
 
 The quality tests measure kept matches against the exact correspondences of the synthetic box
-(stereoseed.synthetic): the world point seen at a keypoint of image i, projected into image j.
+(stereoseed.synthetic.scene): the world point seen at a keypoint of image i, projected into image j.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from stereoseed.camera import (
+from stereoseed.geometry.camera import (
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,
@@ -26,14 +26,14 @@ from stereoseed.camera import (
 )
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.features import Features, describe, extract_features
+from stereoseed.features.harris import Features, describe, extract_features
 from stereoseed.matching import alignment
 from stereoseed.matching.alignment import PairCache, align_matches, filter_localization, refine_features
 from stereoseed.matching.containers import Matches, PairMatches
 from stereoseed.matching.pair import match_pair
 from stereoseed.matching.two_view import epipolar_band_mask, filter_epipolar, filter_fundamental_ransac
 from stereoseed.matching.zncc import match_zncc, zncc_matrix
-from stereoseed.visualize import draw_matches
+from stereoseed.output.visualize import draw_matches
 
 from geometry_helpers import band_noise
 
@@ -220,7 +220,7 @@ def test_band_mask_agrees_with_epipolar_distances():
 
 def test_candidates_and_best_scores_agree_with_numpy():
     from stereoseed.matching.zncc import candidate_mask, candidate_pairs
-    from stereoseed.matching.zncc_kernels import _best_of_pairs
+    from stereoseed.matching._zncc_kernels import _best_of_pairs
 
     P1, P2 = two_cameras()
     F = fundamental_from_projections(P1, P2)
@@ -250,7 +250,7 @@ def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
     scales), the pairs the bound leaves out all score at most the floor, and the competitors
     are the best scores outside the winner's neighbourhood."""
     from stereoseed.matching.zncc import _bound_terms, _scaled_descriptors, candidate_pairs
-    from stereoseed.matching.zncc_kernels import _competitors, _pair_scores
+    from stereoseed.matching._zncc_kernels import _competitors, _pair_scores
 
     _, feats = textured
     f1, f2 = feats[0], feats[1]

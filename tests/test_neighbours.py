@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stereoseed.neighbours import nearest_within, repeats_earlier
+from stereoseed.geometry.neighbours import nearest_within, repeats_earlier
 
 
 def _scene(seed):

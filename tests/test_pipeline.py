@@ -5,14 +5,14 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center, decompose_projection, project
+from stereoseed.geometry.camera import camera_center, decompose_projection, project
 from stereoseed.config import Config, PipelineConfig, ResectionConfig
-from stereoseed.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
+from stereoseed.experiments.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
-from stereoseed.ply import read_ply
+from stereoseed.io.ply import read_ply
 from stereoseed.pipeline import as_finished, reconstruct, save_outputs
-from stereoseed.resection import implausible_intrinsics
-from stereoseed.synthetic import SceneConfig, render_scene
+from stereoseed.estimators.resection import implausible_intrinsics
+from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 
 def _run(scene, mode, source=None, **pipeline):
@@ -279,8 +279,8 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
 def test_reference_intrinsics_follow_an_image_turned_upside_down():
     # The constrained camera models share the calibrated camera's principal point; in an image
     # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
-    from stereoseed.camera import compose_projection
-    from stereoseed.reconstruction import View
+    from stereoseed.geometry.camera import compose_projection
+    from stereoseed.sfm.reconstruction import View
 
     K = np.array([[1500.0, 0.0, 302.3], [0.0, 1498.0, 246.9], [0.0, 0.0, 1.0]])
     upright = View("a.png", image=np.zeros((480, 640, 3), np.uint8))
@@ -306,8 +306,8 @@ def test_corners_from_exact_pixels_with_the_true_cameras_are_exact(box_scene):
 
 
 def test_a_camera_that_jumped_farther_than_the_object_is_refused(box_scene):
-    from stereoseed.reconstruction import View
-    from stereoseed.registration import implausible_motion
+    from stereoseed.sfm.reconstruction import View
+    from stereoseed.sfm.registration.base import implausible_motion
 
     points = box_scene.corners  # ~1.4 m in front of every camera of the ring
     previous = View("prev", P=box_scene.P[1])
@@ -324,9 +324,9 @@ def test_a_camera_that_jumped_farther_than_the_object_is_refused(box_scene):
 def test_global_adjust_leaves_a_lone_pair_alone():
     # nothing registered past the calibrated pair: no BA, so no residual to call an outlier
     from geometry_helpers import box_points, ring_camera
-    from stereoseed.features import Features
-    from stereoseed.refinement import global_adjust
-    from stereoseed.reconstruction import Reconstruction, View
+    from stereoseed.features.harris import Features
+    from stereoseed.sfm.refinement import global_adjust
+    from stereoseed.sfm.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(6)
     X = box_points(rng, 100)
@@ -349,9 +349,9 @@ def test_global_adjust_leaves_a_lone_pair_alone():
 
 def test_global_adjust_drops_outliers_and_adjusts_again():
     from geometry_helpers import box_points, ring_camera
-    from stereoseed.features import Features
-    from stereoseed.refinement import global_adjust
-    from stereoseed.reconstruction import Reconstruction, View
+    from stereoseed.features.harris import Features
+    from stereoseed.sfm.refinement import global_adjust
+    from stereoseed.sfm.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(5)
     X = box_points(rng, 300)

@@ -1,10 +1,10 @@
-"""Tests of stereoseed.propagation (Lhuillier & Quan match propagation + sub-pixel refinement).
+"""Tests of stereoseed.matching.propagation.core (Lhuillier & Quan match propagation + sub-pixel refinement).
 
 Three groups:
 * a synthetic texture pair related by a known affine map (exact dense ground truth);
 * a small pure-Python reference implementation of the algorithm of paper.md, compared match
   for match with the Numba kernel on tiny random pairs;
-* the rendered box scene of stereoseed.synthetic (skipped if that module is missing), where the
+* the rendered box scene of stereoseed.synthetic.scene (skipped if that module is missing), where the
   ground truth comes from ray casting: coverage and accuracy on the ground and the box faces.
 """
 from __future__ import annotations
@@ -17,12 +17,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereoseed.camera import skew
+from stereoseed.geometry.camera import skew
 from stereoseed.config import PropagationConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.image import to_gray
-from stereoseed.propagation import PropagationResult, propagate, texture_mask, warm_up
-from stereoseed.visualize import disparity_image, save_propagation_png
+from stereoseed.features.image import to_gray
+from stereoseed.matching.propagation.core import PropagationResult, propagate, texture_mask, warm_up
+from stereoseed.output.visualize import disparity_image, save_propagation_png
 
 
 def as_grey01(image: np.ndarray) -> np.ndarray:
@@ -417,14 +417,14 @@ def test_kernel_matches_reference(seed, shift, use_f):
 
 
 # --------------------------------------------------------------------------------------------
-# Rendered box scene (stereoseed.synthetic)
+# Rendered box scene (stereoseed.synthetic.scene)
 # --------------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
 def scene_pair():
-    synthetic = pytest.importorskip("stereoseed.synthetic")
-    from stereoseed.camera import fundamental_from_projections, project
+    synthetic = pytest.importorskip("stereoseed.synthetic.scene")
+    from stereoseed.geometry.camera import fundamental_from_projections, project
 
     scene = synthetic.render_scene(synthetic.SceneConfig(n_images=2))
     I1, I2 = as_grey01(scene.images[0]), as_grey01(scene.images[1])
@@ -500,8 +500,8 @@ def test_quadratic_refinement_reads_no_window_leaving_image_2(monkeypatch):
     """A match whose 3x3 grid touches the border: the shifted windows that leave image 2 have
     inv2 = 0 and must not be read (the kernel ran off the array: a segfault on a Dask worker,
     where the image ended a memory mapping). Run in Python, where such a read raises."""
-    from stereoseed import propagation_refine
-    from stereoseed.propagation_kernels import _dot_window, _window_stats
+    from stereoseed.matching.propagation import refine as propagation_refine
+    from stereoseed.matching.propagation._kernels import _dot_window, _window_stats
 
     rng = np.random.default_rng(3)
     half = 2

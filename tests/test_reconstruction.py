@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from geometry_helpers import ring_camera
-from stereoseed.camera import decompose_projection
-from stereoseed.features import Features
-from stereoseed.reconstruction import Reconstruction, View, eq14
+from stereoseed.geometry.camera import decompose_projection
+from stereoseed.features.harris import Features
+from stereoseed.sfm.reconstruction import Reconstruction, View, eq14
 
 
 def _views(n_views=3, n_features=10):

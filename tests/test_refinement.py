@@ -2,11 +2,11 @@
 import numpy as np
 
 from geometry_helpers import box_points, ring_camera
-from stereoseed.camera import camera_center, project
+from stereoseed.geometry.camera import camera_center, project
 from stereoseed.config import Config, PipelineConfig
-from stereoseed.features import Features
-from stereoseed.reconstruction import Reconstruction, View
-from stereoseed.refinement import global_adjust, select_tracks
+from stereoseed.features.harris import Features
+from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.sfm.refinement import global_adjust, select_tracks
 
 
 def _ring(rng, n_views=8, n_points=600, noise_px=0.2, seen=None):

@@ -13,11 +13,11 @@ import pytest
 
 from stereoseed.errors import StereoseedError
 
-from stereoseed import report_html
+from stereoseed.output.report import html as report_html
 from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.pipeline import reconstruct
-from stereoseed.report_html import write_report_html
+from stereoseed.output.report.html import write_report_html
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -143,7 +143,7 @@ def test_a_failing_part_is_logged_and_left_out(run, tmp_path, monkeypatch, caplo
 
     monkeypatch.setattr(report_html, "_weakest_insertion", broken)
     monkeypatch.setattr(report_html, "_figure_times", broken)
-    with caplog.at_level(logging.WARNING, logger="stereoseed.report_html"):
+    with caplog.at_level(logging.WARNING, logger="stereoseed.output.report.html"):
         text = write_report_html(*run, tmp_path).read_text(encoding="utf-8")
     assert "Matches of the weakest insertion" not in text and 'id="times"' not in text
     assert 'id="view3d"' in text and "blank.png" in text

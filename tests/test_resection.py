@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center, decompose_projection, normalize_projection, project
+from stereoseed.geometry.camera import camera_center, decompose_projection, normalize_projection, project
 from stereoseed.config import ResectionConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.resection import implausible_intrinsics, resect
+from stereoseed.estimators.resection import implausible_intrinsics, resect
 from geometry_helpers import box_points, ring_camera
 
 
@@ -134,7 +134,7 @@ def test_compiled_sampling_draws_the_plain_rule_s_samples_and_leaves_the_generat
     """Few image cells make most samples short of 6 distinct cells: their completion draws from
     the generator inside the kernel, and must give the same samples and the same generator
     state as the plain rule (the RANSAC's results then do not depend on how it is compiled)."""
-    from stereoseed.resection import _draw_samples
+    from stereoseed.estimators.resection import _draw_samples
 
     n = 50
     gen = np.random.default_rng(7)

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from stereoseed.errors import StereoseedError
-from stereoseed.features import extract_features
-from stereoseed.io import write_image
-from stereoseed.reconstruction import View
-from stereoseed.sequence import ImageSequence
+from stereoseed.features.harris import extract_features
+from stereoseed.io.files import write_image
+from stereoseed.sfm.reconstruction import View
+from stereoseed.io.sequence import ImageSequence
 from geometry_helpers import band_noise
 
 

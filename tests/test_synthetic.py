@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.camera import camera_center, compose_projection, project
-from stereoseed.edge_corners import _edge_corners
-from stereoseed.image import to_gray
-from stereoseed.lens import distort_pixels, undistort_image, undistort_pixels
-from stereoseed.synthetic_render import add_noise
-from stereoseed.synthetic import (
+from stereoseed.geometry.camera import camera_center, compose_projection, project
+from stereoseed.features.edge_corners import _edge_corners
+from stereoseed.features.image import to_gray
+from stereoseed.geometry.lens import distort_pixels, undistort_image, undistort_pixels
+from stereoseed.synthetic.render import add_noise
+from stereoseed.synthetic.scene import (
     BOX_HALF,
     BOX_HEIGHT,
     FACE_NORMALS,
@@ -451,7 +451,7 @@ def _corner_angles(scene, i):
 @pytest.mark.parametrize("i", [0, 1, 2])
 def test_lens_corners_land_on_the_rendered_corners(plain_pair, i):
     """The square corners' distorted pixels are where the rendered corners are (edge-line
-    intersections, stereoseed.edge_corners); their pinhole pixels are not.
+    intersections, stereoseed.features.edge_corners); their pinhole pixels are not.
 
     Only corners of 60..120 degrees: at acute ones the two edges' profiles mix and the tool
     itself is off by up to ~0.9 px (without a lens too). On the others it is good to ~0.1 px
@@ -568,7 +568,7 @@ def test_write_scene_records_the_lens(plain_pair, tmp_path):
 def test_a_scaled_config_sees_the_same_views_in_smaller_images():
     """SceneConfig.scaled: the same poses, the pixel geometry scaled (the quick paper bench's
     half-size images)."""
-    from stereoseed.synthetic import _cameras
+    from stereoseed.synthetic.scene import _cameras
 
     full = SceneConfig(n_images=4, seed=3)
     half = full.scaled(0.5)

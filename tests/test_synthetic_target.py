@@ -1,4 +1,4 @@
-"""Rendering a planar-faced calibration target (stereoseed.synthetic_target) against its contract."""
+"""Rendering a planar-faced calibration target (stereoseed.synthetic.target) against its contract."""
 from __future__ import annotations
 
 import json
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from stereoseed.errors import StereoseedError
-from stereoseed.lens import project_distorted
-from stereoseed.synthetic_target import (
+from stereoseed.geometry.lens import project_distorted
+from stereoseed.synthetic.target import (
     default_background,
     face_points,
     load_target,

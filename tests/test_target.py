@@ -11,7 +11,7 @@ import pytest
 
 from stereoseed.cli import main
 from stereoseed.errors import StereoseedError
-from stereoseed.target import detect_target, load_target, make_target
+from stereoseed.calibration.target import detect_target, load_target, make_target
 
 W, H = 640, 480
 K = np.array([[560.0, 0, 319.5], [0, 560.0, 239.5], [0, 0, 1]])

@@ -6,7 +6,7 @@ import os
 import numpy as np
 from stereoseed import threads
 from stereoseed.config import MatchingConfig
-from stereoseed.features import extract_features
+from stereoseed.features.harris import extract_features
 from stereoseed.matching.alignment import align_matches
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import candidate_config

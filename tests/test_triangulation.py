@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from stereoseed.camera import project
-from stereoseed.triangulation import triangulate, triangulate_linear, triangulate_tracks
+from stereoseed.geometry.camera import project
+from stereoseed.estimators.triangulation import triangulate, triangulate_linear, triangulate_tracks
 from geometry_helpers import box_points, ring_camera
 
 

@@ -15,7 +15,7 @@ import pytest
 from process_helpers import alive_in_group, wait_until
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
-from stereoseed.results import MANIFEST
+from stereoseed.output.results import MANIFEST
 
 
 def _on_disk(scene, folder: Path) -> tuple:
@@ -120,7 +120,9 @@ def test_dense_on_the_pair_alone_keeps_its_points_and_says_so(seq, tmp_path, cap
 
 # --- tracebacks that became one line --------------------------------------------------------
 def test_wrong_outputs_and_arguments_are_refused_before_any_work(seq, tmp_path, capsys, monkeypatch):
-    from stereoseed import calibration, demo, io, pipeline
+    from stereoseed import demo, pipeline
+    from stereoseed.estimators import calibration
+    from stereoseed.io import files as io
 
     def work_started(*args, **kwargs):
         raise AssertionError("the command started working before refusing its arguments")

@@ -1,4 +1,4 @@
-"""Keyframes of a filmed walk (stereoseed.video): a synthetic walk at 2 degrees a frame,
+"""Keyframes of a filmed walk (stereoseed.io.video): a synthetic walk at 2 degrees a frame,
 written as an MJPG video, becomes keyframes that the mapper places after a calibrated pair."""
 import cv2
 import numpy as np
@@ -6,10 +6,10 @@ import pytest
 
 from stereoseed.config import Config, VideoConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.evaluation import camera_errors
+from stereoseed.experiments.evaluation import camera_errors
 from stereoseed.pipeline import reconstruct
-from stereoseed.synthetic import SceneConfig, render_scene
-from stereoseed.video import read_keyframes
+from stereoseed.synthetic.scene import SceneConfig, render_scene
+from stereoseed.io.video import read_keyframes
 
 SMALL = dict(width=320, height=240, supersample=1, seed=4)
 
@@ -49,7 +49,7 @@ def test_keyframes_are_spaced_by_the_motion_and_start_past_the_first_frame(walk)
 
 
 def test_keyframes_written_out_are_not_held(walk, tmp_path):
-    from stereoseed.io import read_image
+    from stereoseed.io.files import read_image
 
     _, _, path = walk
     in_memory = read_keyframes(path)
@@ -65,7 +65,7 @@ def test_two_videos_of_one_name_are_refused(walk, tmp_path):
     import shutil
 
     from stereoseed.errors import StereoseedError
-    from stereoseed.io import write_image, write_json
+    from stereoseed.io.files import write_image, write_json
     from stereoseed.pipeline import load_sequence
 
     pair, _, path = walk
@@ -109,7 +109,7 @@ def test_reconstruct_takes_the_pair_then_the_video(walk, tmp_path, capsys):
     import json
 
     from stereoseed.cli import main
-    from stereoseed.io import write_image, write_json
+    from stereoseed.io.files import write_image, write_json
 
     pair, frames, video = walk
     for name, image in zip(("pair0.png", "pair1.png"), pair.images):

@@ -9,7 +9,7 @@ images: a worker reads its sequence itself, so every worker must see the same pa
 
 A sequence that fails (a missing file, a bad calibration, any exception) is reported with a
 one-line reason; the others still run. Each result folder is written as a whole
-(:class:`stereoseed.results.ResultSet`), as ``stereoseed reconstruct`` writes it.
+(:class:`stereoseed.output.results.ResultSet`), as ``stereoseed reconstruct`` writes it.
 """
 from __future__ import annotations
 
@@ -20,10 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .cluster import JobPool
-from .config import Config
-from .errors import StereoseedError
-from .pipeline import Progress, reconstruct_to_folder
+from stereoseed.cluster import JobPool
+from stereoseed.config import Config
+from stereoseed.errors import StereoseedError
+from stereoseed.pipeline import Progress, reconstruct_to_folder
 
 __all__ = ["Sequence", "Outcome", "read_sequence_list", "run_sequence", "run_batch", "failure_reason"]
 

@@ -22,12 +22,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402 - after the BLAS setting
 
-from .cluster import CONNECT_TIMEOUT_S
-from .errors import StereoseedError
+from stereoseed.cluster import CONNECT_TIMEOUT_S
+from stereoseed.errors import StereoseedError
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .io import write_json
+    from stereoseed.io.files import write_json
 
     if Path(args.output).is_dir():
         raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
@@ -39,9 +39,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
     """The paper's form: a pattern file and the pixels of its points in each pair image."""
-    from .calibration import calibrate_camera
-    from .io import read_points_file
-    from .lens_calibration import calibrate_lens
+    from stereoseed.estimators.calibration import calibrate_camera
+    from stereoseed.io.files import read_points_file
+    from stereoseed.calibration.lens_calibration import calibrate_lens
 
     if len(args.inputs) != 3 or args.lens_images1 or args.lens_images2:
         raise StereoseedError("calibrate: give PATTERN POINTS1 POINTS2 (typed points), or --target target.json "
@@ -71,10 +71,10 @@ def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
 def _calibrate_from_target(args: argparse.Namespace) -> list[dict]:
     """Photos of the printed target: corners found, the camera and its lens estimated per
     physical camera from the pair image and its --lens-images; a check PNG per image."""
-    from .io import read_image
-    from .lens_calibration import calibrate_from_target, read_opencv_intrinsics
-    from .target import load_target
-    from .visualize import draw_calibration_check
+    from stereoseed.io.files import read_image
+    from stereoseed.calibration.lens_calibration import calibrate_from_target, read_opencv_intrinsics
+    from stereoseed.calibration.target import load_target
+    from stereoseed.output.visualize import draw_calibration_check
 
     if len(args.inputs) != 2:
         raise StereoseedError("calibrate --target target.json: give the two images of the calibrated pair")
@@ -102,7 +102,7 @@ def _calibrate_from_target(args: argparse.Namespace) -> list[dict]:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from stereoseed.demo import run_demo
 
     if args.images < 2:
         raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
@@ -113,18 +113,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_precompile(args: argparse.Namespace) -> int:
-    from .precompile import precompile
+    from stereoseed.precompile import precompile
 
     print(f"stereoseed: Numba kernels compiled and cached ({precompile():.0f} s)", file=sys.stderr)
     return 0
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
-    from .config import Config
-    from .features import extract_features
-    from .io import check_image_output, read_image
-    from .matching.pair import match_pair
-    from .visualize import draw_matches
+    from stereoseed.config import Config
+    from stereoseed.features.harris import extract_features
+    from stereoseed.io.files import check_image_output, read_image
+    from stereoseed.matching.pair import match_pair
+    from stereoseed.output.visualize import draw_matches
 
     if args.output:
         check_image_output(args.output)
@@ -146,12 +146,12 @@ def _cmd_match(args: argparse.Namespace) -> int:
 
 
 def _cmd_propagate(args: argparse.Namespace) -> int:
-    from .camera import fundamental_from_projections
-    from .config import Config
-    from .io import check_image_output, read_calibration, read_image
-    from .mapper import initialise
-    from .propagation import propagate
-    from .visualize import save_propagation_png
+    from stereoseed.geometry.camera import fundamental_from_projections
+    from stereoseed.config import Config
+    from stereoseed.io.files import check_image_output, read_calibration, read_image
+    from stereoseed.sfm.mapper import initialise
+    from stereoseed.matching.propagation.core import propagate
+    from stereoseed.output.visualize import save_propagation_png
 
     if args.output:
         check_image_output(args.output)
@@ -173,7 +173,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from .experiments import run_paper_bench
+    from stereoseed.experiments.paper import run_paper_bench
 
     run_paper_bench(Path(args.out), quick=args.quick, seed=args.seed)
     print(f"wrote {args.out}")
@@ -186,7 +186,7 @@ EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (th
 
 def _config(args: argparse.Namespace):
     """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
-    from .config import Config, PipelineConfig
+    from stereoseed.config import Config, PipelineConfig
 
     try:
         return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
@@ -200,7 +200,7 @@ def _pool(args: argparse.Namespace, workers: int):
     else local (None: the library's default)."""
     from contextlib import nullcontext
 
-    from .cluster import executor_for
+    from stereoseed.cluster import executor_for
 
     if args.scheduler is None:
         return nullcontext()
@@ -238,7 +238,7 @@ class _Bar:
 
 def _say_if_compiling(quiet: bool) -> None:
     """One line before a first run on this installation: it compiles the kernels first."""
-    from .precompile import kernels_cached
+    from stereoseed.precompile import kernels_cached
 
     if not quiet and kernels_cached() is False:
         print("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
@@ -246,7 +246,7 @@ def _say_if_compiling(quiet: bool) -> None:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from .pipeline import reconstruct_to_folder
+    from stereoseed.pipeline import reconstruct_to_folder
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
@@ -272,7 +272,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _cmd_batch(args: argparse.Namespace) -> int:
-    from .batch import read_sequence_list, run_batch
+    from stereoseed.batch import read_sequence_list, run_batch
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root)
@@ -294,8 +294,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from .export import write_bundler, write_colmap, write_nvm
-    from .results import load_result
+    from stereoseed.output.export import write_bundler, write_colmap, write_nvm
+    from stereoseed.output.results import load_result
 
     result = load_result(args.result)
     out = Path(args.out)
@@ -332,7 +332,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 
 def _cmd_target(args: argparse.Namespace) -> int:
-    from .target import make_target
+    from stereoseed.calibration.target import make_target
 
     path = make_target(Path(args.out), size=args.size, faces=args.faces)
     names = ", ".join(f"face_{k}.png" for k in range(args.faces))

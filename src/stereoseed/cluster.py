@@ -22,8 +22,8 @@ from concurrent.futures import Future
 from contextlib import contextmanager
 from typing import Any, Callable, Iterable, Iterator
 
-from .errors import StereoseedError
-from .threads import CORES, limit_chunks
+from stereoseed.errors import StereoseedError
+from stereoseed.threads import CORES, limit_chunks
 
 __all__ = ["JobPool", "executor_for", "CONNECT_TIMEOUT_S"]
 

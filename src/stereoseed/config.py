@@ -273,7 +273,7 @@ class DenseConfig:
 
     def pool_size(self) -> int:
         """How many local processes run the pair jobs: ``workers``, or one per core (at most 8)."""
-        from .threads import CORES  # here: the configuration module imports nothing heavy
+        from stereoseed.threads import CORES  # here: the configuration module imports nothing heavy
 
         return self.workers or min(CORES, 8)
 
@@ -281,7 +281,7 @@ class DenseConfig:
 @dataclass(frozen=True)
 class QuasiDenseConfig:
     """Registration of weakly textured views by match propagation (Lhuillier & Quan, PAMI 2005;
-    :mod:`stereoseed.quasi_dense_registration`, docs/quasi_dense.md): used only when the sparse
+    :mod:`stereoseed.sfm.registration.quasi_dense`, docs/quasi_dense.md): used only when the sparse
     chain is weak."""
 
     enabled: bool = True
@@ -338,7 +338,7 @@ class QuasiDenseConfig:
 
 MODES = ("paper", "accurate")
 BA_POLICIES = ("local", "global", "final")
-CAMERA_MODELS = ("free", "zero-skew", "focal", "fixed")  # stereoseed.camera_models
+CAMERA_MODELS = ("free", "zero-skew", "focal", "fixed")  # stereoseed.geometry.models
 
 
 @dataclass(frozen=True)
@@ -437,7 +437,7 @@ class LoopClosureConfig:
 
 @dataclass(frozen=True)
 class VideoConfig:
-    """Keyframes of a walk filmed as a video (:mod:`stereoseed.video`)."""
+    """Keyframes of a walk filmed as a video (:mod:`stereoseed.io.video`)."""
 
     # a keyframe once the tracked points moved by this fraction of the image width (median) since
     # the last one: the matcher searches 25 % of the width (paper), so consecutive keyframes stay
@@ -467,7 +467,7 @@ class VideoConfig:
 class PipelineConfig:
     # "paper": 2-view points, 11-DOF moving camera, 3-image local BA (paper §4.2-4.3).
     # "accurate": multi-view tracks, constrained moving camera, wider BA window (Mouragnon et al.
-    # 2006 for the windowed local BA). The two are strategies of stereoseed.modes.
+    # 2006 for the windowed local BA). The two are strategies of stereoseed.sfm.modes.
     mode: str = "accurate"
     # None: "free" (paper) / "focal" (accurate: the calibrated second camera, only its zoom
     # changes); "fixed": no zoom at all (see hold_unzoomed for the accurate mode's own decision)

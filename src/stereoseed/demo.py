@@ -10,15 +10,15 @@ from typing import Callable
 
 import numpy as np
 
-from .calibration import calibrate_camera
-from .camera import camera_center
-from .config import Config
-from .dense import densify
-from .evaluation import camera_errors, reconstruct_corners, rms_3d, surface_distance
-from .io import write_json
-from .pipeline import reconstruct, save_outputs
-from .results import ResultSet
-from .synthetic import SceneConfig, render_scene, write_scene
+from stereoseed.estimators.calibration import calibrate_camera
+from stereoseed.geometry.camera import camera_center
+from stereoseed.config import Config
+from stereoseed.dense.densify import densify
+from stereoseed.experiments.evaluation import camera_errors, reconstruct_corners, rms_3d, surface_distance
+from stereoseed.io.files import write_json
+from stereoseed.pipeline import reconstruct, save_outputs
+from stereoseed.output.results import ResultSet
+from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """The whole run over an ordered sequence: load it, reconstruct it with the incremental mapper
-(:mod:`stereoseed.mapper`), save the results (:func:`reconstruct_to_folder` does all three, as
+(:mod:`stereoseed.sfm.mapper`), save the results (:func:`reconstruct_to_folder` does all three, as
 ``stereoseed reconstruct`` and each job of ``stereoseed batch``). The step-by-step API is the
 mapper's.
 """
@@ -15,22 +15,22 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
-from .checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
-from .config import Config, VideoConfig
-from .correspondence import CorrespondenceSource, HarrisZncc, Prefetching
-from .errors import StereoseedError
-from .io import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration
-from .lens import undistort_image, undistortion_maps
-from .lens_calibration import read_lenses
-from .mapper import finish, initialise, insert_view
-from .reconstruction import Reconstruction
-from .sequence import ImageSequence
-from .video import read_keyframes
-from .report_html import write_report_html
-from .results import ResultSet, write_result
+from stereoseed.sfm.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
+from stereoseed.config import Config, VideoConfig
+from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
+from stereoseed.errors import StereoseedError
+from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration
+from stereoseed.geometry.lens import undistort_image, undistortion_maps
+from stereoseed.calibration.lens_calibration import read_lenses
+from stereoseed.sfm.mapper import finish, initialise, insert_view
+from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.io.sequence import ImageSequence
+from stereoseed.io.video import read_keyframes
+from stereoseed.output.report.html import write_report_html
+from stereoseed.output.results import ResultSet, write_result
 
 if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
-    from .cluster import JobPool
+    from stereoseed.cluster import JobPool
 
 __all__ = ["reconstruct", "as_finished", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 
@@ -53,7 +53,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     skipped; the next one is placed from the last registered images. Returns the
     reconstruction and a JSON-able report (per image, the final step, the resolved config).
 
-    checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.checkpoint`);
+    checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.sfm.checkpoint`);
     resume: continue from it when it was written for these inputs and settings (the result is
     the uninterrupted run's; the report lists the images that were resumed).
     after_insertion: called after the pair and after each insertion this run performs (not those
@@ -122,7 +122,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float) -> dict[str, Any]:
-    """The finishing step (:func:`stereoseed.mapper.finish`) on ``recon`` after the views of
+    """The finishing step (:func:`stereoseed.sfm.mapper.finish`) on ``recon`` after the views of
     ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
     not keep is reported as failed, with the reason)."""
     final = finish(recon, cfg)
@@ -198,11 +198,11 @@ def _working_set(recon: Reconstruction, cfg: Config) -> set[int]:
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
                   keyframes_to: str | Path | None = None) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
-    (:class:`stereoseed.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
+    (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
 
     ``images_source``: a folder (its images in name order), a list file, or several of these and
     image files in order; a video (given directly or listed) stands for its keyframes
-    (:func:`stereoseed.video.read_keyframes`, named ``VIDEO_FRAME.png``): the two calibrated
+    (:func:`stereoseed.io.video.read_keyframes`, named ``VIDEO_FRAME.png``): the two calibrated
     photos first, then the video of the walk; with ``keyframes_to`` (a folder) the keyframes are
     written there as they are chosen and read back when needed. When the calibration carries a lens (calib.json
     "distortion"), every image is undistorted as it is read (one remap; image 0 through the
@@ -272,9 +272,9 @@ def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Pat
 
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
                  lenses: list | None = None) -> dict[str, Path]:
-    """The result folder (:func:`stereoseed.results.write_result`: cameras.json, tracks.npz,
-    sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.report_html`);
-    atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.lens_calibration.read_lenses`)
+    """The result folder (:func:`stereoseed.output.results.write_result`: cameras.json, tracks.npz,
+    sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.output.report.html`);
+    atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.calibration.lens_calibration.read_lenses`)
     when the images were undistorted: cameras.json then says how to map back to the photos."""
     written = write_result(recon, report, out_dir, cfg, lenses)
     written["report_html"] = write_report_html(recon, report, out_dir)
@@ -287,10 +287,10 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
-    (:class:`stereoseed.results.ResultSet`): on failure it keeps what it held, and after an
+    (:class:`stereoseed.output.results.ResultSet`): on failure it keeps what it held, and after an
     interruption the staging folder keeps the checkpoint for ``resume``. Returns the report.
     progress: called after the pair and after each insertion; dense_progress: as each of the
-    dense stage's pairs comes in (:func:`stereoseed.dense.densify`)."""
+    dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`)."""
     results = ResultSet(out)
     results.check()  # before any work: never clobber what the user made
     staging = results.open(keep=resume)
@@ -305,7 +305,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                     checkpoint=staging / CHECKPOINT, resume=resume)
         if dense:
-            from .dense import densify  # the dense stage's modules only for a dense run
+            from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run
 
             report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
         save_outputs(recon, report, staging, cfg, read_lenses(calib_path))

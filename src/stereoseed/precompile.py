@@ -39,7 +39,7 @@ def kernels_cached() -> bool | None:
     :func:`precompile` compiled them (the first run then spends about a minute compiling);
     None when the cache cannot be read."""
     try:
-        from .edge_corners import _edge_corner_kernel
+        from stereoseed.features.edge_corners import _edge_corner_kernel
 
         return bool(_edge_corner_kernel._cache._cache_file._load_index())
     except Exception:  # Numba's cache internals (its version is pinned): no answer rather than a failure
@@ -49,7 +49,7 @@ def kernels_cached() -> bool | None:
 def precompile() -> float:
     """Compile the bytecode and run the three-image demo in a temporary folder; returns the
     seconds it took."""
-    from .demo import run_demo
+    from stereoseed.demo import run_demo
 
     t = time.perf_counter()
     compile_bytecode()

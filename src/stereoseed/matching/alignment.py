@@ -6,7 +6,7 @@ match, where the patch of image 1 really lies in image 2 (affine Lucas-Kanade, a
 of a pixel); :func:`filter_localization` keeps the matches whose detection is there, and
 :func:`refine_features` moves the matched points of image 2 onto it. :class:`PairCache` keeps
 what matching one pair several times would compute again. The Numba kernels are in
-:mod:`stereoseed.matching.alignment_kernel`.
+:mod:`stereoseed.matching._alignment_kernel`.
 """
 from __future__ import annotations
 
@@ -17,13 +17,13 @@ from collections import OrderedDict
 import cv2
 import numpy as np
 
-from ..arrays import unique
-from ..config import MatchingConfig
-from ..errors import StereoseedError
-from ..features import DEFAULT_MIN_PATCH_STD, Features, describe
-from ..threads import concat_chunks
-from .alignment_kernel import _align_kernel
-from .containers import Alignment, Matches
+from stereoseed.arrays import unique
+from stereoseed.config import MatchingConfig
+from stereoseed.errors import StereoseedError
+from stereoseed.features.harris import DEFAULT_MIN_PATCH_STD, Features, describe
+from stereoseed.threads import concat_chunks
+from stereoseed.matching._alignment_kernel import _align_kernel
+from stereoseed.matching.containers import Alignment, Matches
 
 __all__ = ["PairCache", "align_matches", "filter_localization", "refine_features"]
 

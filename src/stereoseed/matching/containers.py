@@ -5,8 +5,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import StereoseedError
-from ..features import Features
+from stereoseed.errors import StereoseedError
+from stereoseed.features.harris import Features
 
 __all__ = ["Matches", "Alignment", "PairMatches", "as_points"]
 

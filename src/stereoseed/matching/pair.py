@@ -12,12 +12,12 @@ import logging
 
 import numpy as np
 
-from ..config import MatchingConfig
-from ..features import Features
-from .alignment import PairCache, filter_localization
-from .containers import Matches, PairMatches
-from .two_view import filter_epipolar, filter_fundamental_ransac
-from .zncc import match_zncc
+from stereoseed.config import MatchingConfig
+from stereoseed.features.harris import Features
+from stereoseed.matching.alignment import PairCache, filter_localization
+from stereoseed.matching.containers import Matches, PairMatches
+from stereoseed.matching.two_view import filter_epipolar, filter_fundamental_ransac
+from stereoseed.matching.zncc import match_zncc
 
 __all__ = ["match_pair", "candidate_config"]
 
@@ -34,7 +34,7 @@ def match_pair(
 ) -> PairMatches:
     """Match two images: ZNCC candidates, epipolar geometry, localisation check.
 
-    f1, f2: features of the two images (from :func:`stereoseed.features.extract_features`, which
+    f1, f2: features of the two images (from :func:`stereoseed.features.harris.extract_features`, which
     keeps the grey images the localisation check needs); ``image_width`` (px, default f2's)
     scales ``config.search_radius``.
 

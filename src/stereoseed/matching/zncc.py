@@ -1,6 +1,6 @@
 """ZNCC matching of interest points: scores, candidates, mutual best, uniqueness.
 
-Descriptors are zero-mean unit-norm patches (:mod:`stereoseed.features`), so the ZNCC of a pair
+Descriptors are zero-mean unit-norm patches (:mod:`stereoseed.features.harris`), so the ZNCC of a pair
 of points is a dot product (:func:`zncc_matrix`: all of them, one float32 matrix product). The
 candidates of :func:`match_zncc` (search window, epipolar band) are a small part of the N1 x N2
 pairs: they are listed as CSR arrays (:func:`candidate_pairs`), only they are scored, and the
@@ -14,15 +14,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import MatchingConfig
-from ..errors import StereoseedError
-from ..features import Features, describe_scaled
-from ..threads import map_chunks, split_rows
-from .containers import Matches, as_points
-from .zncc_kernels import _best_of_pairs, _candidate_kernel, _candidate_pairs, _competitors, _pair_scores
+from stereoseed.config import MatchingConfig
+from stereoseed.errors import StereoseedError
+from stereoseed.features.harris import Features, describe_scaled
+from stereoseed.threads import map_chunks, split_rows
+from stereoseed.matching.containers import Matches, as_points
+from stereoseed.matching._zncc_kernels import _best_of_pairs, _candidate_kernel, _candidate_pairs, _competitors, _pair_scores
 
 if TYPE_CHECKING:
-    from .alignment import PairCache
+    from stereoseed.matching.alignment import PairCache
 
 __all__ = ["zncc_matrix", "candidate_mask", "candidate_pairs", "match_zncc"]
 
@@ -68,7 +68,7 @@ def candidate_mask(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarr
                    band_px: float = np.inf) -> np.ndarray:
     """(N1, N2) bool: pairs with x2[j] (N2, 2) within ``radius_px`` of x1[i] (N1, 2) and, with F
     (3, 3), within ``band_px`` of each other's epipolar line in both images (the max of both
-    one-sided distances, as :func:`stereoseed.camera.epipolar_distances`). One pass over the
+    one-sided distances, as :func:`stereoseed.geometry.camera.epipolar_distances`). One pass over the
     pairs, no (N1, N2) temporaries."""
     return _candidate_kernel(*_candidate_arguments(x1, x2, radius_px, F, band_px))
 

@@ -1,0 +1,266 @@
+"""A camera and its lens from views of a 3D pattern: the paper's normalised DLT per view, then
+the maximum-likelihood estimate (Levenberg-Marquardt on the reprojection error) of one set of
+intrinsics, one lens (OpenCV's radial k1, k2 [, k3] and tangential p1, p2 on K's pixels) and a
+pose per view.
+
+One view pins the lens only where the pattern was in the frame; more views of the pattern by
+the same camera, the pattern elsewhere in the frame, pin it over the whole frame (the lens is
+per physical camera). The first view is the stereo pair's: its pose is the camera's P.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from stereoseed.estimators.calibration import check_correspondences, dlt_projection
+from stereoseed.geometry.camera import compose_projection, decompose_projection, depths
+from stereoseed.errors import StereoseedError
+from stereoseed.geometry.lens import lens_coefficients, project_distorted
+
+__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_intrinsics"]
+
+# a view whose pattern points reproject worse than this cannot be the same camera and lens (a
+# wrong correspondence, another camera's image)
+MAX_RMS_PX = 5.0
+
+
+@dataclass
+class LensCalibration:
+    """K (3, 3), zero skew; distortion (5,) k1, k2, p1, p2, k3 (OpenCV's order); per view R
+    (3, 3), t (3,), the RMS reprojection error (px) and the number of points. ``P`` is the first
+    view's camera K [R | t], for undistorted pixels."""
+
+    K: np.ndarray
+    distortion: np.ndarray
+    R: list[np.ndarray]
+    t: list[np.ndarray]
+    rms_px: list[float]
+    n_points: list[int]
+    image_size: tuple[int, int] | None = None
+
+    @property
+    def P(self) -> np.ndarray:
+        return compose_projection(self.K, self.R[0], self.t[0])
+
+    def to_dict(self) -> dict[str, Any]:
+        """The calib.json entry of the camera (the pair's view)."""
+        out = {"P": self.P.tolist(), "K": self.K.tolist(), "R": self.R[0].tolist(), "t": self.t[0].tolist(),
+               "distortion": self.distortion.tolist(), "rms_px": self.rms_px[0], "n_points": self.n_points[0],
+               "lens_views": len(self.R), "lens_views_rms_px": self.rms_px}
+        if self.image_size is not None:
+            out["image_size"] = list(self.image_size)
+        return out
+
+
+def _split(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tuple:
+    """K (3, 3), the lens (5,) and the poses (n_views, 6) (rotation vector, translation) of the
+    parameters p: fx, fy, cx, cy and n_lens lens terms first unless ``fixed`` = (K, lens)."""
+    if fixed is not None:
+        return fixed[0], fixed[1], p.reshape(n_views, 6)
+    fx, fy, cx, cy = p[:4]
+    d = np.zeros(5)
+    d[:n_lens] = p[4:4 + n_lens]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), d, p[4 + n_lens:].reshape(n_views, 6)
+
+
+def _unpack(p: np.ndarray, n_views: int, n_lens: int, fixed: tuple | None) -> tuple:
+    """K, the lens, and per view R (3, 3) and t (3,) of the parameters p (:func:`_split`)."""
+    K, d, poses = _split(p, n_views, n_lens, fixed)
+    return K, d, [cv2.Rodrigues(v[:3])[0] for v in poses], [v[3:] for v in poses]
+
+
+def _jacobian(p: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]], n_lens: int, fixed: tuple | None
+              ) -> np.ndarray:
+    """Jacobian (2 N_total, len(p)) of calibrate_lens's residuals (u, v per point, view after
+    view) with respect to its parameters p (:func:`_split`), from ``cv2.projectPoints``: its
+    model is :func:`project_distorted`'s and it returns the derivatives with respect to the
+    rotation vector, the translation, fx, fy, cx, cy and k1, k2, p1, p2, k3, analytically (a
+    finite-difference Jacobian cost a projection per parameter: 20 for two views)."""
+    K, d, poses = _split(p, len(views), n_lens, fixed)
+    n_intrinsics = len(p) - poses.size
+    J = np.zeros((2 * sum(len(X) for X, _ in views), len(p)))
+    row = 0
+    for i, ((X, _), pose) in enumerate(zip(views, poses)):
+        # columns of cv2's Jacobian: rvec (3), tvec (3), fx, fy, cx, cy, the 5 lens terms
+        _, dp = cv2.projectPoints(X, pose[:3], pose[3:], K, d)
+        # OpenCV leaves out K's skew s (a known K may have one): u = fx x + s y + cx and
+        # v = fy y + cy for the distorted normalised (x, y), so du gains s / fy dv
+        dp[0::2] += K[0, 1] / K[1, 1] * dp[1::2]
+        rows = slice(row, row + 2 * len(X))
+        if fixed is None:
+            J[rows, :4] = dp[:, 6:10]
+            J[rows, 4:n_intrinsics] = dp[:, 10:10 + n_lens]
+        J[rows, n_intrinsics + 6 * i:n_intrinsics + 6 * i + 6] = dp[:, :6]
+        row += 2 * len(X)
+    return J
+
+
+def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int, int] | None = None,
+                   k3: bool = False, intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
+                   what: list[str] | None = None) -> LensCalibration:
+    """One camera and its lens from ``views``: [(pattern points (N, 3), their pixels (N, 2))],
+    the stereo pair's view first. ``k3``: estimate the third radial term too (wide lenses);
+    ``intrinsics``: (K, distortion) known already (an OpenCV calibration file): only the poses
+    are estimated. ``what``: a name per view for the messages. Raises :class:`StereoseedError`
+    when a view cannot be this camera (RMS above ``MAX_RMS_PX``, the pattern behind it)."""
+    what = what or [f"view {i}" for i in range(len(views))]
+    checked = [check_correspondences(X, x, what=w) for (X, x), w in zip(views, what)]
+    # a first guess per view: the normalised DLT, its K shared (zero skew) and its pose
+    starts = [decompose_projection(dlt_projection(X, x)) for X, x in checked]
+    n_lens = 5 if k3 else 4
+    if intrinsics is None:
+        K0 = np.mean([K for K, _, _ in starts], axis=0)
+        p0 = [K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]] + [0.0] * n_lens
+        fixed = None
+    else:
+        fixed = (np.asarray(intrinsics[0], np.float64), lens_coefficients(intrinsics[1]))
+        p0 = []
+    for (K, R, t), (X, x) in zip(starts, checked):
+        if fixed is not None:  # the pose that the known intrinsics give the DLT's rays
+            t = np.linalg.solve(fixed[0], K @ t)
+        p0 += list(cv2.Rodrigues(R)[0].ravel()) + list(t)
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        K, d, Rs, ts = _unpack(p, len(checked), n_lens, fixed)
+        return np.concatenate([(project_distorted(K, R, t, d, X) - x).ravel() for (X, x), R, t in zip(checked, Rs, ts)])
+
+    from scipy.optimize import least_squares  # here: a reconstruction that only reads a lens need not load it
+
+    sol = least_squares(residuals, np.asarray(p0, np.float64), jac=lambda p: _jacobian(p, checked, n_lens, fixed),
+                        method="lm", x_scale="jac", max_nfev=2000)
+    K, d, Rs, ts = _unpack(sol.x, len(checked), n_lens, fixed)
+    rms, counts = [], []
+    for (X, x), R, t, name in zip(checked, Rs, ts, what):
+        r = project_distorted(K, R, t, d, X) - x
+        rms.append(float(np.sqrt(np.mean(np.sum(r * r, axis=1)))))
+        counts.append(len(X))
+        if rms[-1] > MAX_RMS_PX:
+            raise StereoseedError(f"{name}: the pattern points reproject with {rms[-1]:.1f} px RMS (limit {MAX_RMS_PX:g} px); "
+                                  f"are the pixels those of these points, and all views of this camera?")
+        if np.any(depths(compose_projection(K, R, t), X) <= 0):
+            raise StereoseedError(f"{name}: pattern points would be behind the camera; are u and v swapped?")
+    return LensCalibration(K, d, Rs, ts, rms, counts, image_size)
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A camera's lens as calibrated: the distortion (5,) k1, k2, p1, p2, k3 on the pixels of K
+    (3, 3), for images of ``image_size`` (width, height) or None when not recorded."""
+
+    K: np.ndarray
+    distortion: np.ndarray
+    image_size: tuple[int, int] | None = None
+
+
+def read_lenses(path: str | Path) -> list[Lens | None]:
+    """The lens of each camera of a calib.json (None where it carries no "distortion": a
+    hand-written calib.json, a Middlebury par file or a COLMAP model means no distortion).
+    The file is expected to have passed :func:`stereoseed.io.files.read_calibration` already."""
+    path = Path(path)
+    if path.is_dir():
+        return [None, None]
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        cameras = data["cameras"] if isinstance(data, dict) else None
+    except (OSError, ValueError, UnicodeDecodeError, KeyError):
+        return [None, None]  # a par file: no lens
+    lenses: list[Lens | None] = []
+    for i, cam in enumerate(cameras[:2] if isinstance(cameras, list) else []):
+        d = cam.get("distortion") if isinstance(cam, dict) else None
+        if d is None:
+            lenses.append(None)
+            continue
+        try:
+            d = np.asarray(d, np.float64).reshape(-1)
+            K = np.asarray(cam["K"], np.float64).reshape(3, 3) if "K" in cam else decompose_projection(
+                np.asarray(cam["P"], np.float64))[0]
+            size = tuple(int(v) for v in cam["image_size"]) if "image_size" in cam else None
+        except (ValueError, TypeError, KeyError):
+            raise StereoseedError(f"{path}: camera {i}: 'distortion' needs 4 or 5 numbers (k1 k2 p1 p2 [k3]) and 'K' "
+                                  f"a 3x3 matrix") from None
+        if d.size not in (4, 5) or not np.all(np.isfinite(d)) or not np.all(np.isfinite(K)):
+            raise StereoseedError(f"{path}: camera {i}: 'distortion' must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3]), "
+                                  f"got {d.size}")
+        lenses.append(Lens(K, lens_coefficients(d), size))
+    return lenses + [None] * (2 - len(lenses))
+
+
+def read_opencv_intrinsics(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(K (3, 3), distortion (5,)) from an OpenCV calibration file (cv::FileStorage YAML, XML
+    or JSON with ``camera_matrix`` and ``distortion_coefficients``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: intrinsics file not found")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        K = fs.getNode("camera_matrix").mat()
+        d = fs.getNode("distortion_coefficients").mat()
+        fs.release()
+    except cv2.error as e:
+        raise StereoseedError(f"{path}: not an OpenCV calibration file ({str(e).strip().splitlines()[-1][:80]}); "
+                              f"give a YAML/JSON written by cv::FileStorage with camera_matrix and "
+                              f"distortion_coefficients") from None
+    if K is None or K.shape != (3, 3) or d is None or d.size < 4:
+        raise StereoseedError(f"{path}: needs camera_matrix (3x3) and distortion_coefficients (k1 k2 p1 p2 [k3 ...])")
+    d = np.asarray(d, np.float64).reshape(-1)
+    if d.size > 5 and np.any(d[5:] != 0):
+        raise StereoseedError(f"{path}: distortion terms beyond k3 (the rational or thin-prism model) are not "
+                              f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
+    return np.asarray(K, np.float64), lens_coefficients(d[:5])
+
+
+@dataclass
+class ViewCheck:
+    """What a user looks at to trust one calibration image: detected corners per face, the
+    share of the frame they cover, the RMS, the detected corners' 3D points (N, 3) and pixels
+    (N, 2), and where the calibrated camera and lens put them (N, 2)."""
+
+    name: str
+    per_face: dict[int, int]
+    coverage: float
+    rms_px: float
+    points3d: np.ndarray
+    detected: np.ndarray
+    reprojected: np.ndarray
+    warnings: list[str]
+
+
+def calibrate_from_target(target: Any, images: list[tuple[str, np.ndarray]], k3: bool = False,
+                          intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+                          ) -> tuple[LensCalibration, list[ViewCheck]]:
+    """One camera from photos of the target (:mod:`stereoseed.calibration.target`): ``images`` [(name,
+    uint8 image)], the stereo pair's first, then more views of the target by the same camera
+    for the lens. The corners are detected, mapped to 3D through target.json, and the camera
+    and lens estimated jointly (:func:`calibrate_lens`). Returns the calibration and a check per
+    image (a face missing, or corners covering less than a third of the frame, is warned of:
+    the lens is then poorly determined where the target was not)."""
+    from stereoseed.calibration.target import detect_target
+
+    detections = [detect_target(image, target, what=name) for name, image in images]
+    size = images[0][1].shape[1::-1]
+    for name, image in images[1:]:
+        if image.shape[1::-1] != size:
+            raise StereoseedError(f"{name}: {image.shape[1]}x{image.shape[0]} pixels, but {images[0][0]} is "
+                                  f"{size[0]}x{size[1]}; the lens images must come from the same camera")
+    cal = calibrate_lens([(d.points3d, d.pixels) for d in detections], tuple(size), k3, intrinsics,
+                         [name for name, _ in images])
+    checks = []
+    for (name, image), d, R, t, rms in zip(images, detections, cal.R, cal.t, cal.rms_px):
+        faces = {int(f): int(n) for f, n in zip(*np.unique(d.face, return_counts=True))}
+        hull = cv2.convexHull(d.pixels.astype(np.float32))
+        coverage = float(cv2.contourArea(hull)) / float(size[0] * size[1])
+        warnings = []
+        missing = [f for f in range(len(target.faces)) if f not in faces]
+        if missing:
+            warnings.append(f"face {', '.join(map(str, missing))} not found")
+        if coverage < 1 / 3:
+            warnings.append(f"the corners cover {100 * coverage:.0f} % of the frame: the lens is poorly determined "
+                            f"outside them (add views with the target elsewhere in the frame)")
+        checks.append(ViewCheck(name, faces, coverage, rms, d.points3d, d.pixels,
+                                project_distorted(cal.K, R, t, cal.distortion, d.points3d), warnings))
+    return cal, checks

@@ -1,0 +1,90 @@
+"""PLY point clouds and meshes: written in binary with any per-vertex attributes (atomically),
+read back through plyfile, which reads any valid PLY."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from stereoseed.errors import StereoseedError
+from stereoseed.io.files import atomic_path
+
+__all__ = ["write_ply", "read_ply", "read_ply_vertices"]
+
+_PLY_TYPES = {"<f4": "float", "u1": "uchar", "<i4": "int"}  # the property types write_ply writes
+GREY = 200  # the colour of points that come without one
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,
+              properties: dict[str, np.ndarray] | None = None, faces: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY, atomically: x y z (float32), red green blue (uint8), then each
+    extra per-vertex property of ``properties`` (name -> (N,) array; float32, int32 or uint8 by
+    its dtype; "nx", "ny", "nz" for normals), and triangles ``faces`` (F, 3) as a face element.
+
+    points: (N, 3); colors: (N, 3) uint8 RGB or None (grey)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if colors is None:
+        colors = np.full((len(points), 3), GREY, dtype=np.uint8)
+    columns = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    extra = {}
+    for name, values in (properties or {}).items():
+        values = np.asarray(values).reshape(-1)
+        kind = "<f4" if values.dtype.kind == "f" else "u1" if values.dtype == np.uint8 else "<i4"
+        columns.append((name, kind))
+        extra[name] = values.astype(kind)
+    vertex = np.empty(len(points), dtype=columns)
+    vertex["x"], vertex["y"], vertex["z"] = points.T.astype(np.float32)
+    colors = np.asarray(colors).reshape(-1, 3).astype(np.uint8)
+    vertex["red"], vertex["green"], vertex["blue"] = colors.T
+    for name, values in extra.items():
+        vertex[name] = values
+    header = ["ply", "format binary_little_endian 1.0", "comment written by stereoseed",
+              f"element vertex {len(points)}"]
+    header += [f"property {_PLY_TYPES[kind]} {name}" for name, kind in columns]
+    face_bytes = b""
+    if faces is not None:
+        faces = np.asarray(faces, np.int32).reshape(-1, 3)
+        face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+        face["n"], face["v"] = 3, faces
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        face_bytes = face.tobytes()
+    header.append("end_header")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(header) + "\n").encode("ascii"))
+            fh.write(vertex.tobytes())
+            fh.write(face_bytes)
+    return Path(path)
+
+
+def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
+    """Every vertex property of any valid PLY (ASCII or binary, via plyfile) as a structured
+    array (N,) with one field per property. Raises :class:`StereoseedError` for a file that is
+    not a PLY or has no vertex element."""
+    from plyfile import PlyData, PlyParseError
+
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: PLY file not found")
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"].data
+    except (PlyParseError, KeyError, ValueError, UnicodeDecodeError, EOFError) as e:
+        raise StereoseedError(f"{path}: not a PLY point cloud with a vertex element ({e})") from None
+    return np.asarray(vertex)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) float64 and colours (N, 3) uint8 (200 grey where the file has none) of any
+    PLY (:func:`read_ply_vertices`); refuses a vertex element without x, y, z."""
+    vertex = read_ply_vertices(path)
+    names = vertex.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise StereoseedError(f"{path}: the vertex element has no x, y, z properties ({', '.join(names)})")
+    pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
+    if {"red", "green", "blue"} <= set(names):
+        cols = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
+    else:
+        cols = np.full((len(pts), 3), GREY, np.uint8)
+    return pts, cols

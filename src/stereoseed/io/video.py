@@ -1,0 +1,148 @@
+"""Keyframes of a filmed walk: the video becomes the ordered image sequence the mapper expects.
+
+A user who films the walk around the object has hundreds of frames a few pixels apart; the
+mapper wants images that overlap well and have parallax (the paper's 10-20 degree steps). The
+frames are read once, in order; Shi-Tomasi corners of the last keyframe are followed frame to
+frame by pyramidal Lucas-Kanade (OpenCV), and a new keyframe is taken once they moved by
+``VideoConfig.keyframe_motion`` of the image width (median), or sooner when too few of them are
+still followed. Among the last frames past 3/4 of that motion, the sharpest is kept: motion blur
+costs interest points. The calibrated pair stays two photos (``stereoseed reconstruct pair1.png
+pair2.png walk.mp4 ...``): the video starts where the second camera stood, so its first frame is
+not a keyframe.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from stereoseed.config import VideoConfig
+from stereoseed.errors import StereoseedError
+from stereoseed.io.files import write_image
+
+__all__ = ["Keyframe", "read_keyframes", "sharpness"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """One frame kept: its index in the video, a name for the result folder, and either the
+    uint8 BGR image or, when the keyframes were written out, its file."""
+
+    index: int
+    name: str
+    image: np.ndarray | None = None
+    path: Path | None = None
+
+    @property
+    def entry(self) -> Path | np.ndarray:
+        """What an image sequence reads it from: its file if written, else the image."""
+        return self.path if self.path is not None else self.image
+
+
+def sharpness(gray: np.ndarray) -> float:
+    """Variance of the Laplacian of a grey image (H, W): low for a blurred frame."""
+    return float(cv2.Laplacian(gray, cv2.CV_64F).var())
+
+
+def _corners(gray: np.ndarray, cfg: VideoConfig) -> np.ndarray:
+    pts = cv2.goodFeaturesToTrack(gray, maxCorners=cfg.tracked_points, qualityLevel=0.01, minDistance=7)
+    return np.zeros((0, 1, 2), np.float32) if pts is None else pts.astype(np.float32)
+
+
+class _Tracker:
+    """Corners of the last keyframe followed frame to frame: how far they moved (median, px of
+    the tracking scale) and which fraction of them is still followed."""
+
+    def __init__(self, gray: np.ndarray, cfg: VideoConfig):
+        self.cfg = cfg
+        self.restart(gray)
+
+    def restart(self, gray: np.ndarray) -> None:
+        self.start = _corners(gray, self.cfg)
+        self.current = self.start.copy()
+        self.alive = np.ones(len(self.start), bool)
+        self.previous = gray
+
+    def follow(self, gray: np.ndarray) -> tuple[float, float]:
+        """(median motion since the keyframe in px, fraction still followed)."""
+        if len(self.start) == 0:
+            self.previous = gray
+            return 0.0, 0.0
+        nxt, status, _ = cv2.calcOpticalFlowPyrLK(self.previous, gray, self.current, None, winSize=(21, 21),
+                                                  maxLevel=3)
+        self.alive &= status.ravel().astype(bool)
+        self.current = nxt
+        self.previous = gray
+        if not self.alive.any():
+            return 0.0, 0.0
+        motion = np.linalg.norm((self.current - self.start)[self.alive, 0], axis=1)
+        return float(np.median(motion)), float(self.alive.mean())
+
+
+def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None
+                   ) -> list[Keyframe]:
+    """The keyframes of the video at ``path``, in order (see the module's docstring). With
+    ``save_to`` (a folder), each is written there as a PNG when chosen and only its file is
+    kept: a long walk's keyframes never sit in memory together.
+
+    Raises :class:`StereoseedError` when the video cannot be opened or decoded, or gives no
+    keyframe (the camera did not move)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StereoseedError(f"{path}: video not found")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise StereoseedError(f"{path}: OpenCV cannot open this video (codec or container not supported); "
+                              f"extract its frames into a folder (e.g. ffmpeg -i {path.name} frames/%04d.png)")
+    keyframes: list[Keyframe] = []
+    try:
+        ok, frame = capture.read()
+        if not ok:
+            raise StereoseedError(f"{path}: no frame could be decoded; is the file complete?")
+        scale = min(1.0, cfg.tracking_width / frame.shape[1])
+        threshold = cfg.keyframe_motion * frame.shape[1] * scale
+
+        def small_gray(image: np.ndarray) -> np.ndarray:
+            gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            return gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+        def keep_sharpest(candidates: list[tuple[float, int, np.ndarray]]) -> None:
+            _, best_index, best = max(candidates, key=lambda c: c[0])
+            name = f"{path.stem}_{best_index:06d}.png"
+            if save_to is None:
+                keyframes.append(Keyframe(best_index, name, best))
+            else:
+                keyframes.append(Keyframe(best_index, name, path=write_image(Path(save_to) / name, best)))
+
+        tracker = _Tracker(small_gray(frame), cfg)
+        candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
+        index = 0
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                break
+            index += 1
+            gray = small_gray(frame)
+            motion, followed = tracker.follow(gray)
+            if motion >= 0.75 * threshold:
+                candidates.append((sharpness(gray), index, frame))
+            if motion >= threshold or followed < cfg.min_tracked_fraction or len(candidates) >= cfg.sharpest_of:
+                if not candidates:  # lost before 3/4 of the motion: this frame, as it is
+                    candidates.append((sharpness(gray), index, frame))
+                keep_sharpest(candidates)
+                candidates = []
+                tracker.restart(gray)
+        if candidates:  # the end of the walk, past 3/4 of a step
+            keep_sharpest(candidates)
+    finally:
+        capture.release()
+    if not keyframes:
+        raise StereoseedError(f"{path}: {index + 1} frames but no keyframe: the camera did not move by "
+                              f"{100 * cfg.keyframe_motion:.0f} % of the image width")
+    log.info("%s: %d keyframes of %d frames", path.name, len(keyframes), index + 1)
+    return keyframes

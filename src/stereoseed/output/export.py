@@ -1,0 +1,248 @@
+"""Exports of a result folder for the field's tools: COLMAP's model (text or binary), VisualSFM's
+NVM and Bundler's bundle.out (the reader of COLMAP models is :mod:`stereoseed.io.colmap`).
+
+Conventions (docs/formats.md): COLMAP's pixel (0, 0) is the top-left *corner* of the top-left
+pixel (ours: its centre), so principal points and 2D points move by +0.5 px; its quaternion
+(qw, qx, qy, qz) and t are world-to-camera (ours too); one COLMAP camera per image, since the
+moving camera may zoom. Our 11-DOF cameras may have skew, which no COLMAP model has: the
+nearest zero-skew camera is written and a warning says by how much.
+"""
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from stereoseed.geometry.camera import decompose_projection
+from stereoseed.geometry.models import quaternion_from_rotation
+from stereoseed.errors import StereoseedError
+from stereoseed.io.colmap import COLMAP_MODELS
+from stereoseed.io.files import atomic_path, write_text
+from stereoseed.geometry.lens import distort_pixels
+from stereoseed.output.results import Result
+
+__all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera"]
+
+log = logging.getLogger(__name__)
+
+_SAME_FOCAL = 1e-9  # relative difference under which fx and fy are one focal length
+# an approximation of a camera by a simpler model (no skew, one focal length) is said when it
+# moves a pixel by more than this: a tenth of a pixel, below the matches' own error
+MAX_APPROXIMATION_PX = 0.1
+
+
+def _num(v: float) -> str:
+    """A number as text with every digit of its float64 value."""
+    return repr(float(v))
+
+
+def _moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_focal: bool = False) -> float:
+    """How far (px, at worst over the image) a pixel moves when K (3, 3) loses its skew and,
+    with ``one_focal``, takes the mean of fx and fy."""
+    w, h = size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    y = (corners[:, 1] - K[1, 2]) / K[1, 1]
+    x = (corners[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    fx, fy = (f, f) if one_focal else (K[0, 0], K[1, 1])
+    moved = np.stack([fx * x + K[0, 2], fy * y + K[1, 2]], axis=1) - corners
+    return float(np.max(np.linalg.norm(moved, axis=1)))
+
+
+def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distortion: np.ndarray | None = None
+                  ) -> tuple[str, list[float], np.ndarray, np.ndarray, str | None]:
+    """COLMAP's view of camera P (3, 4) (ours) of an image of ``size`` (width, height): (model,
+    params in COLMAP's pixel convention, quaternion (4,) w x y z, t (3,), warning or None).
+    SIMPLE_PINHOLE when fx = fy, else PINHOLE; a skewed camera loses its skew, with a warning
+    when that moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
+    K, R, t = decompose_projection(P)
+    warning = None
+    moved = _moved_px(K, size)
+    if moved > MAX_APPROXIMATION_PX:
+        warning = (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no COLMAP model "
+                   f"has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
+    cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5
+    if distortion is not None and np.any(distortion != 0):
+        k1, k2, p1, p2, k3 = distortion
+        model, params = ("OPENCV", [K[0, 0], K[1, 1], cx, cy, k1, k2, p1, p2]) if k3 == 0 else \
+            ("FULL_OPENCV", [K[0, 0], K[1, 1], cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0])
+    elif abs(K[0, 0] - K[1, 1]) <= _SAME_FOCAL * K[0, 0]:
+        model, params = "SIMPLE_PINHOLE", [K[0, 0], cx, cy]
+    else:
+        model, params = "PINHOLE", [K[0, 0], K[1, 1], cx, cy]
+    q = quaternion_from_rotation(R)
+    return model, [float(p) for p in params], q, t, warning
+
+
+def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
+    """(cameras [(id, model, w, h, params)], images [(id, q, t, camera id, name, xy (K, 2), point ids (K,))],
+    warnings) with COLMAP's 1-based ids and pixel convention."""
+    tr = result.tracks
+    cameras, images, warnings = [], [], []
+    point_of = {}  # image -> (K,) point id (1-based, -1 none) per keypoint
+    for i in result.registered:
+        ids = np.full(len(result.keypoints(i)), -1, np.int64)
+        here = tr["obs_image"] == i
+        ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
+        point_of[i] = ids
+    for n, i in enumerate(result.registered, 1):
+        lens = result.distortion[i] if result.distortion else None
+        model, params, q, t, warning = colmap_camera(result.P[i], result.sizes[i], result.names[i], lens)
+        if warning:
+            warnings.append(warning)
+        w, h = result.sizes[i]
+        cameras.append((n, model, w, h, params))
+        xy = result.keypoints(i)
+        if lens is not None:  # the keypoints are in the undistorted image; COLMAP's model distorts
+            K = decompose_projection(result.P[i])[0]
+            xy = distort_pixels(xy, K, lens)
+        images.append((n, q, t, n, result.names[i], xy + 0.5, point_of[i]))
+    return cameras, images, warnings
+
+
+def _observations_by_point(result: Result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The observations grouped by point: (starts (P + 1,): point p's are rows starts[p] to
+    starts[p + 1]; image (O,), keypoint (O,), xy (O, 2) in our pixel convention)."""
+    tr = result.tracks
+    order = np.argsort(tr["obs_point"], kind="stable")
+    image, keypoint = tr["obs_image"][order], tr["obs_keypoint"][order]
+    xy = tr["keypoints_xy"][tr["keypoints_offset"][image] + keypoint]
+    starts = np.zeros(len(tr["point_xyz"]) + 1, np.int64)
+    np.cumsum(np.bincount(tr["obs_point"], minlength=len(tr["point_xyz"])), out=starts[1:])
+    return starts, image, keypoint, xy
+
+
+def _tracks_by_point(result: Result) -> list[np.ndarray]:
+    """Per point, its track (T, 2): (COLMAP image id, 2D point index)."""
+    image_id = np.zeros(len(result.names), np.int64)
+    image_id[result.registered] = np.arange(1, len(result.registered) + 1)
+    starts, image, keypoint, _ = _observations_by_point(result)
+    return np.split(np.stack([image_id[image], keypoint], axis=1), starts[1:-1])
+
+
+def write_colmap(result: Result, out_dir: str | Path, binary: bool = False) -> list[str]:
+    """COLMAP's sparse model (cameras, images with every 2D point, points3D with colour, error
+    and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged)."""
+    out = Path(out_dir)
+    cameras, images, warnings = _colmap_model(result)
+    tr = result.tracks
+    tracks = _tracks_by_point(result)
+    (_write_colmap_binary if binary else _write_colmap_text)(out, cameras, images, tr, tracks)
+    return _logged(warnings)
+
+
+def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
+    lines = ["# Camera list with one line of data per camera:",
+             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
+    lines += [f"{c} {m} {w} {h} " + " ".join(repr(p) for p in params) for c, m, w, h, params in cameras]
+    write_text(out / "cameras.txt", "\n".join(lines) + "\n")
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(images)}"]
+    for n, q, t, cam, name, xy, pid in images:
+        lines.append(f"{n} " + " ".join(repr(float(v)) for v in (*q, *t)) + f" {cam} {name}")
+        lines.append(" ".join(f"{x!r} {y!r} {p}" for (x, y), p in zip(xy.tolist(), pid.tolist())))
+    write_text(out / "images.txt", "\n".join(lines) + "\n")
+    lines = ["# 3D point list with one line of data per point:",
+             "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+             f"# Number of points: {len(tracks)}"]
+    for p, track in enumerate(tracks):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        lines.append(f"{p + 1} {_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {float(tr['point_error'][p])!r} "
+                     + " ".join(f"{i} {k}" for i, k in track.tolist()))
+    write_text(out / "points3D.txt", "\n".join(lines) + "\n")
+
+
+def _write_colmap_binary(out: Path, cameras, images, tr, tracks) -> None:
+    def write(name: str, chunks: list[bytes]) -> None:
+        with atomic_path(out / name) as tmp:
+            tmp.write_bytes(b"".join(chunks))
+
+    write("cameras.bin", [struct.pack("<Q", len(cameras))] + [
+        struct.pack("<iiQQ", c, COLMAP_MODELS[m][0], w, h) + struct.pack(f"<{len(params)}d", *params)
+        for c, m, w, h, params in cameras])
+    chunks = [struct.pack("<Q", len(images))]
+    for n, q, t, cam, name, xy, pid in images:
+        chunks.append(struct.pack("<i7di", n, *q, *t, cam) + name.encode("utf-8") + b"\0")
+        rows = np.empty(len(xy), dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+        rows["x"], rows["y"], rows["id"] = xy[:, 0], xy[:, 1], pid
+        chunks += [struct.pack("<Q", len(xy)), rows.tobytes()]
+    write("images.bin", chunks)
+    chunks = [struct.pack("<Q", len(tracks))]
+    for p, track in enumerate(tracks):
+        X, rgb = tr["point_xyz"][p], tr["point_rgb"][p]
+        chunks.append(struct.pack("<Q3d3Bd", p + 1, *X, *(int(c) for c in rgb), float(tr["point_error"][p]))
+                      + struct.pack("<Q", len(track)) + np.asarray(track, "<i4").tobytes())
+    write("points3D.bin", chunks)
+
+
+def _single_focal_cameras(result: Result, fmt: str) -> tuple[dict[int, tuple], list[str]]:
+    """Per registered image, (one focal length: the mean of fx and fy, R, t, principal point
+    (2,)) for a format with one focal length and no skew; a warning for each image where that
+    moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
+    cams, warnings = {}, []
+    for i in result.registered:
+        K, R, t = decompose_projection(result.P[i])
+        moved = _moved_px(K, result.sizes[i], one_focal=True)
+        if moved > MAX_APPROXIMATION_PX:
+            warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "
+                            f"(pixels move by up to {moved:.2f} px)")
+        cams[i] = (0.5 * (K[0, 0] + K[1, 1]), R, t, K[:2, 2])
+    return cams, warnings
+
+
+def _measurements(result: Result, cams: dict[int, tuple], y_up: bool) -> list[str]:
+    """Per point, its measurements "camera keypoint dx dy", relative to each camera's principal
+    point (y up for Bundler), the cameras numbered in registration order."""
+    index = {i: n for n, i in enumerate(result.registered)}
+    starts, image, keypoint, xy = _observations_by_point(result)
+    return [" ".join(f"{index[i]} {k} {_num(x - cams[i][3][0])} "
+                     f"{_num(cams[i][3][1] - y if y_up else y - cams[i][3][1])}"
+                     for i, k, (x, y) in zip(image[a:b].tolist(), keypoint[a:b].tolist(), xy[a:b].tolist()))
+            for a, b in zip(starts[:-1], starts[1:])]
+
+
+def write_nvm(result: Result, path: str | Path) -> list[str]:
+    """VisualSFM's NVM_V3: one focal length per camera (the mean of fx, fy), the principal
+    point assumed at the measurement origin, so measurements are written relative to each
+    camera's principal point. Returns the warnings."""
+    tr = result.tracks
+    cams, warnings = _single_focal_cameras(result, "NVM")
+    lines = ["NVM_V3", "", str(len(cams))]
+    for i, (f, R, t, _) in cams.items():
+        w, x, y, z = quaternion_from_rotation(R)
+        lines.append(f"{result.names[i]} {_num(f)} " + " ".join(_num(v) for v in (w, x, y, z, *(-R.T @ t))) + " 0 0")
+    lines.append(str(len(tr["point_xyz"])))
+    counts = np.diff(_observations_by_point(result)[0])
+    for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=False)):
+        lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {n} {meas}")
+    write_text(path, "\n".join(lines) + "\n")
+    return _logged(warnings)
+
+
+def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
+    """Bundler's bundle.out (v0.3) and list.txt: cameras look down -z with y up, measurements
+    relative to the principal point with y up. Returns the warnings."""
+    out, tr = Path(out_dir), result.tracks
+    cams, warnings = _single_focal_cameras(result, "Bundler")
+    flip = np.diag([1.0, -1.0, -1.0])
+    lines = ["# Bundle file v0.3", f"{len(cams)} {len(tr['point_xyz'])}"]
+    for f, R, t, _ in cams.values():
+        lines.append(f"{_num(f)} 0 0")
+        lines += [" ".join(_num(v) for v in row) for row in flip @ R]
+        lines.append(" ".join(_num(v) for v in flip @ t))
+    counts = np.diff(_observations_by_point(result)[0])
+    for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=True)):
+        lines += [" ".join(_num(v) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}", f"{n} {meas}"]
+    write_text(out / "bundle.out", "\n".join(lines) + "\n")
+    write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
+    return _logged(warnings)
+
+
+def _logged(warnings: list[str]) -> list[str]:
+    """The warnings, also logged (the CLI prints what it gets back)."""
+    for w in warnings:
+        log.info("%s", w)
+    return warnings

@@ -1,0 +1,324 @@
+"""The result folder: everything a run leaves on disk, written and read back in one place
+(OpenSfM's DataSet does this job for its pipeline).
+
+Written by :func:`write_result` (atomically, file by file):
+
+* ``cameras.json`` — per input image: name, width, height, registered, status and, when
+  registered, P, K, R, t, centre (our conventions: P maps world to pixels, pixel (0, 0) is the
+  centre of the top-left pixel, R, t cam_from_world);
+* ``tracks.npz`` — the observations (which pixel of which image belongs to which 3D point),
+  documented in docs/formats.md;
+* ``sparse.ply`` — the points with colour, mean reprojection error, track length and number of
+  views; ``cameras.ply`` — a small frustum per registered camera;
+* ``report.json`` — the run's report.
+
+Far outliers are left out of every export (:func:`exported_points`). :func:`load_result` reads a
+folder back into a :class:`Result`, the input of :mod:`stereoseed.output.export`.
+"""
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stereoseed.arrays import distinct_pair_firsts
+from stereoseed.geometry.camera import backproject, camera_center, decompose_projection
+from stereoseed.config import Config
+from stereoseed.errors import StereoseedError
+from stereoseed.io.files import atomic_path, write_json
+from stereoseed.io.ply import write_ply
+from stereoseed.sfm.reconstruction import Reconstruction, View
+
+__all__ = ["FORMAT_VERSION", "Result", "ResultSet", "exported_points", "write_result", "load_result", "frustum_mesh"]
+
+FORMAT_VERSION = 1
+
+
+def exported_points(recon: Reconstruction, max_distance_factor: float) -> np.ndarray:
+    """Ids of the points that leave the tool: alive, seen at least twice, and not far outliers.
+    A point is a far outlier when it lies farther from the median point than
+    ``max_distance_factor`` times the registered cameras' median distance to that median point
+    (a point triangulated from nearly parallel rays can land metres away from a 10 cm object)."""
+    ids = np.flatnonzero(recon.alive & (recon.track_lengths() >= 2))
+    if len(ids) == 0:
+        return ids
+    pts = recon.points[ids]
+    centre = np.median(pts, axis=0)
+    return ids[np.linalg.norm(pts - centre, axis=1) <= max_distance_factor * _camera_distance(recon, centre)]
+
+
+def _camera_distance(recon: Reconstruction, centre: np.ndarray) -> float:
+    """The registered cameras' median distance to ``centre`` (3,): the scale of the scene."""
+    return float(np.median([np.linalg.norm(recon.views[v].center - centre) for v in recon.registered_views]))
+
+
+def _input_frame(view: View, xy: np.ndarray) -> np.ndarray:
+    """Pixels xy (N, 2) of the frame the run used for ``view`` in its input image's frame."""
+    if not view.rotated_180:
+        return xy
+    w, h = view.image_size
+    return np.array([w - 1.0, h - 1.0]) - xy
+
+
+def _tracks(recon: Reconstruction, ids: np.ndarray) -> dict[str, np.ndarray]:
+    """The arrays of tracks.npz for the points ``ids`` (see docs/formats.md)."""
+    n_images = len(recon.views)
+    new_id = np.full(len(recon.points), -1, np.int64)
+    new_id[ids] = np.arange(len(ids))
+    sel = new_id[recon.obs_point] >= 0
+    errors = recon.observation_errors()[sel]
+    obs_view, obs_feature, obs_point = recon.obs_view[sel], recon.obs_feature[sel], new_id[recon.obs_point[sel]]
+    order = np.lexsort((obs_feature, obs_view))  # image by image, as the keypoints
+    obs_view, obs_feature, obs_point, errors = obs_view[order], obs_feature[order], obs_point[order], errors[order]
+    keypoints, obs_keypoint, offsets = [], np.empty(len(obs_view), np.int64), [0]
+    for v in range(n_images):
+        view = recon.views[v]
+        xy = _input_frame(view, view.features.points) if view.registered and view.features is not None \
+            else np.zeros((0, 2))
+        here = np.arange(*np.searchsorted(obs_view, [v, v + 1]))  # obs_view is sorted
+        # an interest point observing two points (the paper mode's unlinked observations) gets a
+        # copy per extra point: a 2D point of COLMAP's model belongs to one 3D point
+        first = np.ones(len(here), bool)
+        first[1:] = obs_feature[here][1:] != obs_feature[here][:-1]
+        extra = here[~first]
+        obs_keypoint[here[first]] = obs_feature[here[first]]
+        obs_keypoint[extra] = len(xy) + np.arange(len(extra))
+        keypoints.append(np.vstack([xy, xy[obs_feature[extra]]]) if len(extra) else xy)
+        offsets.append(offsets[-1] + len(keypoints[-1]))
+    point_error = (np.bincount(obs_point, weights=errors, minlength=len(ids))
+                   / np.maximum(np.bincount(obs_point, minlength=len(ids)), 1))
+    return {"format_version": np.array(FORMAT_VERSION), "point_xyz": recon.points[ids],
+            "point_rgb": recon.colors[ids], "point_error": point_error,
+            "obs_point": obs_point, "obs_image": obs_view, "obs_keypoint": obs_keypoint,
+            "keypoints_xy": np.vstack(keypoints), "keypoints_offset": np.array(offsets, np.int64)}
+
+
+def frustum_mesh(P: np.ndarray, size: tuple[int, int], depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """A camera drawn as a pyramid: its centre and the four image corners back-projected to
+    ``depth`` (world units). P: (3, 4); size: (width, height). -> vertices (5, 3), triangles (4, 3)."""
+    w, h = size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+    vertices = np.vstack([camera_center(P), backproject(P, corners, depth)])
+    return vertices, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
+
+
+def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str, Any]:
+    images = []
+    for i, v in enumerate(recon.views):
+        w, h = v.image_size
+        entry: dict[str, Any] = {"name": v.name, "width": int(w), "height": int(h), "registered": v.registered,
+                                 "status": v.status}
+        if v.registered:
+            K, R, t = decompose_projection(v.P_input)
+            entry.update(P=v.P_input.tolist(), K=K.tolist(), R=R.tolist(), t=t.tolist(),
+                         center=v.center.tolist())
+            if v.rotated_180:
+                entry["rotated_180"] = True
+        lens = lenses[min(i, 1)] if lenses else None
+        if lens is not None:
+            # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
+            entry.update(distortion=lens.distortion.tolist(), distortion_K=np.asarray(lens.K).tolist())
+        images.append(entry)
+    return {"format_version": FORMAT_VERSION,
+            "units": "those of the calibration (the pattern's coordinates): the model is metric in them",
+            "convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
+                          "R, t are cam_from_world", "images": images}
+
+
+def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: str | Path,
+                 cfg: Config = Config(), lenses: list | None = None) -> dict[str, Path]:
+    """Write the result folder (each file atomically); returns {what: path}. lenses: the
+    calibration's two lenses (image 0 through the first, every later image through the second)
+    when the run worked on undistorted images."""
+    out = Path(out_dir)
+    ids = exported_points(recon, cfg.pipeline.far_point_factor)
+    tracks = _tracks(recon, ids)
+    counts = np.bincount(tracks["obs_point"], minlength=len(ids))
+    views = _views_per_point(tracks, len(ids))
+    written = {"cameras": write_json(out / "cameras.json", _cameras_json(recon, lenses))}
+    with atomic_path(out / "tracks.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **tracks)
+    written["tracks"] = out / "tracks.npz"
+    written["sparse"] = write_ply(out / "sparse.ply", tracks["point_xyz"], tracks["point_rgb"],
+                                  {"error": tracks["point_error"].astype(np.float32),
+                                   "track_length": counts.astype(np.int32), "n_views": views.astype(np.int32)})
+    written["cameras_ply"] = _write_cameras_ply(recon, out / "cameras.ply", tracks["point_xyz"])
+    if report is not None:
+        report = dict(report, format_version=FORMAT_VERSION, exported_points=int(len(ids)),
+                      far_points_dropped=int(np.sum(recon.alive & (recon.track_lengths() >= 2)) - len(ids)))
+        written["report"] = write_json(out / "report.json", report)
+    return written
+
+
+def _views_per_point(tracks: dict[str, np.ndarray], n_points: int) -> np.ndarray:
+    return np.bincount(distinct_pair_firsts(tracks["obs_point"], tracks["obs_image"]), minlength=n_points)
+
+
+def _write_cameras_ply(recon: Reconstruction, path: Path, points: np.ndarray) -> Path:
+    """One frustum per registered camera, a tenth of the cameras' median distance to the scene
+    deep; the calibrated pair orange, the walk blue."""
+    reg = recon.registered_views
+    centre = np.median(points, axis=0) if len(points) else np.zeros(3)
+    depth = 0.1 * _camera_distance(recon, centre) if reg else 1.0
+    vertices, faces, colours = [], [], []
+    for n, v in enumerate(reg):
+        view = recon.views[v]
+        verts, tris = frustum_mesh(view.P_input, view.image_size, depth)
+        vertices.append(verts)
+        faces.append(tris + 5 * n)
+        colours.append(np.tile([255, 140, 0] if v < 2 else [40, 110, 255], (5, 1)))
+    if not reg:
+        return write_ply(path, np.zeros((0, 3)), None, faces=np.zeros((0, 3)))
+    return write_ply(path, np.vstack(vertices), np.vstack(colours).astype(np.uint8), faces=np.vstack(faces))
+
+
+@dataclass
+class Result:
+    """A result folder read back: per image (in input order) name, (width, height), P (3, 4) in
+    the input image's frame or None; the points and their tracks (tracks.npz's arrays)."""
+
+    folder: Path
+    names: list[str]
+    sizes: list[tuple[int, int]]
+    P: list[np.ndarray | None]
+    tracks: dict[str, np.ndarray]
+    distortion: list[np.ndarray | None] = field(default_factory=list)  # the lens, where the run undistorted
+
+    @property
+    def registered(self) -> list[int]:
+        return [i for i, P in enumerate(self.P) if P is not None]
+
+    def keypoints(self, image: int) -> np.ndarray:
+        """(K, 2) keypoints of image ``image`` (our pixel convention), indexed by obs_keypoint."""
+        off = self.tracks["keypoints_offset"]
+        return self.tracks["keypoints_xy"][off[image]:off[image + 1]]
+
+
+def load_result(folder: str | Path) -> Result:
+    """Read cameras.json and tracks.npz of a result folder. Raises :class:`StereoseedError`
+    naming the missing or unreadable file."""
+    folder = Path(folder)
+    cams_path, tracks_path = folder / "cameras.json", folder / "tracks.npz"
+    for p in (cams_path, tracks_path):
+        if not p.is_file():
+            raise StereoseedError(f"{folder}: no {p.name}; give a folder written by stereoseed reconstruct "
+                                  f"(version {FORMAT_VERSION} or later)")
+    try:
+        cams = json.loads(cams_path.read_text())
+        images = cams["images"]
+        with np.load(tracks_path) as npz:
+            tracks = {k: npz[k] for k in npz.files}
+        names = [im["name"] for im in images]
+        sizes = [(int(im["width"]), int(im["height"])) for im in images]
+        Ps = [np.asarray(im["P"], np.float64) if im.get("registered") else None for im in images]
+        lens = [np.asarray(im["distortion"], np.float64) if "distortion" in im else None for im in images]
+    except (ValueError, KeyError, TypeError, OSError) as e:
+        raise StereoseedError(f"{folder}: cameras.json or tracks.npz is not as stereoseed writes it ({e})") from None
+    return Result(folder, names, sizes, Ps, tracks, lens)
+
+
+# ---------------------------------------------------------------------------------------------
+# The result folder as a whole
+
+MANIFEST = ".stereoseed-result.json"  # written last: lists every file of the result set
+_RENAME_EXCHANGE = 2  # <linux/fs.h>
+
+
+class ResultSet:
+    """A result folder written as a whole: the run writes into a staging folder beside it
+    (``.NAME.partial``, which also holds the checkpoint for ``--resume``), and :meth:`commit`
+    swaps the two folders in one step, so the folder holds either the previous complete result
+    set or the new one, never a mix. A folder holding files stereoseed did not write is refused
+    before any computation (:meth:`check`): nothing the user made is ever overwritten.
+
+        results = ResultSet(out); results.check()
+        staging = results.open()
+        ... write every file into staging ...
+        results.commit()   # or results.abandon() on failure
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.staging = self.path.parent / f".{self.path.name}.partial"
+
+    def _listed(self) -> set[str] | None:
+        """The files the previous result set's manifest lists, None without a manifest."""
+        try:
+            return set(json.loads((self.path / MANIFEST).read_text())["files"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def check(self) -> None:
+        """Refuse, before any work: an output path that is a file, a folder holding files
+        stereoseed did not write, a place where nothing can be written."""
+        if self.path.exists() and not self.path.is_dir():
+            raise StereoseedError(f"{self.path}: exists and is not a folder; give a folder for the results")
+        if self.path.is_dir():
+            present = {str(p.relative_to(self.path)) for p in self.path.rglob("*") if p.is_file()}
+            foreign = sorted(present - (self._listed() or set()) - {MANIFEST})
+            if foreign:
+                more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+                raise StereoseedError(f"{self.path}: holds files stereoseed did not write ({', '.join(foreign[:3])}"
+                                      f"{more}); give an empty or new folder for the results")
+        parent = self.path.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            probe = parent / f".{self.path.name}.probe"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as e:
+            raise StereoseedError(f"{self.path}: cannot write there ({e.strerror or e}); give a writable folder") from None
+
+    def open(self, keep: bool = False) -> Path:
+        """The staging folder, emptied unless ``keep`` (a resumed run keeps its checkpoint)."""
+        if self.staging.exists() and not keep:
+            shutil.rmtree(self.staging)
+        self.staging.mkdir(parents=True, exist_ok=True)
+        return self.staging
+
+    def commit(self, drop: tuple[str, ...] = ()) -> Path:
+        """Make the staging folder the result folder (files and folders named in ``drop``,
+        e.g. the checkpoint, are removed first); the previous result set is deleted."""
+        for name in drop:
+            path = self.staging / name
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
+        files = sorted(str(p.relative_to(self.staging)) for p in self.staging.rglob("*") if p.is_file())
+        write_json(self.staging / MANIFEST, {"format_version": FORMAT_VERSION, "files": files})
+        if self.path.exists() and _exchange(self.staging, self.path):
+            shutil.rmtree(self.staging)  # the previous result set, swapped out
+        else:
+            old = self.path.parent / f".{self.path.name}.old"
+            if self.path.exists():
+                shutil.rmtree(old, ignore_errors=True)
+                os.replace(self.path, old)
+            os.replace(self.staging, self.path)
+            shutil.rmtree(old, ignore_errors=True)
+        return self.path
+
+    def abandon(self) -> None:
+        """Forget the staging folder (the result folder is untouched)."""
+        shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders atomically (Linux renameat2 RENAME_EXCHANGE); False where unavailable."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd = -100
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0

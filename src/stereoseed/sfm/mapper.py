@@ -1,0 +1,247 @@
+"""The incremental mapper (paper §4.1-4.3): estimate, validate, then commit.
+
+    recon, report = initialise(images, names, P_pair, cfg)   # match I1-I2, triangulate, filter
+    for k in 2 .. n-1: insert_view(recon, k, cfg)           # register, then grow and adjust
+    finish(recon, cfg)                                      # loop closure / final global BA
+
+:func:`insert_view` registers view k (:func:`stereoseed.sfm.registration.base.register_view`, which
+changes nothing) and commits the camera at one point only; then the mode's strategy
+(:mod:`stereoseed.sfm.modes`) adds points, grows tracks and adjusts. An image that cannot be
+placed is reported (``"status": "failed"`` with the reason) and leaves the reconstruction as it
+was; so does a numerical failure after the commit (the insertion is rolled back).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from stereoseed.geometry.camera import epipolar_distances, fundamental_from_projections
+from stereoseed.config import Config
+from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc
+from stereoseed.errors import StereoseedError
+from stereoseed.matching.containers import Matches
+from stereoseed.sfm.modes import mode_of
+from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.sfm.registration.quasi_dense import grow_quasi_dense, reconsider
+from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
+from stereoseed.sfm.registration.base import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
+from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
+
+__all__ = ["initialise", "insert_view", "finish"]
+
+log = logging.getLogger(__name__)
+
+
+def _refine(recon: Reconstruction, a: int, b: int, m: Matches) -> None:
+    """Move view b's matched interest points onto their partners in view a, if the source can."""
+    refine = getattr(recon.source, "refine", None)
+    if refine is not None and len(m):
+        recon.views[b].features = refine(recon.views[a].features, recon.views[b].features, m)
+
+
+def _match_known(recon: Reconstruction, a: int, b: int) -> Matches:
+    """Matches between registered views a and b under their epipolar geometry."""
+    va, vb = recon.views[a], recon.views[b]
+    return recon.source.match(a, b, va.features, vb.features, fundamental_from_projections(va.P, vb.P),
+                              va.image_size[0])
+
+
+def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
+               source: CorrespondenceSource | None = None) -> tuple[Reconstruction, dict[str, Any]]:
+    """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
+    linear + LM triangulation, filtered by reprojection error, cheirality and angle.
+
+    images: the sequence (uint8 BGR); P_pair: the pair's two (3, 4) cameras; source: where
+    correspondences come from (default :class:`HarrisZncc`). Raises :class:`StereoseedError`
+    when the pair gives too few points (the calibration does not belong to these images)."""
+    t0 = time.perf_counter()
+    cfg = cfg.resolved()
+    recon = Reconstruction([View.of_input(n, images, i) for i, n in enumerate(names)])
+    recon.source = source or HarrisZncc(cfg)
+    for i in (0, 1):
+        view = recon.views[i]
+        view.P, view.status = np.asarray(P_pair[i], np.float64), "calibrated"
+        view.features = recon.source.features(i, view.image)
+        view.point_of_feature = np.full(len(view.features), -1, np.int64)
+        if len(view.features) == 0:
+            raise StereoseedError(f"{names[i]}: no interest points (a blank or black image?); the calibrated pair "
+                                  f"must show the object")
+    _check_pair(recon, cfg)
+    m = _match_known(recon, 0, 1)
+    _refine(recon, 0, 1, m)
+    ids = add_two_view_points(recon, 0, 1, m, cfg, colour_view=0)
+    if len(ids) < cfg.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
+        raise StereoseedError(f"{names[0]}, {names[1]}: only {len(ids)} points triangulated from the calibrated pair "
+                              f"({len(m)} matches); check the calibration belongs to these two images")
+    return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
+                   "seconds": {"total": time.perf_counter() - t0}}
+
+
+def _check_pair(recon: Reconstruction, cfg: Config) -> None:
+    """The calibration must fit its two images: their matches found without it (robust F) must
+    lie on its epipolar lines (``PipelineConfig.pair_min_consistent``), or, when they do not,
+    matching under the calibration's epipolar geometry must find more of them. Raises
+    :class:`StereoseedError` naming the likely causes."""
+    v0, v1 = recon.views[0], recon.views[1]
+    if v0.image.shape == v1.image.shape and np.array_equal(v0.image, v1.image):
+        raise StereoseedError(f"{v0.name}, {v1.name}: the calibrated pair is the same image twice; give the two "
+                              f"images the two calibrated cameras took")
+    m = recon.source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
+    if len(m) < cfg.pipeline.pair_check_min_matches:
+        return  # repeated patterns or little texture: no robust F to judge by
+    x0, x1 = m.points(v0.features, v1.features)
+    d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
+    consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
+    if consistent < cfg.pipeline.pair_min_consistent and len(_match_known(recon, 0, 1)) < len(m):
+        # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
+        # then the calibration's own epipolar geometry still matches more than that F does,
+        # while a calibration of other images matches only what falls in its bands by chance.
+        raise StereoseedError(
+            f"{v0.name}, {v1.name}: the calibration does not fit these images: only {100 * consistent:.0f} % of "
+            f"their {len(m)} matches lie on its epipolar lines (a fitting one: ~100 %); are the two cameras "
+            f"swapped, the images in the wrong order, or the calibration another pair's?")
+
+
+def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
+    """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
+
+    Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
+    view leaves ``recon`` as it was (only the view's status records why)."""
+    cfg = cfg.resolved()
+    view = recon.views[k]
+    try:
+        found = register_view(recon, k, cfg)
+    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
+        found = RegistrationFailure(f"{view.name}: numerical failure ({e}); skipped")
+    found = reconsider(recon, k, found, cfg)  # a weak sparse chain: the quasi-dense attempt
+    if isinstance(found, RegistrationFailure):
+        return _failed(view, found.reason, found)
+    state = recon.checkpoint()
+    try:
+        return _commit_and_grow(recon, k, found, cfg)
+    except np.linalg.LinAlgError as e:
+        recon.restore(state)
+        return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
+    except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
+        recon.restore(state)
+        raise
+
+
+def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
+    view.status = f"failed: {reason}"
+    log.info("%s", reason)
+    return {"image": view.name, "status": "failed", "reason": reason, "matches": found.matches,
+            "chained_points": found.chained_points, **found.notes,
+            "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
+
+
+def _commit(view: View, reg: Registration) -> None:
+    """The one place where a registered camera enters the reconstruction."""
+    cand = reg.candidate
+    view.keep_image(cand.image, cand.rotated_180)
+    view.features = cand.features
+    view.point_of_feature = np.full(len(cand.features), -1, np.int64)
+    view.P = reg.P
+    view.camera_model = "focal" if reg.free_camera_refused else None
+    view.zoomed = reg.zoomed
+
+
+def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Config) -> dict[str, Any]:
+    """Commit view k's camera, then: re-match under the now-known epipolar geometry, extend the
+    chained tracks, triangulate the new points, grow the tracks, adjust, drop outliers."""
+    mode = mode_of(cfg)
+    view = recon.views[k]
+    prev = recon.registered_before(k, 1)[0]
+    _commit(view, reg)
+    report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
+                              "registered_by": reg.found_by, **reg.notes}
+    if reg.quasi_dense is not None:
+        report["quasi_dense"] = reg.quasi_dense.report
+    if view.rotated_180:
+        report["rotated_180"] = True
+    if reg.hypothesis is not None:
+        report["motion_prior_correspondences"] = len(reg.hypothesis)
+        report["motion_prior_search"] = {"radius_fraction": reg.hypothesis.radius_fraction,
+                                         "pairings_per_point": reg.hypothesis.pairings_per_point}
+    report.update(resection_inliers=int(reg.resection.inliers.sum()), resection_rms_px=reg.resection.rms_px,
+                  resection_model=reg.model)
+    if reg.free_camera_refused:
+        report["free_camera_refused"] = reg.free_camera_refused
+    timing = dict(reg.seconds)
+
+    t = time.perf_counter()
+    m = _match_known(recon, prev, k)
+    _refine(recon, prev, k, m)
+    # the chained observations consistent with the camera just estimated
+    pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
+    chain_points = pid[consistent]
+    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
+    if reg.quasi_dense is not None and cfg.quasi_dense.keep_tracks:  # the propagated matches' tracks
+        more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode, cfg)
+        ids, chain_points = np.concatenate([ids, more]), np.concatenate([chain_points, more_chained])
+    if reg.found_by == MOTION_PRIOR:
+        # repeated patterns defeated two-view matching: let a third view decide
+        before = recon.registered_before(prev, 1)
+        if before:
+            more = new_points_three_view(recon, prev, k, before[0], cfg)
+            ids = np.concatenate([ids, more])
+            report["three_view_points"] = int(len(more))
+    expect_match = getattr(recon.source, "expect_match", None)
+
+    def features_final() -> None:  # k's interest points are final: the next insertion's matching may start
+        if expect_match is not None:
+            expect_match(k, view.features, view.image_size[0])
+
+    report.update(mode.grow_tracks(recon, k, chain_points, cfg, features_final))
+    timing["triangulation"] = time.perf_counter() - t
+    report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
+
+    t = time.perf_counter()
+    ba_cfg = mode.adjustment_config(recon, cfg)
+    if ba_cfg is not cfg:
+        report["ba_intrinsics"] = "calibrated (no zoom found yet)"
+    if cfg.pipeline.ba == "global":
+        ba = ba_report(adjust(recon, ba_cfg, free_views=recon.registered_views))
+    else:
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
+    timing["bundle"] = time.perf_counter() - t
+    removed = drop_outliers(recon, cfg)
+    view.status = "registered"
+    report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
+    report["seconds"]["total"] = float(sum(timing.values()))
+    return report
+
+
+def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
+    """After the last insertion: the mode's finishing step (accurate: loop closure, a final
+    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``)."""
+    t = time.perf_counter()
+    cfg = cfg.resolved()
+    out = mode_of(cfg).finish(recon, cfg)
+    dropped = _drop_undetermined_views(recon, cfg)
+    if dropped:
+        out["dropped"] = dropped
+    out["seconds"] = time.perf_counter() - t
+    return out
+
+
+def _drop_undetermined_views(recon: Reconstruction, cfg: Config) -> dict[str, str]:
+    """Deregister the moving camera's views left with fewer observations than a resection needs
+    (``ResectionConfig.min_inliers``): outlier removal can strip a weakly placed view (the motion
+    prior's camera from a dozen points) until nothing determines its camera, and a global BA then
+    moves it anywhere (a dino view 0.4 m off went to 2.2 m on 9 observations). Returns
+    {name: reason} of the views dropped."""
+    dropped = {}
+    counts = np.bincount(recon.obs_view, minlength=len(recon.views))
+    for k in recon.registered_views:
+        if k >= 2 and counts[k] < cfg.resection.min_inliers:
+            reason = (f"{recon.views[k].name}: dropped at the end, only {counts[k]} observations left after outlier "
+                      f"removal (a camera needs {cfg.resection.min_inliers}); its camera is not determined")
+            recon.deregister(k)
+            recon.views[k].status = f"failed: {reason}"
+            dropped[recon.views[k].name] = reason
+            log.info("%s", reason)
+    return dropped

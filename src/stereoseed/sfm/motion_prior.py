@@ -1,0 +1,165 @@
+"""3D-2D correspondences without epipolar geometry: the camera predicted from the previous
+motion, the recent points paired with the interest points near their predicted pixels.
+
+Used where the chain from I_{k-1} <-> I_k is missing or weak (repeated patterns, little
+texture, docs/mapper.md). A repeated pattern offers several consistent pairings (the
+prediction shifted by one period), so this module returns *hypotheses*; the registration
+resects each and keeps the camera that explains the most recent points (:func:`explained_points`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from stereoseed.arrays import unique
+from stereoseed.geometry.camera import decompose_projection, project
+from stereoseed.config import Config, MotionPriorConfig, ResectionConfig
+from stereoseed.features.harris import Features
+from stereoseed.geometry.neighbours import nearest_within
+from stereoseed.sfm.reconstruction import Reconstruction
+
+__all__ = ["predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One consistent set of 3D-2D correspondences: points3d (N, 3), points2d (N, 2), their
+    ZNCC scores (N,), and where it came from: the search radius (fraction of the image width)
+    and the number of best pairings per point it was drawn from."""
+
+    points3d: np.ndarray
+    points2d: np.ndarray
+    scores: np.ndarray
+    radius_fraction: float
+    pairings_per_point: int
+
+    def __len__(self) -> int:
+        return len(self.points3d)
+
+
+def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
+    """Constant-motion prediction of a later camera: the rigid motion from ``P_before`` to
+    ``P_last`` (both (3, 4)) applied ``steps`` more times to ``P_last``, with ``P_last``'s
+    intrinsics. -> (3, 4)."""
+    def pose(P):
+        K, R, t = decompose_projection(P)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return K, T
+    _, T_before = pose(P_before)
+    K, T_last = pose(P_last)
+    T_next = T_last
+    for _ in range(max(1, steps)):
+        T_next = T_last @ np.linalg.inv(T_before) @ T_next
+    return K @ T_next[:3]
+
+
+def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.ndarray, np.ndarray]:
+    """Live points seen in the last ``n_views`` registered views up to ``prev``, each described
+    by its patch in the latest of them: (point ids (N,), descriptors (N, D) float32)."""
+    recent = [prev] + recon.registered_before(prev, n_views - 1)
+    sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]
+    order = np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")]
+    pids, first = np.unique(recon.obs_point[order], return_index=True)
+    obs = order[first]
+    desc = np.zeros((len(obs), recon.views[prev].features.desc.shape[1]), np.float32)
+    for v in unique(recon.obs_view[obs]):
+        here = recon.obs_view[obs] == v
+        desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
+    return pids, desc
+
+
+def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, features: Features, cfg: Config,
+                               recent: tuple[np.ndarray, np.ndarray]) -> list[list[Hypothesis]]:
+    """Correspondences for view k (its interest points ``features``) from the predicted camera.
+
+    The points ``recent`` (from :func:`recent_points`) are projected with the camera predicted
+    from the last two registered views (:func:`predict_camera`); every interest point of k
+    within a radius (``MotionPriorConfig.radius_fractions`` of the image width) whose patch
+    matches (ZNCC >= ``min_zncc``, among the point's best ``pairings_per_point``) is a pairing,
+    and a robust 2D similarity between predicted and found positions keeps the consistent ones
+    (the resection's RANSAC follows): the prediction misses mostly by a zoom about the
+    principal point and a shift. Up to ``hypotheses_per_search`` similarities are found one
+    after another on the pairings the previous ones left, best supported first.
+
+    Returns one list of hypotheses per search radius; empty lists without a motion to
+    extrapolate (no registered view before ``prev``) or with fewer than 4 recent points.
+    """
+    mp: MotionPriorConfig = cfg.motion_prior
+    none: list[list[Hypothesis]] = [[] for _ in mp.radius_fractions]
+    before = recon.registered_before(prev, 1)
+    pids, desc = recent
+    if not before or len(pids) < cfg.resection.min_points or len(features) == 0:
+        return none
+    # images skipped since (failed insertions) count as steps of the same motion
+    steps = max(1, round((k - prev) / max(prev - before[0], 1)))
+    P_pred = predict_camera(recon.views[before[0]].P, recon.views[prev].P, steps)
+    pred = project(P_pred, recon.points[pids])
+    width = features.image_shape[1]
+    d = np.linalg.norm(pred[:, None, :] - features.points[None, :, :], axis=2)
+    zncc_all = desc @ features.desc.T
+    zncc_all[:, ~features.valid] = -np.inf
+    out = []
+    for radius_fraction in mp.radius_fractions:
+        zncc = np.where(d > radius_fraction * width, -np.inf, zncc_all)
+        ranked = np.argsort(-zncc, axis=1)
+        hypotheses = []
+        for depth in mp.pairings_per_point:
+            rows = np.repeat(np.arange(len(pids)), min(depth, ranked.shape[1]))
+            cols = ranked[:, :depth].ravel()
+            ok = zncc[rows, cols] >= mp.min_zncc
+            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, cfg.resection, width)
+            hypotheses += [Hypothesis(recon.points[pids[r]], x, z, radius_fraction, depth) for r, x, z in found]
+        out.append(hypotheses)
+    return out
+
+
+def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.ndarray, zncc: np.ndarray,
+                  mp: MotionPriorConfig, rc: ResectionConfig, width: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Robust 4-DOF similarities (2-point samples, so a low inlier ratio is fine) between the
+    predicted pixels ``pred[rows]`` and the paired interest points ``xy[cols]``, one after
+    another on what the previous ones left; each keeps one pairing per point (the closest to
+    the similarity); a similarity supported by fewer pairings than a resection needs
+    (``ResectionConfig.min_points``) ends the search. Returns (rows (K,) into pred, pixels (K, 2),
+    scores (K,)) per similarity."""
+    hypotheses = []
+    while len(rows) >= rc.min_points and len(hypotheses) < mp.hypotheses_per_search:
+        x = xy[cols]
+        # OpenCV's RANSAC registrator seeds its own generator: deterministic without cv2.setRNGSeed
+        S, inl = cv2.estimateAffinePartial2D(pred[rows], x, method=cv2.RANSAC,
+                                             ransacReprojThreshold=mp.similarity_threshold * width,
+                                             maxIters=mp.similarity_max_iters, confidence=rc.ransac_confidence)
+        if S is None or inl is None or inl.sum() < rc.min_points:
+            break
+        inl = np.flatnonzero(inl.ravel())
+        err = np.linalg.norm(pred[rows[inl]] @ S[:, :2].T + S[:, 2] - x[inl], axis=1)
+        order = inl[np.argsort(err)]
+        _, first = np.unique(rows[order], return_index=True)
+        sel = order[first]
+        hypotheses.append((rows[sel], x[sel], zncc[rows[sel], cols[sel]]))
+        rest = np.ones(len(rows), bool)
+        rest[inl] = False
+        rows, cols = rows[rest], cols[rest]
+    return hypotheses
+
+
+def explained_points(features: Features, cameras: list[np.ndarray], points: np.ndarray, desc: np.ndarray,
+                     max_px: float, min_zncc: float) -> np.ndarray:
+    """How many of the recent ``points`` (N, 3), described by their patches ``desc`` (N, D),
+    each camera (3, 4) explains in a view with interest points ``features``: a point counts
+    when an interest point within ``max_px`` of its projection matches its patch (ZNCC >=
+    ``min_zncc``). A camera shifted by one period of a repeated pattern explains its own
+    correspondences as well as the true one, but loses the points at the pattern's ends and
+    everything else in view. -> (len(cameras),) int64."""
+    n = len(points)
+    if n == 0 or not cameras:
+        return np.zeros(len(cameras), np.int64)
+    # every camera's projections in one search (one grid of the interest points; a projection
+    # that is not finite finds none)
+    dist, nearest = nearest_within(features.points, np.concatenate([project(P, points) for P in cameras]), max_px)
+    close = np.flatnonzero(np.isfinite(dist))
+    camera, point = np.divmod(close, n)
+    zncc = np.einsum("nd,nd->n", desc[point], features.desc[nearest[close]])
+    return np.bincount(camera[zncc >= min_zncc], minlength=len(cameras)).astype(np.int64)
