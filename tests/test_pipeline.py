@@ -174,7 +174,7 @@ def test_a_lens_that_does_not_zoom_is_best_held_fixed():
 def test_noisy_plain_box_registers_every_image(plain_box_scene_noisy):
     # sigma 2, squares only: an earlier version slipped by one period here (corners 5.8 cm off)
     # when the motion prediction missed the squares by 55 px; the wide search that fixed it is
-    # tested on its own in test_mapper.py (this rendering no longer needs it: each image is
+    # tested on its own in sfm/test_mapper.py (this rendering no longer needs it: each image is
     # placed by the near search)
     scene = plain_box_scene_noisy
     recon, report = _run(scene, "accurate")

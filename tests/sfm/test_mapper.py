@@ -1,0 +1,79 @@
+"""The mapper's operations on a small synthetic problem (exact correspondences, no images), the
+way COLMAP tests its incremental mapper: initialise, insert, finish; a failed insertion leaves no trace."""
+import numpy as np
+import pytest
+
+from ring_helpers import ring, state, assert_same_state
+from stereoseed.config import Config, PipelineConfig
+from stereoseed.sfm.mapper import finish, initialise, insert_view
+
+
+def test_initialise_triangulates_the_shared_points_of_the_pair():
+    images, names, Ps, source = ring(3)
+    recon, report = initialise(images, names, Ps[:2], Config(), source)
+    shared = len(np.intersect1d(source.ids[0], source.ids[1]))
+    assert report["new_points"] == len(recon.points) and len(recon.points) >= 0.95 * shared
+    X_true = source.points[source.ids[0][recon.obs_feature[recon.obs_view == 0]]]
+    assert np.abs(recon.points - X_true).max() < 0.002  # 0.1 px noise at 1.4 m
+    assert np.all(recon.views[0].point_of_feature[recon.obs_feature[recon.obs_view == 0]] >= 0)
+
+
+def test_the_step_by_step_api_survives_a_failing_image():
+    images, names, Ps, source = ring(7, blind=(4,))
+    cfg = Config(pipeline=PipelineConfig(mode="paper"))
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    statuses = [insert_view(recon, k, cfg)["status"] for k in range(2, 7)]
+    assert statuses == ["registered", "registered", "failed", "registered", "registered"]
+    finish(recon, cfg)
+    assert recon.registered_views == [0, 1, 2, 3, 5, 6]
+
+
+def _raising(error):
+    def raise_it(*args, **kwargs):
+        raise error
+    return raise_it
+
+
+@pytest.mark.parametrize("module, function", [("sfm.registration.base", "implausible_motion"), ("sfm.modes", "adjust")])
+def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkeypatch, module, function):
+    # during the registration (nothing committed yet) or after the commit (rolled back)
+    import importlib
+
+    recon, Ps, cfg = started
+    before = state(recon)
+    monkeypatch.setattr(importlib.import_module(f"stereoseed.{module}"), function,
+                        _raising(np.linalg.LinAlgError("Singular matrix")))
+    report = insert_view(recon, 4, cfg)
+    assert report["status"] == "failed" and "numerical failure" in report["reason"]
+    assert_same_state(before, state(recon))
+    assert not recon.views[4].registered
+
+
+def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored(started, monkeypatch):
+    import stereoseed.sfm.modes
+
+    recon, Ps, cfg = started
+    before = state(recon)
+    monkeypatch.setattr(stereoseed.sfm.modes, "adjust", _raising(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):
+        insert_view(recon, 4, cfg)
+    assert_same_state(before, state(recon))
+
+
+def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box_scene):
+    # a weakly placed view can lose its observations to outlier removal until nothing determines
+    # its camera; the finishing step then deregisters it and says why
+    from stereoseed.sfm.mapper import _drop_undetermined_views
+    from stereoseed.pipeline import reconstruct
+
+    scene = small_box_scene.prefix(5)
+    recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], Config())
+    assert _drop_undetermined_views(recon, Config()) == {}  # a sound run keeps every view
+    seen = np.flatnonzero(recon.obs_view == 3)
+    cut = np.zeros(len(recon.obs_view), bool)
+    cut[seen[5:]] = True  # view 3 keeps 5 observations
+    recon.remove_observations(cut)
+    dropped = _drop_undetermined_views(recon, Config())
+    assert list(dropped) == [scene.names[3]] and "5 observations" in dropped[scene.names[3]]
+    assert recon.views[3].P is None and recon.views[3].status.startswith("failed")
+    assert all(recon.views[k].P is not None for k in (0, 1, 2, 4))

@@ -1,0 +1,44 @@
+"""The modes: the paper's two-view points and unlinked observations; the accurate mode's held intrinsics."""
+import numpy as np
+
+from ring_helpers import ring
+from stereoseed.config import Config, PipelineConfig
+from stereoseed.sfm.mapper import initialise, insert_view
+
+
+def test_the_paper_mode_keeps_two_view_points_and_unlinked_chained_observations():
+    images, names, Ps, source = ring(5)
+    cfg = Config(pipeline=PipelineConfig(mode="paper"))
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    insert_view(recon, 2, cfg)
+    unlinked = ~recon.obs_linked
+    # the chained old points are observed in view 2 for the cost only; their interest points
+    # stand for the new two-view points, through which the next insertion chains
+    assert unlinked.any() and set(recon.obs_view[unlinked]) <= {1, 2}
+    v2 = recon.views[2]
+    stands_for = v2.point_of_feature[recon.obs_feature[unlinked & (recon.obs_view == 2)]]
+    assert np.all(stands_for != recon.obs_point[unlinked & (recon.obs_view == 2)])
+    live = recon.alive & (recon.track_lengths() > 0)
+    assert np.all(recon.track_lengths()[live] >= 2)
+
+
+def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
+    """accurate mode, "focal" model: the BA after an insertion runs on the "fixed" model while no
+    image after the pair was found zoomed; then, and in paper mode, on the run's model."""
+    from stereoseed.sfm.modes import mode_of
+    from stereoseed.sfm.reconstruction import Reconstruction, View
+
+    def _unzoomed_held(recon, cfg):  # the BA configuration the mode gives after an insertion
+        return mode_of(cfg).adjustment_config(recon, cfg)
+
+    P = np.hstack([np.eye(3), np.zeros((3, 1))])
+    recon = Reconstruction([View(name=f"v{i}", P=P) for i in range(4)])
+    cfg = Config().resolved()
+    assert _unzoomed_held(recon, cfg).pipeline.camera_model == "fixed"
+    recon.views[3].zoomed = True
+    assert _unzoomed_held(recon, cfg) is cfg
+    recon.views[3].zoomed = False
+    paper = Config(pipeline=PipelineConfig(mode="paper")).resolved()
+    assert _unzoomed_held(recon, paper) is paper
+    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolved()
+    assert _unzoomed_held(recon, no_hold) is no_hold
