@@ -6,7 +6,7 @@ import json
 import numpy as np
 
 from stereoseed.estimators.calibration import calibrate_camera, refine_projection, reprojection_rms
-from stereoseed.geometry.camera import camera_center, project
+from stereoseed.geometry.projection import camera_center, project
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from stereoseed.config import Config
 from stereoseed.experiments.evaluation import camera_errors
-from stereoseed.geometry.camera import camera_center, compose_projection
+from stereoseed.geometry.projection import camera_center, compose_projection
 from stereoseed.geometry.lens import project_distorted, undistort_image, undistort_pixels, undistortion_maps
 from stereoseed.calibration.lens_calibration import calibrate_from_target
 from stereoseed.pipeline import reconstruct

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import (
+from stereoseed.geometry.projection import (
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,

@@ -16,7 +16,7 @@ import time
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import fundamental_from_projections, project
+from stereoseed.geometry.projection import fundamental_from_projections, project
 from stereoseed.config import PropagationConfig
 from stereoseed.features.image import to_gray
 from stereoseed.matching.propagation.core import PropagationResult, propagate, texture_mask, warm_up

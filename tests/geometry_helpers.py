@@ -2,7 +2,7 @@
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import compose_projection
+from stereoseed.geometry.projection import compose_projection
 
 
 def look_at_camera(center, target=(0.0, 0.0, 0.2), f=800.0, skew=0.0, aspect=1.0, pp=(320.0, 240.0)):

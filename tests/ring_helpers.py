@@ -3,7 +3,7 @@ correspondences (no images) and the comparison of a reconstruction's state befor
 import numpy as np
 
 from geometry_helpers import ring_camera
-from stereoseed.geometry.camera import camera_center, project
+from stereoseed.geometry.projection import camera_center, project
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed import cli
 from stereoseed.cli import main
 from stereoseed.synthetic.scene import write_scene

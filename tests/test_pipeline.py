@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center, decompose_projection, project
+from stereoseed.geometry.projection import camera_center, decompose_projection, project
 from stereoseed.config import Config, PipelineConfig, ResectionConfig
 from stereoseed.experiments.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
@@ -279,7 +279,7 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
 def test_reference_intrinsics_follow_an_image_turned_upside_down():
     # The constrained camera models share the calibrated camera's principal point; in an image
     # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
-    from stereoseed.geometry.camera import compose_projection
+    from stereoseed.geometry.projection import compose_projection
     from stereoseed.sfm.reconstruction import View
 
     K = np.array([[1500.0, 0.0, 302.3], [0.0, 1498.0, 246.9], [0.0, 0.0, 1.0]])

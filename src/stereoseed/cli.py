@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402 - after the BLAS setting
 
 from stereoseed.cluster import CONNECT_TIMEOUT_S
 from stereoseed.errors import StereoseedError
+from stereoseed.geometry.models import MODELS
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -146,7 +147,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
 
 
 def _cmd_propagate(args: argparse.Namespace) -> int:
-    from stereoseed.geometry.camera import fundamental_from_projections
+    from stereoseed.geometry.projection import fundamental_from_projections
     from stereoseed.config import Config
     from stereoseed.io.files import check_image_output, read_calibration, read_image
     from stereoseed.sfm.mapper import initialise
@@ -354,7 +355,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
                    help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
                         "'accurate': multi-view tracks, constrained camera, wider window (default)")
-    p.add_argument("--camera-model", choices=["free", "zero-skew", "focal", "fixed"], default=None,
+    p.add_argument("--camera-model", choices=list(MODELS), default=None,
                    help="moving camera model (default: free in paper mode, focal in accurate mode; "
                         "fixed: the lens did not zoom, every image keeps the calibrated second camera's intrinsics)")
     p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")

@@ -11,6 +11,7 @@ import dataclasses
 import numbers
 from dataclasses import dataclass, field
 from typing import Any
+from stereoseed.geometry.models import MODELS, CameraModel
 
 
 def _positive(cfg: Any, *names: str) -> None:
@@ -338,7 +339,7 @@ class QuasiDenseConfig:
 
 MODES = ("paper", "accurate")
 BA_POLICIES = ("local", "global", "final")
-CAMERA_MODELS = ("free", "zero-skew", "focal", "fixed")  # stereoseed.geometry.models
+CAMERA_MODELS = MODELS
 
 
 @dataclass(frozen=True)
@@ -529,7 +530,7 @@ class PipelineConfig:
         """The same configuration with every None (mode-dependent default) replaced by its value."""
         paper = self.mode == "paper"
         return dataclasses.replace(
-            self, camera_model=self.camera_model or ("free" if paper else "focal"),
+            self, camera_model=CameraModel(self.camera_model or (CameraModel.FREE if paper else CameraModel.FOCAL)),
             window=self.window or (1 if paper else 3), ba=self.ba or ("local" if paper else "final"),
             outlier_factor=self.outlier_factor if self.outlier_factor is not None else (0.0 if paper else 4.0))
 

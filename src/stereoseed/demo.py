@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 
 from stereoseed.estimators.calibration import calibrate_camera
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed.config import Config
 from stereoseed.dense.densify import densify
 from stereoseed.experiments.evaluation import camera_errors, reconstruct_corners, rms_3d, surface_distance

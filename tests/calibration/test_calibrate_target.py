@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed.cli import main
 from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 from stereoseed.synthetic.target import load_target, render_target

@@ -4,7 +4,7 @@ from scipy.optimize import least_squares
 
 from stereoseed.geometry import models as camera_models
 from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
-from stereoseed.geometry.camera import camera_center, project
+from stereoseed.geometry.projection import camera_center, project
 from stereoseed.config import BundleConfig
 from geometry_helpers import box_points, ring_camera
 

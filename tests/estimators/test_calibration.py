@@ -4,7 +4,7 @@ from hypothesis import given, settings, strategies as st
 
 from stereoseed.estimators.calibration import (calibrate_camera, check_correspondences, dlt_projection,
                                     refine_projection, reprojection_rms)
-from stereoseed.geometry.camera import camera_center, normalize_projection, project
+from stereoseed.geometry.projection import camera_center, normalize_projection, project
 from stereoseed.errors import StereoseedError
 from geometry_helpers import box_points, ring_camera
 

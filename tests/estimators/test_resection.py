@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center, decompose_projection, normalize_projection, project
+from stereoseed.geometry.projection import camera_center, decompose_projection, normalize_projection, project
 from stereoseed.config import ResectionConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.estimators.resection import implausible_intrinsics, resect

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from stereoseed.geometry.camera import project
+from stereoseed.geometry.projection import project
 from stereoseed.estimators.triangulation import triangulate, triangulate_linear, triangulate_tracks
 from geometry_helpers import box_points, ring_camera
 

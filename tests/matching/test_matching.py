@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from stereoseed.geometry.camera import (
+from stereoseed.geometry.projection import (
     decompose_projection,
     epipolar_distances,
     fundamental_from_projections,

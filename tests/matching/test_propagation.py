@@ -17,7 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereoseed.geometry.camera import skew
+from stereoseed.geometry.projection import skew
 from stereoseed.config import PropagationConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.image import to_gray
@@ -424,7 +424,7 @@ def test_kernel_matches_reference(seed, shift, use_f):
 @pytest.fixture(scope="module")
 def scene_pair():
     synthetic = pytest.importorskip("stereoseed.synthetic.scene")
-    from stereoseed.geometry.camera import fundamental_from_projections, project
+    from stereoseed.geometry.projection import fundamental_from_projections, project
 
     scene = synthetic.render_scene(synthetic.SceneConfig(n_images=2))
     I1, I2 = as_grey01(scene.images[0]), as_grey01(scene.images[1])

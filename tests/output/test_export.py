@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from geometry_helpers import ring_camera
-from stereoseed.geometry.camera import decompose_projection
+from stereoseed.geometry.projection import decompose_projection
 from stereoseed.features.harris import Features
 from stereoseed.sfm.reconstruction import Reconstruction, View, eq14
 

@@ -2,7 +2,7 @@
 import numpy as np
 
 from geometry_helpers import box_points, ring_camera
-from stereoseed.geometry.camera import camera_center, project
+from stereoseed.geometry.projection import camera_center, project
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.features.harris import Features
 from stereoseed.sfm.reconstruction import Reconstruction, View

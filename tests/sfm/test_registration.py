@@ -4,7 +4,7 @@ import numpy as np
 
 from ring_helpers import ring, centre_errors, state, assert_same_state
 from stereoseed.config import Config
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import initialise, insert_view
 from stereoseed.sfm.registration.base import CHAIN, Registration, RegistrationFailure, register_view
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.geometry.camera import camera_center, compose_projection, project
+from stereoseed.geometry.projection import camera_center, compose_projection, project
 from stereoseed.features.edge_corners import _edge_corners
 from stereoseed.features.image import to_gray
 from stereoseed.geometry.lens import distort_pixels, undistort_image, undistort_pixels

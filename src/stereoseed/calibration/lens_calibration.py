@@ -17,8 +17,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.calibration import check_correspondences, dlt_projection
-from stereoseed.geometry.camera import compose_projection, decompose_projection, depths
+from stereoseed.geometry.projection import compose_projection, depths
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
 
@@ -111,7 +112,7 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
     what = what or [f"view {i}" for i in range(len(views))]
     checked = [check_correspondences(X, x, what=w) for (X, x), w in zip(views, what)]
     # a first guess per view: the normalised DLT, its K shared (zero skew) and its pose
-    starts = [decompose_projection(dlt_projection(X, x)) for X, x in checked]
+    starts = [Camera(dlt_projection(X, x)).krt for X, x in checked]
     n_lens = 5 if k3 else 4
     if intrinsics is None:
         K0 = np.mean([K for K, _, _ in starts], axis=0)
@@ -177,8 +178,8 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
             continue
         try:
             d = np.asarray(d, np.float64).reshape(-1)
-            K = np.asarray(cam["K"], np.float64).reshape(3, 3) if "K" in cam else decompose_projection(
-                np.asarray(cam["P"], np.float64))[0]
+            K = np.asarray(cam["K"], np.float64).reshape(3, 3) if "K" in cam else Camera(
+                np.asarray(cam["P"], np.float64)).krt[0]
             size = tuple(int(v) for v in cam["image_size"]) if "image_size" in cam else None
         except (ValueError, TypeError, KeyError):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' needs 4 or 5 numbers (k1 k2 p1 p2 [k3]) and 'K' "

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from stereoseed.arrays import sort_order, sorted_groups
-from stereoseed.geometry.camera import camera_center, fundamental_from_projections
+from stereoseed.geometry.projection import camera_center, fundamental_from_projections
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config, DenseConfig, PropagationConfig
 from stereoseed.io.ply import write_ply

@@ -280,7 +280,7 @@ def observation_errors(Ps: np.ndarray, points: np.ndarray, obs_camera: np.ndarra
     """Reprojection distance (O,) px of each observation: camera obs_camera (O,) of Ps (C, 3, 4)
     seeing point obs_point (O,) of points (M, 3) at pixel obs_xy (O, 2); NaN or inf for a point
     at infinity or a NaN camera. One compiled pass, without the (O, 3, 4) array of gathered
-    cameras that :func:`stereoseed.geometry.camera.project_per_observation` needs: the LM judges every
+    cameras that :func:`stereoseed.geometry.projection.project_per_observation` needs: the LM judges every
     trial step by it, and the mapper drops outliers by it after every insertion."""
     out = np.empty(len(obs_camera))
     _observation_errors(np.ascontiguousarray(Ps, np.float64), np.ascontiguousarray(points, np.float64),

@@ -9,9 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stereoseed.geometry.camera import Camera
 from stereoseed.geometry import models as camera_models
 from stereoseed.estimators._calibration_kernels import refine_camera
-from stereoseed.geometry.camera import decompose_projection, depths, normalize_projection, project
+from stereoseed.geometry.projection import depths, normalize_projection, project
 from stereoseed.errors import StereoseedError
 
 __all__ = [
@@ -168,7 +169,7 @@ def calibrate_camera(pattern: np.ndarray, pixels: np.ndarray, what: str = "calib
     """
     X, x = check_correspondences(pattern, pixels, what=what)
     P = refine_projection(dlt_projection(X, x), X, x, model="free")
-    K, R, t = decompose_projection(P)
+    K, R, t = Camera(P).krt
     result = CalibrationResult(P=P, K=K, R=R, t=t, rms_px=reprojection_rms(P, X, x), n_points=len(X))
     behind = float(np.mean(depths(P, X) <= 0))
     if result.rms_px > MAX_CALIBRATION_RMS_PX:

@@ -13,25 +13,31 @@ import numpy as np
 
 from stereoseed.estimators.calibration import (check_correspondences, dlt_projection, normalization_2d, normalization_3d,
                           refine_projection)
-from stereoseed.geometry.camera import decompose_projection, depths, is_finite_camera, normalize_projection, project
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.projection import depths, is_finite_camera, normalize_projection, project
 from stereoseed.config import ResectionConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.estimators._resection_kernels import choose_samples, score_hypotheses
+from stereoseed.geometry.models import CameraModel
 
 __all__ = ["ResectionResult", "implausible_intrinsics", "resect"]
 
 
 @dataclass
 class ResectionResult:
-    """P (3, 4); inliers (N,) bool; rms_px over inliers; n_hypotheses tried; info: n_pairs,
-    n_inliers, model (the camera model of P: the one asked for, or "fixed" when the previous
-    image's intrinsics were kept)."""
+    """camera: the estimate, its model the one asked for or "fixed" when the previous image's
+    intrinsics were kept; inliers (N,) bool; rms_px over inliers; n_hypotheses tried; info:
+    n_pairs, n_inliers, model (the camera's, as the report names it)."""
 
-    P: np.ndarray
+    camera: Camera
     inliers: np.ndarray
     rms_px: float
     n_hypotheses: int
     info: dict = field(default_factory=dict)
+
+    @property
+    def P(self) -> np.ndarray:
+        return self.camera.P
 
 
 def _draw_samples(rng: np.random.Generator, n_samples: int, p: np.ndarray, cells: np.ndarray,
@@ -71,11 +77,12 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
     (Schwarz 1978; Torr's GRIC makes the same choice here): n ln(RSS / n) + k ln(n), k = 7 or 6;
     the new focal length must win by ``config.zoom_evidence_bic``.
     """
-    _, R, t = decompose_projection(P)  # the focal camera's pose is a close start
+    cam = Camera(P)  # the focal camera's pose is a close start
+    R, t = cam.R, cam.t
     P_fixed, inl_fixed, rms_fixed = polish(fallback_K @ np.hstack([R, t.reshape(3, 1)]), inliers,
-                                           model="fixed", reference_K=fallback_K)
+                                           model=CameraModel.FIXED, reference_K=fallback_K)
     if rms_fixed > config.max_rms_px or inl_fixed.sum() < config.min_inliers:
-        return P, inliers, rms, "focal"
+        return P, inliers, rms, CameraModel.FOCAL
     n = 2 * int(inliers.sum())
 
     def bic(Pc: np.ndarray, k: int) -> float:
@@ -83,8 +90,8 @@ def _unless_unchanged_zoom_fits(P: np.ndarray, inliers: np.ndarray, rms: float, 
         return n * np.log(max(rss, 1e-12) / n) + k * np.log(n)
 
     if bic(P_fixed, 6) <= bic(P, 7) + config.zoom_evidence_bic:
-        return P_fixed, inl_fixed, rms_fixed, "fixed"
-    return P, inliers, rms, "focal"
+        return P_fixed, inl_fixed, rms_fixed, CameraModel.FIXED
+    return P, inliers, rms, CameraModel.FOCAL
 
 
 def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig = ResectionConfig(),
@@ -165,7 +172,7 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         return [c for c in cameras if np.isfinite(c[2])]
 
     starts = [(dlt_projection(X[best_inliers], x[best_inliers]), best_inliers)]
-    if model != "free" and reference_K is not None:
+    if model != CameraModel.FREE and reference_K is not None:
         # The DLT is ill-conditioned when the points are nearly planar (one face of an object
         # in view); a constrained camera can start from P3P with the reference intrinsics.
         starts.append(_pnp_start(X, x, reference_K, config))
@@ -176,24 +183,24 @@ def resect(points3d: np.ndarray, points2d: np.ndarray, config: ResectionConfig =
         # camera fits a plane): such a camera is no candidate
         if reference_K is None:
             return True
-        f, f_ref = decompose_projection(P)[0][0, 0], reference_K[0, 0]
+        f, f_ref = Camera(P).focal, reference_K[0, 0]
         return bool(np.isfinite(f) and f_ref / 3 <= f <= 3 * f_ref)
 
     if fallback_K is not None and not any(plausible(c[0]) for c in candidates):
         start = _pnp_start(X, x, fallback_K, config)
         if start is not None:
-            model, reference_K = "fixed", np.asarray(fallback_K, np.float64)
+            model, reference_K = CameraModel.FIXED, np.asarray(fallback_K, np.float64)
             candidates = polished([start], model=model, reference_K=reference_K)
     if not candidates:
         raise StereoseedError(f"{what}: the {best_count} agreeing 3D-2D pairs are degenerate (no finite camera)")
     P, inliers, rms = max(candidates, key=lambda c: (plausible(c[0]), c[2] <= config.max_rms_px, c[1].sum(), -c[2]))
-    if model == "focal" and fallback_K is not None:
+    if model == CameraModel.FOCAL and fallback_K is not None:
         P, inliers, rms, model = _unless_unchanged_zoom_fits(P, inliers, rms, X, x, np.asarray(fallback_K, np.float64),
                                                              config, polish)
     if rms > config.max_rms_px:
         raise StereoseedError(f"{what}: the best camera reprojects its inliers with {rms:.2f} px RMS "
                               f"(limit {config.max_rms_px} px); the 3D-2D pairs are inconsistent")
-    return ResectionResult(P=P, inliers=inliers, rms_px=rms, n_hypotheses=tried,
+    return ResectionResult(camera=Camera(P, model), inliers=inliers, rms_px=rms, n_hypotheses=tried,
                            info={"n_pairs": n, "n_inliers": int(inliers.sum()), "model": model})
 
 
@@ -205,7 +212,7 @@ def implausible_intrinsics(P: np.ndarray, reference_K: np.ndarray, image_size: t
     (``image_size`` = (width, height)), or its pixel aspect or skew left their bounds. A free
     (11-DOF) resection from a weak point set trades the focal length against the distance and
     the principal point against the orientation, and lands on such cameras."""
-    K = decompose_projection(P)[0]
+    K = Camera(P).K
     K = K / K[2, 2]
     ref = reference_K / reference_K[2, 2]
     shift = float(np.hypot(K[0, 2] - ref[0, 2], K[1, 2] - ref[1, 2]))

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from stereoseed.geometry.camera import camera_center, depths as camera_depths
+from stereoseed.geometry.projection import camera_center, depths as camera_depths
 
 __all__ = ["triangulate_linear", "refine_points", "TriangulationResult", "triangulate", "triangulate_two_view",
            "triangulate_tracks",

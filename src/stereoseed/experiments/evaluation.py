@@ -6,8 +6,9 @@ from typing import Any
 
 import numpy as np
 
+from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import unique
-from stereoseed.geometry.camera import camera_center, decompose_projection, project, rotation_angle_deg
+from stereoseed.geometry.projection import camera_center, project, rotation_angle_deg
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.estimators.triangulation import triangulate_tracks
@@ -31,7 +32,7 @@ def camera_errors(Ps_est: list[np.ndarray | None], Ps_true: list[np.ndarray]) ->
             rot.append(None)
             continue
         centre.append(float(np.linalg.norm(camera_center(Pe) - camera_center(Pt))))
-        rot.append(rotation_angle_deg(decompose_projection(Pe)[1], decompose_projection(Pt)[1]))
+        rot.append(rotation_angle_deg(Camera(Pe).R, Camera(Pt).R))
     return {"center_m": centre, "rotation_deg": rot}
 
 

@@ -6,7 +6,7 @@ the dot product of two descriptors *is* their ZNCC score and all scores between 
 from one matrix product (see :mod:`stereoseed.matching`).
 
 Conventions: images are (H, W) float32 grey levels in [0, 1]; points are (N, 2) float64
-``(x, y)`` pixels with (0, 0) the centre of the top-left pixel (see :mod:`stereoseed.geometry.camera`).
+``(x, y)`` pixels with (0, 0) the centre of the top-left pixel (see :mod:`stereoseed.geometry.projection`).
 
 The grey conversion (:func:`to_gray`) and :func:`sample_bilinear` live in :mod:`stereoseed.features.image`
 and are re-exported here; the junctions' edge intersection is :mod:`stereoseed.features.edge_corners`.

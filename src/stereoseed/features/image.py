@@ -1,7 +1,7 @@
 """Image primitives shared by the stages: grey conversion and bilinear sampling.
 
 Conventions: images are (H, W) arrays indexed ``img[y, x]``; pixel (0, 0) is the centre of the
-top-left pixel (see :mod:`stereoseed.geometry.camera`). Colour images are in OpenCV's BGR(A) order.
+top-left pixel (see :mod:`stereoseed.geometry.projection`). Colour images are in OpenCV's BGR(A) order.
 """
 from __future__ import annotations
 

@@ -12,35 +12,62 @@ intrinsics are free:
 """
 from __future__ import annotations
 
+from enum import StrEnum
+
 import numpy as np
 
-from stereoseed.geometry.camera import compose_projection, decompose_projection
+from stereoseed.geometry.projection import compose_projection, decompose_projection
 
-MODELS = ("free", "zero-skew", "focal", "fixed")
-N_INTRINSICS = {"free": 5, "zero-skew": 3, "focal": 1, "fixed": 0}
 
-__all__ = ["MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection", "projections_from_params",
+class CameraModel(StrEnum):
+    """Which intrinsics of a camera are free; the model owns its parameterisation (intrinsics,
+    then a rotation vector (3), then t (3)). Its value is the name used in configs and reports."""
+
+    FREE = "free"
+    ZERO_SKEW = "zero-skew"
+    FOCAL = "focal"
+    FIXED = "fixed"
+
+    @property
+    def n_intrinsics(self) -> int:
+        return N_INTRINSICS[self]
+
+    @property
+    def n_params(self) -> int:
+        return N_INTRINSICS[self] + 6
+
+    @property
+    def needs_reference(self) -> bool:
+        """Whether its intrinsics are relative to a reference camera's K (the calibrated one)."""
+        return self in (CameraModel.FOCAL, CameraModel.FIXED)
+
+
+MODELS = tuple(m.value for m in CameraModel)
+N_INTRINSICS = {CameraModel.FREE: 5, CameraModel.ZERO_SKEW: 3, CameraModel.FOCAL: 1, CameraModel.FIXED: 0}
+
+__all__ = ["CameraModel", "MODELS", "N_INTRINSICS", "n_params", "params_from_krt", "params_from_projection", "projections_from_params",
            "krt_from_params", "projection_from_params", "project_to_model", "projection_derivatives",
            "rotation_from_vector", "rotations_from_vectors", "Ks_from_intrinsics", "linear_K"]
 
 
 def n_params(model: str) -> int:
-    return N_INTRINSICS[_check(model)] + 6
+    return _check(model).n_params
 
 
-def _check(model: str) -> str:
-    if model not in N_INTRINSICS:
-        raise ValueError(f"unknown camera model {model!r}; choose one of {', '.join(MODELS)}")
-    return model
+def _check(model: str) -> CameraModel:
+    try:
+        return CameraModel(model)
+    except ValueError:
+        raise ValueError(f"unknown camera model {model!r}; choose one of {', '.join(MODELS)}") from None
 
 
 def _intrinsics_from_K(K: np.ndarray, model: str, reference_K: np.ndarray | None) -> np.ndarray:
-    if model == "free":
+    if model == CameraModel.FREE:
         return np.array([K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]])
-    if model == "zero-skew":
+    if model == CameraModel.ZERO_SKEW:
         return np.array([0.5 * (K[0, 0] + K[1, 1]), K[0, 2], K[1, 2]])
     ref = _require_reference(reference_K)
-    if model == "fixed":
+    if model == CameraModel.FIXED:
         return np.zeros(0)
     # least-squares focal that best reproduces K's fx, fy with the reference's aspect ratio
     aspect = ref[1, 1] / ref[0, 0]
@@ -62,9 +89,9 @@ def Ks_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | N
     """K (B, 3, 3) of B intrinsic vectors (B, N_INTRINSICS[model]); reference_K (3, 3) or
     (B, 3, 3) for the "focal" and "fixed" models."""
     B = len(intr)
-    if model in ("free", "zero-skew"):
+    if model in (CameraModel.FREE, CameraModel.ZERO_SKEW):
         K = np.zeros((B, 3, 3))
-        if model == "free":  # fx, fy, skew, cx, cy
+        if model == CameraModel.FREE:  # fx, fy, skew, cx, cy
             K[:, 0, 0], K[:, 1, 1], K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = intr[:, :5].T
         else:  # f, cx, cy
             K[:, 0, 0], K[:, 0, 2], K[:, 1, 2] = intr[:, :3].T
@@ -72,7 +99,7 @@ def Ks_from_intrinsics(intr: np.ndarray, model: str, reference_K: np.ndarray | N
         K[:, 2, 2] = 1.0
         return K
     K = np.broadcast_to(_require_reference(reference_K), (B, 3, 3)).copy()
-    if model == "focal":  # the reference's 2x2 block scaled by f / f_ref
+    if model == CameraModel.FOCAL:  # the reference's 2x2 block scaled by f / f_ref
         scale = intr[:, 0] / K[:, 0, 0]
         K[:, 0, 0] *= scale
         K[:, 0, 1] *= scale
@@ -92,7 +119,7 @@ def params_from_projection(P: np.ndarray, model: str, reference_K: np.ndarray | 
                            ) -> tuple[np.ndarray, np.ndarray | None]:
     """(params, reference_K) for P (3, 4); a constrained model takes the closest K of its family."""
     K, R, t = decompose_projection(P)
-    if model != "free":
+    if model != CameraModel.FREE:
         # Re-express t for the constrained K so the camera centre is kept: t = -R C.
         C = -R.T @ t
         Kc = K_from_intrinsics(_intrinsics_from_K(K, model, reference_K), model, reference_K)
@@ -232,11 +259,11 @@ def _intrinsic_derivatives(model: str, reference_K: np.ndarray | None) -> list[n
             d[r, c] = 1.0
         return d
 
-    if _check(model) == "free":  # fx, fy, skew, cx, cy
+    if _check(model) == CameraModel.FREE:  # fx, fy, skew, cx, cy
         return [unit((0, 0)), unit((1, 1)), unit((0, 1)), unit((0, 2)), unit((1, 2))]
-    if model == "zero-skew":  # f, cx, cy
+    if model == CameraModel.ZERO_SKEW:  # f, cx, cy
         return [unit((0, 0), (1, 1)), unit((0, 2)), unit((1, 2))]
-    if model == "fixed":
+    if model == CameraModel.FIXED:
         return []
     ref = _require_reference(reference_K)  # focal: K = reference_K with its 2x2 block scaled by f / f_ref
     d = np.zeros((3, 3))

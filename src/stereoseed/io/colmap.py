@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.errors import StereoseedError
-from stereoseed.geometry.camera import compose_projection
+from stereoseed.geometry.projection import compose_projection
 from stereoseed.geometry.models import rotation_from_quaternion
 
 __all__ = ["COLMAP_MODELS", "read_colmap_cameras"]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import epipolar_distances
+from stereoseed.geometry.projection import epipolar_distances
 from stereoseed.config import MatchingConfig
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
@@ -26,7 +26,7 @@ def epipolar_band_mask(
     """(N1, N2) bool: pairs of x1 (N1, 2) and x2 (N2, 2) within ``band_px`` of each other's
     epipolar line in both images.
 
-    Same distance as :func:`stereoseed.geometry.camera.epipolar_distances` (max of both one-sided
+    Same distance as :func:`stereoseed.geometry.projection.epipolar_distances` (max of both one-sided
     distances), for all pairs at once: the numerator |x2^T F x1| is shared, so the max distance
     is that numerator over the smaller of the two line normals.
     """
@@ -67,7 +67,7 @@ def filter_fundamental_ransac(
     ``config.ransac_runs`` runs (seeds seed, seed + 1, ...) until one has
     ``config.ransac_enough_inliers``, the F with the most inliers kept. Inliers are the matches
     within the threshold of their epipolar lines in both images
-    (:func:`stereoseed.geometry.camera.epipolar_distances`), recomputed from the returned F.
+    (:func:`stereoseed.geometry.projection.epipolar_distances`), recomputed from the returned F.
 
     Returns (inlier Matches, F (3, 3) float64 of unit norm, "") or (empty Matches, None, why)
     when there are fewer than 8 matches, no estimate, or fewer than ``config.min_f_inliers``

@@ -68,7 +68,7 @@ def candidate_mask(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarr
                    band_px: float = np.inf) -> np.ndarray:
     """(N1, N2) bool: pairs with x2[j] (N2, 2) within ``radius_px`` of x1[i] (N1, 2) and, with F
     (3, 3), within ``band_px`` of each other's epipolar line in both images (the max of both
-    one-sided distances, as :func:`stereoseed.geometry.camera.epipolar_distances`). One pass over the
+    one-sided distances, as :func:`stereoseed.geometry.projection.epipolar_distances`). One pass over the
     pairs, no (N1, N2) temporaries."""
     return _candidate_kernel(*_candidate_arguments(x1, x2, radius_px, F, band_px))
 

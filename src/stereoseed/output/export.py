@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereoseed.geometry.camera import decompose_projection
+from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.models import quaternion_from_rotation
 from stereoseed.errors import StereoseedError
 from stereoseed.io.colmap import COLMAP_MODELS
@@ -57,7 +57,7 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distorti
     params in COLMAP's pixel convention, quaternion (4,) w x y z, t (3,), warning or None).
     SIMPLE_PINHOLE when fx = fy, else PINHOLE; a skewed camera loses its skew, with a warning
     when that moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
-    K, R, t = decompose_projection(P)
+    K, R, t = Camera(P).krt
     warning = None
     moved = _moved_px(K, size)
     if moved > MAX_APPROXIMATION_PX:
@@ -96,7 +96,7 @@ def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
         cameras.append((n, model, w, h, params))
         xy = result.keypoints(i)
         if lens is not None:  # the keypoints are in the undistorted image; COLMAP's model distorts
-            K = decompose_projection(result.P[i])[0]
+            K = Camera(result.P[i]).K
             xy = distort_pixels(xy, K, lens)
         images.append((n, q, t, n, result.names[i], xy + 0.5, point_of[i]))
     return cameras, images, warnings
@@ -184,7 +184,7 @@ def _single_focal_cameras(result: Result, fmt: str) -> tuple[dict[int, tuple], l
     moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
     cams, warnings = {}, []
     for i in result.registered:
-        K, R, t = decompose_projection(result.P[i])
+        K, R, t = Camera(result.P[i]).krt
         moved = _moved_px(K, result.sizes[i], one_focal=True)
         if moved > MAX_APPROXIMATION_PX:
             warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "

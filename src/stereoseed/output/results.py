@@ -28,8 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import distinct_pair_firsts
-from stereoseed.geometry.camera import backproject, camera_center, decompose_projection
+from stereoseed.geometry.projection import backproject, camera_center
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import atomic_path, write_json
@@ -116,7 +117,7 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str
         entry: dict[str, Any] = {"name": v.name, "width": int(w), "height": int(h), "registered": v.registered,
                                  "status": v.status}
         if v.registered:
-            K, R, t = decompose_projection(v.P_input)
+            K, R, t = Camera(v.P_input).krt
             entry.update(P=v.P_input.tolist(), K=K.tolist(), R=R.tolist(), t=t.tolist(),
                          center=v.center.tolist())
             if v.rotated_180:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from stereoseed.geometry.camera import fundamental_from_projections, project
+from stereoseed.geometry.projection import fundamental_from_projections, project
 from stereoseed.config import Config
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from stereoseed.geometry.camera import epipolar_distances, fundamental_from_projections
+from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
 from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc
 from stereoseed.errors import StereoseedError
@@ -29,6 +29,7 @@ from stereoseed.sfm.registration.quasi_dense import grow_quasi_dense, reconsider
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
+from stereoseed.geometry.models import CameraModel
 
 __all__ = ["initialise", "insert_view", "finish"]
 
@@ -144,8 +145,8 @@ def _commit(view: View, reg: Registration) -> None:
     view.keep_image(cand.image, cand.rotated_180)
     view.features = cand.features
     view.point_of_feature = np.full(len(cand.features), -1, np.int64)
-    view.P = reg.P
-    view.camera_model = "focal" if reg.free_camera_refused else None
+    view.camera_model = CameraModel.FOCAL if reg.free_camera_refused else None
+    view.camera = reg.resection.camera
     view.zoomed = reg.zoomed
 
 

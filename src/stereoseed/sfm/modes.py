@@ -24,6 +24,7 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import adjust, ba_report, global_adjust
 from stereoseed.sfm.registration.base import implausible_motion
 from stereoseed.sfm.tracks import add_two_view_points, retriangulate, track_by_projection
+from stereoseed.geometry.models import CameraModel
 
 __all__ = ["PaperMode", "AccurateMode", "mode_of"]
 
@@ -115,7 +116,7 @@ class AccurateMode:
         truth) to 3397, 3649, 4401 px over three insertions while the cameras moved away (a
         camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
         resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
-        return cfg.replace(pipeline={"camera_model": "fixed"}) if _unzoomed(recon, cfg) else cfg
+        return cfg.replace(pipeline={"camera_model": CameraModel.FIXED}) if _unzoomed(recon, cfg) else cfg
 
     def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's
@@ -130,7 +131,7 @@ class AccurateMode:
         later = [v for v in recon.registered_views if v > 1]
         if later and _unzoomed(recon, cfg) and (closed or pc.ba == "final"):
             out["no_zoom"] = True
-            out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": "fixed"}))[0]
+            out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": CameraModel.FIXED}))[0]
         elif pc.ba == "final" and not closed:
             out["final_ba"] = global_adjust(recon, cfg)[0]
         return out
@@ -140,7 +141,7 @@ def _unzoomed(recon: Reconstruction, cfg: Config) -> bool:
     """Whether the run holds the calibrated intrinsics: the "focal" model with
     ``PipelineConfig.hold_unzoomed``, and no image after the pair found zoomed by its resection."""
     pc = cfg.pipeline
-    return (pc.hold_unzoomed and pc.camera_model == "focal"
+    return (pc.hold_unzoomed and pc.camera_model == CameraModel.FOCAL
             and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1))
 
 

@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import unique
-from stereoseed.geometry.camera import decompose_projection, project
+from stereoseed.geometry.projection import project
 from stereoseed.config import Config, MotionPriorConfig, ResectionConfig
 from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
@@ -44,7 +45,7 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
     ``P_last`` (both (3, 4)) applied ``steps`` more times to ``P_last``, with ``P_last``'s
     intrinsics. -> (3, 4)."""
     def pose(P):
-        K, R, t = decompose_projection(P)
+        K, R, t = Camera(P).krt
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
         return K, T

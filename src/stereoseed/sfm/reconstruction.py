@@ -26,7 +26,9 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from stereoseed.estimators.bundle import observation_errors
-from stereoseed.geometry.camera import camera_center, decompose_projection, intrinsics_turned_180
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.models import CameraModel
+from stereoseed.geometry.projection import camera_center, intrinsics_turned_180
 from stereoseed.features.harris import Features
 from stereoseed.features.image import to_gray
 from stereoseed.io.files import atomic_path
@@ -77,6 +79,7 @@ class View:
         self.rotated_180 = rotated_180
         self.camera_model = camera_model
         self.zoomed = zoomed
+        self._camera: Camera | None = None
         self.P = P
 
     @classmethod
@@ -149,39 +152,48 @@ class View:
             self._size = (image.shape[1], image.shape[0])
 
     @property
+    def camera(self) -> Camera | None:
+        """The view's camera in the frame of the image the run works on; None while unregistered."""
+        return self._camera
+
+    @camera.setter
+    def camera(self, camera: Camera | None) -> None:
+        self._camera = camera
+
+    @property
     def P(self) -> np.ndarray | None:
-        return self._P
+        return None if self._camera is None else self._camera.P
 
     @P.setter
     def P(self, P: np.ndarray | None) -> None:
-        self._P = None if P is None else _read_only(np.array(P, np.float64))
-        self._krt: tuple[np.ndarray, ...] | None = None
-
-    def _decomposed(self) -> tuple[np.ndarray, ...]:
-        if self._krt is None:
-            self._krt = tuple(_read_only(a) for a in decompose_projection(self._P))
-        return self._krt
+        """A new P keeps the camera model the view's camera had (a refinement moves the camera
+        within its model)."""
+        if P is None:
+            self._camera = None
+        else:
+            model = self._camera.model if self._camera is not None else CameraModel(self.camera_model or "free")
+            self._camera = Camera(P, model)
 
     @property
     def K(self) -> np.ndarray:
-        return self._decomposed()[0]
+        return self._camera.K
 
     @property
     def R(self) -> np.ndarray:
-        return self._decomposed()[1]
+        return self._camera.R
 
     @property
     def center(self) -> np.ndarray:
-        return camera_center(self._P)
+        return camera_center(self._camera.P)
 
     @property
     def focal(self) -> float:
         """Focal length (px, along x)."""
-        return float(self.K[0, 0])
+        return self._camera.focal
 
     @property
     def registered(self) -> bool:
-        return self._P is not None
+        return self._camera is not None
 
     @property
     def image_size(self) -> tuple[int, int] | None:
@@ -194,11 +206,9 @@ class View:
     @property
     def P_input(self) -> np.ndarray | None:
         """P (3, 4) in the pixel frame of the input image (P works in the frame the run used)."""
-        if self._P is None or not self.rotated_180:
-            return self._P
-        w, h = self.image_size
-        flip = np.array([[-1.0, 0.0, w - 1.0], [0.0, -1.0, h - 1.0], [0.0, 0.0, 1.0]])
-        return flip @ self._P
+        if self._camera is None or not self.rotated_180:
+            return self.P
+        return self._camera.turned_180(self.image_size).P
 
     def in_frame_of(self, K: np.ndarray, source: "View") -> np.ndarray:
         """Intrinsics K (3, 3) of ``source``'s image expressed for this view's image: turning an
@@ -219,12 +229,14 @@ class View:
     def _state(self) -> tuple:
         """(P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed,
         grey image released)."""
-        return (self._P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
+        return (self.P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
                 self.camera_model, self.zoomed, self._gray_released)
 
     def _restore(self, state: tuple) -> None:
-        (self.P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180,
-         self.camera_model, self.zoomed, self._gray_released) = state
+        P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180, self.camera_model, \
+            self.zoomed, self._gray_released = state
+        self._camera = None  # the restored P follows the restored camera_model, not the current camera's model
+        self.P = P
 
 
 def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:

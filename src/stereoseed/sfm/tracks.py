@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereoseed.geometry.camera import fundamental_from_projections, project, project_homogeneous, project_per_observation
+from stereoseed.geometry.projection import fundamental_from_projections, project, project_homogeneous, project_per_observation
 from stereoseed.config import Config
 from stereoseed.features.harris import Features, describe
 from stereoseed.matching.containers import Matches

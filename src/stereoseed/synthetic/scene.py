@@ -52,7 +52,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import camera_center, compose_projection, depths, project
+from stereoseed.geometry.projection import camera_center, compose_projection, depths, project
 from stereoseed.io.files import write_image, write_text
 from stereoseed.geometry.lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
 from stereoseed.synthetic.render import _cast_kernel, _render_kernel, add_noise  # the sensor's noise lives with the renderer

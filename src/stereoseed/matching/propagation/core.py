@@ -25,7 +25,7 @@ Modules: the Numba kernels are in :mod:`stereoseed.matching.propagation._kernels
 refinement in :mod:`stereoseed.matching.propagation.refine`, the drawings in :mod:`stereoseed.output.visualize`;
 this module holds the orchestration (:func:`propagate`, :class:`PropagationResult`).
 
-Conventions are those of :mod:`stereoseed.geometry.camera`: pixel (0, 0) is the centre of the top-left
+Conventions are those of :mod:`stereoseed.geometry.projection`: pixel (0, 0) is the centre of the top-left
 pixel, x right, y down; ``x2.T @ F @ x1 = 0``. Images are grey float in [0, 1] (uint8 and BGR
 inputs are converted by :func:`stereoseed.features.image.to_gray` in float64, see :func:`_grey`).
 """

@@ -9,7 +9,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stereoseed.geometry.camera import backproject, camera_center, is_finite_camera, viewing_direction
+from stereoseed.geometry.projection import backproject, camera_center, is_finite_camera, viewing_direction
 
 log = logging.getLogger("stereoseed.output.report.html")  # one logger for the whole report
 

@@ -28,7 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import camera_center
+from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import jsonable, write_text
 from stereoseed.output.report.figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
                              _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
@@ -55,7 +55,7 @@ def _json_for_script(data: Any) -> str:
 def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | None:
     """The registered image k >= 2 with the fewest resection inliers, matched again against the
     previous registered image j under the known geometry: a PNG (base64) and a caption."""
-    from stereoseed.geometry.camera import fundamental_from_projections
+    from stereoseed.geometry.projection import fundamental_from_projections
     from stereoseed.output.visualize import draw_matches
 
     names = [str(v.name) for v in recon.views]

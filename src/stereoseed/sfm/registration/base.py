@@ -16,7 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import camera_center, decompose_projection, depths, project
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.projection import camera_center, depths, project
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
@@ -24,6 +25,7 @@ from stereoseed.matching.containers import Matches
 from stereoseed.sfm.motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
+from stereoseed.geometry.models import CameraModel
 
 __all__ = ["Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
            "consistent_chain"]
@@ -87,7 +89,7 @@ class Registration:
 
     @property
     def zoomed(self) -> bool:
-        return self.model != "fixed"
+        return self.model != CameraModel.FIXED
 
 
 @dataclass(frozen=True)
@@ -110,7 +112,7 @@ def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps:
     hand-held zoom and a walk around the object (10-20 degrees, a third of the object's
     distance) do neither; a camera fitted to wrong correspondences (repeated patterns, a
     near-planar set) often does."""
-    f = float(decompose_projection(P)[0][0, 0])
+    f = Camera(P).focal
     f_prev = previous.focal
     if not (np.isfinite(f) and f_prev / max_zoom <= f <= f_prev * max_zoom):
         return (f"the estimated camera is implausible (focal length {f:.0f} px after {f_prev:.0f} px in the "
@@ -153,7 +155,7 @@ class _Resector:
         self.steps = cand.index - prev
         self.model = cfg.pipeline.camera_model
         self.ref_K = cand.in_frame(recon.views[1].K, recon.views[1])
-        self.fallback_K = cand.in_frame(self.prev.K, self.prev) if self.model != "free" else None
+        self.fallback_K = cand.in_frame(self.prev.K, self.prev) if self.model != CameraModel.FREE else None
         # may_zoom False: a "focal" camera keeps the previous image's intrinsics (the "fixed"
         # model on them), for correspondences that cannot tell a zoom from a move (see
         # quasi_dense_registration.register_quasi_dense)
@@ -163,13 +165,13 @@ class _Resector:
                  fallback_K: np.ndarray | None) -> ResectionResult | str:
         name = self.cand.name
         reference_K = self.ref_K
-        if model == "focal" and not self.may_zoom and fallback_K is not None:
-            model, reference_K, fallback_K = "fixed", fallback_K, None
+        if model == CameraModel.FOCAL and not self.may_zoom and fallback_K is not None:
+            model, reference_K, fallback_K = CameraModel.FIXED, fallback_K, None
         try:
             res = resect(X3, x2, self.cfg.resection, scores=scores, image_size=self.cand.image_size, model=model,
                          reference_K=reference_K, what=name, fallback_K=fallback_K)
             why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.pipeline.max_zoom_step)
-            if not why and model == "free":
+            if not why and model == CameraModel.FREE:
                 why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
                 why = why and f"the 11-DOF camera is ill-conditioned ({why})"
         except StereoseedError as e:
@@ -181,7 +183,7 @@ class _Resector:
     def __call__(self, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> tuple[ResectionResult, str | None] | str:
         """(result, why the 11-DOF camera was refused or None), or the reason of the failure."""
         res = self._attempt(X3, x2, scores, self.model, self.fallback_K)
-        if not isinstance(res, str) or self.model != "free":
+        if not isinstance(res, str) or self.model != CameraModel.FREE:
             return res if isinstance(res, str) else (res, None)
         # 11 DOF from points on a few faces of a small object far away: the focal length trades
         # against the distance. The calibrated camera's intrinsics with a free zoom (the

@@ -38,7 +38,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from stereoseed.geometry.camera import epipolar_distances, fundamental_from_projections
+from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
 from stereoseed.config import Config
 from stereoseed.features.harris import Features, describe
 from stereoseed.matching.alignment import PairCache, filter_localization
@@ -52,6 +52,7 @@ from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
 from stereoseed.sfm.registration.base import Candidate, Registration, RegistrationFailure, _Resector, consistent_chain
 from stereoseed.estimators.resection import ResectionResult
+from stereoseed.geometry.models import CameraModel
 
 __all__ = ["QUASI_DENSE", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
            "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
@@ -353,9 +354,9 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
     floor = robust_f_agreement(qd)
     qd.report["robust_f_median_px"] = floor
     found = _Resector(recon, prev, cand, cfg, may_zoom=False)(X3, x, scores)
-    if cfg.pipeline.camera_model != "fixed":  # the run's model may find a zoom
+    if cfg.pipeline.camera_model != CameraModel.FIXED:  # the run's model may find a zoom
         zoomed = _Resector(recon, prev, cand, cfg)(X3, x, scores)
-        if not isinstance(zoomed, str) and zoomed[0].info.get("model") != "fixed":
+        if not isinstance(zoomed, str) and zoomed[0].info.get("model") != CameraModel.FIXED:
             zoom_agrees = epipolar_agreement(vp.P, zoomed[0].P, qd)
             qd.report["zoomed_camera_median_px"] = zoom_agrees
             if isinstance(found, str) or zoom_agrees <= qc.zoom_epipolar_ratio * epipolar_agreement(vp.P, found[0].P, qd):
