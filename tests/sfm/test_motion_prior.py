@@ -3,7 +3,7 @@
 from ring_helpers import ring, centre_errors
 from stereoseed.config import Config
 from stereoseed.sfm.mapper import initialise, insert_view
-from stereoseed.sfm.registration.base import MOTION_PRIOR
+from stereoseed.sfm.registration.base import FoundBy
 
 
 def test_without_epipolar_geometry_the_motion_prior_places_the_camera():
@@ -11,7 +11,7 @@ def test_without_epipolar_geometry_the_motion_prior_places_the_camera():
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     reports = [insert_view(recon, k, cfg) for k in range(2, 6)]
-    assert reports[2]["matches"] == 0 and reports[2]["registered_by"] == MOTION_PRIOR
+    assert reports[2]["matches"] == 0 and reports[2]["registered_by"] == FoundBy.MOTION_PRIOR
     assert reports[2]["motion_prior_search"]["radius_fraction"] == min(cfg.motion_prior.radius_fractions)
     assert centre_errors(recon, Ps).max() < 0.003
 
@@ -23,6 +23,6 @@ def test_the_wide_search_finds_a_camera_the_prediction_misses():
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     reports = [insert_view(recon, k, cfg) for k in range(2, 6)]
-    assert reports[2]["registered_by"] == MOTION_PRIOR, reports[2]
+    assert reports[2]["registered_by"] == FoundBy.MOTION_PRIOR, reports[2]
     assert reports[2]["motion_prior_search"]["radius_fraction"] == max(cfg.motion_prior.radius_fractions)
     assert centre_errors(recon, Ps).max() < 0.003

@@ -9,7 +9,8 @@ from stereoseed.config import Config
 from stereoseed.experiments.evaluation import camera_errors
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
-from stereoseed.sfm.registration.quasi_dense import QUASI_DENSE, grid_best, reconsider, weak_chain_limit
+from stereoseed.sfm.registration.base import FoundBy
+from stereoseed.sfm.registration.quasi_dense import grid_best, reconsider, weak_chain_limit
 from stereoseed.sfm.registration.base import RegistrationFailure, register_view
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 
@@ -40,9 +41,9 @@ def test_faint_texture_registers_every_image_and_quasi_dense_where_the_chain_is_
     per = report["per_image"][2:]
     limit = weak_chain_limit(Config())
     for r in per:  # the path follows the rule: quasi-dense only after a weak sparse chain
-        assert (r["registered_by"] == QUASI_DENSE) == ("sparse_weak" in r and "quasi_dense_failed" not in r
+        assert (r["registered_by"] == FoundBy.QUASI_DENSE) == ("sparse_weak" in r and "quasi_dense_failed" not in r
                                                        and r["resection_inliers"] >= limit)
-    assert any(r["registered_by"] == QUASI_DENSE for r in per)
+    assert any(r["registered_by"] == FoundBy.QUASI_DENSE for r in per)
     err = camera_errors([v.P_input for v in recon.views], scene.P)["center_m"][2:]
     assert np.median(err) < 0.003 and max(err) < 0.01  # metres, against the rendered cameras
 
@@ -71,7 +72,7 @@ def test_dino_weak_views_registered_by_quasi_dense(dino_dir):
     recon, report = reconstruct(images[:n], names[:n], P_pair, Config())
     assert report["registered"] == n
     paths = [r["registered_by"] for r in report["per_image"][2:]]
-    assert paths.count(QUASI_DENSE) >= 3
+    assert paths.count(FoundBy.QUASI_DENSE) >= 3
     err = np.array(camera_errors([v.P_input for v in recon.views], [truth[m] for m in names[:n]])["center_m"][2:])
     # metres; measured 0.4, 0.6, 1.3, 1.5, 2.4, 6.3 mm (images 2-7) since the local BA holds the
     # calibrated intrinsics and the quasi-dense camera zooms only when the propagated matches'

@@ -1,19 +1,20 @@
 """Registration of the next view: the camera found, nothing changed before the commit, a view
 that cannot be registered refused with its reason."""
 import numpy as np
+import pytest
 
 from ring_helpers import ring, centre_errors, state, assert_same_state
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import initialise, insert_view
-from stereoseed.sfm.registration.base import CHAIN, Registration, RegistrationFailure, register_view
+from stereoseed.sfm.registration.base import FoundBy, Registration, RegistrationFailure, register_view
 
 
 def test_registration_finds_the_camera_and_changes_nothing(started):
     recon, Ps, cfg = started
     before = state(recon)
     found = register_view(recon, 4, cfg.resolved())
-    assert isinstance(found, Registration) and found.found_by == CHAIN
+    assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # resection alone, before any BA: the focal length trades against the depth (measured 2.7 mm)
     assert np.linalg.norm(camera_center(found.P) - camera_center(Ps[4])) < 0.006
     assert found.chained_points >= 100 and found.resection.inliers.sum() >= 100
@@ -46,3 +47,24 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
     scene = render_scene(SceneConfig(textured=False, seed=5, n_images=2))
     recon, report = initialise(scene.images, scene.names, scene.P[:2], Config())
     assert report["new_points"] >= 100
+
+
+def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(started):
+    from stereoseed.sfm.mapper import registrars
+    from stereoseed.sfm.registration.base import SparseRegistrar
+    from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar
+
+    recon, Ps, cfg = started
+    cfg = cfg.resolved()
+    order = registrars(cfg)
+    assert [type(r) for r in order] == [SparseRegistrar, QuasiDenseRegistrar]
+    before = state(recon)
+    found = None
+    for registrar in order:
+        found = registrar.register(recon, 4, found, cfg)
+        assert_same_state(before, state(recon))
+    assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
+    # the resection's camera carries its model: the run's, or "fixed" where the previous zoom was kept
+    assert found.camera.model == found.resection.info["model"] in (cfg.pipeline.camera_model, "fixed")
+    with pytest.raises(ValueError, match="cannot come first"):
+        QuasiDenseRegistrar().register(recon, 4, None, cfg)

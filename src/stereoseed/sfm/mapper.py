@@ -4,7 +4,7 @@
     for k in 2 .. n-1: insert_view(recon, k, cfg)           # register, then grow and adjust
     finish(recon, cfg)                                      # loop closure / final global BA
 
-:func:`insert_view` registers view k (:func:`stereoseed.sfm.registration.base.register_view`, which
+:func:`insert_view` registers view k through the registrars in the order :func:`registrars` gives (each
 changes nothing) and commits the camera at one point only; then the mode's strategy
 (:mod:`stereoseed.sfm.modes`) adds points, grows tracks and adjusts. An image that cannot be
 placed is reported (``"status": "failed"`` with the reason) and leaves the reconstruction as it
@@ -25,9 +25,10 @@ from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
-from stereoseed.sfm.registration.quasi_dense import grow_quasi_dense, reconsider
+from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
-from stereoseed.sfm.registration.base import MOTION_PRIOR, Registration, RegistrationFailure, consistent_chain, register_view
+from stereoseed.sfm.registration.base import (FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
+                                             consistent_chain)
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
 
@@ -106,6 +107,13 @@ def _check_pair(recon: Reconstruction, cfg: Config) -> None:
             f"swapped, the images in the wrong order, or the calibration another pair's?")
 
 
+def registrars(cfg: Config) -> tuple[Registrar, ...]:
+    """The registrars tried for each view, in order: the sparse matches (epipolar chain against the
+    motion prior), then the quasi-dense matches where the sparse outcome is weak (a registrar
+    that does not apply returns the outcome it was given)."""
+    return (SparseRegistrar(), QuasiDenseRegistrar())
+
+
 def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
     """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
 
@@ -113,11 +121,9 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
     view leaves ``recon`` as it was (only the view's status records why)."""
     cfg = cfg.resolved()
     view = recon.views[k]
-    try:
-        found = register_view(recon, k, cfg)
-    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
-        found = RegistrationFailure(f"{view.name}: numerical failure ({e}); skipped")
-    found = reconsider(recon, k, found, cfg)  # a weak sparse chain: the quasi-dense attempt
+    found = None
+    for registrar in registrars(cfg):
+        found = registrar.register(recon, k, found, cfg)
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
     state = recon.checkpoint()
@@ -183,7 +189,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     if reg.quasi_dense is not None and cfg.quasi_dense.keep_tracks:  # the propagated matches' tracks
         more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode, cfg)
         ids, chain_points = np.concatenate([ids, more]), np.concatenate([chain_points, more_chained])
-    if reg.found_by == MOTION_PRIOR:
+    if reg.found_by == FoundBy.MOTION_PRIOR:
         # repeated patterns defeated two-view matching: let a third view decide
         before = recon.registered_before(prev, 1)
         if before:

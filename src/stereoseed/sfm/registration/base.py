@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from enum import StrEnum
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -27,10 +28,19 @@ from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_fr
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
+__all__ = ["FoundBy", "Registrar", "SparseRegistrar", "Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
            "consistent_chain"]
 
-CHAIN, MOTION_PRIOR = "epipolar chain", "motion prior"
+
+
+class FoundBy(StrEnum):
+    """What placed a camera; its value is the report's ``registered_by``."""
+
+    EPIPOLAR_CHAIN = "epipolar chain"  # robust-F matches chained to the previous view's points
+    MOTION_PRIOR = "motion prior"  # matches searched where the walk's motion predicts the points
+    QUASI_DENSE = "quasi-dense"  # matches propagated from seeds (Lhuillier-Quan), chained
+
+
 
 
 @dataclass(frozen=True)
@@ -58,15 +68,15 @@ class Registration:
     """A camera for an image, not yet part of the reconstruction.
 
     candidate: the image as registered (turned or not) with its interest points; P (3, 4) in
-    its frame; resection: the estimate (inliers, RMS, model); found_by: ``"epipolar chain"``
-    or ``"motion prior"``; hypothesis: the motion prior's winning hypothesis (None when the
+    its frame; resection: the estimate (inliers, RMS, model); found_by: which registrar's
+    correspondences placed it; hypothesis: the motion prior's winning hypothesis (None when the
     chain won); free_camera_refused: why the 11-DOF camera was refused (the focal-only model
     took its place), else None; matches, chained_points: of the robust-F matching; seconds:
     time per step."""
 
     candidate: Candidate
     resection: ResectionResult
-    found_by: str
+    found_by: FoundBy
     matches: int
     chained_points: int
     hypothesis: Hypothesis | None = None
@@ -80,6 +90,10 @@ class Registration:
     @property
     def P(self) -> np.ndarray:
         return self.resection.P
+
+    @property
+    def camera(self) -> Camera:
+        return self.resection.camera
 
     @property
     def model(self) -> str:
@@ -103,6 +117,38 @@ class RegistrationFailure:
     seconds: dict[str, float] = field(default_factory=dict)
     candidate: Candidate | None = None
     notes: dict[str, Any] = field(default_factory=dict)
+
+
+class Registrar(Protocol):
+    """One way of placing the next view. ``register`` sees the previous registrar's outcome for
+    the view (None for the first): it returns that outcome or a better-founded one, and changes
+    nothing in ``recon`` (the mapper commits). The mapper owns the order (:func:`stereoseed.sfm.mapper.registrars`)."""
+
+    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
+                 cfg: Config) -> Registration | RegistrationFailure: ...
+
+
+class SparseRegistrar:
+    """Interest-point matches with the last registered view: the epipolar chain, checked against
+    the motion prior's hypotheses (the camera explaining the most recent points wins)."""
+
+    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
+                 cfg: Config) -> Registration | RegistrationFailure:
+        try:
+            return register_view(recon, k, cfg)
+        except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
+            return RegistrationFailure(f"{recon.views[k].name}: numerical failure ({e}); skipped")
+
+
+@dataclass(frozen=True)
+class _Resected:
+    """A camera from one set of correspondences: the resection, why the 11-DOF camera was refused
+    (None: it was not), what found the correspondences, the motion prior's hypothesis (or None)."""
+
+    result: ResectionResult
+    refused: str | None
+    found_by: FoundBy
+    hypothesis: Hypothesis | None = None
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -146,7 +192,7 @@ def consistent_chain(recon: Reconstruction, prev: int, k: int, m: Matches,
     return pid, chained, consistent
 
 
-class _Resector:
+class Resector:
     """Resection of one candidate under the run's camera model, each result validated (a
     plausible motion; an 11-DOF camera must be a physical one, else the focal-only model)."""
 
@@ -235,15 +281,14 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, str):
         return RegistrationFailure(found, n_matches, n_chained, seconds, cand)
-    (res, refused), found_by, hypothesis = found
-    return Registration(cand, res, found_by, n_matches, n_chained, hypothesis, refused, seconds)
+    return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
+                        seconds)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
-            cfg: Config) -> tuple[tuple[ResectionResult, str | None], str, Hypothesis | None] | str:
+            cfg: Config) -> _Resected | str:
     """The camera of ``cand`` from its chained 3D-2D correspondences (points3d (N, 3),
-    points2d (N, 2), ZNCC scores (N,)), or why there is none: ((result, refusal), found_by,
-    the motion prior's winning hypothesis or None) or the reason.
+    points2d (N, 2), ZNCC scores (N,)), or the reason there is none.
 
     A weak chain is checked against the motion prior even at the first insertion, where the
     prediction only extrapolates the stereo pair's baseline (a robust F fitted to period-
@@ -252,7 +297,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
     clearly more (more candidates also mean more chances for a slightly worse camera to win
     by a point or two)."""
     pc, mp = cfg.pipeline, cfg.motion_prior
-    resect_with = _Resector(recon, prev, cand, cfg)
+    resect_with = Resector(recon, prev, cand, cfg)
     chain, error = None, None
     if len(X3) >= cfg.resection.min_inliers:
         chain = resect_with(X3, x2, scores)
@@ -261,7 +306,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         prior_exists = bool(recon.registered_before(prev, 1))
         if chain is not None and (not prior_exists
                                   or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
-            return chain, CHAIN, None
+            return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
     chosen, explained = None, 0
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
@@ -283,6 +328,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         if chosen is None or (counts[best] > 0 and counts[best] >= mp.wider_search_margin * explained):
             chosen, explained = cameras[best], counts[best]
     if chosen is not None:
-        return chosen[0], (CHAIN if chosen[1] is None else MOTION_PRIOR), chosen[1]
+        found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
+        return _Resected(*chosen[0], found_by, chosen[1])
     return error or (f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
                      f"{pc.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")

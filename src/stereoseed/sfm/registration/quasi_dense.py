@@ -50,16 +50,16 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
-from stereoseed.sfm.registration.base import Candidate, Registration, RegistrationFailure, _Resector, consistent_chain
+from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, RegistrationFailure, Resector,
+                                             consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["QUASI_DENSE", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
+__all__ = ["QuasiDenseRegistrar", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
            "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
 
 log = logging.getLogger(__name__)
 
-QUASI_DENSE = "quasi-dense"
 
 
 @dataclass(frozen=True)
@@ -353,9 +353,9 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
     qc, vp = cfg.quasi_dense, recon.views[prev]
     floor = robust_f_agreement(qd)
     qd.report["robust_f_median_px"] = floor
-    found = _Resector(recon, prev, cand, cfg, may_zoom=False)(X3, x, scores)
+    found = Resector(recon, prev, cand, cfg, may_zoom=False)(X3, x, scores)
     if cfg.pipeline.camera_model != CameraModel.FIXED:  # the run's model may find a zoom
-        zoomed = _Resector(recon, prev, cand, cfg)(X3, x, scores)
+        zoomed = Resector(recon, prev, cand, cfg)(X3, x, scores)
         if not isinstance(zoomed, str) and zoomed[0].info.get("model") != CameraModel.FIXED:
             zoom_agrees = epipolar_agreement(vp.P, zoomed[0].P, qd)
             qd.report["zoomed_camera_median_px"] = zoom_agrees
@@ -417,7 +417,7 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
         return found, qd
     res, refused = found
     qd.report["resection_inliers"] = int(res.inliers.sum())
-    return Registration(cand, res, QUASI_DENSE, len(qd.grid), int(on_lines.sum()), None, refused, seconds,
+    return Registration(cand, res, FoundBy.QUASI_DENSE, len(qd.grid), int(on_lines.sum()), None, refused, seconds,
                         quasi_dense=qd), qd
 
 
@@ -437,6 +437,17 @@ def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate, 
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
     return qd
+
+
+class QuasiDenseRegistrar:
+    """Matches propagated from seeds between the last registered view and this one, tried when the
+    sparse outcome is weak or failed (:func:`reconsider`)."""
+
+    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
+                 cfg: Config) -> Registration | RegistrationFailure:
+        if found is None:
+            raise ValueError("the quasi-dense registrar reconsiders a sparse attempt; it cannot come first")
+        return reconsider(recon, k, found, cfg)
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
