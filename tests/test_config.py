@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from stereoseed.config import (BundleConfig, Config, LoopClosureConfig, MotionPriorConfig, PipelineConfig,
+from stereoseed.config import (BundleConfig, Config, ResolvedConfig, LoopClosureConfig, MotionPriorConfig, PipelineConfig,
                                PropagationConfig, ResectionConfig, TriangulationConfig)
 
 
@@ -37,15 +37,19 @@ def test_invalid_configs_are_refused_with_the_field_named(make, field):
 
 
 def test_the_resolved_config_fills_in_the_mode_defaults():
-    paper = Config(pipeline=PipelineConfig(mode="paper")).resolved()
+    paper = Config(pipeline=PipelineConfig(mode="paper")).resolve()
     assert (paper.pipeline.camera_model, paper.pipeline.window, paper.pipeline.ba) == ("free", 1, "local")
     assert paper.pipeline.resolved_outlier_factor() is None and paper.motion_prior.explain_px == 3.0
-    accurate = Config().resolved()
+    accurate = Config().resolve()
     assert (accurate.pipeline.camera_model, accurate.pipeline.window, accurate.pipeline.ba) == ("focal", 3, "final")
     assert accurate.pipeline.resolved_outlier_factor() == 4.0 and accurate.motion_prior.explain_px == 1.5
-    assert accurate.resolved() == accurate
+    assert isinstance(accurate, ResolvedConfig) and accurate.resolve() is accurate  # resolved once
+    # a copy with a field changed stays resolved; a field set back to None takes its mode's default again
+    fixed = accurate.replace(pipeline={"camera_model": "fixed"})
+    assert isinstance(fixed, ResolvedConfig) and fixed.pipeline.camera_model == "fixed" and fixed.pipeline.window == 3
+    assert fixed.replace(pipeline={"camera_model": None}).pipeline.camera_model == "focal"
     # what the user set stays
-    mine = Config(pipeline=PipelineConfig(mode="paper", window=2, ba="final")).resolved().pipeline
+    mine = Config(pipeline=PipelineConfig(mode="paper", window=2, ba="final")).resolve().pipeline
     assert (mine.window, mine.ba) == (2, "final")
 
 

@@ -570,17 +570,19 @@ class Config:
                 raise ValueError(f"Config.{f.name} must be a {f.default_factory.__name__}, "
                                  f"got {type(getattr(self, f.name)).__name__}")
 
-    def resolved(self) -> "Config":
-        """The configuration a run uses: the mode-dependent defaults (None) filled in."""
+    def resolve(self) -> "ResolvedConfig":
+        """The configuration a run uses: the mode-dependent defaults (None) filled in, once (a
+        :class:`ResolvedConfig` resolves to itself)."""
         pipeline = self.pipeline.resolved()
         prior = self.motion_prior
         if prior.explain_px is None:
             prior = dataclasses.replace(prior, explain_px=3.0 if pipeline.mode == "paper" else 1.5)
-        return dataclasses.replace(self, pipeline=pipeline, motion_prior=prior)
+        sections = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return ResolvedConfig(**{**sections, "pipeline": pipeline, "motion_prior": prior})
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved configuration as a JSON-able dict (what report.json records)."""
-        return dataclasses.asdict(self.resolved())
+        return dataclasses.asdict(self.resolve())
 
     def replace(self, **sections: Any) -> "Config":
         """Copy with some stages' fields replaced: ``cfg.replace(matching={"min_zncc": 0.7})``."""
@@ -589,3 +591,19 @@ class Config:
             current = getattr(self, name)
             updates[name] = dataclasses.replace(current, **values) if isinstance(values, dict) else values
         return dataclasses.replace(self, **updates)
+
+
+@dataclass(frozen=True)
+class ResolvedConfig(Config):
+    """A :class:`Config` with every mode-dependent default filled in: what a run's steps read.
+    The public entry points resolve the configuration they are given once; the steps below them
+    take this type and do not resolve again."""
+
+    def resolve(self) -> "ResolvedConfig":
+        return self
+
+    def replace(self, **sections: Any) -> "ResolvedConfig":
+        """Copy with some stages' fields replaced, still resolved (a field set to None takes its
+        mode's default again)."""
+        plain = Config(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        return plain.replace(**sections).resolve()

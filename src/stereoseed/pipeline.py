@@ -64,7 +64,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     n = len(images)
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     key = inputs_key(images, names, P_pair, cfg) if checkpoint is not None else ""
     source = source or HarrisZncc(cfg)
     state = None
@@ -150,7 +150,7 @@ def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]],
     images without running them again (the report's "seconds": the finishing step's)."""
     state = recon.checkpoint()
     try:
-        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolved(), time.perf_counter())
+        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolve(), time.perf_counter())
     finally:
         recon.restore(state)
 

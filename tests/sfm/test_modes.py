@@ -33,12 +33,12 @@ def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
 
     P = np.hstack([np.eye(3), np.zeros((3, 1))])
     recon = Reconstruction([View(name=f"v{i}", P=P) for i in range(4)])
-    cfg = Config().resolved()
+    cfg = Config().resolve()
     assert _unzoomed_held(recon, cfg).pipeline.camera_model == "fixed"
     recon.views[3].zoomed = True
     assert _unzoomed_held(recon, cfg) is cfg
     recon.views[3].zoomed = False
-    paper = Config(pipeline=PipelineConfig(mode="paper")).resolved()
+    paper = Config(pipeline=PipelineConfig(mode="paper")).resolve()
     assert _unzoomed_held(recon, paper) is paper
-    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolved()
+    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolve()
     assert _unzoomed_held(recon, no_hold) is no_hold

@@ -50,7 +50,7 @@ def test_faint_texture_registers_every_image_and_quasi_dense_where_the_chain_is_
 
 def test_reconsider_changes_nothing(faint_scene):
     scene = faint_scene
-    cfg = Config().resolved()
+    cfg = Config().resolve()
     recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], cfg)
     before = recon.checkpoint()
     found = reconsider(recon, 2, register_view(recon, 2, cfg), cfg)

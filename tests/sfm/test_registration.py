@@ -13,7 +13,7 @@ from stereoseed.sfm.registration.base import FoundBy, Registration, Registration
 def test_registration_finds_the_camera_and_changes_nothing(started):
     recon, Ps, cfg = started
     before = state(recon)
-    found = register_view(recon, 4, cfg.resolved())
+    found = register_view(recon, 4, cfg.resolve())
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # resection alone, before any BA: the focal length trades against the depth (measured 2.7 mm)
     assert np.linalg.norm(camera_center(found.P) - camera_center(Ps[4])) < 0.006
@@ -30,7 +30,7 @@ def test_an_image_that_cannot_be_registered_leaves_no_trace():
     before = state(recon)
     report = insert_view(recon, 3, cfg)
     assert report["status"] == "failed" and "v3.png" in report["reason"]
-    assert isinstance(register_view(recon, 3, cfg.resolved()), RegistrationFailure)
+    assert isinstance(register_view(recon, 3, cfg.resolve()), RegistrationFailure)
     assert_same_state(before, state(recon))
     assert recon.views[3].status.startswith("failed: ")
     # the walk goes on from the last registered view, two steps away
@@ -55,7 +55,7 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar
 
     recon, Ps, cfg = started
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     order = registrars(cfg)
     assert [type(r) for r in order] == [SparseRegistrar, QuasiDenseRegistrar]
     before = state(recon)

@@ -21,7 +21,7 @@ def close_loop(recon: Reconstruction, cfg: Config) -> tuple[bool, dict[str, Any]
     ``span`` (those looking within ``max_axis_angle_deg`` of each other), merge the points
     reconstructed twice, link the observations a view lacks, then :func:`global_adjust`.
     Returns (closed, a JSON-able report: the reason when nothing was shared)."""
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     lc = cfg.loop_closure
     reg = recon.registered_views
     if len(reg) < 2 * lc.span + 1:

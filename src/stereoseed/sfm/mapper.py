@@ -60,7 +60,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     correspondences come from (default :class:`HarrisZncc`). Raises :class:`StereoseedError`
     when the pair gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     recon = Reconstruction([View.of_input(n, images, i) for i, n in enumerate(names)])
     recon.source = source or HarrisZncc(cfg)
     for i in (0, 1):
@@ -119,7 +119,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[s
 
     Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
     view leaves ``recon`` as it was (only the view's status records why)."""
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     view = recon.views[k]
     found = None
     for registrar in registrars(cfg):
@@ -226,7 +226,7 @@ def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
     """After the last insertion: the mode's finishing step (accurate: loop closure, a final
     global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``)."""
     t = time.perf_counter()
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     out = mode_of(cfg).finish(recon, cfg)
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:

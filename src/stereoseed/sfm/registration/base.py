@@ -249,7 +249,7 @@ def _turned(source, cand: Candidate) -> Candidate:
 def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | RegistrationFailure:
     """A camera for view k from the last registered view before it. Changes nothing in
     ``recon``."""
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     prev = recon.registered_before(k, 1)[0]
     vp, view, source = recon.views[prev], recon.views[k], recon.source
     moving = recon.views[1]

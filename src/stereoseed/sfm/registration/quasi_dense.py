@@ -455,7 +455,7 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     """The sparse attempt ``found`` for view k, or the quasi-dense one when the sparse chain is
     weak (fewer resection inliers than :func:`weak_chain_limit`, or none) and the quasi-dense
     camera rests on more inliers. Changes nothing in ``recon``; the choice is in ``notes``."""
-    cfg = cfg.resolved()
+    cfg = cfg.resolve()
     if not cfg.quasi_dense.enabled or found.candidate is None:
         return found
     sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
