@@ -41,7 +41,7 @@ Progress = Callable[[int, int, str], None]
 # after_insertion(recon, per_image): likewise, with the model as it stands (see reconstruct)
 AfterInsertion = Callable[[Reconstruction, list[dict[str, Any]]], None]
 
-CHECKPOINT = ".checkpoint.pkl"  # in the staging folder, kept after an interruption for resume
+CHECKPOINT = ".checkpoint.npz"  # in the staging folder, kept after an interruption for resume
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),

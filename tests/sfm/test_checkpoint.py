@@ -1,12 +1,17 @@
 """Checkpoints of a long run: the descriptors of old views named, not copied, and a resumed run
-that reads its images from disk ends where the uninterrupted one does."""
-import pickle
+that reads its images from disk ends where the uninterrupted one does; a checkpoint that is not
+the run's own (planted, altered, another user's) is refused, never executed."""
+import json
+import logging
+import os
 
 import numpy as np
 import pytest
 
 from stereoseed import pipeline
-from stereoseed.sfm.checkpoint import CheckpointWriter, spill_folder
+from stereoseed.features.harris import Features
+from stereoseed.sfm import checkpoint as ck
+from stereoseed.sfm.checkpoint import CheckpointWriter, load_checkpoint, save_checkpoint, spill_folder
 from stereoseed.errors import StereoseedError
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.config import Config
@@ -26,9 +31,9 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
     images_txt, calib = ring_on_disk
     cfg = Config()
     images, names, P_pair = pipeline.load_sequence(images_txt, calib)
-    whole, _ = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=tmp_path / "whole.pkl")
+    whole, _ = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=tmp_path / "whole.npz")
 
-    checkpoint = tmp_path / "run.pkl"
+    checkpoint = tmp_path / "run.npz"
     insert = pipeline.insert_view
 
     def interrupted(recon, k, cfg):
@@ -42,11 +47,10 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
         pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=checkpoint)
     # views 3-5 left the working set (the first 3 and the last 5 stay): their descriptors are
     # in files beside the checkpoint, which names them
-    with open(checkpoint, "rb") as fh:
-        views = pickle.load(fh)["views"]
-    spilled = [i for i, v in enumerate(views) if v[1] is not None and isinstance(v[1][1], tuple)]
+    views = _meta_of(checkpoint)["views"]
+    spilled = [i for i, v in enumerate(views) if v["desc_file"] is not None]
     assert spilled == [3, 4, 5]
-    assert all((spill_folder(checkpoint) / views[i][1][1][1]).is_file() for i in spilled)
+    assert all((spill_folder(checkpoint) / views[i]["desc_file"]).is_file() for i in spilled)
 
     monkeypatch.setattr(pipeline, "insert_view", insert)
     images, names, P_pair = pipeline.load_sequence(images_txt, calib)
@@ -75,7 +79,7 @@ def test_a_resume_with_a_mistyped_input_keeps_its_checkpoint(ring_on_disk, tmp_p
 def test_the_spill_folder_is_named_as_memory_maps_name_their_files(tmp_path):
     # a memory map's file name is normalised (os.path.abspath): "sub/.." must not hide the match
     (tmp_path / "sub").mkdir()
-    assert spill_folder(tmp_path / "sub" / ".." / "ck.pkl") == tmp_path / "ck.pkl.spill"
+    assert spill_folder(tmp_path / "sub" / ".." / "ck.npz") == tmp_path / "ck.npz.spill"
 
 
 def test_a_long_run_may_keep_a_memory_map_per_view_open():
@@ -91,6 +95,11 @@ def test_a_long_run_may_keep_a_memory_map_per_view_open():
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
 
 
+def _meta_of(path) -> dict:
+    with np.load(path, allow_pickle=False) as npz:
+        return json.loads(npz["meta"].tobytes().decode("utf-8"))
+
+
 def _small_reconstruction() -> Reconstruction:
     recon = Reconstruction([View("a"), View("b")])
     recon.add_points(np.arange(12.0).reshape(4, 3), np.zeros((4, 3), np.uint8))
@@ -100,26 +109,260 @@ def _small_reconstruction() -> Reconstruction:
 def test_a_background_checkpoint_is_the_state_when_saved(tmp_path):
     """The run goes on changing the model while the thread writes: the file holds the snapshot."""
     recon = _small_reconstruction()
-    path = tmp_path / "run.pkl"
+    path = tmp_path / "run.npz"
     with CheckpointWriter(path, "key") as writer:
         writer.save(recon, [{"image": "a"}])
         recon.points[:] = -1.0
         recon.add_points(np.ones((2, 3)), np.zeros((2, 3), np.uint8))
-    payload = pickle.loads(path.read_bytes())
-    assert payload["key"] == "key" and payload["per_image"] == [{"image": "a"}]
-    np.testing.assert_array_equal(payload["points"], np.arange(12.0).reshape(4, 3))
+    meta = _meta_of(path)
+    assert meta["key"] == "key" and meta["per_image"] == [{"image": "a"}]
+    with np.load(path, allow_pickle=False) as npz:
+        np.testing.assert_array_equal(npz["points"], np.arange(12.0).reshape(4, 3))
 
 
 def test_a_failed_background_checkpoint_is_reported(tmp_path):
     (tmp_path / "a_file").write_text("")
     with pytest.raises(StereoseedError, match="cannot write"):
-        with CheckpointWriter(tmp_path / "a_file" / "run.pkl", "key") as writer:
+        with CheckpointWriter(tmp_path / "a_file" / "run.npz", "key") as writer:
             writer.save(_small_reconstruction(), [])
 
 
 def test_a_failed_background_checkpoint_does_not_hide_the_runs_own_error(tmp_path):
     (tmp_path / "a_file").write_text("")
     with pytest.raises(KeyError, match="the run's"):
-        with CheckpointWriter(tmp_path / "a_file" / "run.pkl", "key") as writer:
+        with CheckpointWriter(tmp_path / "a_file" / "run.npz", "key") as writer:
             writer.save(_small_reconstruction(), [])
             raise KeyError("the run's")
+
+
+# ------------------------------------------------------------------ a checkpoint from outside
+KEY = "0123456789abcdef" * 4  # an inputs key (a hex digest)
+
+
+class _Planted:
+    """What a planted pickle would hold: unpickling it creates the file ``marker``."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def _planted_pickle(marker) -> bytes:
+    import pickle
+
+    return pickle.dumps({"version": 2, "views": [_Planted(marker)]})
+
+
+def test_the_planted_pickle_would_run_if_unpickled(tmp_path):
+    """The payload the tests below plant does run its code when unpickled: the marker not
+    appearing there is the checkpoint's doing."""
+    import pickle
+
+    marker = tmp_path / "ran"
+    pickle.loads(_planted_pickle(marker))
+    assert marker.exists()
+
+
+class _Saved:
+    def __init__(self, path, images, names, recon, per_image):
+        self.path, self.images, self.names, self.recon, self.per_image = path, images, names, recon, per_image
+
+
+@pytest.fixture
+def saved(tmp_path) -> _Saved:
+    """A checkpoint of three views (the first two registered, the second turned by 180 degrees
+    with the focal-only model, the first's descriptors spilled beside the checkpoint), five
+    points seen by both registered views, and the reports."""
+    rng = np.random.default_rng(1)
+    path = tmp_path / "staging" / "ck.npz"
+    names = ["a.png", "b.png", "c.png"]
+    images = [rng.integers(0, 256, (24, 32, 3), dtype=np.uint8) for _ in names]
+    K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+    views = []
+    for i, name in enumerate(names):
+        n = 6 + i
+        features = Features(rng.uniform(0, 30, (n, 2)), rng.standard_normal((n, 9)).astype(np.float32),
+                            rng.random(n) > 0.2, rng.random(n), (24, 32))
+        P = K @ np.hstack([np.eye(3), [[0.1 * i], [0.0], [0.0]]]) if i < 2 else None
+        views.append(View(name, features, P=P, status="registered" if i < 2 else "pending",
+                          point_of_feature=np.full(n, -1, np.int64), image=images[i], rotated_180=i == 1,
+                          camera_model="focal" if i == 1 else None, zoomed=i == 1))
+    recon = Reconstruction(views)
+    ids = recon.add_points(rng.standard_normal((5, 3)) + [0.0, 0.0, 5.0], rng.integers(0, 256, (5, 3)))
+    recon.add_observations(0, np.arange(5), ids)
+    recon.add_observations(1, np.arange(1, 6), ids)
+    recon.add_observations(1, [0], ids[:1], link=False)
+    spill_folder(path).mkdir(parents=True)
+    recon.views[0].release_pixels(spill_folder(path))
+    per_image = [{"image": "a.png", "status": "calibrated"},
+                 {"image": "b.png", "status": "calibrated pair", "new_points": np.int64(5), "rms": 0.25}]
+    save_checkpoint(path, recon, per_image, KEY)
+    return _Saved(path, images, names, recon, per_image)
+
+
+def _load(saved: _Saved, key: str = KEY):
+    return load_checkpoint(saved.path, saved.images, saved.names, key, source="the source")
+
+
+def test_a_checkpoint_gives_back_the_model_and_reports_with_spilled_descriptors_named(saved):
+    recon, per_image = _load(saved)
+    assert per_image == [{"image": "a.png", "status": "calibrated"},
+                         {"image": "b.png", "status": "calibrated pair", "new_points": 5, "rms": 0.25}]
+    for name in ("points", "colors", "alive", "obs_view", "obs_feature", "obs_point", "obs_linked"):
+        np.testing.assert_array_equal(getattr(recon, name), getattr(saved.recon, name))
+    for a, b in zip(recon.views, saved.recon.views):
+        assert (a.name, a.status, a.rotated_180, a.camera_model, a.zoomed) == \
+            (b.name, b.status, b.rotated_180, b.camera_model, b.zoomed)
+        assert (a.P is None and b.P is None) or np.array_equal(a.P, b.P)
+        for field in ("points", "desc", "valid", "response"):
+            np.testing.assert_array_equal(getattr(a.features, field), getattr(b.features, field))
+        assert a.features.image_shape == b.features.image_shape
+        np.testing.assert_array_equal(a.point_of_feature, b.point_of_feature)
+    # the spilled descriptors are memory-mapped from their file, not copied into the checkpoint
+    assert recon.views[0].features.desc.filename == saved.recon.views[0].features.desc.filename
+    with np.load(saved.path, allow_pickle=False) as npz:
+        assert "view0.desc" not in npz.files and "view1.desc" in npz.files
+    np.testing.assert_array_equal(recon.views[1].image, saved.images[1][::-1, ::-1])  # turned as the run turned it
+    assert recon.source == "the source"
+    assert os.stat(saved.path).st_mode & 0o077 == 0  # the user's alone
+
+
+def _refused(saved: _Saved, caplog, why: str, key: str = KEY) -> None:
+    with caplog.at_level(logging.WARNING, logger="stereoseed.sfm.checkpoint"):
+        assert _load(saved, key) is None
+    assert "starting again" in caplog.text and why in caplog.text, caplog.text
+
+
+def _rewrite(saved: _Saved, change, key: str | None = KEY) -> None:
+    """The checkpoint with ``change(arrays, meta)`` applied, signed again with ``key`` (as
+    someone who can read the inputs could), or, with ``key`` None, with its old signature."""
+    with np.load(saved.path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    meta = json.loads(arrays.pop("meta").tobytes().decode("utf-8"))
+    change(arrays, meta)
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), np.uint8)
+    if key is not None:
+        arrays.pop("mac")
+        ck._write(saved.path, arrays, key)
+    else:
+        with open(saved.path, "wb") as fh:  # keeps the file's mode
+            np.savez(fh, **arrays)
+
+
+def test_a_planted_pickle_at_the_checkpoint_is_never_run(saved, tmp_path, caplog):
+    marker = tmp_path / "ran"
+    saved.path.write_bytes(_planted_pickle(marker))
+    _refused(saved, caplog, "pickled")
+    assert not marker.exists()
+
+
+def test_a_planted_object_array_is_never_unpickled(saved, tmp_path, caplog):
+    marker = tmp_path / "ran"
+    planted = np.empty(1, object)
+    planted[0] = _Planted(marker)
+
+    with np.load(saved.path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    arrays["points"] = planted
+    with open(saved.path, "wb") as fh:
+        np.savez(fh, allow_pickle=True, **arrays)
+    _refused(saved, caplog, "holds objects")
+    assert not marker.exists()
+
+
+def _set(name, value):
+    def change(arrays, meta):
+        arrays[name] = value(arrays[name])
+    return change
+
+
+def _flag(view, name, value):
+    def change(arrays, meta):
+        meta["views"][view][name] = value
+    return change
+
+
+def _with_nan(a):
+    a = a.astype(np.float64)
+    a[0] = np.nan
+    return a
+
+
+def _out_of_range(a, value=999):
+    a = a.copy()
+    a[0] = value
+    return a
+
+
+@pytest.mark.parametrize("change, key, why", [
+    (_set("points", lambda a: a + 1e-9), None, "signature"),  # altered, the old signature kept
+    (_set("mac", lambda a: a ^ 1), None, "signature"),
+    (_set("obs_point", _with_nan), KEY, "obs_point is float64"),
+    (_set("obs_feature", _out_of_range), KEY, "obs_feature holds indices out of range"),
+    (_set("obs_view", lambda a: _out_of_range(a, -1)), KEY, "obs_view holds indices out of range"),
+    (_set("view1.point_of_feature", _out_of_range), KEY, "view1.point_of_feature holds indices out of range"),
+    (_set("points", lambda a: a[:, :2].copy()), KEY, "points is float64 (5, 2)"),
+    (_set("view1.desc", lambda a: a[:-1].copy()), KEY, "view1.desc is float32"),
+    (_set("view0.P", lambda a: a.astype(np.float32)), KEY, "view0.P is float32"),
+    (lambda arrays, meta: arrays.pop("view0.P"), KEY, "view0.P is missing"),
+    (lambda arrays, meta: arrays.update(extra=np.zeros(1)), KEY, "unexpected arrays (extra)"),
+    (_flag(0, "desc_file", "../x.npy"), KEY, "not a file name"),
+    (_flag(0, "desc_file", "/etc/passwd"), KEY, "not a file name"),
+    (_flag(0, "desc_file", "desc_gone.npy"), KEY, "cannot be read"),
+    (_flag(0, "name", "z.png"), KEY, "description of 'a.png' is malformed"),
+    (_flag(1, "zoomed", "yes"), KEY, "description of 'b.png' is malformed"),
+    (lambda arrays, meta: meta.update(version=2), KEY, "another version"),
+    (lambda arrays, meta: meta.update(per_image=meta["per_image"][:1]), KEY, "reports are not of these images"),
+])
+def test_an_altered_or_malformed_checkpoint_is_refused(saved, caplog, change, key, why):
+    # the traversal's target exists and holds descriptors: only its name refuses it
+    np.save(saved.path.parent / "x.npy", np.asarray(saved.recon.views[0].features.desc))
+    _rewrite(saved, change, key)
+    _refused(saved, caplog, why)
+
+
+def test_a_checkpoint_of_other_inputs_is_refused(saved, caplog):
+    _refused(saved, caplog, "signature", key="another inputs key")
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="no file owners")
+@pytest.mark.parametrize("what", ["file", "folder", "spill folder", "spilled file"])
+def test_a_checkpoint_others_may_write_is_refused(saved, caplog, what):
+    target = {"file": saved.path, "folder": saved.path.parent, "spill folder": spill_folder(saved.path),
+              "spilled file": saved.recon.views[0].features.desc.filename}[what]
+    os.chmod(target, os.stat(target).st_mode | 0o020)  # group-writable
+    _refused(saved, caplog, "may be written by group or others")
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid") or os.getuid() != 0, reason="giving a file away needs root")
+def test_another_users_checkpoint_is_refused(saved, caplog):
+    os.chown(saved.path, 4321, -1)
+    _refused(saved, caplog, "belongs to another user")
+
+
+@pytest.mark.skipif(not hasattr(os, "O_NOFOLLOW"), reason="no O_NOFOLLOW")
+def test_a_link_in_place_of_the_checkpoint_is_refused(saved, caplog):
+    real = saved.path.with_name("elsewhere.npz")
+    saved.path.rename(real)
+    saved.path.symlink_to(real)
+    _refused(saved, caplog, "unusable checkpoint")
+
+
+def test_a_planted_pickle_beside_the_output_is_never_run(ring_on_disk, tmp_path, caplog):
+    """At the checkpoint's name and at the name pickled checkpoints had: neither runs, and the
+    run starts again."""
+    from stereoseed.output.results import ResultSet
+
+    images_txt, calib = ring_on_disk
+    out = tmp_path / "out"
+    staging = ResultSet(out).open()
+    marker = tmp_path / "ran"
+    (staging / ".checkpoint.pkl").write_bytes(_planted_pickle(marker))
+    (staging / pipeline.CHECKPOINT).write_bytes(_planted_pickle(marker))
+    with caplog.at_level(logging.WARNING, logger="stereoseed.sfm.checkpoint"):
+        report = pipeline.reconstruct_to_folder(images_txt, calib, out, resume=True)
+    assert not marker.exists()
+    assert "resumed_images" not in report and report["registered"] == report["images"]
+    assert "starting again" in caplog.text

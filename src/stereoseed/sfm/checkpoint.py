@@ -2,21 +2,32 @@
 
 After each insertion the reconstruction's whole state (points, observations, every view's
 camera, interest points and links; not the images, which are read again) and the per-image
-reports are pickled atomically. The descriptors of a view out of the mapper's working set are
+reports are written atomically. The descriptors of a view out of the mapper's working set are
 written once, when it leaves it, to the folder beside the checkpoint (:func:`spill_folder`), and
 the checkpoint names their file: a checkpoint costs the working set and the model, not the
 whole sequence's descriptors (300 MB at 300 images). A checkpoint belongs to one set of inputs (image pixels, the
 pair's cameras, the configuration: :func:`inputs_key`); a resumed run continues exactly where
 the interrupted one stopped and gives the same result as an uninterrupted run (every step is
 deterministic, and the correspondence source's caches only save time).
+
+The file holds data only, never code: an uncompressed ``.npz`` of NumPy arrays (read with
+``allow_pickle=False``) whose member ``meta`` is UTF-8 JSON (the version, the inputs' key, the
+reports, each view's flags) and whose member ``mac`` is an HMAC-SHA256 of all the others keyed
+by the inputs' key. A checkpoint is used only when it and its folders belong to the user and
+nobody else may write them, its signature matches, and every array has the dtype, shape and
+index range the model needs; anything else is logged and the run starts again.
 """
 from __future__ import annotations
 
 import hashlib
-import os
+import hmac
 import json
 import logging
-import pickle
+import math
+import os
+import stat
+import tempfile
+import zipfile
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -26,16 +37,31 @@ import cv2
 import numpy as np
 
 from stereoseed.config import Config
+from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
-from stereoseed.io.files import atomic_path
-from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction, View
+from stereoseed.io.files import jsonable
 from stereoseed.io.sequence import ImageSequence
+from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction, View
 
 __all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
-VERSION = 2  # 2: spilled descriptors named, not copied
+VERSION = 3  # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied
 SPILL_SUFFIX = ".spill"  # the spill folder: the checkpoint's name with this added
+_META, _MAC = "meta", "mac"
+_OBSERVATIONS = ("obs_view", "obs_feature", "obs_point", "obs_linked")  # Checkpoint.observations' order
+_VIEW_FLAGS = {"name": str, "status": str, "rotated_180": bool, "camera_model": (str, type(None)),
+               "zoomed": bool, "registered": bool, "features": bool, "desc_file": (str, type(None))}
+_FLOAT = "float"  # an expected dtype: float32 or float64, native byte order
+
+
+class _Refused(Exception):
+    """A checkpoint that must not be used; the message says why."""
+
+
+# what reading a file from outside may raise, whatever it holds: the run starts again
+_UNUSABLE = (_Refused, OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, NotImplementedError,
+             MemoryError, OverflowError, RecursionError)
 
 
 def spill_folder(checkpoint: str | Path) -> Path:
@@ -63,49 +89,96 @@ def inputs_key(images: Sequence[np.ndarray], names: list[str], P_pair: list[np.n
     return h.hexdigest()
 
 
-def _features_state(f: Features | None, spilled_in: Path) -> tuple | None:
-    """What a checkpoint holds of a view's interest points: descriptors spilled to
-    ``spilled_in`` by their file name, ("spilled", name), the rest as arrays."""
-    if f is None:
-        return None
-    desc = f.desc
+# ---------------------------------------------------------------------------------- writing
+def _spilled_name(desc: np.ndarray, spilled_in: Path) -> str | None:
+    """The file name of descriptors memory-mapped from ``spilled_in``, else None."""
     filename = getattr(desc, "filename", None)  # a memory map's file
     if filename is not None and Path(filename).parent == spilled_in:
-        desc = ("spilled", Path(filename).name)
-    return (f.points, desc, f.valid, f.response, f.image_shape)
+        return Path(filename).name
+    return None
 
 
-def _checkpoint_bytes(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> bytes:
-    """The pickled checkpoint of the reconstruction's state and the reports so far (a snapshot:
-    the run may go on changing ``recon``)."""
-    state = recon.checkpoint(copy=False)  # pickled at once: no copy needed
-    # (P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed) per view;
-    # the images are read again on resume, the grey images recomputed from them
+def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]],
+              key: str) -> dict[str, np.ndarray]:
+    """The checkpoint's arrays, the JSON part among them, as they are now: the arrays the run
+    changes in place (points, observations, links) are copied; interest points are shared, as
+    Features are replaced, never changed in place. The images are read again on resume, the
+    grey images recomputed from them."""
+    state = recon.checkpoint(copy=False)
     spilled_in = spill_folder(path)
-    views = [(s[0], _features_state(s[1], spilled_in), s[2], None) + tuple(s[4:8]) for s in state.views]
-    payload = {"version": VERSION, "key": key, "per_image": per_image, "points": state.points, "colors": state.colors,
-               "alive": state.alive, "observations": state.observations, "views": views}
-    return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+    arrays = {"points": state.points.copy(), "colors": state.colors.copy(), "alive": state.alive.copy()}
+    arrays.update((name, a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
+    views = []
+    for i, (view, s) in enumerate(zip(recon.views, state.views)):
+        P, features, point_of_feature, _, status, rotated, model, zoomed = s[:8]
+        flags = {"name": view.name, "status": str(status), "rotated_180": bool(rotated),
+                 "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
+                 "registered": P is not None, "features": features is not None, "desc_file": None}
+        if P is not None:
+            arrays[f"view{i}.P"] = np.array(P, np.float64)
+        arrays[f"view{i}.point_of_feature"] = np.array(point_of_feature)
+        if features is not None:
+            flags["desc_file"] = _spilled_name(features.desc, spilled_in)
+            if flags["desc_file"] is None:
+                arrays[f"view{i}.desc"] = features.desc
+            arrays[f"view{i}.points"] = features.points
+            arrays[f"view{i}.valid"] = features.valid
+            arrays[f"view{i}.response"] = features.response
+            arrays[f"view{i}.image_shape"] = np.asarray(features.image_shape, np.int64)
+        views.append(flags)
+    meta = {"version": VERSION, "key": key, "per_image": per_image, "views": views}
+    arrays[_META] = np.frombuffer(json.dumps(meta, default=jsonable).encode("utf-8"), np.uint8)
+    return arrays
 
 
-def _write(path: str | Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+def _signature(arrays: dict[str, np.ndarray], key: str) -> np.ndarray:
+    """HMAC-SHA256 keyed by the inputs' key of every array but the signature (name, dtype,
+    shape and bytes, in name order): (32,) uint8."""
+    mac = hmac.new(key.encode("utf-8"), digestmod=hashlib.sha256)
+    for name in sorted(arrays):
+        if name == _MAC:
+            continue
+        a = np.ascontiguousarray(arrays[name])
+        head = json.dumps([name, a.dtype.str, list(a.shape)]).encode("utf-8")
+        mac.update(len(head).to_bytes(8, "little"))
+        mac.update(head)
+        mac.update(a.reshape(-1).view(np.uint8))
+    return np.frombuffer(mac.digest(), np.uint8)
+
+
+def _write(path: str | Path, arrays: dict[str, np.ndarray], key: str) -> None:
+    """Sign ``arrays`` and write them to ``path`` atomically, readable and writable by the user
+    alone (a checkpoint others may write is refused on resume)."""
+    path = Path(path)
+    signed = dict(arrays)
+    signed[_MAC] = _signature(arrays, key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)  # mode 0600
+        try:
+            with os.fdopen(fd, "wb") as fh:  # a file object: np.savez would add ".npz" to a name
+                np.savez(fh, allow_pickle=False, **signed)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError as e:
+        raise StereoseedError(f"{path}: cannot write ({e.strerror or e})") from None
 
 
 def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
-    """Pickle the reconstruction's state and the reports so far to ``path`` (atomically)."""
-    _write(path, _checkpoint_bytes(path, recon, per_image, key))
+    """Write the reconstruction's state and the reports so far to ``path`` (atomically)."""
+    _write(path, _snapshot(path, recon, per_image, key), key)
 
 
 class CheckpointWriter:
-    """Checkpoints saved while the run goes on: :meth:`save` pickles the state at once (a
-    consistent snapshot) and a thread writes it and puts it in place (atomically: the previous
-    checkpoint stays whole until then) while the next insertion runs; writing and replacing a
-    file of megabytes takes milliseconds of the disk's time, not the run's. Each save first
-    waits for the previous one. Use as a context manager: leaving it waits for the last write;
-    a failed write raises (at the next save or on leaving). ``path`` None: a run without
-    checkpoints, every save does nothing."""
+    """Checkpoints saved while the run goes on: :meth:`save` takes a snapshot of the state at
+    once (a consistent one) and a thread signs it, writes it and puts it in place (atomically:
+    the previous checkpoint stays whole until then) while the next insertion runs; writing and
+    replacing a file of megabytes takes milliseconds of the disk's time, not the run's. Each
+    save first waits for the previous one. Use as a context manager: leaving it waits for the
+    last write; a failed write raises (at the next save or on leaving). ``path`` None: a run
+    without checkpoints, every save does nothing."""
 
     def __init__(self, path: str | Path | None, key: str):
         self.path, self.key = path, key
@@ -121,9 +194,9 @@ class CheckpointWriter:
     def save(self, recon: Reconstruction, per_image: list[dict[str, Any]]) -> None:
         if self._executor is None:
             return
-        data = _checkpoint_bytes(self.path, recon, per_image, self.key)
+        arrays = _snapshot(self.path, recon, per_image, self.key)
         self._wait()
-        self._pending = self._executor.submit(_write, self.path, data)
+        self._pending = self._executor.submit(_write, self.path, arrays, self.key)
 
     def __enter__(self) -> CheckpointWriter:
         return self
@@ -141,48 +214,217 @@ class CheckpointWriter:
                 self._executor.shutdown()
 
 
+# ---------------------------------------------------------------------------------- reading
+def _check_owner(st: os.stat_result, path: Path) -> None:
+    """Refuse a file or folder of another user's, or one that group or others may write: whoever
+    can write it could have planted the checkpoint. Not checked where there are no uids."""
+    if not hasattr(os, "getuid"):
+        return
+    if st.st_uid != os.getuid():
+        raise _Refused(f"{path} belongs to another user")
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise _Refused(f"{path} may be written by group or others")
+
+
+def _checked_members(zf: zipfile.ZipFile) -> dict[str, str]:
+    """{array name: member name}, once every member is seen to be a stored (uncompressed)
+    ``.npy`` of plain numbers whose header claims no more data than the member holds."""
+    members = {info.filename[:-len(".npy")]: info.filename for info in zf.infolist()}
+    if len(members) != len(zf.infolist()):
+        raise _Refused("an array is stored twice")
+    for info in zf.infolist():
+        if (info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size
+                or not info.filename.endswith(".npy")):
+            raise _Refused(f"an unexpected member {info.filename!r}")
+        with zf.open(info) as member:
+            version = np.lib.format.read_magic(member)
+            if version not in ((1, 0), (2, 0)):
+                raise _Refused(f"{info.filename!r} is of an unknown .npy version")
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read_header(member)
+        if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
+            raise _Refused(f"{info.filename!r} holds objects, not numbers")
+        if math.prod(shape) * dtype.itemsize > info.file_size:
+            raise _Refused(f"{info.filename!r} is shorter than its shape")
+    return members
+
+
+def _read(path: Path, key: str) -> dict[str, np.ndarray]:
+    """The checkpoint's arrays once its owner, permissions, container and signature are checked
+    (the signature before any of them is interpreted). FileNotFoundError when there is none."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0))
+    with os.fdopen(fd, "rb") as fh:
+        st = os.fstat(fh.fileno())  # the file opened, not whatever the name points to later
+        if not stat.S_ISREG(st.st_mode):
+            raise _Refused("not a file")
+        _check_owner(st, path)
+        _check_owner(os.stat(path.parent), path.parent)
+        loaded = np.load(fh, allow_pickle=False)  # a pickle raises ValueError, unread
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise _Refused("not an .npz archive")
+        with loaded as npz:
+            # read by member name: NpzFile would take "a.npy" for member "a.npy", not "a.npy.npy"
+            arrays = {name: npz[member] for name, member in _checked_members(npz.zip).items()}
+    mac = arrays.pop(_MAC, None)
+    if (mac is None or mac.dtype != np.uint8 or mac.shape != (32,)
+            or not hmac.compare_digest(mac.tobytes(), _signature(arrays, key).tobytes())):
+        raise _Refused("its signature does not match these inputs (another run's, or altered)")
+    return arrays
+
+
+def _meta(arrays: dict[str, np.ndarray], key: str, names: list[str]) -> dict[str, Any]:
+    """The JSON part, its version, key, reports and view flags checked."""
+    raw = arrays.pop(_META, None)
+    if raw is None or raw.dtype != np.uint8 or raw.ndim != 1:
+        raise _Refused("no description")
+    meta = json.loads(raw.tobytes().decode("utf-8"))
+    if not isinstance(meta, dict) or meta.get("version") != VERSION or meta.get("key") != key:
+        raise _Refused("written by another version or for other inputs")
+    per_image, views = meta.get("per_image"), meta.get("views")
+    if (not isinstance(per_image, list) or not 2 <= len(per_image) <= len(names)
+            or any(not isinstance(r, dict) or r.get("image") != names[i] for i, r in enumerate(per_image))):
+        raise _Refused("its reports are not of these images")
+    if not isinstance(views, list) or len(views) != len(names):
+        raise _Refused("its views are not these images")
+    for name, flags in zip(names, views):
+        if (not isinstance(flags, dict) or flags.keys() != _VIEW_FLAGS.keys() or flags["name"] != name
+                or any(not isinstance(flags[k], kind) for k, kind in _VIEW_FLAGS.items())):
+            raise _Refused(f"the description of {name!r} is malformed")
+    return meta
+
+
+def _take(arrays: dict[str, np.ndarray], name: str, dtype: Any, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Array ``name`` removed from ``arrays``, refused unless of ``dtype`` and ``shape`` (None:
+    any length)."""
+    a = arrays.pop(name, None)
+    if a is None:
+        raise _Refused(f"{name} is missing")
+    _check_array(a, name, dtype, shape)
+    return a
+
+
+def _check_array(a: np.ndarray, name: str, dtype: Any, shape: tuple[int | None, ...]) -> None:
+    good_dtype = a.dtype in (np.float32, np.float64) if dtype == _FLOAT else a.dtype == np.dtype(dtype)
+    if not good_dtype or a.ndim != len(shape) or any(s is not None and n != s for n, s in zip(a.shape, shape)):
+        raise _Refused(f"{name} is {a.dtype} {a.shape}, not the expected array")
+
+
+def _in_range(a: np.ndarray, low: int, high: int | np.ndarray, name: str) -> None:
+    if a.size and not (np.all(a >= low) and np.all(a < high)):
+        raise _Refused(f"{name} holds indices out of range")
+
+
+def _spilled(name: str, folder: Path, n: int) -> np.ndarray:
+    """Descriptors (n, D) memory-mapped from the file the checkpoint names in the spill folder."""
+    if name in ("", ".", "..") or ".." in name or "/" in name or "\\" in name or "\0" in name \
+            or Path(name).name != name:
+        raise _Refused(f"the spilled descriptors' name {name!r} is not a file name")
+    path = folder / name
+    try:
+        st = os.lstat(path)
+    except OSError as e:
+        raise _Refused(f"the spilled descriptors {name} cannot be read ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise _Refused(f"the spilled descriptors {name} are not a file")
+    _check_owner(st, path)
+    desc = np.load(path, mmap_mode="r", allow_pickle=False)
+    if not isinstance(desc, np.ndarray):  # an .npz
+        raise _Refused(f"the spilled descriptors {name} are not an array")
+    _check_array(desc, name, _FLOAT, (n, None))
+    return desc
+
+
+def _model_points(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (M, 3), colours (M, 3), alive (M,)) checked."""
+    points = _take(arrays, "points", np.float64, (None, 3))
+    m = len(points)
+    return points, _take(arrays, "colors", np.uint8, (m, 3)), _take(arrays, "alive", bool, (m,))
+
+
+def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in: Path, n_points: int
+                 ) -> list[tuple]:
+    """Each view's (P, Features or None, point_of_feature, status, rotated_180, camera_model,
+    zoomed), every array checked (links to points below ``n_points``)."""
+    if any(flags["desc_file"] is not None for flags in meta["views"]):
+        _check_owner(os.stat(spilled_in), spilled_in)
+    states = []
+    for i, flags in enumerate(meta["views"]):
+        P = _take(arrays, f"view{i}.P", np.float64, (3, 4)) if flags["registered"] else None
+        features = None
+        if flags["features"]:
+            points = _take(arrays, f"view{i}.points", _FLOAT, (None, 2))
+            n = len(points)
+            if flags["desc_file"] is None:
+                desc = _take(arrays, f"view{i}.desc", _FLOAT, (n, None))
+            else:
+                desc = _spilled(flags["desc_file"], spilled_in, n)
+            valid = _take(arrays, f"view{i}.valid", bool, (n,))
+            response = _take(arrays, f"view{i}.response", _FLOAT, (n,))
+            image_shape = _take(arrays, f"view{i}.image_shape", np.int64, (2,))
+            if np.any(image_shape <= 0):
+                raise _Refused(f"view{i}.image_shape is not an image's")
+            features = Features(points, desc, valid, response, (int(image_shape[0]), int(image_shape[1])), gray=None)
+        elif flags["desc_file"] is not None:
+            raise _Refused(f"view {i} names descriptors without interest points")
+        pof = _take(arrays, f"view{i}.point_of_feature", np.int64, (None if features is None else len(features),))
+        _in_range(pof, -1, n_points, f"view{i}.point_of_feature")
+        states.append((P, features, pof, flags["status"], flags["rotated_180"], flags["camera_model"],
+                       flags["zoomed"]))
+    return states
+
+
+def _observations(arrays: dict[str, np.ndarray], states: list[tuple], n_points: int) -> tuple[np.ndarray, ...]:
+    """(obs_view, obs_feature, obs_point, obs_linked), each observation's view, interest point
+    and point seen to exist; refused if any array is left over."""
+    obs_view = _take(arrays, "obs_view", np.int64, (None,))
+    o = len(obs_view)
+    obs_feature, obs_point = _take(arrays, "obs_feature", np.int64, (o,)), _take(arrays, "obs_point", np.int64, (o,))
+    obs_linked = _take(arrays, "obs_linked", bool, (o,))
+    if arrays:
+        raise _Refused(f"unexpected arrays ({', '.join(sorted(arrays)[:3])})")
+    _in_range(obs_view, 0, len(states), "obs_view")
+    _in_range(obs_point, 0, n_points, "obs_point")
+    # a view without interest points has none to observe with
+    counts = np.array([0 if s[1] is None else len(s[1]) for s in states], np.int64)
+    _in_range(obs_feature, 0, counts[obs_view], "obs_feature")
+    return obs_view, obs_feature, obs_point, obs_linked
+
+
 def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str, source: Any
                     ) -> tuple[Reconstruction, list[dict[str, Any]]] | None:
     """The reconstruction and reports saved at ``path`` for these inputs (``key``), with the
     images put back (read when needed from an :class:`ImageSequence`, turned where the run
     turned them) and ``source`` as correspondence source; None when there is no usable
-    checkpoint (missing, another version, other inputs, its spilled descriptors gone). The
+    checkpoint (missing, another version, other inputs, another user's or writable by others,
+    altered, malformed, its spilled descriptors gone), with a warning unless it is missing. The
     grey images are left to be computed again when needed (:meth:`View.restore_gray`)."""
     path = Path(path)
+    spilled_in = spill_folder(path)
     try:
-        with open(path, "rb") as fh:
-            payload = pickle.load(fh)
+        arrays = _read(path, key)
     except FileNotFoundError:
         return None
-    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ValueError) as e:
-        log.warning("%s: unreadable checkpoint (%s); starting again", path, e)
+    except _UNUSABLE as e:
+        log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
-    if not isinstance(payload, dict) or payload.get("version") != VERSION or payload.get("key") != key:
-        log.warning("%s: the checkpoint is of other inputs or settings; starting again", path)
-        return None
-    views, states = [], []
-    lazy, spilled_in = isinstance(images, ImageSequence), spill_folder(path)
     try:
-        for i, (name, s) in enumerate(zip(names, payload["views"])):
-            P, feats, pof, _, status, rotated, model, zoomed = s
+        meta = _meta(arrays, key, names)
+        points, colors, alive = _model_points(arrays)
+        states = _view_states(arrays, meta, spilled_in, len(points))
+        observations = _observations(arrays, states, len(points))
+        views, restored = [], []
+        lazy = isinstance(images, ImageSequence)
+        for i, (name, (P, features, pof, status, rotated, camera_model, zoomed)) in enumerate(zip(names, states)):
             view = View.of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
-            features = None if feats is None else _features(feats, spilled_in)
             views.append(view)
-            states.append((P, features, pof, image, status, rotated, model, zoomed, features is not None))
-    except (OSError, ValueError, EOFError) as e:  # missing, truncated or empty
-        log.warning("%s: the checkpoint's spilled descriptors cannot be read (%s); starting again", path, e)
+            restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None))
+        recon = Reconstruction(views)
+        # the views check what only they know (a camera model's name, a camera's P)
+        recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
+    except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
+        log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
-    recon = Reconstruction(views)
-    recon.restore(Checkpoint(payload["points"], payload["colors"], payload["alive"], payload["observations"],
-                             tuple(states)))
     recon.source = source
-    return recon, payload["per_image"]
-
-
-def _features(state: tuple, spilled_in: Path) -> Features:
-    """A view's interest points from their checkpoint state, spilled descriptors memory-mapped."""
-    points, desc, valid, response, image_shape = state
-    if isinstance(desc, tuple):
-        desc = np.load(spilled_in / desc[1], mmap_mode="r")
-    return Features(points, desc, valid, response, image_shape, gray=None)
+    return recon, meta["per_image"]
