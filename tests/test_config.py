@@ -3,7 +3,8 @@ import json
 
 import pytest
 
-from stereoseed.config import (BundleConfig, Config, ResolvedConfig, LoopClosureConfig, MotionPriorConfig, PipelineConfig,
+from stereoseed.config import (BundleConfig, Config, ExportConfig, OutlierConfig, PairCheckConfig, RegistrationConfig,
+                               ResolvedConfig, LoopClosureConfig, MotionPriorConfig, PipelineConfig,
                                PropagationConfig, ResectionConfig, TriangulationConfig)
 
 
@@ -13,8 +14,11 @@ from stereoseed.config import (BundleConfig, Config, ResolvedConfig, LoopClosure
     (lambda: PipelineConfig(window=0), "window"),
     (lambda: PipelineConfig(window=-1), "window"),
     (lambda: PipelineConfig(camera_model="pinhole"), "camera_model"),
-    (lambda: PipelineConfig(min_chained_points=4), "min_chained_points"),
-    (lambda: PipelineConfig(outlier_factor=-1.0), "outlier_factor"),
+    (lambda: RegistrationConfig(min_chained_points=4), "min_chained_points"),
+    (lambda: OutlierConfig(factor=-1.0), "factor"),
+    (lambda: OutlierConfig(max_px=0.0), "max_px"),
+    (lambda: PairCheckConfig(min_consistent=1.5), "min_consistent"),
+    (lambda: ExportConfig(far_point_factor=0.0), "far_point_factor"),
     (lambda: ResectionConfig(min_inliers=3), "min_inliers"),
     (lambda: ResectionConfig(ransac_threshold_px=0.0), "ransac_threshold_px"),
     (lambda: TriangulationConfig(min_angle_deg=-1.0), "min_angle_deg"),
@@ -23,7 +27,7 @@ from stereoseed.config import (BundleConfig, Config, ResolvedConfig, LoopClosure
     (lambda: MotionPriorConfig(radius_fractions=()), "radius_fractions"),
     (lambda: LoopClosureConfig(span=0), "span"),
     (lambda: Config(pipeline={"mode": "paper"}), "pipeline"),
-    (lambda: PipelineConfig(max_zoom_step=1.0), "max_zoom_step"),
+    (lambda: RegistrationConfig(max_zoom_step=1.0), "max_zoom_step"),
     (lambda: PipelineConfig(window=True), "window"),
     (lambda: PipelineConfig(window=2.5), "window"),
     (lambda: MotionPriorConfig(wider_search_margin=0.9), "wider_search_margin"),
@@ -39,10 +43,10 @@ def test_invalid_configs_are_refused_with_the_field_named(make, field):
 def test_the_resolved_config_fills_in_the_mode_defaults():
     paper = Config(pipeline=PipelineConfig(mode="paper")).resolve()
     assert (paper.pipeline.camera_model, paper.pipeline.window, paper.pipeline.ba) == ("free", 1, "local")
-    assert paper.pipeline.resolved_outlier_factor() is None and paper.motion_prior.explain_px == 3.0
+    assert paper.outliers.active_factor() is None and paper.motion_prior.explain_px == 3.0
     accurate = Config().resolve()
     assert (accurate.pipeline.camera_model, accurate.pipeline.window, accurate.pipeline.ba) == ("focal", 3, "final")
-    assert accurate.pipeline.resolved_outlier_factor() == 4.0 and accurate.motion_prior.explain_px == 1.5
+    assert accurate.outliers.active_factor() == 4.0 and accurate.motion_prior.explain_px == 1.5
     assert isinstance(accurate, ResolvedConfig) and accurate.resolve() is accurate  # resolved once
     # a copy with a field changed stays resolved; a field set back to None takes its mode's default again
     fixed = accurate.replace(pipeline={"camera_model": "fixed"})

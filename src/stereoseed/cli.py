@@ -187,7 +187,8 @@ EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (th
 
 def _config(args: argparse.Namespace):
     """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
-    from stereoseed.config import Config, PipelineConfig
+    from stereoseed.config import Config
+    from stereoseed.sfm.config import PipelineConfig
 
     try:
         return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 import numpy as np
 
 from stereoseed.sfm.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
-from stereoseed.config import Config, VideoConfig
+from stereoseed.config import Config
+from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration

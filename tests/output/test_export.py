@@ -68,7 +68,7 @@ def test_the_plys_carry_their_attributes(box_result):
 
 def test_far_points_are_left_out_of_the_exports(box_result):
     recon, _, _ = box_result
-    factor = Config().pipeline.far_point_factor
+    factor = Config().export.far_point_factor
     kept = exported_points(recon, factor)
     assert len(kept) == np.sum(recon.alive & (recon.track_lengths() >= 2))  # nothing is far on the box
     saved = recon.checkpoint()

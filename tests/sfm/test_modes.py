@@ -42,3 +42,18 @@ def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
     assert _unzoomed_held(recon, paper) is paper
     no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolve()
     assert _unzoomed_held(recon, no_hold) is no_hold
+
+
+def test_each_mode_owns_the_defaults_the_resolved_config_takes():
+    from stereoseed.sfm.modes import AccurateMode, PaperMode, mode_of
+
+    for mode, cls in (("paper", PaperMode), ("accurate", AccurateMode)):
+        cfg = Config(pipeline=PipelineConfig(mode=mode)).resolve()
+        strategy = mode_of(cfg)
+        assert isinstance(strategy, cls) and strategy.name == mode
+        d = strategy.defaults
+        assert (cfg.pipeline.camera_model, cfg.pipeline.window, cfg.pipeline.ba) == (d.camera_model, d.window, d.ba)
+        assert cfg.outliers.factor == d.outlier_factor and cfg.motion_prior.explain_px == d.explain_px
+    # what the user sets wins over the mode's default
+    mine = Config(pipeline=PipelineConfig(mode="paper", camera_model="zero-skew")).resolve()
+    assert mine.pipeline.camera_model == "zero-skew"

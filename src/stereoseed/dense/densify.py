@@ -21,7 +21,9 @@ from numba import njit
 from stereoseed.arrays import sort_order, sorted_groups
 from stereoseed.geometry.projection import camera_center, fundamental_from_projections
 from stereoseed.cluster import JobPool, executor_for
-from stereoseed.config import Config, DenseConfig, PropagationConfig
+from stereoseed.config import Config
+from stereoseed.dense.config import DenseConfig
+from stereoseed.matching.config import PropagationConfig
 from stereoseed.io.ply import write_ply
 from stereoseed.matching.propagation.core import propagate
 from stereoseed.sfm.reconstruction import Reconstruction

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from stereoseed.geometry import models as camera_models
-from stereoseed.config import BundleConfig
+from stereoseed.estimators.config import BundleConfig
 from stereoseed.estimators.robust import huber_cost_of_norms
 from stereoseed.threads import current_chunks, map_chunks
 

@@ -15,7 +15,7 @@ from stereoseed.estimators.calibration import (check_correspondences, dlt_projec
                           refine_projection)
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.projection import depths, is_finite_camera, normalize_projection, project
-from stereoseed.config import ResectionConfig
+from stereoseed.estimators.config import ResectionConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.estimators._resection_kernels import choose_samples, score_hypotheses
 from stereoseed.geometry.models import CameraModel

@@ -48,7 +48,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stereoseed.config import Config, PipelineConfig
+from stereoseed.config import Config
+
+from stereoseed.sfm.config import PipelineConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.experiments.report import LABELS, _json_clean, _plot_fig7, _plot_fig8, _plot_fig9, _plot_table2, _summary_md
 from stereoseed.io.files import write_json, write_text

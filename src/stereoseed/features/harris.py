@@ -21,7 +21,9 @@ import cv2
 import numpy as np
 from numba import njit
 
-from stereoseed.config import FeatureConfig, MatchingConfig
+from stereoseed.features.config import FeatureConfig
+
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.features.edge_corners import _edge_corners
 from stereoseed.errors import StereoseedError
 from stereoseed.features.image import sample_bilinear, to_gray

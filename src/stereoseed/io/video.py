@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stereoseed.config import VideoConfig
+from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_image
 

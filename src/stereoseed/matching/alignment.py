@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from stereoseed.arrays import unique
-from stereoseed.config import MatchingConfig
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import DEFAULT_MIN_PATCH_STD, Features, describe
 from stereoseed.threads import concat_chunks

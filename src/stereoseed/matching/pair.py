@@ -12,7 +12,7 @@ import logging
 
 import numpy as np
 
-from stereoseed.config import MatchingConfig
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.features.harris import Features
 from stereoseed.matching.alignment import PairCache, filter_localization
 from stereoseed.matching.containers import Matches, PairMatches

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from stereoseed.geometry.projection import epipolar_distances
-from stereoseed.config import MatchingConfig
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.zncc import candidate_mask

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from stereoseed.config import MatchingConfig
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features, describe_scaled
 from stereoseed.threads import map_chunks, split_rows

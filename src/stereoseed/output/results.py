@@ -139,7 +139,7 @@ def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: 
     calibration's two lenses (image 0 through the first, every later image through the second)
     when the run worked on undistorted images."""
     out = Path(out_dir)
-    ids = exported_points(recon, cfg.pipeline.far_point_factor)
+    ids = exported_points(recon, cfg.export.far_point_factor)
     tracks = _tracks(recon, ids)
     counts = np.bincount(tracks["obs_point"], minlength=len(ids))
     views = _views_per_point(tracks, len(ids))

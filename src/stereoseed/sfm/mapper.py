@@ -84,7 +84,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
 
 def _check_pair(recon: Reconstruction, cfg: Config) -> None:
     """The calibration must fit its two images: their matches found without it (robust F) must
-    lie on its epipolar lines (``PipelineConfig.pair_min_consistent``), or, when they do not,
+    lie on its epipolar lines (``PairCheckConfig.min_consistent``), or, when they do not,
     matching under the calibration's epipolar geometry must find more of them. Raises
     :class:`StereoseedError` naming the likely causes."""
     v0, v1 = recon.views[0], recon.views[1]
@@ -92,12 +92,12 @@ def _check_pair(recon: Reconstruction, cfg: Config) -> None:
         raise StereoseedError(f"{v0.name}, {v1.name}: the calibrated pair is the same image twice; give the two "
                               f"images the two calibrated cameras took")
     m = recon.source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
-    if len(m) < cfg.pipeline.pair_check_min_matches:
+    if len(m) < cfg.pair_check.min_matches:
         return  # repeated patterns or little texture: no robust F to judge by
     x0, x1 = m.points(v0.features, v1.features)
     d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
     consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
-    if consistent < cfg.pipeline.pair_min_consistent and len(_match_known(recon, 0, 1)) < len(m):
+    if consistent < cfg.pair_check.min_consistent and len(_match_known(recon, 0, 1)) < len(m):
         # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
         # then the calibration's own epipolar geometry still matches more than that F does,
         # while a calibration of other images matches only what falls in its bands by chance.

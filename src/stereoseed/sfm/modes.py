@@ -12,12 +12,13 @@
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from stereoseed.arrays import unique
 from stereoseed.config import Config
+from stereoseed.sfm.config import MODE_DEFAULTS, ModeDefaults
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.reconstruction import Reconstruction
@@ -26,13 +27,35 @@ from stereoseed.sfm.registration.base import implausible_motion
 from stereoseed.sfm.tracks import add_two_view_points, retriangulate, track_by_projection
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["PaperMode", "AccurateMode", "mode_of"]
+__all__ = ["Mode", "PaperMode", "AccurateMode", "mode_of"]
 
 PAPER_COST_IMAGES = 3  # eq. 12: the local BA's cost runs over the last three images
 
 
+class Mode(Protocol):
+    """How the reconstruction grows once a view is registered, and the defaults the mode gives
+    the configuration (:data:`stereoseed.sfm.config.MODE_DEFAULTS`)."""
+
+    name: str
+    defaults: ModeDefaults
+
+    def add_points(self, recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray,
+                   consistent: np.ndarray, chain_points: np.ndarray, cfg: Config) -> np.ndarray: ...
+
+    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
+                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]: ...
+
+    def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
+                     chain_points: np.ndarray, cfg: Config) -> dict[str, Any]: ...
+
+    def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config: ...
+
+    def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]: ...
+
+
 class PaperMode:
     name = "paper"
+    defaults = MODE_DEFAULTS["paper"]
 
     def add_points(self, recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray,
                    consistent: np.ndarray, chain_points: np.ndarray, cfg: Config) -> np.ndarray:
@@ -60,7 +83,7 @@ class PaperMode:
         P_resected, X_new = view.P.copy(), recon.points[new_points].copy()
         ba = ba_report(adjust(recon, cfg, free_views=[k], free_points=new_points, views_in_cost=window))
         why = implausible_motion(view.P, recon.views[prev], recon.points[chain_points], k - prev,
-                                 cfg.pipeline.max_zoom_step)
+                                 cfg.registration.max_zoom_step)
         if why:
             view.P, recon.points[new_points] = P_resected, X_new
             ba["refused"] = f"{view.name}: {why}"
@@ -77,6 +100,7 @@ class PaperMode:
 
 class AccurateMode:
     name = "accurate"
+    defaults = MODE_DEFAULTS["accurate"]
 
     def add_points(self, recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray,
                    consistent: np.ndarray, chain_points: np.ndarray, cfg: Config) -> np.ndarray:
@@ -145,6 +169,6 @@ def _unzoomed(recon: Reconstruction, cfg: Config) -> bool:
             and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1))
 
 
-def mode_of(cfg: Config) -> PaperMode | AccurateMode:
+def mode_of(cfg: Config) -> Mode:
     """The strategy of ``cfg.pipeline.mode``."""
     return PaperMode() if cfg.pipeline.mode == "paper" else AccurateMode()

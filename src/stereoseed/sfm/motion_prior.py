@@ -16,7 +16,9 @@ import numpy as np
 from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import unique
 from stereoseed.geometry.projection import project
-from stereoseed.config import Config, MotionPriorConfig, ResectionConfig
+from stereoseed.config import Config
+from stereoseed.estimators.config import ResectionConfig
+from stereoseed.sfm.config import MotionPriorConfig
 from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction

@@ -79,19 +79,19 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
 
 
 def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
-    """Remove the observations reprojecting beyond ``PipelineConfig.outlier_max_px`` and, with an
-    outlier factor (``PipelineConfig.outlier_factor``), beyond that factor times the median
-    error (never below ``outlier_floor_px``); then the points seen fewer than twice. Long
+    """Remove the observations reprojecting beyond ``OutlierConfig.max_px`` and, with an
+    outlier factor (``OutlierConfig.factor``), beyond that factor times the median
+    error (never below ``OutlierConfig.floor_px``); then the points seen fewer than twice. Long
     tracks collect a few wrong observations (patches straddling an occlusion edge) that pull
     the chain one way. Returns the number of observations removed."""
     if len(recon.obs_view) == 0:
         return 0
     err = recon.observation_errors()
-    threshold = cfg.pipeline.outlier_max_px
-    factor = cfg.pipeline.resolved_outlier_factor()
+    threshold = cfg.outliers.max_px
+    factor = cfg.resolve().outliers.active_factor()
     counted = np.isfinite(err) & recon.alive[recon.obs_point]
     if factor is not None and counted.any():
-        relative = max(cfg.pipeline.outlier_floor_px, factor * float(np.median(err[counted])))
+        relative = max(cfg.outliers.floor_px, factor * float(np.median(err[counted])))
         threshold = min(threshold, relative)
     return recon.filter_observations(err > threshold)
 

@@ -38,7 +38,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from stereoseed.config import PropagationConfig
+from stereoseed.matching.config import PropagationConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.image import to_gray
 from stereoseed.matching.propagation._kernels import _propagate_kernel, _window_stats, _zncc_points

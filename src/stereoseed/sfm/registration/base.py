@@ -216,7 +216,7 @@ class Resector:
         try:
             res = resect(X3, x2, self.cfg.resection, scores=scores, image_size=self.cand.image_size, model=model,
                          reference_K=reference_K, what=name, fallback_K=fallback_K)
-            why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.pipeline.max_zoom_step)
+            why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.registration.max_zoom_step)
             if not why and model == CameraModel.FREE:
                 why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
                 why = why and f"the 11-DOF camera is ill-conditioned ({why})"
@@ -296,7 +296,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
     points wins; the wide search's camera replaces the near one's only when it explains
     clearly more (more candidates also mean more chances for a slightly worse camera to win
     by a point or two)."""
-    pc, mp = cfg.pipeline, cfg.motion_prior
+    mp = cfg.motion_prior
     resect_with = Resector(recon, prev, cand, cfg)
     chain, error = None, None
     if len(X3) >= cfg.resection.min_inliers:
@@ -313,7 +313,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
         for hyp in hypotheses:
-            if len(hyp) < pc.min_chained_points:
+            if len(hyp) < cfg.registration.min_chained_points:
                 continue
             found = resect_with(hyp.points3d, hyp.points2d, hyp.scores)
             if isinstance(found, str):
@@ -331,4 +331,4 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
         return _Resected(*chosen[0], found_by, chosen[1])
     return error or (f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
-                     f"{pc.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")
+                     f"{cfg.registration.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")

@@ -407,9 +407,9 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
     on_lines = epipolar_distances(qd.F, x_prev, x_cand) <= qc.chain_epipolar_px
     qd.report.update(chained=int(len(pids)), previous_pair_points=int(len(qd.pair.X)), chained_previous_pair=int(len(pi)),
                      chained_on_epipolar_lines=int(on_lines.sum()))
-    if on_lines.sum() < cfg.pipeline.min_chained_points:
+    if on_lines.sum() < cfg.registration.min_chained_points:
         return (f"{cand.name}: only {int(on_lines.sum())} 3D points chained through {len(qd.matches)} propagated "
-                f"matches (need {cfg.pipeline.min_chained_points})"), qd
+                f"matches (need {cfg.registration.min_chained_points})"), qd
     t = time.perf_counter()
     found = _resect_validated(recon, prev, cand, qd, X3[on_lines], x_cand[on_lines], scores[on_lines], cfg)
     seconds["resection"] = time.perf_counter() - t

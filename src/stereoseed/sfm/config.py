@@ -1,0 +1,288 @@
+"""The mapper's settings: the mode and its defaults, registration (motion prior, quasi-dense),
+tracking, loop closure, outlier removal and the pair check (:mod:`stereoseed.sfm`).
+
+Every default states its source (see :mod:`stereoseed.config`)."""
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from dataclasses import dataclass
+
+from stereoseed.geometry.models import MODELS, CameraModel
+from stereoseed.validation import positive, whole, as_tuple, in_range, one_of
+
+__all__ = ["ModeDefaults", "MODE_DEFAULTS", "RegistrationConfig", "OutlierConfig", "PairCheckConfig", 'QuasiDenseConfig', 'MotionPriorConfig', 'TrackingConfig', 'LoopClosureConfig', 'PipelineConfig']
+
+
+MODES = ("paper", "accurate")
+BA_POLICIES = ("local", "global", "final")
+CAMERA_MODELS = MODELS
+
+
+@dataclass(frozen=True)
+class QuasiDenseConfig:
+    """Registration of weakly textured views by match propagation (Lhuillier & Quan, PAMI 2005;
+    :mod:`stereoseed.sfm.registration.quasi_dense`, docs/quasi_dense.md): used only when the sparse
+    chain is weak."""
+
+    enabled: bool = True
+    # the sparse chain is weak below this many resection inliers; None: the chain the motion
+    # prior already distrusts, MotionPriorConfig.trusted_chain_factor x ResectionConfig.min_inliers
+    weak_chain_inliers: int | None = None
+    # LQ05 resample the quasi-dense matches on a grid, one match (the best ZNCC) per cell
+    grid_cell_px: int = 8
+    sift_ratio: float = 0.8  # Lowe 2004: the nearest SIFT descriptor clearly nearer than the second
+    # robust F on the grid matches (OpenCV USAC MAGSAC): Sampson threshold, confidence, iterations
+    f_threshold_px: float = 1.0
+    f_confidence: float = 0.999
+    f_max_iters: int = 10000
+    # a chained 3D-2D pair must lie within this distance of the robust F's epipolar lines
+    # (MatchingConfig.epipolar_band_px's role for the sparse matches)
+    chain_epipolar_px: float = 2.0
+    # propagate again from the robust F's grid inliers, within chain_epipolar_px of its lines
+    second_pass: bool = False
+    # after the commit, the propagated matches enter the model as tracks (grid points in both
+    # views, the previous pair's points as three-view points). Off: the previous pair's points
+    # are rebuilt when needed anyway, and as BA observations the propagated matches cost accuracy
+    # (templeSparseRing, accurate: median / worst centre error 4.0 / 13.5 mm with them, 0.86 /
+    # 2.0 mm without; dinoSparseRing median 28 mm with, 15 mm without)
+    keep_tracks: bool = False
+    # 8-bit grey below which a pixel is background (a black backdrop), kept out of propagation;
+    # None: no background. dinoSparseRing (black backdrop), accurate mode: 16 of 16 registered,
+    # median centre error 480 mm without the mask, 28 mm with it (grey 40)
+    background_grey: int | None = 40
+    # A quasi-dense camera is judged by the propagated matches' epipolar geometry (the median
+    # distance of the robust F's grid inliers to the camera's epipolar lines), which does not
+    # depend on the chained 3D points. A zoom is taken only when the zoomed camera's median is at
+    # most zoom_epipolar_ratio times the unzoomed one's: the resection's BIC counts hundreds of
+    # correlated propagated pairs as independent evidence. Measured ratios: real zooms of 4-7 %
+    # (synthetic box, faint texture) 0.10-0.57; spurious zooms of 10-19 % on dinoSparseRing
+    # (each 60-120 mm off, unzoomed 2-25 mm) 0.93-1.10
+    zoom_epipolar_ratio: float = 0.5
+    # the chosen camera's median must be within this factor of the robust F's own (the best any
+    # epipolar geometry does on these matches), and never below f_threshold_px. dinoSparseRing:
+    # cameras 0.3-14 mm off 0.84-1.43, cameras 80-280 mm off 2.4 and more
+    camera_epipolar_factor: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.weak_chain_inliers is not None:
+            whole(self, "weak_chain_inliers")
+        whole(self, "grid_cell_px", "f_max_iters")
+        in_range(self, "sift_ratio", 0.0, 1.0)
+        in_range(self, "f_confidence", 0.0, 1.0)
+        positive(self, "f_threshold_px", "chain_epipolar_px")
+        in_range(self, "zoom_epipolar_ratio", 0.0, 1.0)
+        if not self.camera_epipolar_factor >= 1.0:
+            raise ValueError(f"QuasiDenseConfig.camera_epipolar_factor must be >= 1 (the robust F is the floor), got "
+                             f"{self.camera_epipolar_factor!r}")
+
+
+@dataclass(frozen=True)
+class MotionPriorConfig:
+    """Registration without epipolar geometry (repeated patterns, weak texture): the camera is
+    predicted from the previous motion, the recent points are paired with the interest points
+    near their predicted pixels, and robust 2D similarities give hypotheses whose cameras
+    compete by the points they explain (docs/mapper.md)."""
+
+    # search radii around the prediction, fractions of the image width: the near search and the
+    # wide one (a prediction already a few centimetres off misses by ~55 px at 640 px)
+    radius_fractions: tuple[float, ...] = (0.08, 0.16)
+    min_zncc: float = 0.7  # a pairing's patches must still look alike (between the paper's 0.8 and 0.6)
+    # hypotheses drawn from each point's best 3 and best 6 pairings: on a repeated pattern the
+    # true pairing may rank anywhere among equally good patches
+    pairings_per_point: tuple[int, ...] = (3, 6)
+    hypotheses_per_search: int = 3  # the pattern shifted by one period either way, and the truth
+    similarity_threshold: float = 0.015  # RANSAC threshold of the 2D similarity, fraction of the width
+    similarity_max_iters: int = 5000
+    # a camera explains a recent point when an interest point within explain_px of its projection
+    # matches its patch; None: 3 px in paper mode (two-view points scatter more), 1.5 px otherwise
+    explain_px: float | None = None
+    # a camera from the wide search replaces the near one's only when it explains this many
+    # times its points (a period-shifted camera explains about as many; true winners 1.4-1.5x)
+    wider_search_margin: float = 1.2
+    # an epipolar chain with at least this many times ResectionConfig.min_inliers inliers is
+    # trusted without consulting the prior
+    trusted_chain_factor: float = 2.0
+    recent_views: int = 3  # the points of the last few registered views are the ones projected
+
+    def __post_init__(self) -> None:
+        as_tuple(self, "radius_fractions")
+        as_tuple(self, "pairings_per_point")
+        positive(self, "similarity_threshold", "trusted_chain_factor")
+        whole(self, "similarity_max_iters", "hypotheses_per_search", "recent_views")
+        in_range(self, "min_zncc", -1.0, 1.0)
+        if not self.wider_search_margin >= 1.0:
+            raise ValueError(f"MotionPriorConfig.wider_search_margin must be >= 1, got {self.wider_search_margin!r}")
+        if not self.radius_fractions or not all(0 < r <= 1 for r in self.radius_fractions):
+            raise ValueError(f"MotionPriorConfig.radius_fractions must be fractions in (0, 1], got {self.radius_fractions}")
+        if not self.pairings_per_point or not all(isinstance(n, numbers.Integral) and n >= 1
+                                                  for n in self.pairings_per_point):
+            raise ValueError(f"MotionPriorConfig.pairings_per_point must be whole numbers >= 1, got {self.pairings_per_point}")
+        if self.explain_px is not None:
+            positive(self, "explain_px")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Accurate mode: points followed into more views by projection + patch alignment (COLMAP
+    and ORB-SLAM search by projection), and new points checked in a third view."""
+
+    # unaligned ZNCC a tracked point must reach at its prediction before the ~20x dearer
+    # alignment runs (occluded points fail it)
+    first_look_zncc: float = 0.3
+    # a tracked position this close to an interest point standing for another 3D point is that
+    # point, not this one
+    min_distance_to_other_px: float = 1.0
+    # a tracked position is kept when the aligned patches score above min_aligned_zncc (the
+    # matcher's localisation check) and it lies within max_shift_px of the projection (the
+    # resection's inlier threshold: the camera is that good)
+    min_aligned_zncc: float = 0.9
+    max_shift_px: float = 2.0
+    # three-view points (repeated patterns): pairs within the epipolar band and above this ZNCC,
+    # kept when a third view has a matching interest point within max_px of the projection
+    three_view_min_zncc: float = 0.7
+    three_view_max_px: float = 1.5
+
+    def __post_init__(self) -> None:
+        in_range(self, "first_look_zncc", -1.0, 1.0)
+        in_range(self, "three_view_min_zncc", -1.0, 1.0)
+        in_range(self, "min_aligned_zncc", -1.0, 1.0)
+        positive(self, "min_distance_to_other_px", "three_view_max_px", "max_shift_px")
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    """Accurate mode: the last views matched against the first ones, tracks linked or merged,
+    then a global BA."""
+
+    span: int = 3  # the last `span` registered views against the first `span`
+    min_matches: int = 20  # fewer matches between two views: no evidence of a shared point
+    max_axis_angle_deg: float = 60.0  # views looking more apart than this share too little to match
+    # the same physical point reconstructed twice lies within this fraction of its depth after
+    # the drift of a ring (the box ring: < 1 %)
+    merge_distance: float = 0.02
+    # a link is accepted within this multiple of ResectionConfig.ransac_threshold_px (the drift
+    # has not been adjusted away yet)
+    link_threshold_factor: float = 4.0
+
+    def __post_init__(self) -> None:
+        whole(self, "span", "min_matches")
+        positive(self, "merge_distance", "link_threshold_factor")
+        in_range(self, "max_axis_angle_deg", 0.0, 180.0)
+
+
+@dataclass(frozen=True)
+class ModeDefaults:
+    """What a mode sets where the user left a field at None (:class:`stereoseed.sfm.modes.Mode`
+    reads its own): the camera model of the moving camera, the local BA's window, the BA policy,
+    the outlier factor (0: off) and the motion prior's explain radius (px)."""
+
+    camera_model: CameraModel
+    window: int
+    ba: str
+    outlier_factor: float
+    explain_px: float
+
+
+MODE_DEFAULTS = {
+    # the paper: an 11-DOF camera, eq. 12 frees P_k alone, a local BA after each insertion, no
+    # outlier removal beyond the hard limit; its motion prior tolerates its two-view points' noise
+    "paper": ModeDefaults(CameraModel.FREE, 1, "local", 0.0, 3.0),
+    # ours: the calibrated second camera whose zoom only changes, a window of 3 (Mouragnon et al.
+    # 2006), a final global BA as COLMAP ends (an open sequence drifts along its chain of
+    # windows), observations beyond ~3.4 sigma dropped (the norm of 2-D Gaussian noise has
+    # median 1.18 sigma)
+    "accurate": ModeDefaults(CameraModel.FOCAL, 3, "final", 4.0, 1.5),
+}
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    # "paper": 2-view points, 11-DOF moving camera, 3-image local BA (paper §4.2-4.3).
+    # "accurate": multi-view tracks, constrained moving camera, wider BA window (Mouragnon et al.
+    # 2006 for the windowed local BA). The two are strategies of stereoseed.sfm.modes.
+    mode: str = "accurate"
+    # None: the mode's (MODE_DEFAULTS); "fixed": no zoom at all (see hold_unzoomed for the
+    # accurate mode's own decision)
+    camera_model: str | None = None
+    # the last `window` cameras are free in the accurate mode's local BA; None: the mode's
+    # (the paper's eq. 12 frees P_k alone, whatever the window)
+    window: int | None = None
+    # "local": local BA after each insertion; "global": global BA after each insertion; "final":
+    # local + one global BA at the end. None: the mode's
+    ba: str | None = None
+    retriangulate: bool = True  # accurate mode: re-triangulate a point from its whole track when it grows
+    # accurate mode, "focal" model: when no image's resection found a zoom, the final global BA
+    # holds every image at the calibrated camera's intrinsics (a free focal length per image only
+    # trades against the depth)
+    hold_unzoomed: bool = True
+    loop_closure: bool = True  # accurate mode: match the last images against the first ones
+
+    def __post_init__(self) -> None:
+        one_of(self, "mode", MODES)
+        one_of(self, "camera_model", CAMERA_MODELS, optional=True)
+        one_of(self, "ba", BA_POLICIES, optional=True)
+        if self.window is not None:
+            whole(self, "window")
+
+    @property
+    def defaults(self) -> ModeDefaults:
+        return MODE_DEFAULTS[self.mode]
+
+    def resolved(self) -> "PipelineConfig":
+        """The same configuration with every None replaced by its mode's default."""
+        d = self.defaults
+        return dataclasses.replace(self, camera_model=CameraModel(self.camera_model or d.camera_model),
+                                   window=self.window or d.window, ba=self.ba or d.ba)
+
+    def resolved_model(self) -> CameraModel:
+        return self.resolved().camera_model
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    min_chained_points: int = 6  # paper: N >= 6 3D-2D pairs for the DLT
+    # a resected camera whose focal length changed by more than this factor since the previous
+    # image is refused (a hand-held zoom between two shots does not; a camera fitted to wrong
+    # correspondences often does)
+    max_zoom_step: float = 1.5
+
+    def __post_init__(self) -> None:
+        whole(self, "min_chained_points", minimum=6)  # the DLT needs 6 points
+        if not self.max_zoom_step > 1.0:
+            raise ValueError(f"RegistrationConfig.max_zoom_step must be > 1 (a factor either way), "
+                             f"got {self.max_zoom_step!r}")
+
+
+@dataclass(frozen=True)
+class OutlierConfig:
+    # After each BA, observations beyond factor x the median reprojection error, never below
+    # floor_px, are dropped. None: the mode's (0: off); observations beyond max_px always go.
+    factor: float | None = None
+    floor_px: float = 0.25
+    max_px: float = 4.0  # always dropped: 2 x TriangulationConfig.max_reprojection_px
+
+    def __post_init__(self) -> None:
+        positive(self, "max_px")
+        if self.factor is not None and self.factor < 0:
+            raise ValueError(f"OutlierConfig.factor must be >= 0 (0: off), got {self.factor}")
+        if self.floor_px < 0:
+            raise ValueError(f"OutlierConfig.floor_px must be >= 0, got {self.floor_px}")
+
+    def active_factor(self) -> float | None:
+        """The factor in force (None: off); resolved configurations only."""
+        return self.factor if self.factor else None
+
+
+@dataclass(frozen=True)
+class PairCheckConfig:
+    # The calibrated pair must prove it belongs to its two images: of their matches found without
+    # the calibration (robust F), at least this fraction must lie within the epipolar band of the
+    # calibrated geometry (docs/mapper.md has the measurements). Checked when the images give at
+    # least min_matches such matches (repeated patterns give none).
+    min_consistent: float = 0.8
+    min_matches: int = 20
+
+    def __post_init__(self) -> None:
+        in_range(self, "min_consistent", 0.0, 1.0)
+        whole(self, "min_matches")
