@@ -120,7 +120,8 @@ def test_dense_on_the_pair_alone_keeps_its_points_and_says_so(seq, tmp_path, cap
 
 # --- tracebacks that became one line --------------------------------------------------------
 def test_wrong_outputs_and_arguments_are_refused_before_any_work(seq, tmp_path, capsys, monkeypatch):
-    from stereoseed import demo, pipeline
+    from stereoseed import pipeline
+    from stereoseed.experiments import demo
     from stereoseed.estimators import calibration
     from stereoseed.io import files as io
 

@@ -103,7 +103,7 @@ def _calibrate_from_target(args: argparse.Namespace) -> list[dict]:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from stereoseed.demo import run_demo
+    from stereoseed.experiments.demo import run_demo
 
     if args.images < 2:
         raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")

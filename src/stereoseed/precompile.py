@@ -49,7 +49,7 @@ def kernels_cached() -> bool | None:
 def precompile() -> float:
     """Compile the bytecode and run the three-image demo in a temporary folder; returns the
     seconds it took."""
-    from stereoseed.demo import run_demo
+    from stereoseed.experiments.demo import run_demo
 
     t = time.perf_counter()
     compile_bytecode()
