@@ -30,9 +30,9 @@ def run() -> dict:
         centre = [e for e in camera_errors([v.P_input for v in recon.views], scene.P)["center_m"][2:] if e is not None]
         densify(recon, cfg)  # warm-up: JIT caches and worker start-up
         t = time.perf_counter()
-        dense = densify(recon, cfg)
+        cloud, dense = densify(recon, cfg)
         seconds = time.perf_counter() - t
-        d = surface_distance(recon.dense_points)
+        d = surface_distance(cloud.points)
         out[label] = {
             "registered": report["registered"], "camera_center_error_cm_mean": float(np.mean(centre) * 100),
             "points_before_fusion": dense["points_before_fusion"], "fused_points": dense["points"],

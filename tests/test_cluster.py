@@ -1,6 +1,5 @@
 """Jobs on a Dask cluster (issue 19): the dense stage and `stereoseed batch` against a real local
 cluster of two worker processes on the loopback interface; the local pool; the sequence list."""
-import copy
 import json
 import os
 import re
@@ -68,10 +67,10 @@ def test_dense_on_the_cluster_is_the_local_cloud(scheduler, four_views, tmp_path
     for name in ("local", "remote"):
         (tmp_path / name).mkdir()
     workers = _workers(scheduler)
-    local = densify(copy.copy(recon), cfg, tmp_path / "local")  # densify stores the cloud on recon: copies
+    _, local = densify(recon, cfg, tmp_path / "local")
     with executor_for(scheduler, cfg.dense.pool_size()) as pool:
         assert pool.remote and pool.slots == 2
-        remote = densify(copy.copy(recon), cfg, tmp_path / "remote", pool)
+        _, remote = densify(recon, cfg, tmp_path / "remote", pool)
     assert _workers(scheduler) == workers  # none died (Dask would rerun its job quietly on a new one)
     assert remote["points"] == local["points"] > 30_000  # measured 65,908
     assert [p["wide_angle"] for p in remote["pairs"]] == [p["wide_angle"] for p in local["pairs"]]

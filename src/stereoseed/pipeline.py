@@ -272,13 +272,15 @@ def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Pat
 
 
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
-                 lenses: list | None = None) -> dict[str, Path]:
+                 lenses: list | None = None, dense: Any = None) -> dict[str, Path]:
     """The result folder (:func:`stereoseed.output.results.write_result`: cameras.json, tracks.npz,
     sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.output.report.html`);
     atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.calibration.lens_calibration.read_lenses`)
-    when the images were undistorted: cameras.json then says how to map back to the photos."""
+    when the images were undistorted: cameras.json then says how to map back to the photos.
+    dense: the :class:`~stereoseed.dense.densify.DenseCloud` (shown in report.html) when the dense
+    stage ran."""
     written = write_result(recon, report, out_dir, cfg, lenses)
-    written["report_html"] = write_report_html(recon, report, out_dir)
+    written["report_html"] = write_report_html(recon, report, out_dir, dense)
     return written
 
 
@@ -308,8 +310,10 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         if dense:
             from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run
 
-            report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
-        save_outputs(recon, report, staging, cfg, read_lenses(calib_path))
+            cloud, report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
+        else:
+            cloud = None
+        save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
         results.commit(drop=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX))
     except KeyboardInterrupt:
         raise  # the staging folder keeps the checkpoint: resume continues

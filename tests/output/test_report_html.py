@@ -243,3 +243,21 @@ def test_far_outliers_do_not_shrink_the_3d_view(run, monkeypatch):
     sparse = next(t for t in figures["view3d"]["data"] if t["name"].startswith("sparse"))
     assert sparse["name"] == f"sparse ({len(far)} points; 1 far outlier not shown)"
     assert len(sparse["z"]) == len(pts) and min(sparse["z"]) > -10
+
+
+def test_the_dense_cloud_given_is_drawn_and_counted(run):
+    import json
+
+    from stereoseed.dense.densify import DenseCloud
+
+    recon, report = run
+    pts, cols = recon.live_points()
+    cloud = DenseCloud(pts + 0.001, cols, np.tile([0.0, 0.0, 1.0], (len(pts), 1)), np.ones(len(pts), np.int64))
+    text = report_html.render_report_html(recon, {k: v for k, v in report.items() if k != "dense"}, dense=cloud)
+    figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>', text, re.S).group(1))
+    dense = next(t for t in figures["view3d"]["data"] if t["name"].startswith("dense"))
+    assert dense["name"].startswith(f"dense ({len(pts)} of {len(pts)} points")
+    assert f"<span>dense points</span><b>{len(pts)}</b>" in text  # the summary counts it
+    without = report_html.render_report_html(recon, report)
+    assert not any(t["name"].startswith("dense") for t in json.loads(re.search(
+        r'<script type="application/json" id="figures">(.*?)</script>', without, re.S).group(1))["view3d"]["data"])

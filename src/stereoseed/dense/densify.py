@@ -8,6 +8,8 @@ pairs' match maps at a time, and the clouds are fused in pair order whichever jo
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import logging
 import os
 import time
@@ -32,7 +34,7 @@ from stereoseed.estimators.triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["densify_pair", "fuse", "estimate_normals", "nearest_neighbours", "densify"]
+__all__ = ["DenseCloud", "densify_pair", "fuse", "estimate_normals", "nearest_neighbours", "densify"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -456,10 +458,26 @@ def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
                cfg.propagation, cfg.dense)
 
 
+@dataclass(frozen=True)
+class DenseCloud:
+    """The fused quasi-dense cloud: points (N, 3) float64 in the model's frame, colors (N, 3)
+    uint8 (as ``dense.ply`` stores them), normals (N, 3) unit vectors turned towards the cameras
+    that saw each point, support (N,) int64, how many image pairs put a point in its voxel."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray
+    support: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
 def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None,
-            pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
+            pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None
+            ) -> tuple[DenseCloud, dict[str, Any]]:
     """Quasi-dense stage over every consecutive registered pair; writes ``dense.ply`` in
-    out_dir when given. Returns the report (per pair counts and times, fused count).
+    out_dir when given. Returns the cloud and the report (per pair counts and times, fused count).
 
     pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
     cluster); default a local pool of ``cfg.dense.pool_size()`` processes. The cloud is the same
@@ -504,8 +522,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         write_ply(Path(out_dir) / "dense.ply", fused, fused_colors,
                   {"nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),
                    "nz": normals[:, 2].astype(np.float32), "support": support.astype(np.int32)})
-    recon.dense_points, recon.dense_colors, recon.dense_normals = fused, fused_colors, normals
-    return report
+    return DenseCloud(fused, fused_colors, normals, support), report
 
 
 def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], points: np.ndarray, colors: np.ndarray,

@@ -62,10 +62,10 @@ def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say
     report["ground_truth"] = {"camera_center_error_m": errors["center_m"], "rotation_error_deg": errors["rotation_deg"],
                               "corners_reconstructed": int(len(seen)), "corners_rms_3d_m": corner_rms}
     if dense:
-        report["dense"] = densify(recon, cfg, staging)
-        distance = surface_distance(recon.dense_points)
+        cloud, report["dense"] = densify(recon, cfg, staging)
+        distance = surface_distance(cloud.points)
         report["dense"]["median_surface_distance_m"] = float(np.median(distance)) if len(distance) else None
-    save_outputs(recon, report, staging, cfg)
+    save_outputs(recon, report, staging, cfg, dense=cloud if dense else None)
     centre = [e for e in errors["center_m"][2:] if e is not None]
     say(f"registered {report['registered']}/{report['images']} images, {report['points']} sparse points, "
           f"reprojection RMS {report['reprojection']['rms_px']:.3f} px")

@@ -291,14 +291,14 @@ def _corner_error(recon: Any, seq: _Sequence, n: int) -> dict[str, Any]:
 def _dense_summary(recon: Any, cfg: Config, synthetic: bool) -> dict[str, Any]:
     from stereoseed.dense.densify import densify
 
-    rep = densify(recon, cfg)
+    cloud, rep = densify(recon, cfg)
     out = {"dense_points": rep["points"], "dense_points_before_fusion": rep["points_before_fusion"],
            "dense_seconds": rep["seconds"]}
     if synthetic and rep["points"]:
         # Ground truth for the synthetic scene: distance of each fused point to the box or ground.
         from stereoseed.experiments.evaluation import surface_distance
 
-        d = surface_distance(recon.dense_points)
+        d = surface_distance(cloud.points)
         # The median describes the bulk; the 90th percentile and the RMS show the stray points.
         out.update(dense_surface_median_m=float(np.median(d)), dense_surface_p90_m=float(np.percentile(d, 90)),
                    dense_surface_rms_m=float(np.sqrt(np.mean(d * d))))

@@ -22,7 +22,7 @@ from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import match_pair
 from stereoseed.threads import may_overlap
 
-__all__ = ["CorrespondenceSource", "HarrisZncc", "Prefetching"]
+__all__ = ["CorrespondenceSource", "OPTIONAL", "optional", "HarrisZncc", "Prefetching"]
 
 
 class CorrespondenceSource(Protocol):
@@ -39,6 +39,18 @@ class CorrespondenceSource(Protocol):
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
         """Matches between views a and b; F (3, 3) when both cameras are known."""
+
+
+# The protocol's optional members and what a source without them stands for: no refinement of
+# matched points, no tracking, no announcement of final points, no pair cache, a matcher that
+# turning an image does not help.
+OPTIONAL: dict[str, Any] = {"refine": None, "track": None, "expect_match": None, "pair_cache": None,
+                            "turns_images": False}
+
+
+def optional(source: CorrespondenceSource, name: str) -> Any:
+    """The optional member ``name`` of ``source`` (:data:`OPTIONAL`), or its default."""
+    return getattr(source, name, OPTIONAL[name])
 
 
 class HarrisZncc:

@@ -20,7 +20,7 @@ import numpy as np
 
 from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
 from stereoseed.config import Config
-from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc
+from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.modes import mode_of
@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 def _refine(recon: Reconstruction, a: int, b: int, m: Matches) -> None:
     """Move view b's matched interest points onto their partners in view a, if the source can."""
-    refine = getattr(recon.source, "refine", None)
+    refine = optional(recon.source, "refine")
     if refine is not None and len(m):
         recon.views[b].features = refine(recon.views[a].features, recon.views[b].features, m)
 
@@ -196,7 +196,7 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
             more = new_points_three_view(recon, prev, k, before[0], cfg)
             ids = np.concatenate([ids, more])
             report["three_view_points"] = int(len(more))
-    expect_match = getattr(recon.source, "expect_match", None)
+    expect_match = optional(recon.source, "expect_match")
 
     def features_final() -> None:  # k's interest points are final: the next insertion's matching may start
         if expect_match is not None:

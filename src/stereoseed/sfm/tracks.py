@@ -13,6 +13,7 @@ from stereoseed.matching.containers import Matches
 from stereoseed.matching.two_view import epipolar_band_mask
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.sfm.correspondence import optional
 from stereoseed.estimators.triangulation import triangulate, triangulate_tracks
 
 __all__ = ["colors_at", "triangulate_matches", "add_two_view_points", "new_points_three_view", "track_by_projection",
@@ -131,7 +132,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
     projection; here sub-pixel by alignment). An observation is kept when the alignment
     converges within ``TrackingConfig.max_shift_px`` of the projection and does not land on another
     point's interest point. Returns the ids of the points whose track grew."""
-    track = getattr(recon.source, "track", None)
+    track = optional(recon.source, "track")
     vt = recon.views[target]
     if track is None or vt.features is None:
         return np.zeros(0, np.int64)

@@ -152,12 +152,12 @@ def _shown(points: np.ndarray, colors: np.ndarray, frame: dict[str, Any]) -> tup
 _DARK = "#1f2430"
 
 
-def _figure_3d(recon: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
+def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
                cams: list[tuple[int, str, np.ndarray, tuple[int, int]]]) -> dict[str, Any]:
     size = frame["size"]
     data: list[dict[str, Any]] = []
-    dense = _optional("the dense cloud", lambda: _finite_cloud(getattr(recon, "dense_points", None),
-                                                                getattr(recon, "dense_colors", None)))
+    dense = None if dense_cloud is None else _optional(
+        "the dense cloud", lambda: _finite_cloud(dense_cloud.points, dense_cloud.colors))
     if dense is not None and len(dense[0]):
         near_pts, near_cols, far = _shown(*dense, frame)
         pts, cols = _subsample(near_pts, near_cols, MAX_DENSE_POINTS)

@@ -102,7 +102,7 @@ def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | N
 
 
 # ---------------------------------------------------------------- HTML parts
-def _summary(recon: Any, report: dict[str, Any]) -> str:
+def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
     rep = report.get("reprojection") if isinstance(report.get("reprojection"), dict) else {}
     items = [("registered", f"{_fmt(report.get('registered'))} / {_fmt(report.get('images'))} images"),
              ("sparse points", _fmt(report.get("points"))),
@@ -114,8 +114,8 @@ def _summary(recon: Any, report: dict[str, Any]) -> str:
              ("total time", f"{_fmt(report.get('seconds'), 1)} s" if _num(report.get("seconds")) is not None else "—")]
     dense = report.get("dense") if isinstance(report.get("dense"), dict) else None
     n_dense = (dense or {}).get("points")
-    if n_dense is None and getattr(recon, "dense_points", None) is not None:
-        n_dense = len(recon.dense_points)
+    if n_dense is None and dense_cloud is not None:
+        n_dense = len(dense_cloud)
     if n_dense is not None:
         items.insert(2, ("dense points", _fmt(n_dense)))
     if dense and _num(dense.get("seconds")) is not None:
@@ -204,7 +204,7 @@ _SCRIPT = """
 """
 
 
-def render_report_html(recon: Any, report: dict[str, Any], title: str | None = None) -> str:
+def render_report_html(recon: Any, report: dict[str, Any], title: str | None = None, dense: Any = None) -> str:
     """The report's HTML text (see :func:`write_report_html`); optional parts that fail are
     logged and left out."""
     report = report if isinstance(report, dict) else {}
@@ -215,7 +215,7 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     frame = _optional("the scene frame", lambda: _scene_frame(sparse[0], np.array([camera_center(P) for _, _, P, _ in cams]).reshape(-1, 3)))
     figures: dict[str, Any] = {}
     if frame is not None:
-        fig = _optional("the 3D view", lambda: _figure_3d(recon, frame, sparse, cams))
+        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams))
         if fig is not None and fig["data"]:
             figures["view3d"] = {**fig, "webgl": True}
         fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams))
@@ -227,7 +227,7 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
         if fig is not None:
             figures[key] = fig
     matches = _optional("the weakest insertion's matches", lambda: _weakest_insertion(recon, report))
-    summary = _optional("the summary", lambda: _summary(recon, report)) or ""
+    summary = _optional("the summary", lambda: _summary(dense, report)) or ""
     table = _optional("the per-image table", lambda: _table(recon, report)) or '<p class="note">no per-image report</p>'
     encoded = {key: _optional(f"figure {key!r}", lambda: _json_for_script(fig)) for key, fig in figures.items()}
     figures = {key: fig for key, fig in figures.items() if encoded[key] is not None}
@@ -281,16 +281,17 @@ def _plotly_js() -> str:
     return get_plotlyjs()
 
 
-def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path) -> Path:
+def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None) -> Path:
     """Write ``out_dir/report.html``, one self-contained file (no network), atomically (a
     temporary file in out_dir replaces it). Returns its path.
 
-    recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction` (its dense cloud is shown
-    when :func:`stereoseed.dense.densify.densify` ran); report: the run's report dict (report.json).
+    recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
+    dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given.
     A part that cannot be built is logged and left out; only an error writing the file raises.
     """
     path = Path(out_dir) / "report.html"
-    text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}")
+    text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}",
+                              dense=dense)
     write_text(path, text)
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
     return path

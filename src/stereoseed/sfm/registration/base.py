@@ -25,6 +25,7 @@ from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
+from stereoseed.sfm.correspondence import optional
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
@@ -265,7 +266,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     width = vp.image_size[0]
     m = source.match(prev, k, vp.features, cand.features, None, width)
     pid, chained = chained_points(recon, prev, m)
-    if chained.sum() < cfg.resection.min_inliers and getattr(source, "turns_images", False):
+    if chained.sum() < cfg.resection.min_inliers and optional(source, "turns_images"):
         # a camera turned upside down since the previous image (a ring walked over the top of
         # an object) matches only once its image is turned back
         turned = _turned(source, cand)

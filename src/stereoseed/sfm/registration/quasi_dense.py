@@ -50,6 +50,7 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
+from stereoseed.sfm.correspondence import optional
 from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, RegistrationFailure, Resector,
                                              consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
@@ -427,7 +428,7 @@ def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate, 
     :func:`propagate_pair`'s)."""
     vp = recon.views[prev]
     t = time.perf_counter()
-    pair_cache = getattr(recon.source, "pair_cache", None)  # a source without one computes afresh
+    pair_cache = optional(recon.source, "pair_cache")  # a source without one computes afresh
     harris = localised_candidates(vp.features, cand.features, cfg,
                                   pair_cache(vp.features, cand.features) if pair_cache else None)
     sift = sift_seeds(vp.image, cand.image, cfg.quasi_dense.sift_ratio)
