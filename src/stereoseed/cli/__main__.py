@@ -1,0 +1,4 @@
+"""``python -m stereoseed.cli``: the stereoseed command."""
+from stereoseed.cli import run
+
+run()

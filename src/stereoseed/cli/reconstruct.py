@@ -1,0 +1,235 @@
+"""`stereoseed reconstruct`, `batch`, `export`, `view` and `demo`: runs and their result folders."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from stereoseed.cluster import CONNECT_TIMEOUT_S
+from stereoseed.errors import StereoseedError
+from stereoseed.geometry.models import MODELS
+
+EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed
+
+EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (the others were)
+
+def _config(args: argparse.Namespace):
+    """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
+    from stereoseed.config import Config
+    from stereoseed.sfm.config import PipelineConfig
+
+    try:
+        return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
+                                              ba=args.ba))
+    except ValueError as e:
+        raise StereoseedError(str(e)) from None
+
+def _pool(args: argparse.Namespace, workers: int):
+    """Where the jobs run: the Dask cluster of --scheduler (connected now, before any work),
+    else local (None: the library's default)."""
+    from contextlib import nullcontext
+
+    from stereoseed.cluster import executor_for
+
+    if args.scheduler is None:
+        return nullcontext()
+    return executor_for(args.scheduler, workers, connect_timeout=args.connect_timeout)
+
+class _Bar:
+    """The progress callback (done, total, message) as a tqdm bar on stderr, shown from the
+    first report on: a run refused before any work leaves only its error line. ``after``: the
+    bar of the stage before, closed (its time stopped) when this one starts."""
+
+    def __init__(self, unit: str, quiet: bool, after: "_Bar | None" = None):
+        self.unit, self.quiet, self.after, self.bar = unit, quiet, after, None
+
+    def __call__(self, done: int, total: int, message: str) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            if self.after is not None:
+                self.after.close()
+            self.bar = tqdm(total=total, unit=self.unit, file=sys.stderr, disable=self.quiet)
+        self.bar.total, self.bar.n = total, done
+        self.bar.set_postfix_str(message[:40])
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+    def __enter__(self) -> "_Bar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+def _say_if_compiling(quiet: bool) -> None:
+    """One line before a first run on this installation: it compiles the kernels first."""
+    from stereoseed.precompile import kernels_cached
+
+    if not quiet and kernels_cached() is False:
+        print("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
+              "two cores; `stereoseed precompile` does it ahead)", file=sys.stderr)
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from stereoseed.pipeline import reconstruct_to_folder
+
+    cfg = _config(args)
+    if args.scheduler and not args.dense:
+        raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
+    _say_if_compiling(args.quiet)
+    with (_pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress,
+          _Bar("pair", args.quiet, after=progress) as dense_progress):
+        report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
+                                       progress=progress, pool=pool, dense_progress=dense_progress)
+    failed = [r for r in report["per_image"] if r.get("status") == "failed"]
+    if report.get("resumed_images"):
+        print(f"resumed after {len(report['resumed_images'])} images already placed")
+    if report["final"].get("no_zoom"):
+        print("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
+    for r in failed:
+        print(f"skipped: {r['reason']}")
+    if "dense" in report:
+        print(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
+                                                                     if report["dense"].get("note") else ""))
+    print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped), "
+          f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+    return EXIT_SKIPPED if (args.strict and failed) else 0
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from stereoseed.batch import read_sequence_list, run_batch
+
+    cfg = _config(args)
+    sequences = read_sequence_list(args.sequences, args.out_root)
+    _say_if_compiling(args.quiet)
+    with _pool(args, cfg.dense.pool_size()) as pool, _Bar("sequence", args.quiet) as progress:
+        outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
+    for o in outcomes:
+        if o.ok:
+            s = o.summary
+            dense = f", {s['dense_points']} dense points" if "dense_points" in s else ""
+            print(f"{o.sequence.name}: registered {s['registered']}/{s['images']} images ({s['skipped']} skipped), "
+                  f"{s['points']} points{dense}; wrote {o.sequence.out}")
+        else:
+            print(f"{o.sequence.name}: failed: {o.reason}")
+    failed = [o for o in outcomes if not o.ok]
+    print(f"batch: {len(outcomes) - len(failed)} of {len(outcomes)} sequences reconstructed"
+          + ("; failed: " + ", ".join(f"{o.sequence.name} ({o.reason})" for o in failed) if failed else ""))
+    return EXIT_SEQUENCES_FAILED if failed else 0
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from stereoseed.output.export import write_bundler, write_colmap, write_nvm
+    from stereoseed.output.results import load_result
+
+    result = load_result(args.result)
+    out = Path(args.out)
+    if args.format == "colmap":
+        warnings_ = write_colmap(result, out, binary=args.binary)
+        written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+    elif args.format == "nvm":
+        warnings_ = write_nvm(result, out / "model.nvm")
+        written = [out / "model.nvm"]
+    else:
+        warnings_ = write_bundler(result, out)
+        written = [out / "bundle.out", out / "list.txt"]
+    for w in warnings_:
+        print(f"stereoseed: warning: {w}", file=sys.stderr)
+    print(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
+          + ", ".join(str(p) for p in written))
+    return 0
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    import webbrowser
+
+    page = Path(args.result) / "report.html"
+    if not page.is_file():
+        raise StereoseedError(f"{args.result}: no report.html; run stereoseed reconstruct --out {args.result} first")
+    uri = page.resolve().as_uri()
+    if args.print:
+        print(uri)
+    elif webbrowser.open(uri):
+        print(f"opened {uri}")
+    else:
+        print(f"stereoseed: warning: no browser to open; open {uri}", file=sys.stderr)
+    return 0
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from stereoseed.experiments.demo import run_demo
+
+    if args.images < 2:
+        raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
+    if not args.noise >= 0:
+        raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
+    _say_if_compiling(quiet=False)
+    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=print)
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """The options of a run, shared by reconstruct and batch."""
+    p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
+                   help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
+                        "'accurate': multi-view tracks, constrained camera, wider window (default)")
+    p.add_argument("--camera-model", choices=list(MODELS), default=None,
+                   help="moving camera model (default: free in paper mode, focal in accurate mode; "
+                        "fixed: the lens did not zoom, every image keeps the calibrated second camera's intrinsics)")
+    p.add_argument("--window", type=int, default=None, help="number of latest cameras the local BA frees")
+    p.add_argument("--ba", choices=["local", "global", "final"], default=None,
+                   help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
+                        "(default: local in paper mode, final in accurate mode)")
+    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
+                        "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "
+                        "paths); default: this machine")
+    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
+                   help="give up on a --scheduler that has not answered by then (default: %(default)g)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, only errors on the terminal")
+    p.add_argument("--verbose", action="store_true", help="also log what the library reports as it goes (each skipped image and why, the matcher's "
+                        "pairs without a robust F)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the reconstruct, batch, export, view, demo subcommands."""
+    p = sub.add_parser("reconstruct", help="incremental reconstruction of an ordered image sequence")
+    p.add_argument("images", nargs="+",
+                   help="a folder (images in name order) or a text file listing image paths; or the two calibrated "
+                        "photos then the video of the walk (keyframes picked from it), e.g. pair1.png pair2.png walk.mp4")
+    p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
+                        "model folder (the pair's cameras looked up by image name)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    _add_run_options(p)
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run into the same --out from its checkpoint (same result as an "
+                        "uninterrupted run)")
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit with code {EXIT_SKIPPED} when any image could not be placed (the results are written)")
+    p.set_defaults(func=_cmd_reconstruct)
+
+
+    p = sub.add_parser("batch", help="reconstruct many sequences, one result folder each (locally, or on a Dask cluster)")
+    p.add_argument("sequences", help="a text file, one line per sequence: IMAGES CALIB OUT (relative paths from the "
+                                     "file's folder; # starts a comment; see docs/formats.md)")
+    p.add_argument("--out-root", help="folder that relative OUT paths are resolved against (default: the list's folder)")
+    _add_run_options(p)
+    p.set_defaults(func=_cmd_batch)
+
+
+    p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file")
+    p.add_argument("result", help="a folder written by stereoseed reconstruct --out")
+    p.add_argument("--format", choices=["colmap", "nvm", "bundler"], default="colmap")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--binary", action="store_true", help="COLMAP's binary .bin files instead of .txt")
+    p.set_defaults(func=_cmd_export)
+
+
+    p = sub.add_parser("view", help="open a result folder's report.html in the default browser")
+    p.add_argument("result", help="a result folder (stereoseed reconstruct --out RESULT)")
+    p.add_argument("--print", action="store_true", help="only print the report's file URI (headless machines)")
+    p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser("demo", help="render the synthetic box scene, calibrate, reconstruct, report the error")
+    p.add_argument("--out", default="demo_output", help="output folder (default: %(default)s)")
+    p.add_argument("--images", type=int, default=14, help="number of images (default: %(default)s)")
+    p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
+    p.add_argument("--sparse", action="store_true", help="skip the dense stage")
+    p.set_defaults(func=_cmd_demo)
+
