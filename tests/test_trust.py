@@ -15,7 +15,7 @@ import pytest
 from process_helpers import alive_in_group, wait_until
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
-from stereoseed.output.results import MANIFEST
+from stereoseed.output.result_set import MANIFEST
 
 
 def _on_disk(scene, folder: Path) -> tuple:

@@ -9,7 +9,7 @@ images: a worker reads its sequence itself, so every worker must see the same pa
 
 A sequence that fails (a missing file, a bad calibration, any exception) is reported with a
 one-line reason; the others still run. Each result folder is written as a whole
-(:class:`stereoseed.output.results.ResultSet`), as ``stereoseed reconstruct`` writes it.
+(:class:`stereoseed.output.result_set.ResultSet`), as ``stereoseed reconstruct`` writes it.
 """
 from __future__ import annotations
 

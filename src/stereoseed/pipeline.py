@@ -28,7 +28,8 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes
 from stereoseed.output.report.html import write_report_html
-from stereoseed.output.results import ResultSet, write_result
+from stereoseed.output.result_set import ResultSet
+from stereoseed.output.results import write_result
 
 if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
     from stereoseed.cluster import JobPool
@@ -290,7 +291,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
-    (:class:`stereoseed.output.results.ResultSet`): on failure it keeps what it held, and after an
+    (:class:`stereoseed.output.result_set.ResultSet`): on failure it keeps what it held, and after an
     interruption the staging folder keeps the checkpoint for ``resume``. Returns the report.
     progress: called after the pair and after each insertion; dense_progress: as each of the
     dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`)."""

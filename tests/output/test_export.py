@@ -12,7 +12,8 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.files import read_calibration
 from stereoseed.io.ply import read_ply_vertices
 from stereoseed.pipeline import reconstruct, save_outputs
-from stereoseed.output.results import FORMAT_VERSION, exported_points, load_result
+from stereoseed.output.reader import load_result
+from stereoseed.output.results import FORMAT_VERSION, exported_points
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (the test extra) is the COLMAP oracle")
 

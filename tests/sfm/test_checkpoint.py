@@ -65,7 +65,7 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
 
 def test_a_resume_with_a_mistyped_input_keeps_its_checkpoint(ring_on_disk, tmp_path):
     from stereoseed.errors import StereoseedError
-    from stereoseed.output.results import ResultSet
+    from stereoseed.output.result_set import ResultSet
 
     images_txt, _ = ring_on_disk
     out = tmp_path / "out"
@@ -353,7 +353,7 @@ def test_a_link_in_place_of_the_checkpoint_is_refused(saved, caplog):
 def test_a_planted_pickle_beside_the_output_is_never_run(ring_on_disk, tmp_path, caplog):
     """At the checkpoint's name and at the name pickled checkpoints had: neither runs, and the
     run starts again."""
-    from stereoseed.output.results import ResultSet
+    from stereoseed.output.result_set import ResultSet
 
     images_txt, calib = ring_on_disk
     out = tmp_path / "out"

@@ -119,7 +119,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from stereoseed.output.export import write_bundler, write_colmap, write_nvm
-    from stereoseed.output.results import load_result
+    from stereoseed.output.reader import load_result
 
     result = load_result(args.result)
     out = Path(args.out)

@@ -17,7 +17,7 @@ from stereoseed.dense.densify import densify
 from stereoseed.experiments.evaluation import camera_errors, reconstruct_corners, rms_3d, surface_distance
 from stereoseed.io.files import write_json
 from stereoseed.pipeline import reconstruct, save_outputs
-from stereoseed.output.results import ResultSet
+from stereoseed.output.result_set import ResultSet
 from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.colmap import COLMAP_MODELS
 from stereoseed.io.files import atomic_path, write_text
 from stereoseed.geometry.lens import distort_pixels
-from stereoseed.output.results import Result
+from stereoseed.output.reader import Result
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera"]
 

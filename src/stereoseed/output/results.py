@@ -12,17 +12,12 @@ Written by :func:`write_result` (atomically, file by file):
   views; ``cameras.ply`` — a small frustum per registered camera;
 * ``report.json`` — the run's report.
 
-Far outliers are left out of every export (:func:`exported_points`). :func:`load_result` reads a
-folder back into a :class:`Result`, the input of :mod:`stereoseed.output.export`.
+Far outliers are left out of every export (:func:`exported_points`).
+:func:`stereoseed.output.reader.load_result` reads a folder back; :class:`stereoseed.output.result_set.ResultSet`
+writes it as a whole (a staging folder swapped in at the end).
 """
 from __future__ import annotations
 
-import ctypes
-import json
-import os
-import shutil
-import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,12 +27,11 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import distinct_pair_firsts
 from stereoseed.geometry.projection import backproject, camera_center
 from stereoseed.config import Config
-from stereoseed.errors import StereoseedError
 from stereoseed.io.files import atomic_path, write_json
 from stereoseed.io.ply import write_ply
 from stereoseed.sfm.reconstruction import Reconstruction, View
 
-__all__ = ["FORMAT_VERSION", "Result", "ResultSet", "exported_points", "write_result", "load_result", "frustum_mesh"]
+__all__ = ["FORMAT_VERSION", "exported_points", "write_result", "frustum_mesh"]
 
 FORMAT_VERSION = 1
 
@@ -179,147 +173,3 @@ def _write_cameras_ply(recon: Reconstruction, path: Path, points: np.ndarray) ->
     if not reg:
         return write_ply(path, np.zeros((0, 3)), None, faces=np.zeros((0, 3)))
     return write_ply(path, np.vstack(vertices), np.vstack(colours).astype(np.uint8), faces=np.vstack(faces))
-
-
-@dataclass
-class Result:
-    """A result folder read back: per image (in input order) name, (width, height), P (3, 4) in
-    the input image's frame or None; the points and their tracks (tracks.npz's arrays)."""
-
-    folder: Path
-    names: list[str]
-    sizes: list[tuple[int, int]]
-    P: list[np.ndarray | None]
-    tracks: dict[str, np.ndarray]
-    distortion: list[np.ndarray | None] = field(default_factory=list)  # the lens, where the run undistorted
-
-    @property
-    def registered(self) -> list[int]:
-        return [i for i, P in enumerate(self.P) if P is not None]
-
-    def keypoints(self, image: int) -> np.ndarray:
-        """(K, 2) keypoints of image ``image`` (our pixel convention), indexed by obs_keypoint."""
-        off = self.tracks["keypoints_offset"]
-        return self.tracks["keypoints_xy"][off[image]:off[image + 1]]
-
-
-def load_result(folder: str | Path) -> Result:
-    """Read cameras.json and tracks.npz of a result folder. Raises :class:`StereoseedError`
-    naming the missing or unreadable file."""
-    folder = Path(folder)
-    cams_path, tracks_path = folder / "cameras.json", folder / "tracks.npz"
-    for p in (cams_path, tracks_path):
-        if not p.is_file():
-            raise StereoseedError(f"{folder}: no {p.name}; give a folder written by stereoseed reconstruct "
-                                  f"(version {FORMAT_VERSION} or later)")
-    try:
-        cams = json.loads(cams_path.read_text())
-        images = cams["images"]
-        with np.load(tracks_path) as npz:
-            tracks = {k: npz[k] for k in npz.files}
-        names = [im["name"] for im in images]
-        sizes = [(int(im["width"]), int(im["height"])) for im in images]
-        Ps = [np.asarray(im["P"], np.float64) if im.get("registered") else None for im in images]
-        lens = [np.asarray(im["distortion"], np.float64) if "distortion" in im else None for im in images]
-    except (ValueError, KeyError, TypeError, OSError) as e:
-        raise StereoseedError(f"{folder}: cameras.json or tracks.npz is not as stereoseed writes it ({e})") from None
-    return Result(folder, names, sizes, Ps, tracks, lens)
-
-
-# ---------------------------------------------------------------------------------------------
-# The result folder as a whole
-
-MANIFEST = ".stereoseed-result.json"  # written last: lists every file of the result set
-_RENAME_EXCHANGE = 2  # <linux/fs.h>
-
-
-class ResultSet:
-    """A result folder written as a whole: the run writes into a staging folder beside it
-    (``.NAME.partial``, which also holds the checkpoint for ``--resume``), and :meth:`commit`
-    swaps the two folders in one step, so the folder holds either the previous complete result
-    set or the new one, never a mix. A folder holding files stereoseed did not write is refused
-    before any computation (:meth:`check`): nothing the user made is ever overwritten.
-
-        results = ResultSet(out); results.check()
-        staging = results.open()
-        ... write every file into staging ...
-        results.commit()   # or results.abandon() on failure
-    """
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.staging = self.path.parent / f".{self.path.name}.partial"
-
-    def _listed(self) -> set[str] | None:
-        """The files the previous result set's manifest lists, None without a manifest."""
-        try:
-            return set(json.loads((self.path / MANIFEST).read_text())["files"])
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-
-    def check(self) -> None:
-        """Refuse, before any work: an output path that is a file, a folder holding files
-        stereoseed did not write, a place where nothing can be written."""
-        if self.path.exists() and not self.path.is_dir():
-            raise StereoseedError(f"{self.path}: exists and is not a folder; give a folder for the results")
-        if self.path.is_dir():
-            present = {str(p.relative_to(self.path)) for p in self.path.rglob("*") if p.is_file()}
-            foreign = sorted(present - (self._listed() or set()) - {MANIFEST})
-            if foreign:
-                more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
-                raise StereoseedError(f"{self.path}: holds files stereoseed did not write ({', '.join(foreign[:3])}"
-                                      f"{more}); give an empty or new folder for the results")
-        parent = self.path.parent
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-            probe = parent / f".{self.path.name}.probe"
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as e:
-            raise StereoseedError(f"{self.path}: cannot write there ({e.strerror or e}); give a writable folder") from None
-
-    def open(self, keep: bool = False) -> Path:
-        """The staging folder, emptied unless ``keep`` (a resumed run keeps its checkpoint)."""
-        if self.staging.exists() and not keep:
-            shutil.rmtree(self.staging)
-        self.staging.mkdir(parents=True, exist_ok=True)
-        return self.staging
-
-    def commit(self, drop: tuple[str, ...] = ()) -> Path:
-        """Make the staging folder the result folder (files and folders named in ``drop``,
-        e.g. the checkpoint, are removed first); the previous result set is deleted."""
-        for name in drop:
-            path = self.staging / name
-            if path.is_dir():
-                shutil.rmtree(path)
-            else:
-                path.unlink(missing_ok=True)
-        files = sorted(str(p.relative_to(self.staging)) for p in self.staging.rglob("*") if p.is_file())
-        write_json(self.staging / MANIFEST, {"format_version": FORMAT_VERSION, "files": files})
-        if self.path.exists() and _exchange(self.staging, self.path):
-            shutil.rmtree(self.staging)  # the previous result set, swapped out
-        else:
-            old = self.path.parent / f".{self.path.name}.old"
-            if self.path.exists():
-                shutil.rmtree(old, ignore_errors=True)
-                os.replace(self.path, old)
-            os.replace(self.staging, self.path)
-            shutil.rmtree(old, ignore_errors=True)
-        return self.path
-
-    def abandon(self) -> None:
-        """Forget the staging folder (the result folder is untouched)."""
-        shutil.rmtree(self.staging, ignore_errors=True)
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two folders atomically (Linux renameat2 RENAME_EXCHANGE); False where unavailable."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError):
-        return False
-    at_fdcwd = -100
-    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0
