@@ -1,11 +1,12 @@
-"""Tracks: new points from a pair, the three-view choice's one-to-one selection, and tracking by projection only where the source can track."""
+"""Tracks: new points from a pair, re-triangulation from a whole track, the three-view choice's
+one-to-one selection, and tracking by projection only where the source can track."""
 import numpy as np
 
 from ring_helpers import ring
 from stereoseed.config import Config
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.mapper import initialise, insert_view
-from stereoseed.sfm.tracks import _one_to_one, add_two_view_points, track_by_projection
+from stereoseed.sfm.tracks import _one_to_one, add_two_view_points, retriangulate, track_by_projection
 
 
 def _started(n=5):
@@ -15,6 +16,15 @@ def _started(n=5):
     for k in range(2, n):
         assert insert_view(recon, k, cfg)["status"] == "registered"
     return recon, source, cfg
+
+
+def _truth(recon, source):
+    """The true position of each point, from the exact source's ids of its first observation."""
+    first = np.unique(recon.obs_point, return_index=True)
+    X = np.full((len(recon.points), 3), np.nan)
+    v, f = recon.obs_view[first[1]], recon.obs_feature[first[1]]
+    X[first[0]] = np.array([source.points[source.ids[vi][fi]] for vi, fi in zip(v, f)])
+    return X
 
 
 def test_two_view_points_lie_on_the_truth_and_link_as_asked():
@@ -32,6 +42,23 @@ def test_two_view_points_lie_on_the_truth_and_link_as_asked():
     in_b = (recon.obs_view == b) & (recon.obs_point >= before)
     np.testing.assert_array_equal(recon.views[b].point_of_feature[recon.obs_feature[in_b]], recon.obs_point[in_b])
     np.testing.assert_array_equal(recon.views[a].point_of_feature, stood_for)
+
+
+def test_retriangulation_brings_a_displaced_point_back_and_leaves_a_hopeless_one():
+    recon, source, cfg = _started()
+    long = np.flatnonzero(recon.alive & (recon.track_lengths() >= 3))[:50]
+    X_true = _truth(recon, source)[long]
+    recon.points[long] += 0.02  # 2 cm off: every observation disagrees
+    retriangulate(recon, np.sort(long), cfg)
+    assert np.max(np.linalg.norm(recon.points[long] - X_true, axis=1)) < 0.003
+    # a point whose observations cannot agree keeps its position
+    p = long[0]
+    obs = np.flatnonzero(recon.obs_point == p)
+    v0 = recon.views[recon.obs_view[obs[0]]]
+    v0.features.points[recon.obs_feature[obs[0]]] += 40.0  # one observation 40 px off
+    kept = recon.points[p].copy()
+    retriangulate(recon, np.array([p]), cfg)
+    np.testing.assert_array_equal(recon.points[p], kept)
 
 
 def test_the_three_view_choice_uses_each_interest_point_once():

@@ -179,7 +179,7 @@ def retriangulate(recon: Reconstruction, point_ids: np.ndarray, cfg: Config) -> 
     X = triangulate_tracks(P_obs, xy, local, len(point_ids), cfg.triangulation.lm_iterations)
     h, uv = project_per_observation(P_obs, X[local])
     err = np.linalg.norm(uv - xy, axis=1)
-    worst = np.full(len(point_ids), np.inf)
+    worst = np.full(len(point_ids), -np.inf)  # a point without an observation stays -inf: not finite, not taken
     with np.errstate(invalid="ignore"):
         np.maximum.at(worst, local, np.where(h[:, 2] > 0, err, np.inf))
     ok = np.isfinite(worst) & (worst <= cfg.triangulation.max_reprojection_px)

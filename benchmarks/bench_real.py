@@ -1,0 +1,106 @@
+"""`make bench` section `real`: every real sequence of ../shared/data with ground-truth cameras,
+each image's camera-centre error against the published cameras, and what the run said of it.
+
+The pair (the first two images of the walk) gets the published cameras, as a calibration would;
+every later camera is estimated and compared. Errors are in the sets' unit (metres) and, for the
+outdoor sets, in % of the scene's distance (the median depth of the sparse points seen from the
+first camera): a walk of a building and a walk of a statuette are judged alike.
+
+    python benchmarks/bench_real.py [SET ...]      # prints the JSON; SET e.g. strechaCastleP19
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stereoseed.config import Config
+from stereoseed.geometry.projection import camera_center, depths
+from stereoseed.io.files import read_middlebury_par
+from stereoseed.pipeline import load_sequence, reconstruct
+
+# name -> (folder, calibration file, every k-th image of the walk)
+SETS = {
+    "strechaFountainP11": ("strechaFountainP11", "strechaFountainP11_par.txt", 1),
+    "strechaCastleP19": ("strechaCastleP19", "strechaCastleP19_par.txt", 1),
+    "dinoRing1-24/2": ("dinoRing1-24", "dinoRing1-24_par.txt", 2),
+    "dinoRing1-24/3": ("dinoRing1-24", "dinoRing1-24_par.txt", 3),
+    "dinoSparseRing": ("dinoSparseRing", "dinoSR_par.txt", 1),
+    "templeSparseRing": ("templeSparseRing", "templeSR_par.txt", 1),
+}
+
+
+def data_dir() -> Path:
+    return Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+def _walk(folder: Path, par: str, step: int) -> list[str]:
+    """The walk's images: ring_order.txt where the set has one, else the calibration file's
+    images in name order; every ``step``-th."""
+    order = folder / "ring_order.txt"
+    if order.is_file():
+        names = [n.strip() for n in order.read_text().splitlines() if n.strip()]
+    else:
+        names = sorted(read_middlebury_par(folder / par))
+    return names[::step]
+
+
+def run_set(name: str, cfg: Config = Config()) -> dict:
+    """One real set: per image its status, how it was placed, its flag (when the run gives one)
+    and its camera-centre error; the summary over the placed images."""
+    folder, par, step = SETS[name]
+    seq = data_dir() / folder
+    if not seq.is_dir():
+        return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
+    walk = _walk(seq, par, step)
+    with tempfile.TemporaryDirectory() as tmp:
+        listing = Path(tmp) / "walk.txt"
+        listing.write_text("".join(f"{seq / n}\n" for n in walk))
+        images, names, P_pair = load_sequence(str(listing), str(seq / par))
+        truth = read_middlebury_par(seq / par)
+        t = time.perf_counter()
+        recon, report = reconstruct(images, names, P_pair, cfg)
+        seconds = time.perf_counter() - t
+    pts, _ = recon.live_points()
+    distance = float(np.median(depths(truth[names[0]], pts))) if len(pts) else float("nan")
+    per_image, placed, trusted = [], [], []
+    for v, r in zip(recon.views, report["per_image"]):
+        entry = {"image": v.name, "status": r.get("status")}
+        if r.get("registered_by"):
+            entry["registered_by"] = str(r["registered_by"])
+        reliable = getattr(v, "reliable", True)
+        if not reliable:
+            entry["flag"] = getattr(v, "flag_reason", "flagged")
+        if v.registered and v.P_input is not None:
+            err = float(np.linalg.norm(camera_center(v.P_input) - camera_center(truth[v.name])))
+            entry["centre_error"] = round(err, 5)
+            entry["centre_error_pct"] = round(100 * err / distance, 3)
+            if len(per_image) >= 2:
+                placed.append(err)
+                if reliable:
+                    trusted.append(err)
+        per_image.append(entry)
+
+    def summary(errors: list[float]) -> dict:
+        if not errors:
+            return {"count": 0}
+        e = np.array(errors)
+        return {"count": int(len(e)), "median": float(np.median(e)), "worst": float(e.max()),
+                "median_pct": float(100 * np.median(e) / distance), "worst_pct": float(100 * e.max() / distance)}
+
+    return {"images": len(names), "registered": report["registered"], "distance": distance, "seconds": seconds,
+            "placed": summary(placed), "unflagged": summary(trusted), "per_image": per_image,
+            "loop_closure": (report.get("final") or {}).get("loop_closure")}
+
+
+def run(sets: list[str] | None = None) -> dict:
+    return {name: run_set(name) for name in (sets or SETS)}
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(sys.argv[1:] or None), indent=1, default=str))
