@@ -26,6 +26,7 @@ from numba import njit, prange
 __all__ = [
     "lens_coefficients",
     "principal_r2",
+    "lens_problem",
     "distort_normalized",
     "undistort_normalized",
     "distort_pixels",
@@ -133,6 +134,51 @@ def principal_r2(d) -> float:
     roots = np.roots(np.trim_zeros([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0], "f"))
     real = roots[(np.abs(roots.imag) < 1e-12 * np.maximum(1.0, np.abs(roots))) & (roots.real > 0)]
     return float(real.real.min()) if real.size else np.inf
+
+
+# a lens moving an image corner by more than its distance from the principal point (twice as
+# far out, or onto the centre) is no lens of this model but a typo (k1 = 50 for 0.50)
+MAX_CORNER_SHIFT = 1.0
+
+
+def lens_problem(d, K: np.ndarray, image_size: tuple[float, float]) -> str | None:
+    """Why ``d`` cannot be the lens of camera K's images of ``image_size`` (width, height), or
+    None when it can: the radial map r_d(r) = r c(r) must be increasing over the image (up to
+    the corners' radius, and far enough to reach the photo's corners: else the image folds back
+    onto itself and no pixel has one undistorted position), and no image corner may move by
+    more than its distance from the principal point (``MAX_CORNER_SHIFT``). The message names
+    the coefficient that weighs most there. A pure function: nothing is read or raised."""
+    k1, k2, p1, p2, k3 = coeffs = lens_coefficients(d)
+    if not np.any(coeffs):
+        return None
+    w, h = float(image_size[0]), float(image_size[1])
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    xy = _to_normalized(corners, K)
+    r_corner = float(np.max(np.linalg.norm(xy, axis=1)))
+    r2_fold = principal_r2(coeffs)
+    if np.isfinite(r2_fold):
+        r_fold = float(np.sqrt(r2_fold))
+        reach = r_fold * (1.0 + r2_fold * (k1 + r2_fold * (k2 + r2_fold * k3)))  # the largest r_d
+        if r_fold <= r_corner or reach <= r_corner:
+            name, value = _weightiest(coeffs, r_fold)
+            return (f"is not a lens over the image: its radial distortion r_d(r) stops increasing at r = {r_fold:.3g} "
+                    f"(normalised), inside the image (corners at r = {r_corner:.3g}), so the image folds back onto "
+                    f"itself ({name} = {value:g})")
+    shift = np.linalg.norm(distort_normalized(xy, coeffs) - xy, axis=1) / np.maximum(np.linalg.norm(xy, axis=1), 1e-12)
+    if not np.max(shift) <= MAX_CORNER_SHIFT:
+        name, value = _weightiest(coeffs, r_corner)
+        return (f"moves an image corner by {np.max(shift):.3g} times its distance from the principal point (at most "
+                f"{MAX_CORNER_SHIFT:g} for a lens: {name} = {value:g})")
+    return None
+
+
+def _weightiest(coeffs: np.ndarray, r: float) -> tuple[str, float]:
+    """(name, value) of the coefficient whose term is the largest at normalised radius r."""
+    k1, k2, p1, p2, k3 = coeffs
+    terms = {"k1": (k1, k1 * r ** 2), "k2": (k2, k2 * r ** 4), "k3": (k3, k3 * r ** 6),
+             "p1": (p1, 3.0 * p1 * r), "p2": (p2, 3.0 * p2 * r)}
+    name = max(terms, key=lambda n: abs(terms[n][1]))
+    return name, float(terms[name][0])
 
 
 @njit(cache=True, nogil=True)

@@ -1,7 +1,7 @@
 """Everything that touches the disk: images, point files, calibrations, JSON, PLY.
 
-Writers are atomic (write to a temporary file in the same folder, then rename), so an
-interrupted run never leaves a half-written result. Readers raise :class:`StereoseedError` with
+Writers are atomic (:mod:`stereoseed.io.atomic`: write to a temporary file in the same folder,
+then rename), so an interrupted run never leaves a half-written result. Readers raise :class:`StereoseedError` with
 a message naming the file and what to do.
 """
 from __future__ import annotations
@@ -9,11 +9,13 @@ from __future__ import annotations
 import codecs
 import contextlib
 import json
+import math
 import os
 import re
 import sys
 import tempfile
 import threading
+import unicodedata
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -21,82 +23,12 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
+from stereoseed.io.atomic import atomic_path, jsonable, write_json, write_text  # re-exported: the writers' home
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
-__all__ = ["read_image", "list_images", "read_points_file", "read_calibration", "write_json",
-           "write_text", "atomic_path", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
-
-
-# ---------------------------------------------------------------- atomic writing
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_FILE_MODE = 0o666 & ~_umask()  # what open() would give: mkstemp's files are 0600
-
-
-class atomic_path:
-    """Context manager yielding a temporary path that replaces ``path`` on success (created with
-    the user's umask); on failure the temporary file is removed. Errors name ``path``, never the
-    temporary file."""
-
-    def __init__(self, path: str | os.PathLike, suffix: str = ""):
-        self.path = Path(path)
-        self.suffix = suffix or self.path.suffix
-
-    def __enter__(self) -> Path:
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix="." + self.path.name + ".", suffix=".tmp" + self.suffix,
-                                       dir=self.path.parent)
-        except OSError as e:
-            raise StereoseedError(f"{self.path}: cannot write ({e.strerror or e})") from None
-        os.close(fd)
-        self.tmp = Path(tmp)
-        return self.tmp
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc_type is None:
-            try:
-                os.chmod(self.tmp, _FILE_MODE)
-                os.replace(self.tmp, self.path)
-                return False
-            except OSError as e:
-                self.tmp.unlink(missing_ok=True)
-                raise StereoseedError(f"{self.path}: cannot write ({e.strerror or e})") from None
-        self.tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise StereoseedError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
-        return False
-
-
-def jsonable(obj: Any) -> Any:
-    """``json.dumps``'s ``default``: NumPy arrays become lists, NumPy scalars Python numbers,
-    paths strings."""
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj)}")
-
-
-def write_json(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` as indented JSON, atomically; NumPy arrays become lists."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=jsonable) + "\n", encoding="utf-8")
-    return Path(path)
-
-
-def write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` as UTF-8 (whatever the locale: image names may not be ASCII), atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    return Path(path)
+__all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file", "read_calibration", "write_json",
+           "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- reading text safely
@@ -217,7 +149,7 @@ _STDERR_LOCK = threading.RLock()  # re-entrant: a nested capture in one thread n
 
 
 @contextlib.contextmanager
-def _captured_stderr():
+def captured_stderr():
     """Route the process's standard error (file descriptor 2, where libpng, libjpeg and OpenCV's
     log write) to a temporary file for the block; yields a list that then holds what was written.
     Anything another thread writes to stderr meanwhile is captured too (decoding takes ms);
@@ -276,7 +208,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         raise StereoseedError(f"{path}: empty file (0 bytes), not an image; give a PNG, JPEG, PPM, BMP, TIFF "
                               "or WebP image")
     error = None
-    with _captured_stderr() as stderr_text:
+    with captured_stderr() as stderr_text:
         try:
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         except cv2.error as e:
@@ -289,6 +221,29 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
                               + (f": {detail}" if detail else "")
                               + "); give an intact PNG, JPEG, PPM, BMP, TIFF or WebP image")
     return image
+
+
+def name_trouble(name: str) -> str | None:
+    """What in an image's file name no export format (COLMAP, NVM, Bundler: a name a line, or
+    UTF-8 text) can hold, else None."""
+    for c in name:
+        kind = unicodedata.category(c)
+        if kind in ("Zl", "Zp") or c in "\n\r\x0b\x0c\x1c\x1d\x1e\x85":
+            return "a line break"
+        if kind == "Cc":
+            return f"a control character ({repr(c)[1:-1]})"
+        if kind == "Cs":
+            return "bytes that are not UTF-8"
+    return None
+
+
+def check_image_name(path: str | os.PathLike, where: str | os.PathLike) -> None:
+    """Refuse an image (or video) whose file name no result file can hold, with a message at
+    ``where``."""
+    trouble = name_trouble(Path(path).name)
+    if trouble:
+        raise StereoseedError(f"{where}: the image name {_show(Path(path).name)!r} holds {trouble}, which the "
+                              "results cannot hold (cameras.json, COLMAP, NVM, Bundler); rename the file")
 
 
 def list_images(source: str | os.PathLike) -> list[Path]:
@@ -310,6 +265,8 @@ def list_images(source: str | os.PathLike) -> list[Path]:
                                   "check its permissions") from None
         if not paths:
             raise StereoseedError(f"{source}: no images in this folder ({', '.join(IMAGE_EXTENSIONS)})")
+        for p in paths:
+            check_image_name(p, source)
         return paths
     if not source.is_file():
         raise StereoseedError(f"{source}: not found; {_LIST_HINT}")
@@ -338,6 +295,8 @@ def list_images(source: str | os.PathLike) -> list[Path]:
         raise StereoseedError(f"{source}:{n}: listed image {what}: {_show(str(p), 160)}"
                               + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
                               + "; check the paths (relative ones are read from the list's folder)")
+    for p, n in zip(paths, linenos):
+        check_image_name(p, f"{source}:{n}")
     return paths
 
 
@@ -580,7 +539,35 @@ def _calibration_json(text: str, path: Path) -> list[np.ndarray]:
                                                                       if not isinstance(cam, dict) else "")
                                   + '; give each camera {"P": 3x4 projection matrix}')
         out.append(_check_P(cam["P"], f"{path}: camera {i}"))
+        _check_lens(cam, out[-1], f"{path}: camera {i}")
     return out
+
+
+def _check_lens(cam: dict, P: np.ndarray, where: str) -> None:
+    """Refuse a camera's "distortion" that no lens can have over its image (it folds the image
+    back or moves its corners by more than their radius: a typo such as k1 = 50). The form of
+    the entry (4 or 5 finite numbers) is checked where the lens is read
+    (:func:`stereoseed.calibration.lens_calibration.read_lenses`)."""
+    from stereoseed.geometry.camera import Camera
+    from stereoseed.geometry.lens import lens_problem
+
+    d = cam.get("distortion")
+    if not (isinstance(d, list) and len(d) in (4, 5) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                             and math.isfinite(v) for v in d)):
+        return
+    K = Camera(P).K
+    if isinstance(cam.get("K"), list):
+        try:
+            K = np.array(cam["K"], np.float64).reshape(3, 3)
+        except (ValueError, TypeError):
+            pass
+    size = cam.get("image_size")
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+        size = (2.0 * K[0, 2] + 1.0, 2.0 * K[1, 2] + 1.0)  # the principal point taken at the centre
+    problem = lens_problem(d, K, size) if np.all(np.isfinite(K)) and K[0, 0] and K[1, 1] else None
+    if problem:
+        raise StereoseedError(f"{where}: 'distortion' {problem}; check the coefficients (OpenCV's order: k1 k2 p1 p2 "
+                              "[k3])")
 
 
 def _pair_by_name(cams: dict[str, np.ndarray], names: list[str], path: Path, what: str) -> list[np.ndarray]:

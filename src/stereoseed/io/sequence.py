@@ -9,6 +9,7 @@ prefetches interest points). It is a ``Sequence``: ``reconstruct`` takes it or a
 from __future__ import annotations
 
 import hashlib
+import struct
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -19,7 +20,7 @@ import numpy as np
 
 from stereoseed.io.files import read_image
 
-__all__ = ["ImageSequence"]
+__all__ = ["ImageSequence", "header_size"]
 
 Entry = Union[Path, np.ndarray]  # a file to read, or an image already in memory (a video keyframe)
 Transform = Callable[[int, np.ndarray], np.ndarray]  # (index, image read) -> image the run uses
@@ -42,6 +43,31 @@ class ImageSequence(Sequence):
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
         self.reads = 0  # images decoded so far (how well the cache serves the run)
+        self._expected: tuple[int, int] | None = None  # (width, height) of the images from _checked_from on
+        self._checked_from = len(self._entries)
+        self._withheld: dict[int, tuple[int, int] | None] = {}  # index -> its header's size if withheld
+
+    def withhold_other_sizes(self, size: tuple[int, int], first: int = 0) -> None:
+        """From image ``first`` on, an image file whose header gives another size than ``size``
+        (width, height; either way round, as a photo's orientation tag may turn it) is not
+        decoded: it reads as a black image of its size that takes no memory (a zero-stride
+        array), for a consumer that refuses it by its size alone. Formats whose header is not
+        read here (:func:`header_size`) are decoded as usual."""
+        self._expected = (int(size[0]), int(size[1]))
+        self._checked_from = first
+        self._withheld.clear()
+
+    def withheld(self, index: int) -> bool:
+        """Whether image ``index`` is not decoded (:meth:`withhold_other_sizes`)."""
+        return self._withheld_size(range(len(self))[index]) is not None
+
+    def _withheld_size(self, i: int) -> tuple[int, int] | None:
+        if self._expected is None or i < self._checked_from or isinstance(self._entries[i], np.ndarray):
+            return None
+        if i not in self._withheld:
+            size = header_size(self._entries[i])
+            self._withheld[i] = None if size is None or self._expected in (size, size[::-1]) else size
+        return self._withheld[i]
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -50,10 +76,17 @@ class ImageSequence(Sequence):
         if isinstance(index, slice):
             subset = list(range(len(self)))[index]
             transform = self._transform
-            return ImageSequence([self._entries[i] for i in subset], None if transform is None else
+            part = ImageSequence([self._entries[i] for i in subset], None if transform is None else
                                  (lambda j, image: transform(subset[j], image)), self._capacity,
                                  self._transform_key + repr(subset).encode())
+            if self._expected is not None:  # the images checked here stay checked there
+                part.withhold_other_sizes(self._expected, next((j for j, i in enumerate(subset)
+                                                                if i >= self._checked_from), len(subset)))
+            return part
         i = range(len(self))[index]  # IndexError and negative indices as a list has them
+        size = self._withheld_size(i)
+        if size is not None:
+            return np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (size[1], size[0], 3))
         with self._lock:
             image = self._cache.get(i)
             if image is not None:
@@ -89,3 +122,50 @@ class ImageSequence(Sequence):
         """Where image ``index`` comes from (its path; "memory" for an array)."""
         entry = self._entries[index]
         return "memory" if isinstance(entry, np.ndarray) else str(entry)
+
+
+def header_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's or a JPEG's header, without decoding the image; None for
+    other formats or a header that cannot be read (the decoder then says what is wrong)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+            if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+                width, height = struct.unpack(">II", head[16:24])
+                return (width, height) if width and height else None
+            if head[:2] == b"\xff\xd8":
+                fh.seek(2)
+                return _jpeg_size(fh)
+    except (OSError, struct.error):
+        pass
+    return None
+
+
+# the start-of-frame markers (baseline, progressive, lossless, arithmetic) hold the image's size
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_size(fh) -> tuple[int, int] | None:
+    """The size in a JPEG's frame header, reading its markers' segments from ``fh`` (after SOI)."""
+    for _ in range(10_000):  # markers before the frame: a bound on a damaged file
+        byte = fh.read(1)
+        while byte == b"\xff":
+            byte = fh.read(1)  # fill bytes
+        if not byte:
+            return None
+        marker = byte[0]
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # no length, no payload
+            continue
+        if marker in (0xD9, 0xDA):  # the end, or the scan before any frame header
+            return None
+        length = struct.unpack(">H", fh.read(2))[0]
+        if marker in _JPEG_SOF:
+            _, height, width = struct.unpack(">BHH", fh.read(5))
+            return (width, height) if width and height else None
+        if length < 2:
+            return None
+        fh.seek(length - 2, 1)
+        nxt = fh.read(1)
+        if nxt != b"\xff":
+            return None
+    return None

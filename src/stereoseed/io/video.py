@@ -21,7 +21,7 @@ import numpy as np
 
 from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import write_image
+from stereoseed.io.files import _decoder_detail, captured_stderr, write_image
 
 __all__ = ["Keyframe", "read_keyframes", "sharpness"]
 
@@ -95,11 +95,62 @@ def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: 
     path = Path(path)
     if not path.is_file():
         raise StereoseedError(f"{path}: video not found")
-    capture = cv2.VideoCapture(str(path))
+    said: list[str] = []  # what FFmpeg and OpenCV wrote while reading (kept off the terminal)
+    try:
+        keyframes, frames, announced = _keyframes(path, cfg, save_to, said)
+    except StereoseedError as e:
+        detail = _decoder_detail("".join(said), None)
+        raise StereoseedError(f"{e}" + (f" (the decoder said: {detail})" if detail else "")) from None
+    detail = _decoder_detail("".join(said), None)
+    if detail:
+        log.debug("%s: the decoder said: %s", path.name, detail)
+    if announced > 0 and frames < announced - 1:  # a frame's slack: containers round their count
+        log.warning("%s: %d of the %d frames the file announces could be decoded: the video is damaged or cut "
+                    "short after frame %d, and the walk ends there%s", path, frames, announced, frames - 1,
+                    f" (the decoder said: {detail})" if detail else "")
+    log.info("%s: %d keyframes of %d frames", path.name, len(keyframes), frames)
+    return keyframes
+
+
+class _Quiet:
+    """A video capture whose calls write nothing to the terminal: what the decoder says on the
+    process's stderr is added to ``said`` (each call captured on its own, so other threads'
+    output is held back for a frame's decoding at most)."""
+
+    def __init__(self, path: Path, said: list[str]):
+        self.said = said
+        self.capture = self._call(cv2.VideoCapture, str(path))
+
+    def _call(self, fn, *args):
+        with captured_stderr() as text:
+            result = fn(*args)
+        if sum(map(len, self.said)) < 4000:
+            self.said.extend(text)
+        return result
+
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return self._call(self.capture.isOpened)
+
+    def get(self, prop: int) -> float:
+        return self._call(self.capture.get, prop)
+
+    def read(self):
+        return self._call(self.capture.read)
+
+    def release(self) -> None:
+        self._call(self.capture.release)
+
+
+def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: list[str]
+               ) -> tuple[list[Keyframe], int, int]:
+    """(the keyframes, the number of frames decoded, the number the container announces (0:
+    unknown)); what the decoder said is added to ``said``."""
+    capture = _Quiet(path, said)
     if not capture.isOpened():
         raise StereoseedError(f"{path}: OpenCV cannot open this video (codec or container not supported); "
                               f"extract its frames into a folder (e.g. ffmpeg -i {path.name} frames/%04d.png)")
     keyframes: list[Keyframe] = []
+    announced = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
     try:
         ok, frame = capture.read()
         if not ok:
@@ -144,5 +195,4 @@ def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: 
     if not keyframes:
         raise StereoseedError(f"{path}: {index + 1} frames but no keyframe: the camera did not move by "
                               f"{100 * cfg.keyframe_motion:.0f} % of the image width")
-    log.info("%s: %d keyframes of %d frames", path.name, len(keyframes), index + 1)
-    return keyframes
+    return keyframes, index + 1, announced
