@@ -6,12 +6,15 @@ mapper's.
 from __future__ import annotations
 
 import copy
+import errno
 import logging
+import os
+import shutil
 import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -20,7 +23,7 @@ from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, read_calibration
+from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration
 from stereoseed.geometry.lens import undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view
@@ -72,13 +75,15 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     state = None
     if checkpoint is not None and resume:
         state = load_checkpoint(checkpoint, images, names, key, source)
+    if checkpoint is not None and state is None:
+        _forget_checkpoint(checkpoint)  # another run's, or unusable: nothing of it outlives this start
     # The background threads start with the run: the pair's second image and the next ones are
     # read and given their interest points while this thread does the first image, then the pair
     # (the calibrated pair's matching and triangulation left the second core idle).
     first_prefetched = len(state[1]) if state is not None else 1
     # checkpoints are written while the run goes on; leaving waits for the last one
     with CheckpointWriter(checkpoint, key) as saver, \
-            Prefetching(source, images.__getitem__, n, first=first_prefetched) as prefetching:
+            Prefetching(source, _prefetched_image(images), n, first=first_prefetched) as prefetching:
         if state is not None:
             recon, per_image = state
             for i in _working_set(recon, cfg):  # the next insertions read their grey images
@@ -99,7 +104,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         _allow_open_files(n + 256)  # every spilled view's memory map holds a file descriptor
         if checkpoint is not None:
             spill = spill_folder(checkpoint)
-            spill.mkdir(parents=True, exist_ok=True)
+            spill.mkdir(mode=0o700, parents=True, exist_ok=True)  # the checkpoint names what is in it
         else:
             recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(recon.spill_folder.name)
@@ -121,6 +126,35 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
+
+
+def _forget_checkpoint(checkpoint: str | Path) -> None:
+    """Remove a checkpoint and its spill folder (this run writes its own)."""
+    Path(checkpoint).unlink(missing_ok=True)
+    spill = spill_folder(checkpoint)
+    if spill.is_dir() and not spill.is_symlink():
+        shutil.rmtree(spill)
+    else:
+        spill.unlink(missing_ok=True)
+
+
+class _NotRead(Exception):
+    """An image the sequence does not decode (:meth:`ImageSequence.withheld`)."""
+
+
+def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarray]:
+    """What the prefetching thread reads: an image the sequence withholds for its size is not
+    worked on ahead (the mapper refuses it by its size alone)."""
+    withheld = getattr(images, "withheld", None)
+    if withheld is None:
+        return images.__getitem__
+
+    def image_of(i: int) -> np.ndarray:
+        if withheld(i):
+            raise _NotRead(i)
+        return images[i]
+
+    return image_of
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float) -> dict[str, Any]:
@@ -227,6 +261,8 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
             return image
         size = image.shape[1::-1]
         if lens.image_size is not None and tuple(size) != tuple(lens.image_size):
+            if i >= 2:  # an image of the walk of another size: the mapper skips it, saying why
+                return image
             raise StereoseedError(f"{paths[i]}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
                                   f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
         if min(i, 1) not in maps:
@@ -236,7 +272,10 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     lens_key = repr([None if lens is None else (lens.K.tobytes(), lens.distortion.tobytes(), lens.image_size)
                      for lens in lenses]).encode()  # the undistortion decides the pixels the run sees
     images = ImageSequence(entries, undistort, transform_key=lens_key)
-    images[0], images[1]  # noqa: B018 - read now: an unreadable pair image fails before any work
+    images[0]  # noqa: B018 - read now: an unreadable pair image fails before any work
+    # an image of the walk of another size than the second camera's is skipped by the mapper:
+    # its header says so, it is not decoded (a 48-megapixel photo costs seconds and gigabytes)
+    images.withhold_other_sizes(images[1].shape[1::-1], first=2)
     return images, names, P_pair
 
 
@@ -250,6 +289,7 @@ def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Pat
     videos: dict[str, Path] = {}
 
     def add(path: Path) -> None:
+        check_image_name(path, path)
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             if path.stem in videos:  # their keyframes would be named, and written, alike
                 raise StereoseedError(f"{path}: a second video named {path.stem!r} (the first: {videos[path.stem]}); "
@@ -291,34 +331,73 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
-    (:class:`stereoseed.output.result_set.ResultSet`): on failure it keeps what it held, and after an
-    interruption the staging folder keeps the checkpoint for ``resume``. Returns the report.
+    (:class:`stereoseed.output.result_set.ResultSet`), by one run at a time (a second run on it
+    is refused at once): on failure it keeps what it held, and after an interruption, or a full
+    disk, the staging folder keeps the checkpoint for ``resume``. Returns the report.
     progress: called after the pair and after each insertion; dense_progress: as each of the
     dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`)."""
-    results = ResultSet(out)
-    results.check()  # before any work: never clobber what the user made
-    staging = results.open(keep=resume)
-    try:
-        # a video's keyframes are kept with the result, which names them
-        images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
-    except BaseException:
-        if not resume:  # a resumed run's checkpoint outlives a mistyped input
-            results.abandon()
-        raise
-    try:
-        recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
-                                    checkpoint=staging / CHECKPOINT, resume=resume)
-        if dense:
-            from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run
+    sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
+    with ResultSet(out) as results:  # before any staging folder is touched
+        results.check()  # before any work: never clobber what the user made
+        _refuse_output_over_inputs(results, [*sources, calib_path])
+        # a resumed run takes only its checkpoint from the staging folder: every output is written again
+        staging = results.open(keep=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX) if resume else ())
+        try:
+            # a video's keyframes are kept with the result, which names them
+            images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
+            _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
+        except BaseException:
+            if not resume:  # a resumed run's checkpoint outlives a mistyped input
+                results.abandon()
+            raise
+        try:
+            recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
+                                        checkpoint=staging / CHECKPOINT, resume=resume)
+            if dense:
+                from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run
 
-            cloud, report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
-        else:
-            cloud = None
-        save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
-        results.commit(drop=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX))
-    except KeyboardInterrupt:
-        raise  # the staging folder keeps the checkpoint: resume continues
-    except BaseException:
-        results.abandon()
-        raise
+                cloud, report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
+            else:
+                cloud = None
+            save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
+            results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
+        except KeyboardInterrupt:
+            raise  # the staging folder keeps the checkpoint: resume continues
+        except BaseException as e:
+            full = _disk_full(e)
+            if full is None:
+                results.abandon()
+                raise
+            raise StereoseedError(f"{results.shown}: the disk is full ({full}); the run so far is kept in "
+                                  f"{results.staging}: free some space, then run the same command with --resume "
+                                  f"to continue") from None
     return report
+
+
+def _refuse_output_over_inputs(results: ResultSet, inputs: list) -> None:
+    """Refuse a result folder that is the current folder, holds it, or holds an input: the
+    folder is replaced as a whole when the run ends (and a resumed run reads its inputs
+    again)."""
+    here = Path(os.path.realpath(os.getcwd()))
+    if results.path == here or results.path in here.parents:
+        raise StereoseedError(f"{results.shown}: is the current folder or holds it; the result folder is replaced "
+                              f"as a whole: give a new folder for the results")
+    for item in inputs:
+        if isinstance(item, (str, Path)) and str(item) != "memory":
+            where = Path(os.path.realpath(item))
+            if results.path == where or results.path in where.parents:
+                raise StereoseedError(f"{results.shown}: holds the input {item}; the result folder is replaced as a "
+                                      f"whole: give another folder for the results")
+
+
+def _disk_full(error: BaseException) -> str | None:
+    """The system's words when ``error`` comes of a full disk or quota (itself or what it was
+    raised from), else None."""
+    seen: set[int] = set()
+    e: BaseException | None = error
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+            return e.strerror or "no space left on the device"
+        e = e.__cause__ or e.__context__
+    return None
