@@ -4,7 +4,8 @@ one after the other, or on a Dask cluster's workers: :mod:`stereoseed.cluster`).
 The list of sequences (docs/formats.md) has one line per sequence, ``IMAGES CALIB OUT``,
 whitespace-separated (quote a path holding spaces), ``#`` starting a comment. IMAGES and CALIB
 are what ``stereoseed reconstruct`` takes; relative paths are resolved against the list file's
-folder, a relative OUT against ``out_root`` (default: that folder too). A job gets paths, not
+folder, a relative OUT against ``out_root`` (default: that folder too), inside which every OUT
+must lie unless the caller allows otherwise. A job gets paths, not
 images: a worker reads its sequence itself, so every worker must see the same paths.
 
 A sequence that fails (a missing file, a bad calibration, any exception) is reported with a
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,11 +58,14 @@ class Outcome:
         return self.summary is not None
 
 
-def read_sequence_list(path: str | Path, out_root: str | Path | None = None) -> list[Sequence]:
+def read_sequence_list(path: str | Path, out_root: str | Path | None = None,
+                       allow_outside: bool = False) -> list[Sequence]:
     """The sequences of a list file, in file order. Raises :class:`StereoseedError` naming the
-    file and line for a line without three fields, and for two lines writing the same folder.
-    Whether each sequence's files exist is its job's business (a missing one fails that
-    sequence only)."""
+    file and line for a line without three fields; for two lines writing the same folder, or
+    one inside the other (however written: ``x/../res`` is ``res``, links followed); and,
+    unless ``allow_outside``, for an OUT that is not inside ``out_root`` (an absolute path, or
+    one climbing out with ``..``). Whether each sequence's files exist is its job's business
+    (a missing one fails that sequence only)."""
     path = Path(path)
     if not path.is_file():
         raise StereoseedError(f"{path}: sequence list not found; give a text file with one 'IMAGES CALIB OUT' "
@@ -70,9 +75,9 @@ def read_sequence_list(path: str | Path, out_root: str | Path | None = None) -> 
     except (OSError, UnicodeDecodeError) as e:
         raise StereoseedError(f"{path}: cannot be read as UTF-8 text ({e}); give a text sequence list") from None
     base = path.resolve().parent
-    root = base if out_root is None else Path(out_root).resolve()
+    root = Path(os.path.realpath(base if out_root is None else out_root))
     sequences: list[Sequence] = []
-    seen: dict[str, int] = {}
+    seen: dict[Path, int] = {}
     for number, line in enumerate(text.splitlines(), 1):
         try:
             fields = shlex.split(line, comments=True)
@@ -84,12 +89,17 @@ def read_sequence_list(path: str | Path, out_root: str | Path | None = None) -> 
             raise StereoseedError(f"{path}, line {number}: {len(fields)} field(s); give IMAGES CALIB OUT "
                                   f"(quote a path holding spaces)")
         images, calib, out = fields
-        resolved = str(root / out)
-        if resolved in seen:
-            raise StereoseedError(f"{path}, lines {seen[resolved]} and {number}: both write {out}; "
-                                  f"give each sequence its own OUT")
+        resolved = Path(os.path.realpath(root / out))  # one folder, however the line names it
+        if not allow_outside and root not in resolved.parents:
+            raise StereoseedError(f"{path}, line {number}: OUT {out} lies outside the output root {root}; give a "
+                                  f"relative path below it, or --allow-outside")
+        for other, first in seen.items():
+            if other == resolved or other in resolved.parents or resolved in other.parents:
+                what = "both write" if other == resolved else "write one inside the other:"
+                raise StereoseedError(f"{path}, lines {first} and {number}: {what} {out}; give each sequence a folder "
+                                      f"of its own")
         seen[resolved] = number
-        sequences.append(Sequence(out, str(base / images), str(base / calib), resolved, number))
+        sequences.append(Sequence(out, str(base / images), str(base / calib), str(resolved), number))
     if not sequences:
         raise StereoseedError(f"{path}: no sequence; give one 'IMAGES CALIB OUT' line per sequence")
     return sequences

@@ -100,7 +100,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     from stereoseed.batch import read_sequence_list, run_batch
 
     cfg = _config(args)
-    sequences = read_sequence_list(args.sequences, args.out_root)
+    sequences = read_sequence_list(args.sequences, args.out_root, allow_outside=args.allow_outside)
     _say_if_compiling(args.quiet)
     with _pool(args, cfg.dense.pool_size()) as pool, _Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
@@ -124,13 +124,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
     result = load_result(args.result)
     out = Path(args.out)
     if args.format == "colmap":
-        warnings_ = write_colmap(result, out, binary=args.binary)
+        warnings_ = write_colmap(result, out, binary=args.binary, force=args.force)
         written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
     elif args.format == "nvm":
-        warnings_ = write_nvm(result, out / "model.nvm")
+        warnings_ = write_nvm(result, out / "model.nvm", force=args.force)
         written = [out / "model.nvm"]
     else:
-        warnings_ = write_bundler(result, out)
+        warnings_ = write_bundler(result, out, force=args.force)
         written = [out / "bundle.out", out / "list.txt"]
     for w in warnings_:
         print(f"stereoseed: warning: {w}", file=sys.stderr)
@@ -209,6 +209,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("sequences", help="a text file, one line per sequence: IMAGES CALIB OUT (relative paths from the "
                                      "file's folder; # starts a comment; see docs/formats.md)")
     p.add_argument("--out-root", help="folder that relative OUT paths are resolved against (default: the list's folder)")
+    p.add_argument("--allow-outside", action="store_true",
+                   help="let an OUT lie outside --out-root (an absolute path, or one climbing out with ..)")
     _add_run_options(p)
     p.set_defaults(func=_cmd_batch)
 
@@ -218,6 +220,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=["colmap", "nvm", "bundler"], default="colmap")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--binary", action="store_true", help="COLMAP's binary .bin files instead of .txt")
+    p.add_argument("--force", action="store_true",
+                   help="write into a folder that holds other files (files of the export's names are replaced)")
     p.set_defaults(func=_cmd_export)
 
 

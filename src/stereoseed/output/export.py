@@ -1,6 +1,12 @@
 """Exports of a result folder for the field's tools: COLMAP's model (text or binary), VisualSFM's
 NVM and Bundler's bundle.out (the reader of COLMAP models is :mod:`stereoseed.io.colmap`).
 
+An export writes into a folder of its own: a folder holding files it did not write (its
+manifest ``.stereoseed-export.json`` lists those it wrote) is refused unless ``force``; each file
+is written atomically. An image name a format cannot hold (a line break, a control character; a
+leading or trailing space in COLMAP's text and Bundler's list, any space in NVM) is refused with
+its name.
+
 Conventions (docs/formats.md): COLMAP's pixel (0, 0) is the top-left *corner* of the top-left
 pixel (ours: its centre), so principal points and 2D points move by +0.5 px; its quaternion
 (qw, qx, qy, qz) and t are world-to-camera (ours too); one COLMAP camera per image, since the
@@ -9,6 +15,7 @@ nearest zero-skew camera is written and a warning says by how much.
 """
 from __future__ import annotations
 
+import json
 import logging
 import struct
 from pathlib import Path
@@ -19,11 +26,11 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.models import quaternion_from_rotation
 from stereoseed.errors import StereoseedError
 from stereoseed.io.colmap import COLMAP_MODELS
-from stereoseed.io.files import atomic_path, write_text
+from stereoseed.io.files import atomic_path, name_trouble, write_json, write_text
 from stereoseed.geometry.lens import distort_pixels
 from stereoseed.output.reader import Result
 
-__all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera"]
+__all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST"]
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +38,56 @@ _SAME_FOCAL = 1e-9  # relative difference under which fx and fy are one focal le
 # an approximation of a camera by a simpler model (no skew, one focal length) is said when it
 # moves a pixel by more than this: a tenth of a pixel, below the matches' own error
 MAX_APPROXIMATION_PX = 0.1
+
+
+EXPORT_MANIFEST = ".stereoseed-export.json"  # the files the exports wrote into the folder
+
+
+def _written_before(folder: Path) -> set[str]:
+    try:
+        files = json.loads((folder / EXPORT_MANIFEST).read_text(encoding="utf-8"))["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
+
+
+def _claim(folder: Path, force: bool) -> None:
+    """Refuse, before writing, an output folder that holds anything the exports did not write
+    (unless ``force``: files of the export's names are then replaced, the others left)."""
+    if folder.exists() and not folder.is_dir():
+        raise StereoseedError(f"{folder}: exists and is not a folder; give a folder for the export")
+    if force or not folder.is_dir():
+        return
+    ours = _written_before(folder) | {EXPORT_MANIFEST}
+    foreign = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir() if e.name not in ours)
+    if foreign:
+        more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        raise StereoseedError(f"{folder}: holds files stereoseed export did not write ({', '.join(foreign[:3])}{more}); "
+                              f"give an empty or new folder, or --force to replace the export's files there")
+
+
+def _record(folder: Path, files: list[str]) -> None:
+    """Add ``files`` to the folder's export manifest."""
+    write_json(folder / EXPORT_MANIFEST, {"files": sorted(_written_before(folder) | set(files))})
+
+
+def _check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False) -> None:
+    """Refuse a registered image whose name ``fmt`` cannot hold, or two images of one name."""
+    seen: set[str] = set()
+    for i in result.registered:
+        name = result.names[i]
+        trouble = name_trouble(name)
+        if trouble is None and any_space and any(c.isspace() for c in name):
+            trouble = "a space (NVM separates its fields by spaces)"
+        elif trouble is None and edge_space and name != name.strip():
+            trouble = "a space at its start or end (the format trims it)"
+        if trouble is None and name in seen:
+            trouble = "the name of another image (the format finds images by name)"
+        if trouble:
+            shown = repr(name)[1:-1]
+            raise StereoseedError(f"{result.folder}: the image name '{shown[:80]}' holds {trouble}, which {fmt} cannot "
+                                  f"hold; rename the image and reconstruct again")
+        seen.add(name)
 
 
 def _num(v: float) -> str:
@@ -122,15 +179,19 @@ def _tracks_by_point(result: Result) -> list[np.ndarray]:
     return np.split(np.stack([image_id[image], keypoint], axis=1), starts[1:-1])
 
 
-def write_colmap(result: Result, out_dir: str | Path, binary: bool = False) -> list[str]:
+def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, force: bool = False) -> list[str]:
     """COLMAP's sparse model (cameras, images with every 2D point, points3D with colour, error
-    and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged)."""
+    and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged): the
+    images left out and why, the approximations made."""
     out = Path(out_dir)
+    _check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", edge_space=not binary)
+    _claim(out, force)
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
     tracks = _tracks_by_point(result)
     (_write_colmap_binary if binary else _write_colmap_text)(out, cameras, images, tr, tracks)
-    return _logged(warnings)
+    _record(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
+    return _logged(result.warnings + warnings)
 
 
 def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
@@ -204,10 +265,13 @@ def _measurements(result: Result, cams: dict[int, tuple], y_up: bool) -> list[st
             for a, b in zip(starts[:-1], starts[1:])]
 
 
-def write_nvm(result: Result, path: str | Path) -> list[str]:
+def write_nvm(result: Result, path: str | Path, force: bool = False) -> list[str]:
     """VisualSFM's NVM_V3: one focal length per camera (the mean of fx, fy), the principal
     point assumed at the measurement origin, so measurements are written relative to each
     camera's principal point. Returns the warnings."""
+    path = Path(path)
+    _check_names(result, "NVM", any_space=True)
+    _claim(path.parent, force)
     tr = result.tracks
     cams, warnings = _single_focal_cameras(result, "NVM")
     lines = ["NVM_V3", "", str(len(cams))]
@@ -219,13 +283,16 @@ def write_nvm(result: Result, path: str | Path) -> list[str]:
     for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=False)):
         lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {n} {meas}")
     write_text(path, "\n".join(lines) + "\n")
-    return _logged(warnings)
+    _record(path.parent, [path.name])
+    return _logged(result.warnings + warnings)
 
 
-def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
+def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> list[str]:
     """Bundler's bundle.out (v0.3) and list.txt: cameras look down -z with y up, measurements
     relative to the principal point with y up. Returns the warnings."""
     out, tr = Path(out_dir), result.tracks
+    _check_names(result, "Bundler's list.txt", edge_space=True)
+    _claim(out, force)
     cams, warnings = _single_focal_cameras(result, "Bundler")
     flip = np.diag([1.0, -1.0, -1.0])
     lines = ["# Bundle file v0.3", f"{len(cams)} {len(tr['point_xyz'])}"]
@@ -238,7 +305,8 @@ def write_bundler(result: Result, out_dir: str | Path) -> list[str]:
         lines += [" ".join(_num(v) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}", f"{n} {meas}"]
     write_text(out / "bundle.out", "\n".join(lines) + "\n")
     write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
-    return _logged(warnings)
+    _record(out, ["bundle.out", "list.txt"])
+    return _logged(result.warnings + warnings)
 
 
 def _logged(warnings: list[str]) -> list[str]:
