@@ -242,7 +242,7 @@ def check_image_name(path: str | os.PathLike, where: str | os.PathLike) -> None:
     ``where``."""
     trouble = name_trouble(Path(path).name)
     if trouble:
-        raise StereoseedError(f"{where}: the image name {_show(Path(path).name)!r} holds {trouble}, which the "
+        raise StereoseedError(f"{where}: the image name '{_show(Path(path).name)}' holds {trouble}, which the "
                               "results cannot hold (cameras.json, COLMAP, NVM, Bundler); rename the file")
 
 

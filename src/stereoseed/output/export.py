@@ -4,7 +4,7 @@ NVM and Bundler's bundle.out (the reader of COLMAP models is :mod:`stereoseed.io
 An export writes into a folder of its own: a folder holding files it did not write (its
 manifest ``.stereoseed-export.json`` lists those it wrote) is refused unless ``force``; each file
 is written atomically. An image name a format cannot hold (a line break, a control character; a
-leading or trailing space in COLMAP's text and Bundler's list, any space in NVM) is refused with
+space in COLMAP's text model and NVM, a leading or trailing one in Bundler's list) is refused with
 its name.
 
 Conventions (docs/formats.md): COLMAP's pixel (0, 0) is the top-left *corner* of the top-left
@@ -71,14 +71,17 @@ def _record(folder: Path, files: list[str]) -> None:
     write_json(folder / EXPORT_MANIFEST, {"files": sorted(_written_before(folder) | set(files))})
 
 
-def _check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False) -> None:
+def _check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False,
+                 space_hint: str = "") -> None:
     """Refuse a registered image whose name ``fmt`` cannot hold, or two images of one name."""
     seen: set[str] = set()
     for i in result.registered:
         name = result.names[i]
         trouble = name_trouble(name)
+        hint = "rename the image and reconstruct again"
         if trouble is None and any_space and any(c.isspace() for c in name):
-            trouble = "a space (NVM separates its fields by spaces)"
+            trouble = "a space (the format separates its fields by spaces)"
+            hint = space_hint or hint
         elif trouble is None and edge_space and name != name.strip():
             trouble = "a space at its start or end (the format trims it)"
         if trouble is None and name in seen:
@@ -86,7 +89,7 @@ def _check_names(result: Result, fmt: str, edge_space: bool = False, any_space: 
         if trouble:
             shown = repr(name)[1:-1]
             raise StereoseedError(f"{result.folder}: the image name '{shown[:80]}' holds {trouble}, which {fmt} cannot "
-                                  f"hold; rename the image and reconstruct again")
+                                  f"hold; {hint}")
         seen.add(name)
 
 
@@ -184,7 +187,9 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged): the
     images left out and why, the approximations made."""
     out = Path(out_dir)
-    _check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", edge_space=not binary)
+    # COLMAP's text reader ends a name at its first space (pycolmap 3.x reads "a b.png" as "a")
+    _check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", any_space=not binary,
+                 space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
     _claim(out, force)
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
