@@ -143,6 +143,19 @@ def test_unreachable_scheduler_is_one_line_naming_it(sequence_files, tmp_path, c
     assert not (tmp_path / "o").exists()
 
 
+def test_a_workers_address_is_refused_naming_what_answered(scheduler):
+    """A Dask worker answers the handshake too: the probe asks what it is before connecting a
+    client (which would wait for a scheduler's replies that never come)."""
+    worker = sorted(_workers(scheduler))[0]
+    t = time.monotonic()
+    with pytest.raises(StereoseedError) as caught:
+        with executor_for(worker, 2, connect_timeout=5):
+            pass
+    assert time.monotonic() - t < 5
+    assert str(caught.value) == (f"{worker}: that is a Dask Worker, not the scheduler; give the scheduler's address "
+                                 f"(dask scheduler prints it), tcp://HOST:PORT")
+
+
 def test_scheduler_without_dense_and_without_dask_are_refused(sequence_files, tmp_path, capsys, monkeypatch):
     seq = sequence_files
     args = ["reconstruct", str(seq / "images.txt"), "--calib", str(seq / "calib.json"), "--out", str(tmp_path / "o"),
@@ -161,12 +174,13 @@ def test_sequence_list_format(tmp_path):
     listing.write_text("# comment line\n"
                        "  imgs/a  calib.json  out/a  # trailing comment\n"
                        "\"my images/b.txt\" /abs/calib.json /abs/out/b\n")
-    a, b = read_sequence_list(listing)
+    a, b = read_sequence_list(listing, allow_outside=True)  # /abs/out/b lies outside the list's folder
     base = listing.parent.resolve()
     assert (a.name, a.images, a.calib, a.out, a.line) == ("out/a", str(base / "imgs/a"), str(base / "calib.json"),
                                                           str(base / "out/a"), 2)
     assert (b.images, b.calib, b.out) == (str(base / "my images/b.txt"), "/abs/calib.json", "/abs/out/b")
-    assert read_sequence_list(listing, tmp_path / "root")[0].out == str((tmp_path / "root" / "out/a").resolve())
+    assert (read_sequence_list(listing, tmp_path / "root", allow_outside=True)[0].out
+            == str((tmp_path / "root" / "out/a").resolve()))
     for text, says in (("a b\n", "line 1: 2 field(s)"), ("a b c\nd e c\n", "lines 1 and 2: both write c"),
                        ("\"a b c\n", "line 1: No closing quotation"), ("# nothing\n", "no sequence")):
         listing.write_text(text)

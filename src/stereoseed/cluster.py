@@ -7,8 +7,10 @@ the job pickled. Both the dense stage (one job per image pair) and ``stereoseed 
 per sequence) go through :func:`executor_for` and :meth:`JobPool.in_order`.
 
 On Linux a local pool's worker is killed by the kernel when the process that started it dies
-(``prctl(PR_SET_PDEATHSIG)``), so a killed caller leaves no orphaned workers behind. Dask is
-imported only when a scheduler is given.
+(``prctl(PR_SET_PDEATHSIG)``), so a killed caller leaves no orphaned workers behind. A worker
+that dies (the OOM killer's SIGKILL) costs the job it was running one more try in a fresh pool,
+and a second death ends the run with a :class:`StereoseedError`; an interrupted run does not
+wait on its workers (:class:`_LocalPool`). Dask is imported only when a scheduler is given.
 """
 from __future__ import annotations
 
@@ -17,8 +19,12 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
+import time
 from collections import deque
-from concurrent.futures import Future
+# BrokenExecutor, not concurrent.futures.process's BrokenProcessPool (its subclass): that module
+# is imported only when a pool starts, and every command imports this one
+from concurrent.futures import BrokenExecutor, Future, InvalidStateError
 from contextlib import contextmanager
 from typing import Any, Callable, Iterable, Iterator
 
@@ -30,6 +36,12 @@ __all__ = ["JobPool", "executor_for", "CONNECT_TIMEOUT_S"]
 log = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT_S = 10.0  # a scheduler that has not answered by then is taken as unreachable
+# Dask's connect gives up on a refused or unreachable address at the timeout itself; the probe's
+# deadline comes just after, so that running out of it means the connection was made and what
+# listens there never answered the handshake
+_PROBE_SLACK_S = 0.5
+_WATCH_S = 0.2  # how often a local pool's watchdog looks at its workers
+_GRACE_S = 1.0  # a terminated worker that has not gone by then is killed; idle workers stop within it
 _NEEDS_EXTRA = "--scheduler needs the cluster extra: pip install 'stereoseed[cluster]'"
 
 
@@ -74,7 +86,9 @@ def executor_for(scheduler: str | None, workers: int,
                  connect_timeout: float = CONNECT_TIMEOUT_S) -> Iterator[JobPool]:
     """The :class:`JobPool` for a run: the Dask cluster whose scheduler is at ``scheduler``
     (``tcp://HOST:PORT``; its workers' threads are the slots), else ``workers`` local processes
-    (1: in this process). Closed (the local pool joined, the Dask client disconnected) on exit.
+    (1: in this process). Closed on exit: the Dask client disconnected; the local pool's idle
+    workers stopped, or, when the block ends with an exception (an interrupt too), its workers
+    terminated without waiting on their jobs.
 
     Raises :class:`StereoseedError` when Dask is not installed, when no scheduler answers at
     the address within ``connect_timeout`` seconds, or when it has no worker that can run
@@ -83,15 +97,13 @@ def executor_for(scheduler: str | None, workers: int,
         if workers <= 1:
             yield JobPool()
             return
-        # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
-        # breaks unguarded user scripts
-        from concurrent.futures import ProcessPoolExecutor  # here: every command imports this module
-
-        methods = multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_start_worker,
-                                 initargs=(os.getpid(), max(1, CORES // workers))) as pool:
-            yield JobPool(workers, pool.submit, f"in {workers} local processes")
+        local = _LocalPool(workers)
+        try:
+            yield JobPool(workers, local.submit, f"in {workers} local processes")
+        except BaseException:  # an error or an interrupt: its jobs' results are not wanted
+            local.close(abandon=True)
+            raise
+        local.close(abandon=False)
         return
     client = _connect(scheduler, connect_timeout)
     try:
@@ -119,17 +131,32 @@ def _connect(scheduler: str, timeout: float) -> Any:
     if not scheduler.strip():
         raise StereoseedError("--scheduler: empty address; give the Dask scheduler's address, tcp://HOST:PORT")
 
-    async def probe() -> None:
+    async def identity() -> dict:
         comm = await connect(scheduler, timeout=timeout)
-        await comm.close()
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
 
-    # probe first: a Client whose connection failed still tries to close itself when it is
-    # garbage-collected, seconds later, with a traceback on stderr
+    # probe first, with a deadline of its own: Dask's connect bounds the TCP connection but not the
+    # handshake after it, which waits forever on a listener that does not answer (an HTTP server
+    # waiting for a request line, a silent port); and a Client whose connection failed still tries
+    # to close itself when it is garbage-collected, seconds later, with a traceback on stderr
     try:
-        asyncio.run(probe())
-    except Exception as e:  # refused, timed out, a bad address, something else answering there
+        answer = asyncio.run(asyncio.wait_for(identity(), timeout + _PROBE_SLACK_S))
+    except asyncio.TimeoutError:
+        raise StereoseedError(f"{scheduler}: no Dask scheduler answered within {timeout:g} s (something accepted "
+                              f"the connection but did not answer Dask's handshake: another service?); check the "
+                              f"port: give the address the Dask scheduler prints, tcp://HOST:PORT") from None
+    except Exception as e:  # refused, a bad address, something else answering there
         raise StereoseedError(f"{scheduler}: no Dask scheduler answered within {timeout:g} s ({_one_line(e)}); "
                               f"start one (dask scheduler) and give its address, tcp://HOST:PORT") from None
+    kind = answer.get("type") if isinstance(answer, dict) else None
+    if kind != "Scheduler":
+        what = f"a Dask {kind}" if isinstance(kind, str) else "not a Dask scheduler"
+        raise StereoseedError(f"{scheduler}: that is {what}, not the scheduler; give the scheduler's address "
+                              f"(dask scheduler prints it), tcp://HOST:PORT")
     client = Client(scheduler, timeout=timeout, set_as_default=False)
     try:
         _check_workers(client, scheduler, timeout)
@@ -167,22 +194,323 @@ def _one_line(e: object) -> str:
     return text[0] if text else type(e).__name__
 
 
+class _Job:
+    """A job of a local pool: its function and arguments, the future handed to the caller, its
+    number (from 1, for messages and the board) and how many worker deaths it was charged with."""
+
+    __slots__ = ("fn", "args", "future", "number", "deaths")
+
+    def __init__(self, fn: Callable[..., Any], args: tuple, number: int):
+        self.fn, self.args, self.future, self.number, self.deaths = fn, args, Future(), number, 0
+
+
+class _LocalPool:
+    """``workers`` forked processes (a ``ProcessPoolExecutor``) that survive the death of one.
+
+    A worker killed mid-job can leave the executor blind: killed while writing its result, it
+    leaves the executor's manager thread in ``read()`` waiting for the rest, which no worker will
+    write (the others hold the pipe open, and may wait on the dead one's lock), and the executor
+    never looks at its processes again. So a watchdog thread looks at them itself. On a death (or
+    the executor's own ``BrokenProcessPool``) the pool is thrown away without waiting on it
+    (:func:`_throw_away`) and the jobs that were in it go to a fresh pool of half as many
+    processes (fewer jobs at once, when memory was what ran out). The job the dead worker was
+    running (each worker notes on a shared board the job it starts) is charged with the death:
+    charged twice, it fails with a :class:`StereoseedError`; the others in the pool go again
+    free. The futures handed out are the pool's own, so a job keeps its future whichever pool
+    runs it."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self._lock = threading.Lock()  # the executor, its processes and board, the jobs in it, closing
+        self._executor: Any = None
+        self._processes: dict = {}  # pid -> Process
+        self._board: Any = None  # (pid, number of the last job it started) per worker, shared with them
+        self._in_flight: dict[Future, _Job] = {}  # the executor's future -> the job
+        self._suspect = False  # the executor reported itself broken
+        self._closing = False  # no job is sent and no executor started any more
+        self._closed = False  # the last executor is gone: the watchdog may go (its forks die with it)
+        self._numbered = 0
+        self._wake = threading.Event()
+        self._watchdog: threading.Thread | None = None
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        self._numbered += 1
+        job = _Job(fn, args, self._numbered)
+        self._send(job)
+        return job.future
+
+    def _send(self, job: _Job) -> None:
+        with self._lock:
+            if self._closing:
+                job.future.cancel()
+                return
+            if self._executor is None:
+                self._start()
+            try:
+                inner = self._executor.submit(_noted, job.number, job.fn, *job.args)
+            except BrokenExecutor as e:  # broken before the watchdog looked: it resends this one too
+                inner = Future()
+                inner.set_exception(e)
+            self._in_flight[inner] = job
+        inner.add_done_callback(self._done)  # outside the lock: a finished future calls back at once
+
+    def _start(self) -> None:
+        """A fresh executor (under the lock). Its workers are forked by the thread that submits
+        first, the caller's or, after a death, the watchdog's: both live until the pool closes,
+        which matters for the workers' PR_SET_PDEATHSIG."""
+        from concurrent.futures import ProcessPoolExecutor  # here: every command imports this module
+
+        # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
+        # breaks unguarded user scripts
+        methods = multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        self._board = ctx.RawArray("q", 2 * self.workers)
+        self._executor = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_start_worker,
+                                             initargs=(os.getpid(), max(1, CORES // self.workers), self._board,
+                                                       ctx.Lock()))
+        # the executor's own dict (empty until it forks), kept here past its shutdown
+        processes = getattr(self._executor, "_processes", None)
+        self._processes = processes if processes is not None else {}
+        if self._watchdog is None:
+            self._watchdog = threading.Thread(target=self._watch, name="stereoseed-pool-watchdog", daemon=True)
+            self._watchdog.start()
+
+    def _done(self, inner: Future) -> None:
+        """An executor's future finished (called in its manager thread): hand the outcome on,
+        unless the executor broke, which is the watchdog's to handle."""
+        with self._lock:
+            job = self._in_flight.get(inner)
+            if job is None:  # its pool was thrown away; the job went on elsewhere
+                return
+            if inner.cancelled() or isinstance(inner.exception(), BrokenExecutor):
+                self._suspect = True
+                self._wake.set()
+                return
+            del self._in_flight[inner]
+        if inner.exception() is None:
+            _settle(job.future, result=inner.result())
+        else:
+            _settle(job.future, inner.exception())
+
+    def _watch(self) -> None:
+        while True:
+            self._wake.wait(_WATCH_S)
+            self._wake.clear()
+            if self._closed:
+                return
+            with self._lock:
+                if self._closing:
+                    continue
+                dead = any(p.exitcode is not None for p in list(self._processes.values()))
+                broken = self._executor is not None and (dead or self._suspect)
+            if broken:
+                self._recover()
+
+    def _recover(self) -> None:
+        """Take the broken executor and its jobs out of the pool and :meth:`_resend` them."""
+        with self._lock:
+            if self._closing or self._executor is None:
+                return
+            executor, processes, board = self._executor, self._processes, self._board
+            lost = list(self._in_flight.values())
+            self._executor, self._processes, self._in_flight, self._suspect = None, {}, {}, False
+        try:
+            self._resend(executor, processes, board, lost)
+        except Exception as e:  # no fresh pool (a fork refused for want of memory...): no job may wait forever
+            error = StereoseedError(f"a worker process died and no fresh one could be started ({_one_line(e)}); "
+                                    f"free memory, or run with fewer worker processes (DenseConfig.workers)")
+            for job in lost:
+                _settle(job.future, error)
+
+    def _resend(self, executor: Any, processes: dict, board: Any, lost: list[_Job]) -> None:
+        """Throw the broken executor away, charge the death to the job the dead worker was
+        running, fail the jobs charged twice and send the others to a fresh executor."""
+        dead = _exit_codes(processes)
+        # a broken executor SIGTERMs its other workers: those deaths are not the jobs' doing
+        dead = {pid: code for pid, code in dead.items() if code != -signal.SIGTERM} or dead
+        started = {board[i]: board[i + 1] for i in range(0, len(board), 2)}
+        charged = [job for job in lost if job.number in {started.get(pid) for pid in dead}]
+        # no job found (a worker dead in its initializer, or between jobs): all are charged, so that
+        # a pool whose every worker dies ends all the same
+        charged = charged or lost
+        why = _death_of(list(dead.values()))
+        _throw_away(executor, processes)
+        for job in charged:
+            job.deaths += 1
+        again = [job for job in lost if job.deaths < 2]
+        for job in lost:
+            if job.deaths >= 2:
+                _settle(job.future, StereoseedError(
+                    f"a worker process died ({why}) while running job {job.number} ({_name_of(job.fn)}), for the "
+                    f"second time; free memory, or run with fewer worker processes (DenseConfig.workers)"))
+        if again:
+            self.workers = max(1, self.workers // 2)
+            log.warning("a worker process died (%s); running the %d job(s) of its pool again in %d fresh "
+                        "process(es)", why, len(again), self.workers)
+        for job in again:
+            self._send(job)
+
+    def close(self, abandon: bool) -> None:
+        """End the pool. ``abandon`` (the caller failed or was interrupted), a job still in it or a
+        dead worker: throw it away at once; else let the idle workers stop."""
+        with self._lock:
+            self._closing = True
+            executor, processes, lost = self._executor, self._processes, list(self._in_flight.values())
+            self._executor, self._processes, self._in_flight = None, {}, {}
+        self._wake.set()
+        for job in lost:
+            job.future.cancel()
+        if executor is not None:
+            dead = any(p.exitcode is not None for p in list(processes.values()))
+            _throw_away(executor, processes, patience=0.0 if (abandon or lost or dead) else _GRACE_S)
+        self._closed = True
+        self._wake.set()
+        if self._watchdog is not None:
+            self._watchdog.join(2.0)
+
+
+def _settle(future: Future, error: BaseException | None = None, result: Any = None) -> None:
+    """Give a job's future its outcome, unless it has one (cancelled by close(), failed when a
+    fresh pool could not be started) already."""
+    try:
+        if error is None:
+            future.set_result(result)
+        else:
+            future.set_exception(error)
+    except InvalidStateError:
+        pass
+
+
+def _throw_away(executor: Any, processes: dict, patience: float = 0.0) -> None:
+    """Shut ``executor`` down without waiting on workers that may be dead or stuck: its queued
+    jobs cancelled, its workers terminated (killed after a grace period), and its result pipe's
+    last write end in this process closed, so that a manager thread stuck reading a dead worker's
+    half-written result gets end-of-file, gives up and exits (else the interpreter would wait on it
+    at exit, forever). ``patience``: seconds the idle workers of a healthy pool get to stop by
+    themselves first."""
+    manager = getattr(executor, "_executor_manager_thread", None)
+    results = getattr(executor, "_result_queue", None)
+    executor.shutdown(wait=False, cancel_futures=True)
+    try:
+        if patience > 0 and manager is not None:
+            manager.join(patience)
+    finally:  # interrupted while waiting too: no worker may be left for the interpreter's exit to wait on
+        if manager is None or manager.is_alive():
+            _end_processes(list(processes.values()))
+            writer = getattr(results, "_writer", None)
+            if writer is not None:
+                writer.close()
+            if manager is not None:
+                manager.join(_GRACE_S)
+                if manager.is_alive():
+                    log.debug("a thrown-away process pool's manager thread has not stopped yet")
+
+
+def _end_processes(processes: list) -> None:
+    """SIGTERM, then SIGKILL for those still there after the grace period. Waits on the
+    processes' sentinels (readable once a process is gone, whoever reaps it)."""
+    from multiprocessing.connection import wait
+
+    for p in processes:
+        p.terminate()
+    pending = {}
+    for p in processes:
+        try:
+            pending[p.sentinel] = p
+        except ValueError:  # closed: long gone
+            continue
+    deadline = time.monotonic() + _GRACE_S
+    try:
+        while pending and (left := deadline - time.monotonic()) > 0:
+            for sentinel in wait(list(pending), left):
+                del pending[sentinel]
+    finally:
+        for p in pending.values():
+            p.kill()
+
+
+def _exit_codes(processes: dict) -> dict[int, int]:
+    """pid -> exit code of the workers that have died. A worker whose end has begun (its
+    sentinel is readable once the kernel closed its files) is not a zombie to reap yet for a
+    moment: it is waited for, briefly."""
+    from multiprocessing.connection import wait
+
+    sentinels = {}
+    for pid, p in list(processes.items()):
+        try:
+            sentinels[p.sentinel] = pid
+        except ValueError:  # closed: long gone
+            continue
+    ending = {sentinels[s] for s in wait(list(sentinels), 0)} if sentinels else set()
+    deadline = time.monotonic() + _GRACE_S
+    while True:
+        codes = {pid: p.exitcode for pid, p in list(processes.items()) if p.exitcode is not None}
+        if ending <= codes.keys() or time.monotonic() > deadline:
+            return codes
+        time.sleep(0.005)
+
+
+def _death_of(codes: list[int]) -> str:
+    """How a worker died, from exit codes, for a message."""
+    if not codes:
+        return "it ended abruptly"
+    code = codes[0]
+    if code >= 0:
+        return f"exited with code {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = "an unknown signal"
+    hint = ": out of memory?" if -code == signal.SIGKILL else ""
+    return f"killed by signal {-code} ({name}){hint}"
+
+
+def _name_of(fn: Callable[..., Any]) -> str:
+    return getattr(fn, "__qualname__", None) or getattr(fn, "__name__", None) or type(fn).__name__
+
+
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
-def _start_worker(parent_pid: int, cores: int) -> None:
-    """Pool initializer: the worker dies with its parent and its kernels share out only its own
-    part of the cores (the other workers run beside it)."""
+_board: Any = None  # in a local pool's worker: the pool's board, and this worker's place on it
+_place = 0
+
+
+def _start_worker(parent_pid: int, cores: int, board: Any = None, claim: Any = None) -> None:
+    """Pool initializer: the worker dies with its parent, its kernels share out only its own
+    part of the cores (the other workers run beside it), and it takes a free place on the
+    pool's board (a pid of 0), where it notes each job it starts."""
+    global _board, _place
     limit_chunks(cores)
     _die_with_parent(parent_pid)
+    if board is None:
+        return
+    with claim:
+        for i in range(0, len(board), 2):
+            if board[i] == 0:
+                board[i] = os.getpid()
+                _board, _place = board, i
+                return
+
+
+def _noted(number: int, fn: Callable[..., Any], *args: Any) -> Any:
+    """A local pool's job as its worker runs it: noted on the board first. The note stays after
+    the job: a worker killed while sending the result back is still the job's."""
+    if _board is not None:
+        _board[_place + 1] = number
+    return fn(*args)
 
 
 def _die_with_parent(parent_pid: int) -> None:
     """Pool initializer: have the kernel SIGKILL this worker when its parent dies (Linux only;
     elsewhere a no-op). The signal follows the thread that started the worker, which is the one
-    running the jobs' caller and outlives the pool. Ctrl-C is the parent's to handle: a worker
-    ignores SIGINT (else every worker prints its own KeyboardInterrupt traceback)."""
+    running the jobs' caller (or, for a pool started after a worker's death, the pool's watchdog)
+    and outlives the pool. Ctrl-C is the parent's to handle: a worker
+    ignores SIGINT (else every worker prints its own KeyboardInterrupt traceback). SIGTERM ends
+    a worker at once: the handler a fork inherits (the CLI's raises KeyboardInterrupt) would turn
+    the pool's terminate() into an exception in the job, and the worker would go on."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if not sys.platform.startswith("linux"):
         return
     import ctypes
