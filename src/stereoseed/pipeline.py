@@ -378,8 +378,11 @@ def _refuse_output_over_inputs(results: ResultSet, inputs: list) -> None:
     """Refuse a result folder that is the current folder, holds it, or holds an input: the
     folder is replaced as a whole when the run ends (and a resumed run reads its inputs
     again)."""
-    here = Path(os.path.realpath(os.getcwd()))
-    if results.path == here or results.path in here.parents:
+    try:
+        here = Path(os.path.realpath(os.getcwd()))
+    except OSError:  # the current folder was removed: nothing of it to replace
+        here = None
+    if here is not None and (results.path == here or results.path in here.parents):
         raise StereoseedError(f"{results.shown}: is the current folder or holds it; the result folder is replaced "
                               f"as a whole: give a new folder for the results")
     for item in inputs:
