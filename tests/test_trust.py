@@ -95,7 +95,7 @@ def test_an_image_of_another_size_is_skipped_and_strict_says_so(seq, tmp_path, c
     listing.write_text("".join(f"{p}\n" for p in images[:3] + [big] + images[4:]))
     code, out, _ = run(capsys, *reconstruct_args({"images_txt": listing}, calib, tmp_path / "o", "--strict"))
     assert code == 3
-    assert "800x600" in out and out.strip().splitlines()[-1].startswith("registered 4/5 images (1 skipped)")
+    assert "800x600" in out and out.strip().splitlines()[-1].startswith("registered 4/5 images (1 skipped")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["per_image"][3]["status"] == "failed"
 

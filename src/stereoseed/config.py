@@ -20,12 +20,12 @@ from stereoseed.dense.config import DenseConfig
 from stereoseed.io.config import VideoConfig
 from stereoseed.output.config import ExportConfig
 from stereoseed.sfm.config import (LoopClosureConfig, MotionPriorConfig, OutlierConfig, PairCheckConfig, PipelineConfig,
-                                  QuasiDenseConfig, RegistrationConfig, TrackingConfig)
+                                  QuasiDenseConfig, RegistrationConfig, TrackingConfig, TrustConfig)
 
 __all__ = ["Config", "ResolvedConfig", "FeatureConfig", "MatchingConfig", "PropagationConfig", "TriangulationConfig",
            "ResectionConfig", "BundleConfig", "DenseConfig", "VideoConfig", "QuasiDenseConfig", "MotionPriorConfig",
            "TrackingConfig", "LoopClosureConfig", "PipelineConfig", "RegistrationConfig", "OutlierConfig",
-           "PairCheckConfig", "ExportConfig"]
+           "PairCheckConfig", "ExportConfig", "TrustConfig"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,7 @@ class Config:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     outliers: OutlierConfig = field(default_factory=OutlierConfig)
     pair_check: PairCheckConfig = field(default_factory=PairCheckConfig)
+    trust: TrustConfig = field(default_factory=TrustConfig)
     motion_prior: MotionPriorConfig = field(default_factory=MotionPriorConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)

@@ -23,3 +23,17 @@ def reconstruct_ring(images, names, Ps, source):
     for k in range(2, len(images)):
         assert insert_view(recon, k, cfg)["status"] == "registered"
     return recon, finish(recon, cfg)
+
+
+def test_links_without_a_merge_are_not_a_closed_loop(monkeypatch, caplog):
+    # the two ends see each other's points but none is found where the model puts it (as after a
+    # wrong camera on the way): a warning, not "closed"
+    import stereoseed.sfm.loop_closure as lc
+
+    images, names, Ps, source = ring(18)
+    monkeypatch.setattr(lc, "_merge_twins", lambda *args: 0)
+    with caplog.at_level("WARNING", logger="stereoseed"):
+        recon, report = reconstruct_ring(images, names, Ps, source)
+    closure = report["loop_closure"]
+    assert closure["links"] > 0 and closure["merges"] == 0 and not closure["closed"]
+    assert "no point merged" in closure["reason"] and "no point merged" in caplog.text

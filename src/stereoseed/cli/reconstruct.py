@@ -9,18 +9,18 @@ from stereoseed.cluster import CONNECT_TIMEOUT_S
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.models import MODELS
 
-EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed
+EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed, or was flagged
 
 EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (the others were)
 
 def _config(args: argparse.Namespace):
     """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
     from stereoseed.config import Config
-    from stereoseed.sfm.config import PipelineConfig
+    from stereoseed.sfm.config import PipelineConfig, TrustConfig
 
     try:
         return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
-                                              ba=args.ba))
+                                              ba=args.ba), trust=TrustConfig(keep_flagged=args.keep_flagged))
     except ValueError as e:
         raise StereoseedError(str(e)) from None
 
@@ -89,12 +89,20 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         print("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
     for r in failed:
         print(f"skipped: {r['reason']}")
+    flagged = (report["final"].get("trust") or {}).get("flagged") or {}
+    for name, reason in flagged.items():
+        print(f"flagged: {name}: {reason}")
+    loop = report["final"].get("loop_closure") or {}
+    if loop.get("links") and not loop.get("closed"):
+        print(f"loop closure: {loop.get('reason')}")
     if "dense" in report:
         print(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
                                                                      if report["dense"].get("note") else ""))
-    print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped), "
+    flags = f", {len(flagged)} flagged: " + ", ".join(f"{n} {r.split(' (')[0]}" for n, r in flagged.items()) \
+        if flagged else ", 0 flagged"
+    print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped{flags}), "
           f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
-    return EXIT_SKIPPED if (args.strict and failed) else 0
+    return EXIT_SKIPPED if (args.strict and (failed or flagged)) else 0
 
 def _cmd_batch(args: argparse.Namespace) -> int:
     from stereoseed.batch import read_sequence_list, run_batch
@@ -176,6 +184,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
                         "(default: local in paper mode, final in accurate mode)")
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--keep-flagged", action="store_true",
+                   help="keep the observations of cameras the run flagged (reliable false in cameras.json) in the model "
+                        "and their images in the dense stage (default: no point or dense match rests on them)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
                         "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "
@@ -201,7 +212,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue an interrupted run into the same --out from its checkpoint (same result as an "
                         "uninterrupted run)")
     p.add_argument("--strict", action="store_true",
-                   help=f"exit with code {EXIT_SKIPPED} when any image could not be placed (the results are written)")
+                   help=f"exit with code {EXIT_SKIPPED} when any image could not be placed or was flagged (the results "
+                        f"are written)")
     p.set_defaults(func=_cmd_reconstruct)
 
 

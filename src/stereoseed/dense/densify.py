@@ -450,8 +450,14 @@ def _run_pair(args: tuple) -> dict[str, Any]:
     return densify_pair(*args)
 
 
+def dense_views(recon: Reconstruction, cfg: Config) -> list[int]:
+    """The registered views the dense stage pairs in order: without ``TrustConfig.keep_flagged``
+    a camera the run could not vouch for (``reliable`` False) gives no dense match."""
+    return [v for v in recon.registered_views if recon.views[v].reliable or cfg.trust.keep_flagged]
+
+
 def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
-    reg = recon.registered_views
+    reg = dense_views(recon, cfg)
     for a, b in zip(reg[:-1], reg[1:]):
         seeds = recon.shared_pixels(a, b)
         yield (recon.views[a].image, recon.views[b].image, recon.views[a].P, recon.views[b].P, seeds,
@@ -484,7 +490,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     wherever the jobs run. progress(done, total, message): called as each pair's cloud comes in
     (total: the pairs) and once more when the fusion starts."""
     t0 = time.perf_counter()
-    reg = recon.registered_views
+    reg = dense_views(recon, cfg)
     pairs = list(zip(reg[:-1], reg[1:]))
     clouds, cols, per_pair = [], [], []
 

@@ -194,12 +194,16 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
     tracks = _tracks_by_point(result)
-    (_write_colmap_binary if binary else _write_colmap_text)(out, cameras, images, tr, tracks)
+    if binary:
+        _write_colmap_binary(out, cameras, images, tr, tracks)
+    else:
+        flagged = tuple(result.names[i] for i, why in enumerate(result.flags) if why and result.P[i] is not None)
+        _write_colmap_text(out, cameras, images, tr, tracks, flagged)
     _record(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
-    return _logged(result.warnings + warnings)
+    return _logged(result.warnings + warnings + _flagged(result))
 
 
-def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
+def _write_colmap_text(out: Path, cameras, images, tr, tracks, flagged: tuple[str, ...] = ()) -> None:
     lines = ["# Camera list with one line of data per camera:",
              "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
     lines += [f"{c} {m} {w} {h} " + " ".join(repr(p) for p in params) for c, m, w, h, params in cameras]
@@ -207,6 +211,7 @@ def _write_colmap_text(out: Path, cameras, images, tr, tracks) -> None:
     lines = ["# Image list with two lines of data per image:",
              "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
              "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(images)}"]
+    lines += [f"# flagged by stereoseed (not vouched for, see cameras.json): {name}" for name in flagged]
     for n, q, t, cam, name, xy, pid in images:
         lines.append(f"{n} " + " ".join(repr(float(v)) for v in (*q, *t)) + f" {cam} {name}")
         lines.append(" ".join(f"{x!r} {y!r} {p}" for (x, y), p in zip(xy.tolist(), pid.tolist())))
@@ -289,7 +294,7 @@ def write_nvm(result: Result, path: str | Path, force: bool = False) -> list[str
         lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {n} {meas}")
     write_text(path, "\n".join(lines) + "\n")
     _record(path.parent, [path.name])
-    return _logged(result.warnings + warnings)
+    return _logged(result.warnings + warnings + _flagged(result))
 
 
 def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> list[str]:
@@ -311,7 +316,13 @@ def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> l
     write_text(out / "bundle.out", "\n".join(lines) + "\n")
     write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
     _record(out, ["bundle.out", "list.txt"])
-    return _logged(result.warnings + warnings)
+    return _logged(result.warnings + warnings + _flagged(result))
+
+
+def _flagged(result: Result) -> list[str]:
+    """What an export says of the cameras the run flagged: exported, not vouched for."""
+    return [f"{result.names[i]}: flagged by the run ({why}); exported, but stereoseed does not vouch for this camera"
+            for i, why in enumerate(result.flags) if why is not None and result.P[i] is not None]
 
 
 def _logged(warnings: list[str]) -> list[str]:

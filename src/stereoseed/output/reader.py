@@ -43,6 +43,7 @@ class Result:
     tracks: dict[str, np.ndarray]
     distortion: list[np.ndarray | None] = field(default_factory=list)  # the lens, where the run undistorted
     warnings: list[str] = field(default_factory=list)  # what was left out, and why
+    flags: list[str | None] = field(default_factory=list)  # why the run could not vouch for a camera, or None
 
     @property
     def registered(self) -> list[int]:
@@ -86,7 +87,14 @@ def load_result(folder: str | Path) -> Result:
         tracks = _without_images(tracks, [P is not None for P in Ps])
         for w in warnings:
             log.info("%s", w)  # the exports hand them on with their own
-    return Result(folder, names, sizes, Ps, tracks, lens, warnings)
+    return Result(folder, names, sizes, Ps, tracks, lens, warnings, _flags(cams_path, len(names)))
+
+
+def _flags(path: Path, n: int) -> list[str | None]:
+    """Per image, the flag_reason of a camera cameras.json marks ``"reliable": false`` (results
+    written before the field existed: None)."""
+    images = json.loads(path.read_text(encoding="utf-8"))["images"]
+    return [str(im.get("flag_reason") or "flagged") if im.get("reliable") is False else None for im in images[:n]]
 
 
 def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndarray | None], list]:

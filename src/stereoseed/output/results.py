@@ -116,6 +116,13 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str
                          center=v.center.tolist())
             if v.rotated_180:
                 entry["rotated_180"] = True
+            entry["reliable"] = bool(v.reliable)
+            if not v.reliable:
+                entry["flag_reason"] = v.flag_reason
+            if v.uncertainty is not None:
+                u = v.uncertainty.to_dict()
+                entry["uncertainty"] = {k: u[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px",
+                                                          "sigma_px", "reason")}
         lens = lenses[min(i, 1)] if lenses else None
         if lens is not None:
             # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
@@ -124,7 +131,10 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str
     return {"format_version": FORMAT_VERSION,
             "units": "those of the calibration (the pattern's coordinates): the model is metric in them",
             "convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
-                          "R, t are cam_from_world", "images": images}
+                          "R, t are cam_from_world; uncertainty: 1-sigma of the centre along the camera's axes "
+                          "(x right, y down, z forward, in the model's unit) and of its rotation about them "
+                          "(degrees); reliable false: the run cannot vouch for the camera (flag_reason)",
+            "images": images}
 
 
 def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: str | Path,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from stereoseed.geometry.models import MODELS, CameraModel
 from stereoseed.validation import positive, whole, as_tuple, in_range, one_of
 
-__all__ = ["ModeDefaults", "MODE_DEFAULTS", "RegistrationConfig", "OutlierConfig", "PairCheckConfig", 'QuasiDenseConfig', 'MotionPriorConfig', 'TrackingConfig', 'LoopClosureConfig', 'PipelineConfig']
+__all__ = ["TrustConfig", "ModeDefaults", "MODE_DEFAULTS", "RegistrationConfig", "OutlierConfig", "PairCheckConfig", 'QuasiDenseConfig', 'MotionPriorConfig', 'TrackingConfig', 'LoopClosureConfig', 'PipelineConfig']
 
 
 MODES = ("paper", "accurate")
@@ -286,3 +286,35 @@ class PairCheckConfig:
     def __post_init__(self) -> None:
         in_range(self, "min_consistent", 0.0, 1.0)
         whole(self, "min_matches")
+
+
+@dataclass(frozen=True)
+class TrustConfig:
+    """When the run cannot vouch for a camera (docs/mapper.md, "Trust"). Each limit is relative to
+    the scene, so a walk round a statuette and one along a building are judged alike."""
+
+    # Registration: the motion prior's competing cameras are ambiguous (a repeated pattern matched
+    # one period over) when the runner-up explains at least ambiguity_ratio of the winner's
+    # points while standing farther than ambiguity_shift x the recent points' depth from it. A
+    # camera one period off explains its own correspondences as well as the true one and loses
+    # only the pattern's ends (within a factor 1.5: 0.67); an unrelated wrong camera explains
+    # far fewer (0.3-0.4 of the winner's, docs/mapper.md). Cameras of one hypothesis family
+    # stand a few per mille of the depth apart; a period of a facade's windows or a box's
+    # squares is several per cent of it.
+    ambiguity_ratio: float = 0.6
+    ambiguity_shift: float = 0.02
+    # After the final BA, a camera whose observations reproject worse than residual_factor x the
+    # median camera's RMS (and worse than residual_floor_px) is contradicted by the others.
+    residual_factor: float = 3.0
+    residual_floor_px: float = 0.5
+    # A camera whose 1-sigma position (its worst axis) exceeds max_position_sigma x its median
+    # depth is not determined well enough to build on.
+    max_position_sigma: float = 0.01
+    # Keep flagged cameras' observations in the model and their images in the dense stage.
+    keep_flagged: bool = False
+
+    def __post_init__(self) -> None:
+        in_range(self, "ambiguity_ratio", 0.0, 1.0)
+        positive(self, "ambiguity_shift", "residual_factor", "max_position_sigma")
+        if self.residual_floor_px < 0:
+            raise ValueError(f"TrustConfig.residual_floor_px must be >= 0, got {self.residual_floor_px}")

@@ -29,6 +29,7 @@ from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_qu
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import (FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
                                              consistent_chain)
+from stereoseed.sfm.trust import assess
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
 
@@ -153,6 +154,8 @@ def _commit(view: View, reg: Registration) -> None:
     view.point_of_feature = np.full(len(cand.features), -1, np.int64)
     view.camera_model = CameraModel.FOCAL if reg.free_camera_refused else None
     view.camera = reg.resection.camera
+    view.registration_flag = reg.notes.get("flag")
+    view.reliable, view.flag_reason = view.registration_flag is None, view.registration_flag
     view.zoomed = reg.zoomed
 
 
@@ -224,13 +227,16 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
 
 def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
     """After the last insertion: the mode's finishing step (accurate: loop closure, a final
-    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``)."""
+    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``), then each camera
+    judged (:func:`stereoseed.sfm.trust.assess`: its uncertainty, a flag where the run cannot
+    vouch for it)."""
     t = time.perf_counter()
     cfg = cfg.resolve()
     out = mode_of(cfg).finish(recon, cfg)
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:
         out["dropped"] = dropped
+    out["trust"] = assess(recon, cfg)
     out["seconds"] = time.perf_counter() - t
     return out
 

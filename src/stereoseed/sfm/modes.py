@@ -149,14 +149,14 @@ class AccurateMode:
         focal length per image only trades against the depth); "no_zoom" in the report."""
         pc = cfg.pipeline
         out: dict[str, Any] = {}
-        closed = False
+        adjusted = False  # closing the loop ran a global BA
         if pc.loop_closure:
-            closed, out["loop_closure"] = close_loop(recon, cfg)
+            adjusted, out["loop_closure"] = close_loop(recon, cfg)
         later = [v for v in recon.registered_views if v > 1]
-        if later and _unzoomed(recon, cfg) and (closed or pc.ba == "final"):
+        if later and _unzoomed(recon, cfg) and (adjusted or pc.ba == "final"):
             out["no_zoom"] = True
             out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": CameraModel.FIXED}))[0]
-        elif pc.ba == "final" and not closed:
+        elif pc.ba == "final" and not adjusted:
             out["final_ba"] = global_adjust(recon, cfg)[0]
         return out
 

@@ -81,6 +81,13 @@ class View:
         self.zoomed = zoomed
         self._camera: Camera | None = None
         self.P = P
+        # why its registration could not vouch for the camera (an ambiguous choice), set when it
+        # is committed; then what the finishing step says (stereoseed.sfm.trust): whether the run
+        # can vouch for it, why not, and its 1-sigma uncertainty from the final BA
+        self.registration_flag: str | None = None
+        self.reliable = True
+        self.flag_reason: str | None = None
+        self.uncertainty: Any = None
 
     @classmethod
     def of_input(cls, name: str, images: Sequence[np.ndarray], index: int) -> "View":

@@ -15,7 +15,7 @@ from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
 from stereoseed.config import Config
 from stereoseed.sfm.reconstruction import Reconstruction, eq14
 
-__all__ = ["adjust", "ba_report", "drop_outliers", "global_adjust", "select_tracks"]
+__all__ = ["adjust", "ba_report", "bundle_problem", "drop_outliers", "global_adjust", "select_tracks"]
 
 CALIBRATED = (0, 1)  # the calibrated pair fixes the frame and the scale: it never moves
 
@@ -25,12 +25,11 @@ def ba_report(result: dict[str, Any] | None) -> dict[str, Any]:
     return {"skipped": True} if result is None else result
 
 
-def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
-           views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None) -> dict[str, Any] | None:
-    """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
-    every point those views observe; the cost holds every observation of the involved points
-    (in ``views_in_cost`` only, and of ``points_in_cost`` only, if given). Returns a JSON-able
-    report, or None when there is nothing to adjust (no observation involved)."""
+def bundle_problem(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
+                   views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None
+                   ) -> tuple[BundleProblem, np.ndarray, np.ndarray] | None:
+    """The bundle adjustment problem of :func:`adjust` (same arguments), with the views and the
+    points it involves ((C,), (M,) ids); None when no observation is involved."""
     free_views = [v for v in free_views if v not in CALIBRATED]
     in_free_views = np.isin(recon.obs_view, free_views)
     if free_points is None:
@@ -64,6 +63,19 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
         model=model,
         reference_K=np.stack([recon.reference_K(v) for v in cams]),
     )
+    return problem, cams, pts
+
+
+def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
+           views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None) -> dict[str, Any] | None:
+    """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
+    every point those views observe; the cost holds every observation of the involved points
+    (in ``views_in_cost`` only, and of ``points_in_cost`` only, if given). Returns a JSON-able
+    report, or None when there is nothing to adjust (no observation involved)."""
+    built = bundle_problem(recon, cfg, free_views, free_points, views_in_cost, points_in_cost)
+    if built is None:
+        return None
+    problem, cams, pts = built
     result = bundle_adjust(problem, cfg.bundle)
     for i, v in enumerate(cams):
         if problem.free_cameras[i]:

@@ -127,12 +127,27 @@ def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
 
 
 _COLUMNS = ("#", "image", "status", "reason / registered by", "matches", "chained points", "inliers",
-            "camera model", "RMS before BA (px)", "RMS after BA (px)", "new points", "time (s)")
+            "camera model", "RMS before BA (px)", "RMS after BA (px)", "new points", "time (s)",
+            "position σ (model unit)", "trust")
+
+
+def _trust_cells(judged: dict[str, Any] | None) -> list[str]:
+    """The per-image table's uncertainty (the worst axis of the 1-sigma position) and trust cells."""
+    if judged is None:
+        return ["—", ""]
+    u = judged.get("uncertainty") if isinstance(judged.get("uncertainty"), dict) else {}
+    sigmas = [s for s in (u.get("position_sigma") or []) if _num(s) is not None]
+    sigma = f"{max(sigmas):.3g}" if sigmas else ("undetermined" if u else "—")
+    if judged.get("reliable") is False:
+        return [html.escape(sigma), f'flagged: {html.escape(str(judged.get("flag_reason") or ""))}']
+    return [html.escape(sigma), "reliable"]
 
 
 def _table(recon: Any, report: dict[str, Any]) -> str:
     rows = []
     models = {str(v.name): getattr(v, "camera_model", None) for v in getattr(recon, "views", [])}
+    final = report.get("final") if isinstance(report.get("final"), dict) else {}
+    trust = (final.get("trust") or {}).get("cameras") or {} if isinstance(final.get("trust"), dict) else {}
     for n, r in enumerate(_insertions(report)):
         status = str(r.get("status", "—"))
         ba = r.get("ba") if isinstance(r.get("ba"), dict) else {}
@@ -149,6 +164,10 @@ def _table(recon: Any, report: dict[str, Any]) -> str:
                  html.escape(str(reason)) if reason else "", _fmt(r.get("matches")), _fmt(r.get("chained_points")),
                  _fmt(r.get("resection_inliers")), html.escape(str(model)) if model else "—", before, after,
                  _fmt(r.get("new_points")), _fmt(seconds.get("total"), 2)]
+        judged = trust.get(str(r.get("image"))) if isinstance(trust, dict) else None
+        cells += _trust_cells(judged if isinstance(judged, dict) else None)
+        if isinstance(judged, dict) and judged.get("reliable") is False:
+            cls = cls or "flagged"
         tds = "".join(f"<td>{c}</td>" for c in cells)
         rows.append(f'<tr class="{cls}" data-status="{html.escape(status)}">{tds}</tr>')
     head = "".join(f"<th>{html.escape(c)}</th>" for c in _COLUMNS)
@@ -173,7 +192,8 @@ th{white-space:normal;vertical-align:bottom}
 th:nth-child(2),td:nth-child(2),th:nth-child(3),td:nth-child(3),th:nth-child(4),td:nth-child(4),
 th:nth-child(8),td:nth-child(8){text-align:left}
 td:nth-child(4){white-space:normal;max-width:420px}
-tr.failed td{background:#fde8e8;color:#8a1c1c}tr.pair td{background:#fff4e5}
+tr.failed td{background:#fde8e8;color:#8a1c1c}tr.pair td{background:#fff4e5}tr.flagged td{background:#fff1cc}
+td:nth-child(14){white-space:normal;max-width:360px;text-align:left}
 .table-wrap{overflow-x:auto}
 img.matches{max-width:100%;height:auto;border:1px solid #ccd}
 """

@@ -144,12 +144,34 @@ class SparseRegistrar:
 @dataclass(frozen=True)
 class _Resected:
     """A camera from one set of correspondences: the resection, why the 11-DOF camera was refused
-    (None: it was not), what found the correspondences, the motion prior's hypothesis (or None)."""
+    (None: it was not), what found the correspondences, the motion prior's hypothesis (or None),
+    and why the run cannot vouch for it (None: it can)."""
 
     result: ResectionResult
     refused: str | None
     found_by: FoundBy
     hypothesis: Hypothesis | None = None
+    flag: str | None = None
+
+
+def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
+           best: int, cfg: Config) -> str | None:
+    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous, or None: another camera
+    explains at least ``TrustConfig.ambiguity_ratio`` of its recent points (``counts``) while
+    its centre stands farther than ``ambiguity_shift`` x the recent points' depth from it."""
+    tc = cfg.trust
+    if counts[best] == 0:
+        return None
+    depth = float(np.median(depths(recon.views[prev].P, recon.points[recent]))) if len(recent) else np.inf
+    centre = camera_center(cameras[best])
+    for j, P in enumerate(cameras):
+        if j == best or counts[j] < tc.ambiguity_ratio * counts[best]:
+            continue
+        apart = float(np.linalg.norm(camera_center(P) - centre))
+        if apart > tc.ambiguity_shift * depth:
+            return (f"the best camera explains {counts[best]} recent points, another {apart:.3g} away "
+                    f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]}")
+    return None
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -282,8 +304,9 @@ def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | 
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, str):
         return RegistrationFailure(found, n_matches, n_chained, seconds, cand)
+    notes = {"flag": found.flag} if found.flag else {}
     return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
-                        seconds)
+                        seconds, notes=notes)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
@@ -309,7 +332,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
                                   or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
             return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
-    chosen, explained = None, 0
+    chosen, explained, rival = None, 0, None
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
@@ -328,8 +351,13 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         best = int(np.argmax(counts))  # ties: the first (the epipolar chain's, the nearest search's)
         if chosen is None or (counts[best] > 0 and counts[best] >= mp.wider_search_margin * explained):
             chosen, explained = cameras[best], counts[best]
+            rival = _rival(recon, prev, recent[0], [c[0][0].P for c in cameras], counts, best, cfg)
+            # the winner first, then the cameras explaining nearly as much
     if chosen is not None:
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
-        return _Resected(*chosen[0], found_by, chosen[1])
+        # a repeated pattern: another camera, a period away, explains nearly as much. The best
+        # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
+        flag = f"ambiguous: repeated structure ({rival})" if rival is not None else None
+        return _Resected(*chosen[0], found_by, chosen[1], flag)
     return error or (f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
                      f"{cfg.registration.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")

@@ -1,0 +1,121 @@
+"""Whether each camera can be trusted, decided after the last insertion from everything the run
+knows then (the field's answer to "a clean report on a wrong result"):
+
+* its uncertainty: the 1-sigma position and rotation of the camera from the normal equations of
+  the whole model (:func:`stereoseed.estimators.covariance.camera_uncertainty`, the calibrated
+  pair as the gauge);
+* its consistency: a camera whose observations reproject much worse than the other cameras'
+  after the final BA is contradicted by them (a camera placed one period over on a repeated
+  pattern keeps residuals the model cannot explain away).
+
+A camera that fails either is *flagged*: it stays registered (its P is written) but ``reliable``
+is False with the reason, and, unless ``TrustConfig.keep_flagged``, its observations leave the
+model, so no point and no dense match rests on it.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from stereoseed.config import Config
+from stereoseed.estimators.bundle import observation_errors
+from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
+from stereoseed.geometry.projection import depths
+from stereoseed.sfm.modes import mode_of
+from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.refinement import bundle_problem
+
+__all__ = ["camera_uncertainties", "contradicted_cameras", "assess"]
+
+log = logging.getLogger(__name__)
+CALIBRATED = (0, 1)  # the pair: the metric frame itself, never flagged
+
+
+def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
+    """{view: its uncertainty} for every registered view after the pair, from the normal
+    equations of all registered views (the pair fixed) and every live point."""
+    # the model the final BA used (the accurate mode holds the calibrated intrinsics when no image zoomed)
+    built = bundle_problem(recon, mode_of(cfg).adjustment_config(recon, cfg), recon.registered_views)
+    if built is None:
+        return {}
+    problem, cams, _ = built
+    found = camera_uncertainty(problem)
+    return {int(v): u for v, u in zip(cams, found) if u is not None}
+
+
+def _median_depth(recon: Reconstruction, view: int) -> float:
+    pts = recon.points[recon.points_seen_by(view)]
+    return float(np.median(depths(recon.views[view].P, pts))) if len(pts) else float("nan")
+
+
+def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
+    """{view: reason} of the registered views after the pair whose observations reproject worse
+    than ``TrustConfig.residual_factor`` x the median camera's RMS (and the floor)."""
+    tc = cfg.trust
+    views = [v for v in recon.registered_views if v not in CALIBRATED]
+    live = recon.alive[recon.obs_point]
+    if not views or not live.any():
+        return {}
+    err = recon.observation_errors()
+    rms = {}
+    for v in recon.registered_views:
+        e = err[(recon.obs_view == v) & live]
+        if len(e):
+            rms[v] = float(np.sqrt(np.mean(e ** 2)))
+    if not rms:
+        return {}
+    typical = float(np.median(list(rms.values())))
+    limit = max(tc.residual_factor * typical, tc.residual_floor_px)
+    return {v: (f"contradicted by the other cameras: its {int(np.sum(recon.obs_view == v))} observations "
+                f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
+            for v in views if v in rms and rms[v] > limit}
+
+
+def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
+    if not u.determined:
+        return f"uncertain: {u.reason}"
+    depth = _median_depth(recon, view)
+    worst = float(np.max(u.position_sigma))
+    if np.isfinite(depth) and worst > cfg.trust.max_position_sigma * depth:
+        return (f"uncertain: 1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to the scene, "
+                f"limit {100 * cfg.trust.max_position_sigma:.1f} %)")
+    return None
+
+
+def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+    """Judge every registered camera after the pair: set each view's ``uncertainty``,
+    ``reliable`` and ``flag_reason``; without ``keep_flagged``, remove the flagged views'
+    observations (and the points left with fewer than two). Returns the JSON-able report:
+    {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
+    cfg = cfg.resolve()
+    contradicted = contradicted_cameras(recon, cfg)
+    uncertainties = camera_uncertainties(recon, cfg)
+    cameras, flagged = {}, {}
+    for v in recon.registered_views:
+        view = recon.views[v]
+        u = uncertainties.get(v)
+        view.uncertainty = u
+        # a flag from the registration (an ambiguous choice) stays; else the final evidence decides
+        reason = (view.registration_flag or contradicted.get(v)
+                  or (None if u is None else _uncertain(recon, v, u, cfg)))
+        if v in CALIBRATED:
+            reason = None
+        view.reliable, view.flag_reason = reason is None, reason
+        cameras[view.name] = {"reliable": view.reliable, "flag_reason": reason,
+                              "uncertainty": None if u is None else _summary(u)}
+        if reason:
+            flagged[view.name] = reason
+            log.warning("%s: flagged, %s", view.name, reason)
+    if flagged and not cfg.trust.keep_flagged:
+        out = np.isin(recon.obs_view, [v for v in recon.registered_views if not recon.views[v].reliable])
+        recon.remove_observations(out)
+        recon.remove_lonely_points()
+    return {"cameras": cameras, "flagged": flagged}
+
+
+def _summary(u: CameraUncertainty) -> dict[str, Any]:
+    """What report.json and cameras.json keep of an uncertainty (not the full covariance)."""
+    d = u.to_dict()
+    return {k: d[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px", "sigma_px", "reason")}

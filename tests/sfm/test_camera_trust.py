@@ -1,0 +1,104 @@
+"""Trust: each camera's uncertainty, the flag of a camera the others contradict, and the refusal
+of a registration a repeated pattern makes ambiguous."""
+import numpy as np
+import pytest
+
+from geometry_helpers import ring_camera
+from ring_helpers import ring
+from stereoseed.config import Config
+from stereoseed.geometry.projection import camera_center
+from stereoseed.sfm.mapper import finish, initialise, insert_view
+from stereoseed.sfm.registration.base import _rival
+from stereoseed.sfm.trust import assess
+
+
+def _ring_run(n=8, cfg=Config()):
+    images, names, Ps, source = ring(n)
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in range(2, n):
+        assert insert_view(recon, k, cfg)["status"] == "registered"
+    return recon, Ps
+
+
+def test_every_camera_gets_an_uncertainty_that_covers_its_error():
+    recon, Ps = _ring_run()
+    final = finish(recon, Config())
+    cams = final["trust"]["cameras"]
+    assert final["trust"]["flagged"] == {} and all(c["reliable"] for c in cams.values())
+    for k in range(2, 8):
+        v = recon.views[k]
+        u = v.uncertainty
+        assert u is not None and u.determined
+        # the error along each camera axis within 4 sigma (0.1 px noise, exact matches)
+        err = v.R @ (camera_center(v.P) - camera_center(Ps[k]))
+        assert np.all(np.abs(err) < 4 * u.position_sigma + 1e-6), (k, err, u.position_sigma)
+        assert 0 < np.max(u.position_sigma) < 0.002 and np.all(u.rotation_sigma_deg < 0.05)
+        assert cams[v.name]["uncertainty"]["position_sigma"] == pytest.approx(list(u.position_sigma))
+    assert recon.views[0].uncertainty is None  # the calibrated pair is the frame, not estimated
+
+
+def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
+    recon, Ps = _ring_run()
+    finish(recon, Config())
+    bad = 5
+    # as if placed one period over: 3 cm along the ring, after the final BA
+    K, R, t, _ = ring_camera(30.0 + bad * 20.0 + 1.2, height=0.7)
+    recon.views[bad].P = K @ np.hstack([R, t[:, None]])
+    seen_before = int(np.sum(recon.obs_view == bad))
+    out = assess(recon, Config())
+    assert list(out["flagged"]) == [recon.views[bad].name]
+    assert "contradicted by the other cameras" in out["flagged"][recon.views[bad].name]
+    assert not recon.views[bad].reliable and recon.views[bad].registered
+    assert seen_before > 0 and not np.any(recon.obs_view == bad)  # no point rests on it any more
+    assert all(recon.views[k].reliable for k in recon.registered_views if k != bad)
+    # keep_flagged keeps its observations
+    recon2, _ = _ring_run()
+    finish(recon2, Config())
+    recon2.views[bad].P = K @ np.hstack([R, t[:, None]])
+    keep = Config().replace(trust={"keep_flagged": True})
+    assert list(assess(recon2, keep)["flagged"]) == [recon2.views[bad].name]
+    assert np.sum(recon2.obs_view == bad) > 0
+
+
+def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
+    recon, Ps = _ring_run(5)
+    recent = np.flatnonzero(recon.alive)
+    cfg = Config().resolve()
+    near = Ps[4]
+    shifted = ring_camera(30.0 + 4 * 20.0 + 6.0, height=0.7)[3]  # ~15 cm along the ring: a period over
+    close = ring_camera(30.0 + 4 * 20.0 + 0.1, height=0.7)[3]  # 2.4 mm: the same camera
+    why = _rival(recon, 3, recent, [near, shifted], np.array([100, 80]), 0, cfg)
+    assert why is not None and "explains 80" in why
+    assert _rival(recon, 3, recent, [near, shifted], np.array([100, 40]), 0, cfg) is None  # clearly worse
+    assert _rival(recon, 3, recent, [near, close], np.array([100, 99]), 0, cfg) is None  # the same place
+
+
+def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, tmp_path, capsys, monkeypatch):
+    """cameras.json (reliable, flag_reason, uncertainty), the COLMAP export's comment and
+    warning, the command's last line, and --strict's exit code 3."""
+    import json
+
+    from scene_helpers import scene_on_disk
+    from stereoseed.cli import main
+    import stereoseed.sfm.trust as trust
+
+    real = trust.contradicted_cameras
+
+    def with_one_contradicted(recon, cfg):  # as if the final evidence contradicted image 4
+        found = real(recon, cfg)
+        return {**found, 4: "contradicted by the other cameras: planted by the test"}
+
+    monkeypatch.setattr(trust, "contradicted_cameras", with_one_contradicted)
+    paths, calib = scene_on_disk(small_box_scene.prefix(5), tmp_path)
+    out = tmp_path / "r"
+    code = main(["reconstruct", str(paths["images_txt"]), "--calib", str(calib), "--out", str(out), "--strict"])
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert code == 3 and " flagged: " in last and "img_004.png contradicted by the other cameras" in last, last
+    cams = json.loads((out / "cameras.json").read_text())["images"]
+    assert cams[4]["reliable"] is False and "planted by the test" in cams[4]["flag_reason"]
+    assert cams[0]["reliable"] and cams[1]["reliable"]
+    assert all(len(c["uncertainty"]["position_sigma"]) == 3 for c in cams[2:])
+    assert main(["export", str(out), "--out", str(tmp_path / "colmap")]) == 0
+    assert "# flagged by stereoseed (not vouched for, see cameras.json): img_004.png" in \
+        (tmp_path / "colmap" / "images.txt").read_text()
+    assert "img_004.png: flagged by the run" in capsys.readouterr().err
