@@ -19,12 +19,14 @@ from stereoseed.config import Config
 from stereoseed.experiments.evaluation import camera_errors
 from stereoseed.geometry.projection import camera_center, compose_projection
 from stereoseed.geometry.lens import project_distorted, undistort_image, undistort_pixels, undistortion_maps
-from stereoseed.calibration.lens_calibration import calibrate_from_target
+from stereoseed.calibration.detection import detect_target
+from stereoseed.calibration.rig import calibrate_cameras
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 from stereoseed.synthetic.target import load_target as load_rendered_target
 from stereoseed.synthetic.target import render_target
-from stereoseed.calibration.target import load_target, make_target
+from stereoseed.calibration.printing import make_target
+from stereoseed.calibration.target import load_target
 
 LENS = (-0.12, 0.03, 0.001, -0.0005)
 MM = 1000.0  # the target is in mm, the box scene in metres
@@ -72,6 +74,17 @@ def _frame_errors(cal, K_true: np.ndarray, R: np.ndarray, t: np.ndarray, covered
     return np.linalg.norm(project_distorted(cal.K, cal.R[0], cal.t[0], cal.distortion, X) - px, axis=1)
 
 
+class _Camera:
+    """A calibrated camera as this benchmark reads it: K, distortion, the views' R, t (the pair's
+    first) and RMS, P of the pair's view."""
+
+    def __init__(self, cam):
+        self.K, self.distortion, self.views = cam.K, cam.lens, [v for v in cam.views if v.used]
+        self.R, self.t = [v.R for v in self.views], [v.t for v in self.views]
+        self.rms_px = [v.rms_px for v in self.views]
+        self.P = compose_projection(self.K, self.R[0], self.t[0])
+
+
 def calibration(noise: float, scene, folder: Path) -> tuple[dict, list]:
     """Calibrate both cameras of the pair from renders of the target in ``folder`` (made once)."""
     target = load_target(folder / "target.json")
@@ -85,16 +98,18 @@ def calibration(noise: float, scene, folder: Path) -> tuple[dict, list]:
         more = [render_target(texture, K, Rv, tv, distortion=LENS, noise_sigma=noise, seed=10 * cam + k)
                 for k, (Rv, tv) in enumerate(_lens_views(K, np.zeros(3), 4))]
         for label, images in (("pair alone", [pair]), ("pair + 4 views", [pair] + more)):
-            cal, checks = calibrate_from_target(target, [(f"view{k}", im) for k, im in enumerate(images)])
-            under = np.linalg.norm(checks[0].reprojected - project_distorted(K, R, t, LENS, checks[0].points3d), axis=1)
+            dets = [detect_target(im, target, what=f"view{k}") for k, im in enumerate(images)]
+            cal = _Camera(calibrate_cameras(target, [dets], labels=[f"camera {cam + 1}"]).cameras[0])
+            view = cal.views[0]
+            under = np.linalg.norm(view.reprojected - project_distorted(K, R, t, LENS, view.detection.points3d), axis=1)
             C_true = camera_center(compose_projection(K, R, t))
             out[f"camera{cam + 1}/{label}"] = {
                 "centre_error_pct_of_distance": float(100 * np.linalg.norm(camera_center(cal.P) - C_true)
                                                       / np.linalg.norm(C_true)),
                 "target_points_p95_px": float(np.percentile(under, 95)),
-                "covered_frame_p95_px": float(np.percentile(_frame_errors(cal, K, R, t, checks[0].detected), 95)),
+                "covered_frame_p95_px": float(np.percentile(_frame_errors(cal, K, R, t, view.detection.pixels), 95)),
                 "whole_frame_p95_px": float(np.percentile(_frame_errors(cal, K, R, t), 95)),
-                "corners_per_view": [int(len(c.detected)) for c in checks], "rms_px": cal.rms_px,
+                "corners_per_view": [int(len(v.detection)) for v in cal.views], "rms_px": cal.rms_px,
                 "distortion": cal.distortion.tolist()}
             if label == "pair + 4 views":
                 cals.append(cal)

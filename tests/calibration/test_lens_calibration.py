@@ -112,11 +112,32 @@ def test_known_intrinsics_leave_only_the_pose():
     assert np.linalg.norm((-cal.R[0].T @ cal.t[0]) - (-poses[0][0].T @ poses[0][1])) < 2.0  # mm at 1.5 m
 
 
-def test_a_view_of_another_camera_is_refused():
-    views, _, _ = _views(2)
+def test_a_view_that_fits_badly_is_reported_and_refused_above_max_rms():
+    """The RMS is a judgement: a warning naming the view, fatal only with a limit (--max-rms)."""
+    views, K, _ = _views(2)
     X, x = views[1]
-    with pytest.raises(StereoseedError, match="reproject"):
-        calibrate_lens([views[0], (X, x[::-1])], SIZE, what=["a.png", "b.png"])
+    bad = [views[0], (X, x + np.random.default_rng(3).normal(0, 10.0, x.shape))]
+    with pytest.raises(StereoseedError, match=r"^b\.png: the pattern points reproject with \d+\.\d px RMS.*--max-rms 5"):
+        calibrate_lens(bad, what=["a.png", "b.png"], intrinsics=(K, LENS), max_rms_px=5.0)
+    cal = calibrate_lens(bad, what=["a.png", "b.png"], intrinsics=(K, LENS))
+    assert cal.rms_px[0] < 0.3 and 9 < cal.rms_px[1] < 15
+    assert len(cal.warnings) == 1 and cal.warnings[0].startswith("b.png: the pattern points reproject")
+
+
+@pytest.mark.parametrize("seed, reason", [(2, r"fx and fy differ by 37 %.*principal point \(78, 17\) outside the "
+                                                r"middle 50 % of the 640x480 frame.*tangential distortion"),
+                                          (5, r"folds the image back")])
+def test_a_camera_the_points_do_not_determine_is_refused_with_the_reason(seed, reason):
+    """One view of a small pattern (a 60 mm box corner filling a tenth of the frame) with 1 px
+    noise: 9 intrinsics and lens terms from 40 points; what comes out is no camera (seed 2: f =
+    (633, 865) px, the principal point in a corner; seed 5: f = 399 px with k2 = -1305, a lens
+    that folds the image), and is refused saying so."""
+    rng = np.random.default_rng(seed)
+    X = box_points(rng, 40, half=30.0, height=60.0)
+    K, R, t, _ = look_at_camera((900.0, 500.0, 400.0), target=(0, 0, 30), f=800.0, pp=(320, 240))
+    x = project_distorted(K, R, t, np.zeros(5), X) + rng.normal(0, 1.0, (len(X), 2))
+    with pytest.raises(StereoseedError, match=rf"^v\.png: refused, no physical camera: .*{reason}"):
+        calibrate_lens([(X, x)], SIZE, what=["v.png"])
 
 
 def test_calib_json_and_opencv_files_give_the_lens(tmp_path):

@@ -11,7 +11,9 @@ import pytest
 
 from stereoseed.cli import main
 from stereoseed.errors import StereoseedError
-from stereoseed.calibration.target import detect_target, load_target, make_target
+from stereoseed.calibration.detection import detect_target
+from stereoseed.calibration.printing import make_target
+from stereoseed.calibration.target import load_target
 
 W, H = 640, 480
 K = np.array([[560.0, 0, 319.5], [0, 560.0, 239.5], [0, 0, 1]])
@@ -133,7 +135,10 @@ def test_detection_agrees_with_the_contract(target3, pose):
     err = np.linalg.norm(det.pixels - project(P, det.points3d), axis=1)
     print(f"pose {pose}: {len(det)} corners {det.counts}, reprojection max {err.max():.3f} px, "
           f"mean {err.mean():.3f} px")
-    assert err.max() < 0.3
+    # a corner whose saddle fit converged is within 0.06 px (measured); one where it failed keeps OpenCV's
+    # cornerSubPix position, pulled by the marker edges next to it on an oblique face: up to 1.2 px (measured)
+    assert err[det.refined].max() < 0.1 and err.max() < 1.5 and det.refined.mean() > 0.5
+    assert sum(det.unrefined) == np.count_nonzero(~det.refined)
     assert det.points3d.shape == (len(det), 3) and det.face.shape == det.ids.shape == (len(det),)
     for k, n in enumerate(det.counts):
         assert np.count_nonzero(det.face == k) == n
@@ -144,21 +149,44 @@ def test_detection_two_face_target_and_colour_photo(target2):
     photo = cv2.cvtColor(render(target2, P), cv2.COLOR_GRAY2BGR)
     det = detect_target(photo, load_target(target2))
     assert det.counts[0] > 10 and det.counts[1] > 10
-    assert np.linalg.norm(det.pixels - project(P, det.points3d), axis=1).max() < 0.3
+    err = np.linalg.norm(det.pixels - project(P, det.points3d), axis=1)
+    assert err[det.refined].max() < 0.1 and err.max() < 1.5
 
 
-def test_detection_errors_one_line(target3):
+def test_what_a_view_holds_is_reported_not_refused(target3):
+    """No target, one face, a few corners far away: the detection says what it found and
+    Detection.problem() why a view cannot be used; which faces a calibration needs is not its call."""
     target = load_target(target3)
     P = look_at(*POSES[0])
-    with pytest.raises(StereoseedError, match=r"^IMG: no calibration target found; show the whole target") as e:
-        detect_target(np.full((H, W), 128, np.uint8), target, what="IMG")
-    assert "\n" not in str(e.value)
-    with pytest.raises(StereoseedError, match=r"^IMG: only face 1 of the target was found; show at least two faces$"):
-        detect_target(render(target3, P, only={1}), target, what="IMG")
-    # far away: a few corners on two faces only
-    far = render(target3, look_at((1400.0, 1400.0, 1400.0), (-80.0, -80.0, -110.0)))
-    with pytest.raises(StereoseedError, match=r"^IMG: (only \d+ target corners found|no calibration target found)"):
-        detect_target(far, target, what="IMG")
+    empty = detect_target(np.full((H, W), 128, np.uint8), target, what="IMG")
+    assert len(empty) == 0 and empty.counts == [0, 0, 0] and empty.image_size == (W, H)
+    assert empty.problem().startswith("no calibration target found") and "\n" not in empty.problem()
+    one = detect_target(render(target3, P, only={1}), target, what="IMG")
+    assert one.faces_found == [1] and one.problem() is None and len(one) == one.counts[1] > 12
+    far = detect_target(render(target3, look_at((1400.0, 1400.0, 1400.0), (-80.0, -80.0, -110.0))), target)
+    assert len(far) < 12 and far.problem() is not None and ("only" in far.problem() or "no calibration" in far.problem())
+
+
+def test_a_legacy_board_is_found_only_with_the_legacy_key(tmp_path):
+    """OpenCV's pre-4.6 layout (an even number of rows: the top-left square white) needs "legacy":
+    true; without it the same photo yields no corner. Board drawn by OpenCV in its legacy layout."""
+    board_spec = {"dictionary": "DICT_4X4_250", "squares": [6, 6], "square_px": 60.0, "marker_px": 45.0,
+                  "first_id": 0, "origin_uv": [-0.5, -0.5]}
+    doc = {"unit": "mm", "faces": [{"origin": [0.0, 0.0, 0.0], "u_axis": [0.5, 0.0, 0.0], "v_axis": [0.0, 0.5, 0.0],
+                                    "board": board_spec}]}
+    (tmp_path / "plain.json").write_text(json.dumps(doc))
+    doc["legacy"] = True
+    (tmp_path / "legacy.json").write_text(json.dumps(doc))
+    legacy = load_target(tmp_path / "legacy.json")
+    assert legacy.faces[0].board.legacy and legacy.planar and not load_target(tmp_path / "plain.json").faces[0].board.legacy
+    image = legacy.faces[0].board.cv_board().generateImage((360, 360), marginSize=0, borderBits=1)
+    photo = np.full((480, 640), 255, np.uint8)
+    photo[60:420, 140:500] = image
+    found = detect_target(photo, legacy)
+    assert len(found) == 25  # every inner corner of the 6 x 6 board, where the contract puts it
+    expected = found.points3d[:, :2] / 0.5 + [140.0, 60.0]  # 0.5 mm per pixel, the board at (140, 60)
+    assert np.abs(found.pixels - expected).max() < 0.1
+    assert len(detect_target(photo, load_target(tmp_path / "plain.json"))) == 0
 
 
 # ---------------------------------------------------------------- loading
@@ -190,32 +218,47 @@ def test_measured_non_ideal_box_is_accepted_and_detected(target3, tmp_path):
     assert np.allclose(target.faces[0].normal, rot @ [1, 0, 0])
     P = look_at(*POSES[0])
     det = detect_target(render(path, P), target)
-    assert np.linalg.norm(det.pixels - project(P, det.points3d), axis=1).max() < 0.3
+    err = np.linalg.norm(det.pixels - project(P, det.points3d), axis=1)
+    assert err[det.refined].max() < 0.1 and err.max() < 1.5
+
+
+@pytest.mark.parametrize("flat", ["coplanar", "one face"])
+def test_a_flat_target_loads_as_planar(target3, tmp_path, flat):
+    def edit(data):
+        faces = data["faces"]
+        if flat == "coplanar":  # every face on the plane x = 0, side by side
+            for k, f in enumerate(faces):
+                f["origin"] = [0.0, -(k + 1) * 230.0, 0.0]
+                f["u_axis"], f["v_axis"] = [0.0, 25.4 / 300, 0.0], [0.0, 0.0, -25.4 / 300]
+        else:
+            del faces[1:]
+
+    target = load_target(_copy(target3, tmp_path, edit))
+    assert target.planar and len(target.faces) == (3 if flat == "coplanar" else 1)
+    assert not load_target(target3).planar
 
 
 @pytest.mark.parametrize("bad, message", [
-    ("coplanar", r"the faces are coplanar"),
+    ("no face", r"no faces; a target needs at least one board"),
     ("missing image", r"face 1 image .*face_1.png not found"),
     ("malformed", r"not a readable JSON target \(line 1\)"),
     ("shared ids", r"faces 0 and 1 share marker id"),
     ("parallel axes", r"faces\[0\]: u_axis and v_axis must be non-zero and not parallel"),
     ("nan", r"faces\[2\]\.origin: expected a list of 3 finite numbers"),
-    ("one face", r"1 face\(s\); a 3D target needs at least 2 faces"),
+    ("legacy", r"faces\[0\]\.board\.legacy: expected true or false"),
     ("dictionary", r"faces\[0\]\.board\.dictionary: not an ArUco dictionary"),
 ])
 def test_bad_target_json_one_line(target3, tmp_path, bad, message):
     def edit(data):
         faces = data["faces"]
-        if bad == "coplanar":  # every face on the plane x = 0, side by side
-            for k, f in enumerate(faces):
-                f["origin"] = [0.0, -(k + 1) * 230.0, 0.0]
-                f["u_axis"], f["v_axis"] = [0.0, 25.4 / 300, 0.0], [0.0, 0.0, -25.4 / 300]
+        if bad == "no face":
+            del faces[:]
+        elif bad == "legacy":
+            faces[0]["board"]["legacy"] = "yes"
         elif bad == "shared ids":
             faces[1]["board"]["first_id"] = 10
         elif bad == "parallel axes":
             faces[0]["v_axis"] = [0.0, 2 * 25.4 / 300, 0.0]
-        elif bad == "one face":
-            del faces[1:]
         elif bad == "nan":
             faces[2]["origin"][0] = "@NaN@"
         elif bad == "dictionary":
@@ -235,7 +278,8 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
 def test_cli_target_two_faces(tmp_path, capsys):
     out = tmp_path / "t"
     assert main(["target", "--out", str(out), "--faces", "2", "--size", "letter"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["assembly.png", "face_0.png", "face_1.png", "target.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["assembly.png", "face_0.pdf", "face_0.png", "face_1.pdf",
+                                                     "face_1.png", "target.json"]
     assert len(load_target(out / "target.json").faces) == 2
     assert "target.json" in capsys.readouterr().out
     (tmp_path / "file").write_text("x")

@@ -10,24 +10,28 @@ per physical camera). The first view is the stereo pair's: its pose is the camer
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from stereoseed.calibration.config import camera_problems
 from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.calibration import check_correspondences, dlt_projection
 from stereoseed.geometry.projection import compose_projection, depths
 from stereoseed.errors import StereoseedError
+from stereoseed.io.files import atomic_path
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
 
-__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_intrinsics"]
+__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_intrinsics", "read_opencv_camera",
+           "write_opencv_camera"]
 
-# a view whose pattern points reproject worse than this cannot be the same camera and lens (a
-# wrong correspondence, another camera's image)
-MAX_RMS_PX = 5.0
+# a view whose pattern points reproject worse than this is reported: pixels typed or detected with
+# care reproject within a few pixels, mismatched or reordered ones by ~100 px
+WARN_RMS_PX = 5.0
 
 
 @dataclass
@@ -43,6 +47,7 @@ class LensCalibration:
     rms_px: list[float]
     n_points: list[int]
     image_size: tuple[int, int] | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def P(self) -> np.ndarray:
@@ -103,12 +108,14 @@ def _jacobian(p: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]], n_lens:
 
 def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int, int] | None = None,
                    k3: bool = False, intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
-                   what: list[str] | None = None) -> LensCalibration:
+                   what: list[str] | None = None, max_rms_px: float | None = None) -> LensCalibration:
     """One camera and its lens from ``views``: [(pattern points (N, 3), their pixels (N, 2))],
     the stereo pair's view first. ``k3``: estimate the third radial term too (wide lenses);
     ``intrinsics``: (K, distortion) known already (an OpenCV calibration file): only the poses
-    are estimated. ``what``: a name per view for the messages. Raises :class:`StereoseedError`
-    when a view cannot be this camera (RMS above ``MAX_RMS_PX``, the pattern behind it)."""
+    are estimated. ``what``: a name per view for the messages. A view reprojecting worse than
+    ``WARN_RMS_PX`` is reported in ``warnings``, and refused above ``max_rms_px`` when given.
+    Raises :class:`StereoseedError` when the camera is no physical one
+    (:func:`stereoseed.calibration.config.camera_problems`) or the pattern is behind it."""
     what = what or [f"view {i}" for i in range(len(views))]
     checked = [check_correspondences(X, x, what=w) for (X, x), w in zip(views, what)]
     # a first guess per view: the normalised DLT, its K shared (zero skew) and its pose
@@ -135,17 +142,26 @@ def calibrate_lens(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple
     sol = least_squares(residuals, np.asarray(p0, np.float64), jac=lambda p: _jacobian(p, checked, n_lens, fixed),
                         method="lm", x_scale="jac", max_nfev=2000)
     K, d, Rs, ts = _unpack(sol.x, len(checked), n_lens, fixed)
-    rms, counts = [], []
+    rms, counts, warnings = [], [], []
     for (X, x), R, t, name in zip(checked, Rs, ts, what):
         r = project_distorted(K, R, t, d, X) - x
         rms.append(float(np.sqrt(np.mean(np.sum(r * r, axis=1)))))
         counts.append(len(X))
-        if rms[-1] > MAX_RMS_PX:
-            raise StereoseedError(f"{name}: the pattern points reproject with {rms[-1]:.1f} px RMS (limit {MAX_RMS_PX:g} px); "
-                                  f"are the pixels those of these points, and all views of this camera?")
         if np.any(depths(compose_projection(K, R, t), X) <= 0):
             raise StereoseedError(f"{name}: pattern points would be behind the camera; are u and v swapped?")
-    return LensCalibration(K, d, Rs, ts, rms, counts, image_size)
+        limit = WARN_RMS_PX if max_rms_px is None else min(WARN_RMS_PX, max_rms_px)
+        if rms[-1] > limit:
+            message = (f"{name}: the pattern points reproject with {rms[-1]:.1f} px RMS; are the pixels those of these "
+                       f"points, in the same order, and every view of this camera?")
+            if max_rms_px is not None and rms[-1] > max_rms_px:
+                raise StereoseedError(f"{message} (--max-rms {max_rms_px:g})")
+            warnings.append(message)
+    if intrinsics is None:
+        problems = camera_problems(K, d, image_size)
+        if problems:
+            raise StereoseedError(f"{what[0]}: refused, no physical camera: {'; '.join(problems)}; the points do not "
+                                  "determine it (more points, over more of the frame and at more depths, or --lens off)")
+    return LensCalibration(K, d, Rs, ts, rms, counts, image_size, warnings)
 
 
 @dataclass(frozen=True)
@@ -191,77 +207,82 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
     return lenses + [None] * (2 - len(lenses))
 
 
-def read_opencv_intrinsics(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(K (3, 3), distortion (5,)) from an OpenCV calibration file (cv::FileStorage YAML, XML
-    or JSON with ``camera_matrix`` and ``distortion_coefficients``)."""
+def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
+    """(K (3, 3), distortion (5,), image size (width, height) or None) from an OpenCV calibration
+    file (cv::FileStorage YAML, XML or JSON with ``camera_matrix`` and ``distortion_coefficients``,
+    as ``stereoseed intrinsics`` and OpenCV's samples write it). Anything else (not a FileStorage
+    file, a matrix that is no camera, coefficients that are not finite) is refused in one line
+    naming the file."""
     path = Path(path)
     if not path.is_file():
         raise StereoseedError(f"{path}: intrinsics file not found")
+    hint = ("give a YAML/XML/JSON written by cv::FileStorage (e.g. stereoseed intrinsics) with camera_matrix and "
+            "distortion_coefficients")
     try:
+        head = path.read_bytes()[:4096]
+    except OSError as e:
+        raise StereoseedError(f"{path}: cannot be read ({e.strerror}); {hint}") from None
+    if not head.strip():
+        raise StereoseedError(f"{path}: empty file; {hint}")
+    if b"\0" in head or head.startswith(b"\x89PNG"):
+        raise StereoseedError(f"{path}: a binary file, not an OpenCV calibration file; {hint}")
+    try:  # OpenCV's parser reports a malformed file as cv2.error, or as a SystemError around it
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        K = fs.getNode("camera_matrix").mat()
-        d = fs.getNode("distortion_coefficients").mat()
+        if not fs.isOpened():
+            raise StereoseedError(f"{path}: not an OpenCV calibration file; {hint}")
+        K, d = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat()
+        width, height = (fs.getNode(k).real() if not fs.getNode(k).empty() else 0.0 for k in ("image_width", "image_height"))
         fs.release()
-    except cv2.error as e:
-        raise StereoseedError(f"{path}: not an OpenCV calibration file ({str(e).strip().splitlines()[-1][:80]}); "
-                              f"give a YAML/JSON written by cv::FileStorage with camera_matrix and "
-                              f"distortion_coefficients") from None
+    except (cv2.error, SystemError, ValueError) as e:
+        cause = e.__cause__ or e.__context__ or e  # the SystemError wraps the parser's cv2.error
+        found = re.search(r"error: \((-?\d+):([^)]*)\).*?'[^']*?(\(\d+\))?: ?([^']*)'", str(cause))
+        detail = (f"{found.group(2)}{' at line ' + found.group(3).strip('()') if found.group(3) else ''}: "
+                  f"{found.group(4)}"[:80] if found else "OpenCV's parser refused it")
+        raise StereoseedError(f"{path}: not a readable OpenCV calibration file ({detail}); {hint}") from None
     if K is None or K.shape != (3, 3) or d is None or d.size < 4:
-        raise StereoseedError(f"{path}: needs camera_matrix (3x3) and distortion_coefficients (k1 k2 p1 p2 [k3 ...])")
-    d = np.asarray(d, np.float64).reshape(-1)
+        raise StereoseedError(f"{path}: needs camera_matrix (3x3) and distortion_coefficients (k1 k2 p1 p2 [k3 ...]); "
+                              f"{hint}")
+    K, d = np.asarray(K, np.float64), np.asarray(d, np.float64).reshape(-1)
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
+            and K[1, 0] == 0 and np.isfinite(K[0, 1])):
+        raise StereoseedError(f"{path}: camera_matrix {np.round(K, 3).tolist()} is no camera (it needs positive finite "
+                              "focal lengths fx, fy on the diagonal and a last row 0 0 1)")
+    if not np.all(np.isfinite(d)):
+        raise StereoseedError(f"{path}: distortion_coefficients hold NaN or infinite values")
     if d.size > 5 and np.any(d[5:] != 0):
         raise StereoseedError(f"{path}: distortion terms beyond k3 (the rational or thin-prism model) are not "
                               f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
-    return np.asarray(K, np.float64), lens_coefficients(d[:5])
+    size = (int(width), int(height)) if width > 0 and height > 0 else None
+    return K, lens_coefficients(d[:5]), size
 
 
-@dataclass
-class ViewCheck:
-    """What a user looks at to trust one calibration image: detected corners per face, the
-    share of the frame they cover, the RMS, the detected corners' 3D points (N, 3) and pixels
-    (N, 2), and where the calibrated camera and lens put them (N, 2)."""
-
-    name: str
-    per_face: dict[int, int]
-    coverage: float
-    rms_px: float
-    points3d: np.ndarray
-    detected: np.ndarray
-    reprojected: np.ndarray
-    warnings: list[str]
+def read_opencv_intrinsics(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(K (3, 3), distortion (5,)) from an OpenCV calibration file (:func:`read_opencv_camera`)."""
+    K, d, _ = read_opencv_camera(path)
+    return K, d
 
 
-def calibrate_from_target(target: Any, images: list[tuple[str, np.ndarray]], k3: bool = False,
-                          intrinsics: tuple[np.ndarray, np.ndarray] | None = None
-                          ) -> tuple[LensCalibration, list[ViewCheck]]:
-    """One camera from photos of the target (:mod:`stereoseed.calibration.target`): ``images`` [(name,
-    uint8 image)], the stereo pair's first, then more views of the target by the same camera
-    for the lens. The corners are detected, mapped to 3D through target.json, and the camera
-    and lens estimated jointly (:func:`calibrate_lens`). Returns the calibration and a check per
-    image (a face missing, or corners covering less than a third of the frame, is warned of:
-    the lens is then poorly determined where the target was not)."""
-    from stereoseed.calibration.target import detect_target
-
-    detections = [detect_target(image, target, what=name) for name, image in images]
-    size = images[0][1].shape[1::-1]
-    for name, image in images[1:]:
-        if image.shape[1::-1] != size:
-            raise StereoseedError(f"{name}: {image.shape[1]}x{image.shape[0]} pixels, but {images[0][0]} is "
-                                  f"{size[0]}x{size[1]}; the lens images must come from the same camera")
-    cal = calibrate_lens([(d.points3d, d.pixels) for d in detections], tuple(size), k3, intrinsics,
-                         [name for name, _ in images])
-    checks = []
-    for (name, image), d, R, t, rms in zip(images, detections, cal.R, cal.t, cal.rms_px):
-        faces = {int(f): int(n) for f, n in zip(*np.unique(d.face, return_counts=True))}
-        hull = cv2.convexHull(d.pixels.astype(np.float32))
-        coverage = float(cv2.contourArea(hull)) / float(size[0] * size[1])
-        warnings = []
-        missing = [f for f in range(len(target.faces)) if f not in faces]
-        if missing:
-            warnings.append(f"face {', '.join(map(str, missing))} not found")
-        if coverage < 1 / 3:
-            warnings.append(f"the corners cover {100 * coverage:.0f} % of the frame: the lens is poorly determined "
-                            f"outside them (add views with the target elsewhere in the frame)")
-        checks.append(ViewCheck(name, faces, coverage, rms, d.points3d, d.pixels,
-                                project_distorted(cal.K, R, t, cal.distortion, d.points3d), warnings))
-    return cal, checks
+def write_opencv_camera(path: str | Path, K: np.ndarray, distortion: np.ndarray, size: tuple[int, int],
+                        rms_px: float, views: list[tuple[str, float]] | None = None) -> Path:
+    """Write the camera as OpenCV's calibration samples do (cv::FileStorage; YAML, XML or JSON by
+    the extension): camera_matrix, distortion_coefficients (1x5), image_width, image_height,
+    avg_reprojection_error and, per view, its name and RMS (per_view_reprojection_errors).
+    :func:`read_opencv_camera` and ``calibrate --intrinsics1/2`` read it back."""
+    path = Path(path)
+    if path.suffix.lower() not in (".yaml", ".yml", ".xml", ".json"):
+        raise StereoseedError(f"{path}: give a .yaml, .yml, .xml or .json file to write the camera into")
+    with atomic_path(path) as tmp:  # its name ends with path's extension, by which FileStorage picks the format
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        fs.write("image_width", int(size[0]))
+        fs.write("image_height", int(size[1]))
+        fs.write("camera_matrix", np.asarray(K, np.float64))
+        fs.write("distortion_coefficients", np.asarray(distortion, np.float64).reshape(1, -1))
+        fs.write("avg_reprojection_error", float(rms_px))
+        if views:
+            fs.write("per_view_reprojection_errors", np.array([r for _, r in views], np.float64).reshape(-1, 1))
+            fs.startWriteStruct("views", cv2.FileNode_SEQ)
+            for name, _ in views:
+                fs.write("", str(name))
+            fs.endWriteStruct()
+        fs.release()
+    return path

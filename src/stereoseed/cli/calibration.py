@@ -1,4 +1,5 @@
-"""`stereoseed calibrate` and `stereoseed target`: the pair's calibration and the printable target."""
+"""`stereoseed calibrate`, `stereoseed intrinsics` and `stereoseed target`: the pair's calibration,
+one camera's intrinsics from a (flat or 3D) target, and the printable target."""
 from __future__ import annotations
 
 import argparse
@@ -9,15 +10,32 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 
+
+def _warn(message: str) -> None:
+    print(f"stereoseed: warning: {message}", file=sys.stderr)
+
+
+def _config(args: argparse.Namespace):
+    from stereoseed.calibration.config import CalibrationConfig
+
+    if args.max_rms is not None and not args.max_rms > 0:
+        raise StereoseedError(f"--max-rms {args.max_rms:g}: give a limit in pixels above 0")
+    return CalibrationConfig(max_rms_px=args.max_rms)
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from stereoseed.io.files import write_json
 
     if Path(args.output).is_dir():
         raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
-    cameras = _calibrate_from_target(args) if args.target else _calibrate_from_points(args)
-    write_json(args.output, {"cameras": cameras})
+    if args.target:
+        data = _calibrate_from_target(args)
+    else:
+        data = {"cameras": _calibrate_from_points(args)}
+    write_json(args.output, data)
     print(f"wrote {args.output}")
     return 0
+
 
 def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
     """The paper's form: a pattern file and the pixels of its points in each pair image."""
@@ -25,7 +43,7 @@ def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
     from stereoseed.io.files import read_points_file
     from stereoseed.calibration.lens_calibration import calibrate_lens
 
-    if len(args.inputs) != 3 or args.lens_images1 or args.lens_images2:
+    if len(args.inputs) != 3 or args.lens_images1 or args.lens_images2 or args.rig:
         raise StereoseedError("calibrate: give PATTERN POINTS1 POINTS2 (typed points), or --target target.json "
                               "IMAGE1 IMAGE2 (photos of the printed target, with --lens-images1/2)")
     pattern_path, *point_paths = args.inputs
@@ -37,9 +55,11 @@ def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
             raise StereoseedError(f"{path}: {len(pixels)} image points but {len(pattern)} pattern points "
                                   f"in {pattern_path}; give one pixel per pattern point, same order")
         if args.lens:
-            cal = calibrate_lens([(pattern, pixels)], k3=args.k3, what=[str(path)])
+            cal = calibrate_lens([(pattern, pixels)], k3=args.k3, what=[str(path)], max_rms_px=args.max_rms)
             entry, rms, K = cal.to_dict(), cal.rms_px[0], cal.K
             centre = -cal.R[0].T @ cal.t[0]
+            for w in cal.warnings:
+                _warn(w)
         else:
             single = calibrate_camera(pattern, pixels, what=str(path))
             entry, rms, K, centre = single.to_dict(), single.rms_px, single.K, -single.R.T @ single.t
@@ -49,68 +69,196 @@ def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
               + (f", distortion {np.round(entry['distortion'], 4).tolist()}" if args.lens else ""))
     return cameras
 
-def _calibrate_from_target(args: argparse.Namespace) -> list[dict]:
-    """Photos of the printed target: corners found, the camera and its lens estimated per
-    physical camera from the pair image and its --lens-images; a check PNG per image."""
+
+def _detect_all(target, paths: list[str]) -> list:
+    """Each image read and its target corners found; a view that cannot be read is the user's
+    error (one line), a view without the target is judged later (skipped with its reason)."""
+    from stereoseed.calibration.detection import detect_target
+
+    return [detect_target(p, target, what=str(p)) for p in paths]
+
+
+def _known(path: str | None, label: str, size: tuple[int, int] | None):
+    from stereoseed.calibration.lens_calibration import read_opencv_camera
+
+    if not path:
+        return None
+    K, d, file_size = read_opencv_camera(path)
+    if file_size is not None and size is not None and tuple(file_size) != tuple(size):
+        raise StereoseedError(f"{path}: calibrated for {file_size[0]}x{file_size[1]} images, but {label}'s images are "
+                              f"{size[0]}x{size[1]}; give the file of this camera at this resolution")
+    return K, d
+
+
+def _unique_png(out: Path, camera: int, image: str, taken: set[str]) -> Path:
+    """calib_cam1_7.png: the check image of camera 1's photo 7.jpg, unique within the run."""
+    base = f"{out.stem}_cam{camera}_{Path(image).stem}"
+    name, n = base, 1
+    while name in taken:
+        n += 1
+        name = f"{base}_{n}"
+    taken.add(name)
+    return out.with_name(name + ".png")
+
+
+def _report_views(cal, labels: list[str], out: Path | None) -> None:
+    """A line per photo (corners per face, RMS, the check image), a warning per skipped one."""
     from stereoseed.io.files import read_image
-    from stereoseed.calibration.lens_calibration import calibrate_from_target, read_opencv_intrinsics
-    from stereoseed.calibration.target import load_target
     from stereoseed.output.visualize import draw_calibration_check
+
+    taken: set[str] = set()
+    for c, cam in enumerate(cal.cameras):
+        for v in cam.views:
+            if not v.used:
+                _warn(f"{labels[c]}, {v.name}: skipped: {v.reason}")
+                continue
+            line = f"{labels[c]}, {v.name}: {v.detection.summary()}, RMS {v.rms_px:.3f} px"
+            if out is not None:
+                png = _unique_png(out, c + 1, v.name, taken)
+                draw_calibration_check(read_image(v.name), v.detection.pixels, v.reprojected, png)
+                line += f"; check {png}"
+            print(line)
+
+
+def _report_cameras(cal, labels: list[str]) -> None:
+    min_coverage = 1 / 3  # below this share of the frame the lens is extrapolated where no corner was
+    for c, cam in enumerate(cal.cameras):
+        used = sum(v.used for v in cam.views)
+        print(f"{labels[c]}: {used} view(s), {cam.n_points} corners, RMS {cam.rms_px:.3f} px, f = ({cam.K[0, 0]:.1f}, "
+              f"{cam.K[1, 1]:.1f}) px, principal point ({cam.K[0, 2]:.1f}, {cam.K[1, 2]:.1f}), distortion "
+              f"{np.round(cam.lens, 4).tolist()}" + (" (given)" if cam.known else ""))
+        if not cam.known and cam.coverage < min_coverage:
+            _warn(f"{labels[c]}: the corners of its views cover {100 * cam.coverage:.0f} % of the frame: the lens is "
+                  "poorly determined outside them (add views with the target elsewhere in the frame)")
+    moved = [(f, m) for f, m in enumerate(cal.face_moves) if m is not None]
+    if moved:
+        print("target: faces found " + ", ".join(f"face {f} {mm:.2f} mm / {deg:.2f} deg" for f, (mm, deg) in moved)
+              + " from where target.json puts them")
+    if cal.rig is not None:
+        spread = ("" if cal.rig.spread_mm is None else
+                  f"; leaving out one shot moves it by up to {cal.rig.spread_mm:.2f} mm, {cal.rig.spread_deg:.3f} deg")
+        print(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
+              f"from {cal.rig.shots} shots{spread}")
+    for w in cal.warnings:
+        _warn(w)
+
+
+def _calibrate_from_target(args: argparse.Namespace) -> dict:
+    """Photos of the target: corners found, the cameras, their lenses, the target's faces (and the
+    rig) estimated together; a check PNG per photo and the refined target beside calib.json."""
+    from stereoseed.calibration.rig import calibrate_cameras, calibration_json
+    from stereoseed.calibration.target import load_target, target_json
+    from stereoseed.io.files import write_json
 
     if len(args.inputs) != 2:
         raise StereoseedError("calibrate --target target.json: give the two images of the calibrated pair")
+    cfg = _config(args)
     target = load_target(args.target)
-    cameras = []
     out = Path(args.output)
-    for i, (image, more, intrinsics) in enumerate(((args.inputs[0], args.lens_images1, args.intrinsics1),
-                                                   (args.inputs[1], args.lens_images2, args.intrinsics2)), 1):
-        paths = [image] + list(more or [])
-        images = [(str(p), read_image(p)) for p in paths]
-        known = read_opencv_intrinsics(intrinsics) if intrinsics else None
-        cal, checks = calibrate_from_target(target, images, k3=args.k3, intrinsics=known)
-        cameras.append(cal.to_dict())
-        for check, (path, img) in zip(checks, images):
-            png = out.with_name(f"{out.stem}_{Path(path).stem}.png")
-            draw_calibration_check(img, check.detected, check.reprojected, png)
-            faces = ", ".join(f"face {f}: {n}" for f, n in sorted(check.per_face.items()))
-            print(f"camera {i}, {path}: {faces} corners, RMS {check.rms_px:.3f} px, {100 * check.coverage:.0f} % of "
-                  f"the frame; check {png}")
-            for w in check.warnings:
-                print(f"stereoseed: warning: {path}: {w}", file=sys.stderr)
-        print(f"camera {i}: f = ({cal.K[0, 0]:.1f}, {cal.K[1, 1]:.1f}) px, distortion "
-              f"{np.round(cal.distortion, 4).tolist()}, centre {np.round(-cal.R[0].T @ cal.t[0], 1).tolist()}")
-    return cameras
+    labels = ["camera 1", "camera 2"]
+    detections, known = [], []
+    for c, (image, more, intrinsics) in enumerate(((args.inputs[0], args.lens_images1, args.intrinsics1),
+                                                   (args.inputs[1], args.lens_images2, args.intrinsics2))):
+        paths = [image] + [p for p in (more or []) if Path(p).resolve() != Path(image).resolve()]
+        detections.append(_detect_all(target, paths))
+        known.append(_known(intrinsics, labels[c], detections[-1][0].image_size))
+    if not args.rig and args.lens_images1 and args.lens_images2 and len(detections[0]) == len(detections[1]):
+        print("note: as many lens photos for both cameras; if each pair was taken together by the fixed pair, --rig "
+              "estimates one relative pose from all of them")
+    cal = calibrate_cameras(target, detections, rig=args.rig, rigid_target=args.rigid_target, k3=args.k3,
+                            known=known, cfg=cfg, pair=True, leave_one_out=args.rig, labels=labels)
+    _report_views(cal, labels, out)
+    _report_cameras(cal, labels)
+    refined = out.with_name(f"{out.stem}_target.json")
+    write_json(refined, target_json(cal.target, refined.parent.resolve(),
+                                    "the target's faces where the calibration found them (stereoseed calibrate)"))
+    print(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
+    return calibration_json(cal)
+
+
+def _image_list(items: list[str]) -> list[Path]:
+    from stereoseed.io.files import list_images
+
+    paths: list[Path] = []
+    for item in items:
+        paths += list_images(item) if Path(item).is_dir() else [Path(item)]
+    return paths
+
+
+def _cmd_intrinsics(args: argparse.Namespace) -> int:
+    """One camera from its photos of a target (a flat board or a 3D one): Zhang's closed form,
+    then every view and the lens refined; an OpenCV calibration file out."""
+    from stereoseed.calibration.lens_calibration import write_opencv_camera
+    from stereoseed.calibration.rig import calibrate_cameras
+    from stereoseed.calibration.target import load_target
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".yaml", ".yml", ".xml", ".json"):
+        raise StereoseedError(f"{out}: give a .yaml, .yml, .xml or .json file to write the camera into")
+    cfg = _config(args)
+    target = load_target(args.target)
+    paths = _image_list(args.images)
+    detections = _detect_all(target, [str(p) for p in paths])
+    cal = calibrate_cameras(target, [detections], rigid_target=args.rigid_target, k3=args.k3, cfg=cfg, pair=False,
+                            labels=["the camera"])
+    _report_views(cal, ["the camera"], None)
+    _report_cameras(cal, ["the camera"])
+    cam = cal.cameras[0]
+    write_opencv_camera(out, cam.K, cam.lens, cam.image_size, cam.rms_px,
+                        [(v.name, v.rms_px) for v in cam.views if v.used])
+    print(f"wrote {out} (give it to calibrate with --intrinsics1 or --intrinsics2)")
+    return 0
+
 
 def _cmd_target(args: argparse.Namespace) -> int:
-    from stereoseed.calibration.target import make_target
+    from stereoseed.calibration.printing import box_size_mm, make_target
 
-    path = make_target(Path(args.out), size=args.size, faces=args.faces)
-    names = ", ".join(f"face_{k}.png" for k in range(args.faces))
-    print(f"wrote {names} (print at 100 %), assembly.png and {path}")
+    path = make_target(Path(args.out), size=args.size, faces=args.faces, force=args.force)
+    names = ", ".join(f"face_{k}.png/.pdf" for k in range(args.faces))
+    x, y, z = box_size_mm(args.size, args.faces)
+    print(f"wrote {names} (print the PDFs at 100 %, or the PNGs at 300 dpi), assembly.png and {path}")
+    print(f"glue them on a box of at least {x:.0f} x {y:.0f} x {z:.0f} mm (x, y, z) as assembly.png shows")
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the calibrate, target subcommands."""
-    p = sub.add_parser("calibrate", help="calibrate the stereo pair: from photos of the printed target (--target), "
+    """Add the calibrate, intrinsics and target subcommands."""
+    p = sub.add_parser("calibrate", help="calibrate the stereo pair: from photos of a target (--target), "
                                          "or from a 3D pattern's typed points (DLT + LM)")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="IMAGE1 IMAGE2 with --target; else PATTERN POINTS1 POINTS2 (text files: 'X Y Z' per known "
                         "3D point, and the pixel 'u v' of each in image 1 and 2, same order)")
-    p.add_argument("--target", help="target.json of the printed target (stereoseed target)")
+    p.add_argument("--target", help="target.json of the target (stereoseed target, or examples/)")
     p.add_argument("--lens-images1", nargs="+", help="more photos of the target by camera 1 (the lens over the frame)")
     p.add_argument("--lens-images2", nargs="+", help="more photos of the target by camera 2")
-    p.add_argument("--intrinsics1", help="camera 1's known intrinsics and lens (OpenCV FileStorage YAML/JSON)")
-    p.add_argument("--intrinsics2", help="camera 2's known intrinsics and lens (OpenCV FileStorage YAML/JSON)")
+    p.add_argument("--rig", action="store_true",
+                   help="the pair is fixed and took each lens photo together (--lens-images1/2 as many, in the same "
+                        "order): one relative pose from every shot, its leave-one-out spread reported")
+    p.add_argument("--rigid-target", action="store_true",
+                   help="keep the target's faces where target.json puts them (default: estimate where they are)")
+    p.add_argument("--intrinsics1", help="camera 1's known intrinsics and lens (OpenCV FileStorage YAML/XML/JSON)")
+    p.add_argument("--intrinsics2", help="camera 2's known intrinsics and lens (OpenCV FileStorage YAML/XML/JSON)")
     p.add_argument("--lens", action="store_true", help="typed points: also estimate the lens distortion")
     p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
+    p.add_argument("--max-rms", type=float, metavar="PX",
+                   help="refuse a camera whose corners reproject worse than this RMS (default: only a warning)")
     p.add_argument("-o", "--output", default="calib.json", help="calib.json to write (default: %(default)s)")
     p.set_defaults(func=_cmd_calibrate)
 
+    p = sub.add_parser("intrinsics", help="one camera's intrinsics and lens from its photos of a target (a flat board "
+                                          "or a 3D one), written as an OpenCV calibration file")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="photos of the target by one camera (or folders of them)")
+    p.add_argument("--target", required=True, help="target.json of the target")
+    p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
+    p.add_argument("--rigid-target", action="store_true", help="keep a 3D target's faces where target.json puts them")
+    p.add_argument("--max-rms", type=float, metavar="PX",
+                   help="refuse the camera if its corners reproject worse than this RMS (default: only a warning)")
+    p.add_argument("-o", "--output", default="camera.yaml", help="the file to write (default: %(default)s)")
+    p.set_defaults(func=_cmd_intrinsics)
 
     p = sub.add_parser("target", help="write a printable 3D calibration target (ChArUco boards for 2 or 3 faces of a box)")
-    p.add_argument("--out", required=True, help="folder for face_<k>.png, assembly.png and target.json")
+    p.add_argument("--out", required=True, help="folder for face_<k>.png/.pdf, assembly.png and target.json")
     p.add_argument("--size", choices=["A4", "A3", "letter"], default="A4", help="paper size (default: %(default)s)")
     p.add_argument("--faces", type=int, choices=[2, 3], default=3, help="faces of the box to cover (default: 3)")
+    p.add_argument("--force", action="store_true", help="write into a folder that holds other files too")
     p.set_defaults(func=_cmd_target)
-
