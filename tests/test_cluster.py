@@ -61,7 +61,7 @@ def _free_port() -> int:
 
 def test_dense_on_the_cluster_is_the_local_cloud(scheduler, four_views, tmp_path):
     """The pair jobs are deterministic and fused in pair order: the same file either way."""
-    cfg = Config()
+    cfg = Config().replace(trust={"keep_flagged": True})  # every consecutive pair, flagged or not
     recon, _ = reconstruct(four_views.images, four_views.names, four_views.P[:2], cfg)
     assert len(recon.registered_views) == 4
     for name in ("local", "remote"):

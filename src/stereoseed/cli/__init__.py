@@ -17,8 +17,7 @@ from pathlib import Path
 
 # One BLAS thread unless the user says otherwise, set before NumPy loads OpenBLAS: the pipeline's
 # linear algebra is small matrices, where OpenBLAS's extra threads only spin against the
-# feature thread and the dense workers (14-image box, whole command: 2.71 -> 2.50 s, CPU time
-# 4.0 -> 2.5 s on 2 cores).
+# feature thread and the dense workers (docs/scaling.md).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402 - after the BLAS setting

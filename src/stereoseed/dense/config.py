@@ -17,8 +17,8 @@ class DenseConfig:
     fusion_voxel: float = 0.0  # metres; 0 = automatic (about one pixel footprint)
     # Multi-pair support (ours): keep a dense point when a cell of support_cell_voxels fusion
     # voxels around it holds points from >= min_pair_support pairs (1 = off). Removes the
-    # propagation's wrong matches (random depths along the epipolar line): measured on
-    # templeSparseRing, 95 % -> see the closing note of issue 5 of the points inside the object's box.
+    # propagation's wrong matches (random depths along the epipolar line); docs/benchmarks.md
+    # has the share of templeSparseRing's points inside the object's box with and without it.
     min_pair_support: int = 2
     support_cell_voxels: float = 4.0
     # local processes for the pair jobs; 0: one per core this process may use, at most 8 (each
