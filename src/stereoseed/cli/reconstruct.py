@@ -7,7 +7,7 @@ from pathlib import Path
 
 from stereoseed.cluster import CONNECT_TIMEOUT_S
 from stereoseed.errors import StereoseedError
-from stereoseed.geometry.models import MODELS
+from stereoseed.geometry.camera_model import MODELS
 
 EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be placed, or was flagged
 

@@ -8,7 +8,7 @@ import dataclasses
 import numbers
 from dataclasses import dataclass
 
-from stereoseed.geometry.models import MODELS, CameraModel
+from stereoseed.geometry.camera_model import MODELS, CameraModel
 from stereoseed.validation import positive, whole, as_tuple, in_range, one_of
 
 __all__ = ["TrustConfig", "ModeDefaults", "MODE_DEFAULTS", "RegistrationConfig", "OutlierConfig", "PairCheckConfig", 'QuasiDenseConfig', 'MotionPriorConfig', 'TrackingConfig', 'LoopClosureConfig', 'PipelineConfig']
