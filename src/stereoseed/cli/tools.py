@@ -57,11 +57,18 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     return 0
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    import importlib.util
+
+    from stereoseed.errors import StereoseedError
     from stereoseed.experiments.paper import run_paper_bench
 
+    if importlib.util.find_spec("matplotlib") is None:  # an extra: only the paper's figures need it
+        raise StereoseedError("stereoseed bench paper draws its figures with matplotlib; install it with "
+                              "pip install 'stereoseed[bench]'")
     run_paper_bench(Path(args.out), quick=args.quick, seed=args.seed)
     print(f"wrote {args.out}")
     return 0
+
 
 def _cmd_precompile(args: argparse.Namespace) -> int:
     from stereoseed.precompile import precompile
