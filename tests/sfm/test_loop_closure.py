@@ -32,7 +32,7 @@ def test_links_without_a_merge_are_not_a_closed_loop(monkeypatch, caplog):
 
     images, names, Ps, source = ring(18)
     monkeypatch.setattr(lc, "_merge_twins", lambda *args: 0)
-    with caplog.at_level("WARNING", logger="stereoseed"):
+    with caplog.at_level("INFO", logger="stereoseed"):
         recon, report = reconstruct_ring(images, names, Ps, source)
     closure = report["loop_closure"]
     assert closure["links"] > 0 and closure["merges"] == 0 and not closure["closed"]
