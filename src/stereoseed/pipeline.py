@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from stereoseed.sfm.view_store import release_old_views, working_set
 from stereoseed.sfm.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
 from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
@@ -86,7 +87,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             Prefetching(source, _prefetched_image(images), n, first=first_prefetched) as prefetching:
         if state is not None:
             recon, per_image = state
-            for i in _working_set(recon, cfg):  # the next insertions read their grey images
+            for i in working_set(recon, cfg):  # the next insertions read their grey images
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
@@ -99,21 +100,21 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         if progress:
             progress(len(per_image), n, f"pair: {per_image[1].get('new_points', 0)} points")
         # descriptors of old views go to files: beside the checkpoint, which then names them instead
-        # of copying them, else in a folder that lives as long as the reconstruction (a memory map
-        # of a file keeps working once the folder is removed on POSIX systems)
+        # of copying them, else in a temporary folder removed when the run returns (a memory map of
+        # a file keeps working once the folder is removed on POSIX systems)
         _allow_open_files(n + 256)  # every spilled view's memory map holds a file descriptor
         if checkpoint is not None:
             spill = spill_folder(checkpoint)
             spill.mkdir(mode=0o700, parents=True, exist_ok=True)  # the checkpoint names what is in it
         else:
-            recon.spill_folder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
-            spill = Path(recon.spill_folder.name)
+            spill_holder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
+            spill = Path(spill_holder.name)
         recon.source = prefetching  # a resumed model comes with the plain source
         try:
             for k in range(len(per_image), n):
                 rep = insert_view(recon, k, cfg)
                 per_image.append(rep)
-                _release_pixels(recon, cfg, spill)
+                release_old_views(recon, cfg, spill)
                 saver.save(recon, per_image)
                 if progress:
                     progress(k + 1, n, f"{names[k]}: {rep['status']}")
@@ -191,18 +192,6 @@ def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]],
         recon.restore(state)
 
 
-def _release_pixels(recon: Reconstruction, cfg: Config, spill_to: Path) -> None:
-    """Keep the grey images and descriptors of the views the next insertions work with (the BA
-    window, the motion prior's recent views, the two before the next image) and of the first
-    views (the loop closure matches them at the end); the others' grey images are read again
-    and their descriptors memory-mapped from ``spill_to`` if ever needed. The memory of a long
-    run then grows with its points and observations only."""
-    keep = _working_set(recon, cfg)
-    for i in recon.registered_views:
-        if i not in keep:
-            recon.views[i].release_pixels(spill_to)
-
-
 def _allow_open_files(count: int) -> None:
     """Raise this process's soft limit of open files to ``count`` where the hard limit allows (a
     memory map keeps its file open; many systems start processes at 1024, too few for a
@@ -222,13 +211,6 @@ def _allow_open_files(count: int) -> None:
         return
     if wanted < count:
         log.warning("the open-file limit is %d; a run of this length may need %d", wanted, count)
-
-
-def _working_set(recon: Reconstruction, cfg: Config) -> set[int]:
-    """The views whose pixels and descriptors the next insertions and the loop closure use."""
-    reg = recon.registered_views
-    working = max(cfg.pipeline.window, cfg.motion_prior.recent_views) + 2
-    return set(reg[:cfg.loop_closure.span]) | set(reg[-working:])
 
 
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),

@@ -11,6 +11,7 @@ import pytest
 from stereoseed import pipeline
 from stereoseed.features.harris import Features
 from stereoseed.sfm import checkpoint as ck
+from stereoseed.sfm.view_store import release_pixels
 from stereoseed.sfm.checkpoint import CheckpointWriter, load_checkpoint, save_checkpoint, spill_folder
 from stereoseed.errors import StereoseedError
 from stereoseed.sfm.reconstruction import Reconstruction, View
@@ -195,7 +196,7 @@ def saved(tmp_path) -> _Saved:
     recon.add_observations(1, np.arange(1, 6), ids)
     recon.add_observations(1, [0], ids[:1], link=False)
     spill_folder(path).mkdir(parents=True)
-    recon.views[0].release_pixels(spill_folder(path))
+    release_pixels(recon.views[0], spill_folder(path))
     per_image = [{"image": "a.png", "status": "calibrated"},
                  {"image": "b.png", "status": "calibrated pair", "new_points": np.int64(5), "rms": 0.25}]
     save_checkpoint(path, recon, per_image, KEY)

@@ -41,7 +41,8 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.io.files import jsonable
 from stereoseed.io.sequence import ImageSequence
-from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction, View
+from stereoseed.sfm.view_store import view_of_input
+from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction
 
 __all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
@@ -66,7 +67,7 @@ _UNUSABLE = (_Refused, OSError, ValueError, EOFError, KeyError, zipfile.BadZipFi
 
 def spill_folder(checkpoint: str | Path) -> Path:
     """The folder beside ``checkpoint`` where the run spills the descriptors of old views
-    (:meth:`stereoseed.sfm.reconstruction.View.release_pixels`); the checkpoint refers to them."""
+    (:func:`stereoseed.sfm.view_store.release_pixels`); the checkpoint refers to them."""
     checkpoint = Path(os.path.abspath(checkpoint))  # normalised as a memory map's file name is
     return checkpoint.with_name(checkpoint.name + SPILL_SUFFIX)
 
@@ -416,7 +417,7 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         views, restored = [], []
         lazy = isinstance(images, ImageSequence)
         for i, (name, (P, features, pof, status, rotated, camera_model, zoomed)) in enumerate(zip(names, states)):
-            view = View.of_input(name, images, i)
+            view = view_of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
             views.append(view)
             restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None))

@@ -30,6 +30,7 @@ from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import (FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
                                              consistent_chain)
 from stereoseed.sfm.trust import assess
+from stereoseed.sfm.view_store import view_of_input
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
 
@@ -62,7 +63,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     when the pair gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
     cfg = cfg.resolve()
-    recon = Reconstruction([View.of_input(n, images, i) for i, n in enumerate(names)])
+    recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)])
     recon.source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]

@@ -16,11 +16,7 @@ steps stay vectorised and appending does not copy everything each time.
 """
 from __future__ import annotations
 
-import uuid
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from functools import partial
-from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
@@ -31,8 +27,6 @@ from stereoseed.geometry.models import CameraModel
 from stereoseed.geometry.projection import camera_center, intrinsics_turned_180
 from stereoseed.features.harris import Features
 from stereoseed.features.image import to_gray
-from stereoseed.io.files import atomic_path
-from stereoseed.io.sequence import ImageSequence
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
 
@@ -89,14 +83,6 @@ class View:
         self.flag_reason: str | None = None
         self.uncertainty: Any = None
 
-    @classmethod
-    def of_input(cls, name: str, images: Sequence[np.ndarray], index: int) -> "View":
-        """The view of input image ``index``: read when needed from an
-        :class:`~stereoseed.io.sequence.ImageSequence` (not held), held from a plain list."""
-        if isinstance(images, ImageSequence):
-            return cls(name, load=partial(images.__getitem__, index))
-        return cls(name, image=images[index])
-
     @property
     def features(self) -> Features | None:
         """The interest points (their grey image None after :meth:`release_pixels`, until
@@ -117,26 +103,20 @@ class View:
             self._gray_released = False
         return self._features
 
-    def release_pixels(self, spill_to: Path | None = None) -> None:
-        """Let go of the interest points' grey image (recomputed from the image on demand) and,
-        with ``spill_to`` (a folder), move their descriptors to a file there, memory-mapped: a
-        view out of the mapper's working set keeps only its points in memory, and a page of its
-        descriptors is read back only if an old view is matched again."""
+    def replace_features(self, **changes: Any) -> None:
+        """The same interest points with some arrays exchanged (a memory-mapped ``desc``, ``gray``
+        None when the grey image is let go: :func:`restore_gray` computes it again). The pixels'
+        residency is :mod:`stereoseed.sfm.view_store`'s business; the view only records it."""
         f = self._features
-        if f is None:
+        if f is None or not changes:
             return
-        changes: dict[str, Any] = {}
-        if f.gray is not None and (self._load is not None or self._image is not None):
-            changes["gray"] = None
-        # a memory map backed by a file (an unpickled one, after a resume, holds its data in RAM)
-        if spill_to is not None and getattr(f.desc, "filename", None) is None and f.desc.size:
-            path = Path(spill_to) / f"desc_{uuid.uuid4().hex}.npy"  # unique across runs: a resumed run spills beside
-            with atomic_path(path) as tmp:  # a checkpoint may name it: never half written
-                np.save(tmp, f.desc)
-            changes["desc"] = np.load(path, mmap_mode="r")
-        if changes:
-            self._features = replace(f, **changes)
-            self._gray_released = self._gray_released or "gray" in changes
+        self._features = replace(f, **changes)
+        self._gray_released = self._gray_released or ("gray" in changes and changes["gray"] is None)
+
+    @property
+    def can_read_image_again(self) -> bool:
+        """Whether the view's image can be had again once let go (read from its file, or held)."""
+        return self._load is not None or self._image is not None
 
     def keep_image(self, image: np.ndarray, rotated_180: bool) -> None:
         """The image the run works on: held only when the view cannot read it again (turned, or
@@ -329,7 +309,6 @@ class Reconstruction:
         self._obs_point = _Growing(np.int64)
         self._obs_linked = _Growing(bool)
         self.source: Any = None
-        self.spill_folder: Any = None  # where old views' descriptors went (pipeline.reconstruct)
 
     # ------------------------------------------------------------ arrays (views, read them)
     points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")
