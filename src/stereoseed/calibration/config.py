@@ -41,6 +41,11 @@ class CalibrationConfig:
     # Views of a flat target one camera needs for its intrinsics (Zhang: 2 constraints per view
     # on 4 intrinsics, and views at different angles); with fewer it needs known intrinsics.
     min_flat_views: int = 3
+    # The faces' poses are estimated only where the photos show them off their nominal place:
+    # the refined fit's BIC must be lower than the nominal one's by this much (strong evidence,
+    # Kass & Raftery 1995, as ResectionConfig.zoom_evidence_bic). A well-made target seen in a
+    # few views keeps its geometry instead of trading it against the intrinsics.
+    refine_evidence_bic: float = 6.0
     max_iterations: int = 200
 
     # --- what the user is told (not fatal unless max_rms_px is given) ---
@@ -51,7 +56,8 @@ class CalibrationConfig:
 
     def __post_init__(self) -> None:
         positive(self, "max_aspect_difference", "max_tangential", "huber_sigmas", "huber_min_px",
-                 "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views")
+                 "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views",
+                 "refine_evidence_bic")
         in_range(self, "principal_point_region", 0.0, 1.0)
         if self.max_rms_px is not None and not self.max_rms_px > 0:
             raise ValueError(f"CalibrationConfig.max_rms_px must be > 0 or None, got {self.max_rms_px!r}")

@@ -309,6 +309,38 @@ def _joint_problem(target: Target, views: list[list[ViewResult]], flat: list[tup
     return problem, state, shots
 
 
+def _bic(problem: Problem, sol: Solution) -> float:
+    """The Bayesian information criterion of a fit, Gaussian corner errors: n ln(RSS / n) + k ln n
+    over the n = 2 N coordinates of the N corners and the k parameters estimated."""
+    e = np.concatenate(sol.errors)
+    n = 2 * len(e)
+    k = (problem.n_shots * 6 + int(problem.free_faces.sum()) * 6 + int(problem.free_rig.sum()) * 6
+         + int(problem.free_intrinsics.sum()) * (4 + problem.n_lens))
+    return float(n * np.log(max(float(e @ e), 1e-300) / n) + k * np.log(n))
+
+
+def _fit(problem: Problem, state: State, cfg: CalibrationConfig) -> Solution:
+    """The model fitted with the faces at their nominal pose and, where faces could move
+    (``problem.free_faces``), with them free; the free fit is kept when its BIC is lower by
+    cfg.refine_evidence_bic (else the faces are fixed again in ``problem``). Both start from
+    ``state``, which never depends on the nominal geometry's errors (step 2)."""
+    free = problem.free_faces.copy()
+    problem.free_faces = np.zeros_like(free)
+    nominal = _robust_solve(problem, state, cfg)
+    if not free.any():
+        return nominal
+    problem.free_faces = free
+    refined = _robust_solve(problem, state, cfg)
+    gain = _bic(problem, refined)
+    problem.free_faces = np.zeros_like(free)
+    gain = _bic(problem, nominal) - gain
+    log.debug("target refined: BIC lower by %.1f", gain)
+    if gain > cfg.refine_evidence_bic:
+        problem.free_faces = free
+        return refined
+    return nominal
+
+
 def _view_errors(problem: Problem, sol: Solution) -> dict[int, list[np.ndarray]]:
     out: dict[int, list[np.ndarray]] = {}
     for g, e in zip(problem.groups, sol.errors):
@@ -373,7 +405,7 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
     _check_views(views, pair, labels)
     flat = [_flat_stage(target, views[c], known[c], k3, cfg, labels[c], pair) for c in range(C)]
     problem, state, shots = _joint_problem(target, views, flat, rig, rigid_target, known, k3)
-    sol = _robust_solve(problem, state, cfg)
+    sol = _fit(problem, state, cfg)
     while True:  # views the whole model does not explain are set aside, then it is solved again
         per_view = {k: _rms(e) for k, e in _view_errors(problem, sol).items()}
         median = float(np.median(list(per_view.values())))
@@ -386,8 +418,8 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
                 f"its corners reproject at {per_view[k]:.1f} px while the views reproject at {median:.2f} px (median): "
                 "another camera's image, a moved lens, or a target that moved between the rig's two exposures")
         problem, state, shots = _joint_problem(target, views, flat, rig, rigid_target, known, k3)
-        state.K, state.lens, state.rig, state.faces = sol.state.K, sol.state.lens, sol.state.rig, sol.state.faces
-        sol = _robust_solve(problem, state, cfg)
+        state.K, state.lens, state.rig = sol.state.K, sol.state.lens, sol.state.rig
+        sol = _fit(problem, state, cfg)
     return _results(target, views, problem, sol, shots, rig, rigid_target, known, cfg, labels, leave_one_out)
 
 

@@ -39,7 +39,7 @@ from stereoseed.geometry.lens import lens_coefficients, principal_r2, undistort_
 from stereoseed.synthetic.render import add_noise
 
 __all__ = ["TargetFace", "Target", "load_target", "face_points", "render_target",
-           "default_background"]
+           "default_background", "from_boards"]
 
 _TEXELS_PER_PIXEL = 2.0  # face texels per screen pixel kept by the pre-downscale
 _STREAM_BACKGROUND, _STREAM_NOISE = 1, 2
@@ -109,6 +109,32 @@ def load_target(path: str | os.PathLike) -> Target:
         image = read_image(path.parent / f["image"])
         faces.append(TargetFace(f["image"], image, origin, u, v))
     return Target(str(doc.get("unit", "")), tuple(faces), path)
+
+
+def from_boards(boards, texels_per_square: int = 40, margin_squares: float = 1.0,
+                poses: list[tuple[np.ndarray, np.ndarray]] | None = None) -> Target:
+    """A renderable target from a calibration target's description
+    (:class:`stereoseed.calibration.target.Target`, its faces' images not needed): each face's
+    ChArUco board drawn by OpenCV at ``texels_per_square`` texels a square, with a white margin of
+    ``margin_squares`` squares, placed where the description puts it, or moved by ``poses[k]`` =
+    (R, t) (X -> R X + t: a target assembled other than described, its truth known)."""
+    faces = []
+    for k, f in enumerate(boards.faces):
+        b = f.board
+        nx, ny = b.squares
+        m = int(round(margin_squares * texels_per_square))
+        grey = np.full((ny * texels_per_square + 2 * m, nx * texels_per_square + 2 * m), 255, np.uint8)
+        grey[m:m + ny * texels_per_square, m:m + nx * texels_per_square] = b.cv_board().generateImage(
+            (nx * texels_per_square, ny * texels_per_square), marginSize=0, borderBits=1)
+        # texel (a, b) is centred on the board's (u, v) = origin_uv + step ((a, b) - m + 0.5)
+        step = b.square_px / texels_per_square
+        uv0 = np.asarray(b.origin_uv, np.float64) + step * (0.5 - m)
+        origin, u, v = f.origin + uv0[0] * f.u_axis + uv0[1] * f.v_axis, step * f.u_axis, step * f.v_axis
+        if poses is not None:
+            R, t = (np.asarray(a, np.float64) for a in poses[k])
+            origin, u, v = R @ origin + t, R @ u, R @ v
+        faces.append(TargetFace(f"face_{k}", cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), origin, u, v))
+    return Target(boards.unit, tuple(faces), None)
 
 
 def face_points(face: TargetFace, uv: np.ndarray) -> np.ndarray:
