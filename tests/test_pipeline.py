@@ -416,3 +416,23 @@ def test_a_run_as_finished_midway_is_the_run_on_the_images_so_far(box_scene):
     cams5, points5 = _state(recon5)
     assert all(np.array_equal(a, b) for a, b in zip(cams5, _state(plain5)[0]))
     assert np.array_equal(points5, _state(plain5)[1])
+
+
+def test_a_world_frame_far_away_is_moved_next_to_the_cameras_and_back(small_box_scene):
+    # UTM-sized coordinates (1e7 m): the run works near the cameras and returns the world frame;
+    # the cameras and points are those of the same scene at the origin, moved
+    scene = small_box_scene.prefix(5)
+    near, _ = reconstruct(scene.images, scene.names, scene.P[:2], Config())
+    offset = np.array([4.2e6, 5.3e6, 120.0])
+    T = np.eye(4)
+    T[:3, 3] = -offset  # world = old + offset: P_far X_far = P (X_far - offset)
+    far_pair = [P @ T for P in scene.P[:2]]
+    far, report = reconstruct(scene.images, scene.names, far_pair, Config())
+    assert report["frame_offset"] is not None and np.linalg.norm(report["frame_offset"]) > 1e6
+    for a, b in zip(near.views, far.views):
+        assert a.registered == b.registered
+        if a.registered:
+            np.testing.assert_allclose(camera_center(b.P) - offset, camera_center(a.P), atol=1e-5)
+    pa, _ = near.live_points()
+    pb, _ = far.live_points()
+    np.testing.assert_allclose(pb - offset, pa, atol=1e-5)

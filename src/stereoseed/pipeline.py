@@ -72,6 +72,13 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolve()
     key = inputs_key(images, names, P_pair, cfg) if checkpoint is not None else ""
+    # a world frame far from the cameras (UTM-sized coordinates) is moved next to them for the
+    # run and put back at the end: float64 keeps ~16 digits, and 1e7 m of offset leaves a BA
+    # centimetres of resolution
+    offset = _frame_offset(P_pair)
+    if offset is not None:
+        P_pair = [np.asarray(P, np.float64) @ _shift(offset) for P in P_pair]
+        log.info("world frame %s from the pair's cameras: the run works %s nearer", offset.tolist(), offset.tolist())
     source = source or HarrisZncc(cfg)
     state = None
     if checkpoint is not None and resume:
@@ -123,10 +130,41 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         finally:
             recon.source = source
     report = _finished(recon, per_image, cfg, t0)
+    if offset is not None:
+        for v in recon.registered_views:
+            recon.views[v].P = recon.views[v].P @ _shift(-offset)
+        recon.points[:] += offset
+        report["frame_offset"] = offset.tolist()
     if resumed:
         report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
+
+
+# The world frame is moved next to the cameras when the pair's centre lies farther from its origin
+# than this many baselines: at 1e4 baselines float64 still resolves a micron of a metre-sized
+# scene; at 1e7 (UTM coordinates) the BA moved cameras by 1-2 cm.
+RECENTRE_ABOVE_BASELINES = 1e3
+
+
+def _frame_offset(P_pair: list[np.ndarray]) -> np.ndarray | None:
+    """The point (3,) the run's frame is moved to (the middle of the pair's centres, rounded to a
+    whole baseline), or None when the world frame is near enough."""
+    from stereoseed.geometry.projection import camera_center
+
+    c0, c1 = (camera_center(np.asarray(P, np.float64)) for P in P_pair)
+    baseline = float(np.linalg.norm(c1 - c0))
+    middle = 0.5 * (c0 + c1)
+    if not (np.all(np.isfinite(middle)) and baseline > 0) or np.linalg.norm(middle) <= RECENTRE_ABOVE_BASELINES * baseline:
+        return None
+    return np.round(middle / baseline) * baseline
+
+
+def _shift(offset: np.ndarray) -> np.ndarray:
+    """(4, 4): homogeneous world point X_local to X_local + offset, so P @ _shift(o) sees X - o."""
+    T = np.eye(4)
+    T[:3, 3] = offset
+    return T
 
 
 def _forget_checkpoint(checkpoint: str | Path) -> None:
