@@ -49,8 +49,9 @@ def test_the_normal_equations_are_the_residuals_derivatives():
 
 def test_the_faces_are_found_where_they_are_and_the_camera_with_them(rig):
     """Faces glued ~0.8 mm and ~1 degree off: refined, every corner lands within 0.1 mm of where
-    it really is and the camera comes out right; held at the nominal geometry, the same photos
-    put the principal point ~100 px off at four times the RMS."""
+    it really is and the camera comes out right. Held at the nominal geometry (--rigid-target),
+    the fit is some twenty times worse and its intrinsics disagree with the faces' one by one
+    (chi-square far beyond the limit): the camera keeps those, and comes out right all the same."""
     refined = calibrate_cameras(rig.target, [rig.detections[0]], pair=False)
     rigid = calibrate_cameras(rig.target, [rig.detections[0]], pair=False, rigid_target=True)
     cam, bad = refined.cameras[0], rigid.cameras[0]
@@ -58,7 +59,10 @@ def test_the_faces_are_found_where_they_are_and_the_camera_with_them(rig):
     assert errors.max() < 0.1 and face_error_mm(rig.target, rigid.target, rig.truth)[1:].min() > 0.4
     np.testing.assert_allclose(np.diag(cam.K)[:2], np.diag(K1)[:2], rtol=0.005)
     assert np.abs(cam.K[:2, 2] - K1[:2, 2]).max() < 3.0 and abs(cam.lens[0] - LENS1[0]) < 0.02
-    assert cam.rms_px < 0.3 and bad.rms_px > 3 * cam.rms_px and np.abs(bad.K[:2, 2] - K1[:2, 2]).max() > 50
+    assert cam.rms_px < 0.3 and bad.rms_px > 5 * cam.rms_px
+    assert not cam.from_faces and cam.consistency[0] < cam.consistency[1]
+    assert bad.from_faces and bad.consistency[0] > 10 * bad.consistency[1] and "one rigid body" in rigid.notes[0]
+    np.testing.assert_allclose(bad.K, cam.K, rtol=0.01, atol=3.0)
     # how far each face moved, as reported, against how far it was moved
     for f, (R, t) in enumerate(rig.truth[1:], 1):
         centre = rig.target.faces[f].corners3d().mean(axis=0)

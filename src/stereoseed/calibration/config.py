@@ -46,6 +46,13 @@ class CalibrationConfig:
     # Kass & Raftery 1995, as ResectionConfig.zoom_evidence_bic). A well-made target seen in a
     # few views keeps its geometry instead of trading it against the intrinsics.
     refine_evidence_bic: float = 6.0
+    # The whole model (faces rigid on one target) is checked against each camera's faces taken
+    # one by one (each face its own pose per view: no assumption on how the faces sit): if the
+    # two fits' fx, fy, cx, cy differ by more than chance allows (chi-square with 4 degrees of
+    # freedom over the one-by-one fit's covariance, beyond its 0.999 quantile), the target is
+    # not the rigid body the model assumes (a face bent, the cube flexed) and that camera keeps
+    # the one-by-one intrinsics (a Hausman-style specification test).
+    consistency_quantile: float = 0.999
     max_iterations: int = 200
 
     # --- what the user is told (not fatal unless max_rms_px is given) ---
@@ -59,6 +66,7 @@ class CalibrationConfig:
                  "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views",
                  "refine_evidence_bic")
         in_range(self, "principal_point_region", 0.0, 1.0)
+        in_range(self, "consistency_quantile", 0.5, 1.0)
         if self.max_rms_px is not None and not self.max_rms_px > 0:
             raise ValueError(f"CalibrationConfig.max_rms_px must be > 0 or None, got {self.max_rms_px!r}")
 

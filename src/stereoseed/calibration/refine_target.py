@@ -38,7 +38,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Group", "Problem", "State", "Solution", "solve", "residuals", "projections", "rotation_vector"]
+__all__ = ["Group", "Problem", "State", "Solution", "solve", "residuals", "projections", "rotation_vector",
+           "intrinsics_covariance", "leave_one_out"]
 
 
 @dataclass
@@ -190,8 +191,10 @@ def _cost(problem: Problem, state: State, delta: float) -> float:
     return total if np.isfinite(total) else np.inf
 
 
-def _normal_equations(problem: Problem, state: State, layout: _Layout, delta: float
+def _normal_equations(problem: Problem, state: State, layout: _Layout, delta: float, parts: list | None = None
                       ) -> tuple[np.ndarray, np.ndarray]:
+    """J'WJ and J'Wr summed group by group; each group's (columns, its J'WJ, its J'Wr) appended
+    to ``parts`` when given."""
     H = np.zeros((layout.size, layout.size))
     b = np.zeros(layout.size)
     n = layout.n_intrinsics
@@ -208,8 +211,11 @@ def _normal_equations(problem: Problem, state: State, layout: _Layout, delta: fl
         J = np.hstack(mats)
         w = _weights(r, g.scale(), delta)
         idx = np.asarray(cols)
-        H[np.ix_(idx, idx)] += J.T @ (w[:, None] * J)
-        b[idx] += J.T @ (w * r)
+        Hg, bg = J.T @ (w[:, None] * J), J.T @ (w * r)
+        H[np.ix_(idx, idx)] += Hg
+        b[idx] += bg
+        if parts is not None:
+            parts.append((idx, Hg, bg))
     return H, b
 
 
@@ -264,3 +270,40 @@ def solve(problem: Problem, state: State, huber_px: float, max_iterations: int =
     log.debug("LM: cost %.6g after %d iterations (huber %.3g px)", cost, it, huber_px)
     return Solution(state, cost, it, converged, huber_px, residuals(problem, state))
 
+
+
+def intrinsics_covariance(problem: Problem, sol: Solution, camera: int) -> np.ndarray | None:
+    """The covariance (4, 4) of camera ``camera``'s fx, fy, cx, cy at the solution: the inverse
+    of the normal equations (every other parameter marginalised) scaled by the residuals'
+    variance per degree of freedom. None when its intrinsics were not estimated."""
+    layout = _Layout(problem)
+    start = layout.camera[camera]
+    if start is None:
+        return None
+    H, _ = _normal_equations(problem, sol.state, layout, sol.huber_px)
+    n = 2 * sum(len(g.points) for g in problem.groups)
+    variance = sol.cost / max(n - layout.size, 1)  # the cost sums squared 2D errors: both coordinates
+    diag = np.diag(H).copy()
+    H[np.diag_indices_from(H)] = np.where(diag > 0, diag, 1.0)  # parameters no residual touches
+    block = slice(start, start + 4)
+    return np.linalg.pinv(H)[block, block] * variance
+
+
+def leave_one_out(problem: Problem, sol: Solution, shots: list[int]) -> dict[int, State]:
+    """Per shot of ``shots``, the solution again without its corners: one Gauss-Newton step from
+    ``sol`` on the normal equations less that shot's share (the one-step jackknife: exact to
+    first order, and a linear solve per shot instead of a fit)."""
+    layout = _Layout(problem)
+    parts: list = []
+    H, b = _normal_equations(problem, sol.state, layout, sol.huber_px, parts)
+    out = {}
+    for s in shots:
+        Hs, bs = H.copy(), b.copy()
+        for g, (idx, Hg, bg) in zip(problem.groups, parts):
+            if g.shot == s:
+                Hs[np.ix_(idx, idx)] -= Hg
+                bs[idx] -= bg
+        diag = np.diag(Hs).copy()
+        Hs[np.diag_indices_from(Hs)] = np.where(diag > 1e-12 * max(diag.max(), 1e-300), diag, 1.0)
+        out[s] = layout.apply(sol.state, -np.linalg.solve(Hs, bs), problem)
+    return out

@@ -139,6 +139,8 @@ def _report_cameras(cal, labels: list[str]) -> None:
                   f"; leaving out one shot moves it by up to {cal.rig.spread_mm:.2f} mm, {cal.rig.spread_deg:.3f} deg")
         print(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
               f"from {cal.rig.shots} shots{spread}")
+    for note in cal.notes:
+        print(f"note: {note}")
     for w in cal.warnings:
         _warn(w)
 
