@@ -82,7 +82,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     source = source or HarrisZncc(cfg)
     state = None
     if checkpoint is not None and resume:
-        state = load_checkpoint(checkpoint, images, names, key, source)
+        state = load_checkpoint(checkpoint, images, names, key)
     if checkpoint is not None and state is None:
         _forget_checkpoint(checkpoint)  # another run's, or unusable: nothing of it outlives this start
     # The background threads start with the run: the pair's second image and the next ones are
@@ -116,20 +116,16 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         else:
             spill_holder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(spill_holder.name)
-        recon.source = prefetching  # a resumed model comes with the plain source
-        try:
-            for k in range(len(per_image), n):
-                rep = insert_view(recon, k, cfg)
-                per_image.append(rep)
-                release_old_views(recon, cfg, spill)
-                saver.save(recon, per_image)
-                if progress:
-                    progress(k + 1, n, f"{names[k]}: {rep['status']}")
-                if after_insertion:
-                    after_insertion(recon, per_image)
-        finally:
-            recon.source = source
-    report = _finished(recon, per_image, cfg, t0)
+        for k in range(len(per_image), n):
+            rep = insert_view(recon, k, cfg, prefetching)
+            per_image.append(rep)
+            release_old_views(recon, cfg, spill)
+            saver.save(recon, per_image)
+            if progress:
+                progress(k + 1, n, f"{names[k]}: {rep['status']}")
+            if after_insertion:
+                after_insertion(recon, per_image)
+    report = _finished(recon, per_image, cfg, t0, source)
     if offset is not None:
         for v in recon.registered_views:
             recon.views[v].P = recon.views[v].P @ _shift(-offset)
@@ -196,11 +192,12 @@ def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarra
     return image_of
 
 
-def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float) -> dict[str, Any]:
+def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
+              source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """The finishing step (:func:`stereoseed.sfm.mapper.finish`) on ``recon`` after the views of
     ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
     not keep is reported as failed, with the reason)."""
-    final = finish(recon, cfg)
+    final = finish(recon, cfg, source)
     for r in per_image:
         if r.get("image") in final.get("dropped", {}):
             r.update(status="failed", reason=final["dropped"][r["image"]])
@@ -215,8 +212,8 @@ def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Confi
 
 
 @contextmanager
-def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]],
-                cfg: Config) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
+def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
+                source: CorrespondenceSource | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
     """Inside an ``after_insertion`` call: (the model, the report) that :func:`reconstruct`
     would return for the images so far, for the block's duration: the finishing step runs on
     the model itself, which is then put back as it was (points, observations, views; arrays
@@ -225,7 +222,7 @@ def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]],
     images without running them again (the report's "seconds": the finishing step's)."""
     state = recon.checkpoint()
     try:
-        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolve(), time.perf_counter())
+        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolve(), time.perf_counter(), source)
     finally:
         recon.restore(state)
 
@@ -333,15 +330,17 @@ def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Pat
 
 
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
-                 lenses: list | None = None, dense: Any = None) -> dict[str, Path]:
+                 lenses: list | None = None, dense: Any = None,
+                 source: CorrespondenceSource | None = None) -> dict[str, Path]:
     """The result folder (:func:`stereoseed.output.results.write_result`: cameras.json, tracks.npz,
     sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.output.report.html`);
     atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.calibration.lens_calibration.read_lenses`)
     when the images were undistorted: cameras.json then says how to map back to the photos.
     dense: the :class:`~stereoseed.dense.densify.DenseCloud` (shown in report.html) when the dense
-    stage ran."""
+    stage ran; source: what matches the weakest insertion's images again for report.html
+    (default :class:`HarrisZncc`)."""
     written = write_result(recon, report, out_dir, cfg, lenses)
-    written["report_html"] = write_report_html(recon, report, out_dir, dense)
+    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc(cfg.resolve()))
     return written
 
 

@@ -12,5 +12,5 @@ def started():
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     for k in (2, 3):
-        assert insert_view(recon, k, cfg)["status"] == "registered"
-    return recon, Ps, cfg
+        assert insert_view(recon, k, cfg, source)["status"] == "registered"
+    return recon, Ps, cfg, source

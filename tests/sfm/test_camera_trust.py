@@ -16,13 +16,13 @@ def _ring_run(n=8, cfg=Config()):
     images, names, Ps, source = ring(n)
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     for k in range(2, n):
-        assert insert_view(recon, k, cfg)["status"] == "registered"
-    return recon, Ps
+        assert insert_view(recon, k, cfg, source)["status"] == "registered"
+    return recon, Ps, source
 
 
 def test_every_camera_gets_an_uncertainty_that_covers_its_error():
-    recon, Ps = _ring_run()
-    final = finish(recon, Config())
+    recon, Ps, source = _ring_run()
+    final = finish(recon, Config(), source)
     cams = final["trust"]["cameras"]
     assert final["trust"]["flagged"] == {} and all(c["reliable"] for c in cams.values())
     for k in range(2, 8):
@@ -38,8 +38,8 @@ def test_every_camera_gets_an_uncertainty_that_covers_its_error():
 
 
 def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
-    recon, Ps = _ring_run()
-    finish(recon, Config())
+    recon, Ps, source = _ring_run()
+    finish(recon, Config(), source)
     bad = 5
     # as if placed one period over: 3 cm along the ring, after the final BA
     K, R, t, _ = ring_camera(30.0 + bad * 20.0 + 1.2, height=0.7)
@@ -52,8 +52,8 @@ def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
     assert seen_before > 0 and not np.any(recon.obs_view == bad)  # no point rests on it any more
     assert all(recon.views[k].reliable for k in recon.registered_views if k != bad)
     # keep_flagged keeps its observations
-    recon2, _ = _ring_run()
-    finish(recon2, Config())
+    recon2, _, source2 = _ring_run()
+    finish(recon2, Config(), source2)
     recon2.views[bad].P = K @ np.hstack([R, t[:, None]])
     keep = Config().replace(trust={"keep_flagged": True})
     assert list(assess(recon2, keep)["flagged"]) == [recon2.views[bad].name]
@@ -61,7 +61,7 @@ def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
 
 
 def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
-    recon, Ps = _ring_run(5)
+    recon, Ps, source = _ring_run(5)
     recent = np.flatnonzero(recon.alive)
     cfg = Config().resolve()
     near = Ps[4]

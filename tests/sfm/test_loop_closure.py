@@ -21,8 +21,8 @@ def reconstruct_ring(images, names, Ps, source):
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     for k in range(2, len(images)):
-        assert insert_view(recon, k, cfg)["status"] == "registered"
-    return recon, finish(recon, cfg)
+        assert insert_view(recon, k, cfg, source)["status"] == "registered"
+    return recon, finish(recon, cfg, source)
 
 
 def test_links_without_a_merge_are_not_a_closed_loop(monkeypatch, caplog):

@@ -22,9 +22,9 @@ def test_the_step_by_step_api_survives_a_failing_image():
     images, names, Ps, source = ring(7, blind=(4,))
     cfg = Config(pipeline=PipelineConfig(mode="paper"))
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    statuses = [insert_view(recon, k, cfg)["status"] for k in range(2, 7)]
+    statuses = [insert_view(recon, k, cfg, source)["status"] for k in range(2, 7)]
     assert statuses == ["registered", "registered", "failed", "registered", "registered"]
-    finish(recon, cfg)
+    finish(recon, cfg, source)
     assert recon.registered_views == [0, 1, 2, 3, 5, 6]
 
 
@@ -39,11 +39,11 @@ def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkey
     # during the registration (nothing committed yet) or after the commit (rolled back)
     import importlib
 
-    recon, Ps, cfg = started
+    recon, Ps, cfg, source = started
     before = state(recon)
     monkeypatch.setattr(importlib.import_module(f"stereoseed.{module}"), function,
                         _raising(np.linalg.LinAlgError("Singular matrix")))
-    report = insert_view(recon, 4, cfg)
+    report = insert_view(recon, 4, cfg, source)
     assert report["status"] == "failed" and "numerical failure" in report["reason"]
     assert_same_state(before, state(recon))
     assert not recon.views[4].registered
@@ -52,11 +52,11 @@ def test_a_numerical_failure_fails_the_image_and_changes_nothing(started, monkey
 def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored(started, monkeypatch):
     import stereoseed.sfm.modes
 
-    recon, Ps, cfg = started
+    recon, Ps, cfg, source = started
     before = state(recon)
     monkeypatch.setattr(stereoseed.sfm.modes, "adjust", _raising(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):
-        insert_view(recon, 4, cfg)
+        insert_view(recon, 4, cfg, source)
     assert_same_state(before, state(recon))
 
 

@@ -10,7 +10,7 @@ def test_the_paper_mode_keeps_two_view_points_and_unlinked_chained_observations(
     images, names, Ps, source = ring(5)
     cfg = Config(pipeline=PipelineConfig(mode="paper"))
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    insert_view(recon, 2, cfg)
+    insert_view(recon, 2, cfg, source)
     unlinked = ~recon.obs_linked
     # the chained old points are observed in view 2 for the cost only; their interest points
     # stand for the new two-view points, through which the next insertion chains

@@ -11,9 +11,9 @@ from stereoseed.sfm.registration.base import FoundBy, Registration, Registration
 
 
 def test_registration_finds_the_camera_and_changes_nothing(started):
-    recon, Ps, cfg = started
+    recon, Ps, cfg, source = started
     before = state(recon)
-    found = register_view(recon, 4, cfg.resolve())
+    found = register_view(recon, 4, cfg.resolve(), source)
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # resection alone, before any BA: the focal length trades against the depth (measured 2.7 mm)
     assert np.linalg.norm(camera_center(found.P) - camera_center(Ps[4])) < 0.006
@@ -26,15 +26,15 @@ def test_an_image_that_cannot_be_registered_leaves_no_trace():
     images, names, Ps, source = ring(6, blind=(3,))
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    insert_view(recon, 2, cfg)
+    insert_view(recon, 2, cfg, source)
     before = state(recon)
-    report = insert_view(recon, 3, cfg)
+    report = insert_view(recon, 3, cfg, source)
     assert report["status"] == "failed" and "v3.png" in report["reason"]
-    assert isinstance(register_view(recon, 3, cfg.resolve()), RegistrationFailure)
+    assert isinstance(register_view(recon, 3, cfg.resolve(), source), RegistrationFailure)
     assert_same_state(before, state(recon))
     assert recon.views[3].status.startswith("failed: ")
     # the walk goes on from the last registered view, two steps away
-    assert insert_view(recon, 4, cfg)["status"] == "registered"
+    assert insert_view(recon, 4, cfg, source)["status"] == "registered"
     assert centre_errors(recon, Ps).max() < 0.006  # measured 0.9 and 3.0 mm (a free focal length, no final BA)
 
 
@@ -54,17 +54,17 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     from stereoseed.sfm.registration.base import SparseRegistrar
     from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar
 
-    recon, Ps, cfg = started
+    recon, Ps, cfg, source = started
     cfg = cfg.resolve()
     order = registrars(cfg)
     assert [type(r) for r in order] == [SparseRegistrar, QuasiDenseRegistrar]
     before = state(recon)
     found = None
     for registrar in order:
-        found = registrar.register(recon, 4, found, cfg)
+        found = registrar.register(recon, source, 4, found, cfg)
         assert_same_state(before, state(recon))
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # the resection's camera carries its model: the run's, or "fixed" where the previous zoom was kept
     assert found.camera.model == found.resection.info["model"] in (cfg.pipeline.camera_model, "fixed")
     with pytest.raises(ValueError, match="cannot come first"):
-        QuasiDenseRegistrar().register(recon, 4, None, cfg)
+        QuasiDenseRegistrar().register(recon, source, 4, None, cfg)

@@ -14,7 +14,7 @@ def _started(n=5):
     cfg = Config()
     recon, _ = initialise(images, names, Ps[:2], cfg, source)
     for k in range(2, n):
-        assert insert_view(recon, k, cfg)["status"] == "registered"
+        assert insert_view(recon, k, cfg, source)["status"] == "registered"
     return recon, source, cfg
 
 
@@ -73,4 +73,4 @@ def test_a_source_that_cannot_track_tracks_nothing():
     recon, source, cfg = _started(4)
     assert not hasattr(source, "track")  # the exact source declares no tracking
     n_obs = len(recon.obs_point)
-    assert len(track_by_projection(recon, 3, [2, 1], cfg)) == 0 and len(recon.obs_point) == n_obs
+    assert len(track_by_projection(recon, 3, [2, 1], cfg, source)) == 0 and len(recon.obs_point) == n_obs

@@ -392,7 +392,7 @@ def _observations(arrays: dict[str, np.ndarray], states: list[tuple], n_points: 
     return obs_view, obs_feature, obs_point, obs_linked
 
 
-def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str, source: Any
+def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[str], key: str
                     ) -> tuple[Reconstruction, list[dict[str, Any]]] | None:
     """The reconstruction and reports saved at ``path`` for these inputs (``key``), with the
     images put back (read when needed from an :class:`ImageSequence`, turned where the run
@@ -427,5 +427,4 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
-    recon.source = source
     return recon, meta["per_image"]

@@ -11,6 +11,7 @@ import numpy as np
 
 from stereoseed.geometry.projection import fundamental_from_projections, project
 from stereoseed.config import Config
+from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 
@@ -19,7 +20,7 @@ __all__ = ["close_loop"]
 log = logging.getLogger(__name__)
 
 
-def close_loop(recon: Reconstruction, cfg: Config) -> tuple[bool, dict[str, Any]]:
+def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> tuple[bool, dict[str, Any]]:
     """Match each of the last ``LoopClosureConfig.span`` registered views against the first
     ``span`` (those looking within ``max_axis_angle_deg`` of each other), merge the points
     reconstructed twice, link the observations a view lacks, then :func:`global_adjust`.
@@ -36,7 +37,7 @@ def close_loop(recon: Reconstruction, cfg: Config) -> tuple[bool, dict[str, Any]
             va, vb = recon.views[a], recon.views[b]
             if np.dot(va.R[2], vb.R[2]) < np.cos(np.radians(lc.max_axis_angle_deg)):
                 continue  # looking too differently to share much
-            m = recon.source.match(b, a, vb.restore_gray(), va.restore_gray(), fundamental_from_projections(vb.P, va.P),
+            m = source.match(b, a, vb.restore_gray(), va.restore_gray(), fundamental_from_projections(vb.P, va.P),
                                    vb.image_size[0])
             tried += len(m)
             if len(m) < lc.min_matches:

@@ -1,8 +1,11 @@
 """The incremental mapper (paper §4.1-4.3): estimate, validate, then commit.
 
-    recon, report = initialise(images, names, P_pair, cfg)   # match I1-I2, triangulate, filter
-    for k in 2 .. n-1: insert_view(recon, k, cfg)           # register, then grow and adjust
-    finish(recon, cfg)                                      # loop closure / final global BA
+    recon, report = initialise(images, names, P_pair, cfg, source)   # match I1-I2, triangulate
+    for k in 2 .. n-1: insert_view(recon, k, cfg, source)           # register, grow, adjust
+    finish(recon, cfg, source)                                      # loop closure, final BA, trust
+
+The reconstruction is data; ``source`` (a :class:`~stereoseed.sfm.correspondence.CorrespondenceSource`,
+default :class:`~stereoseed.sfm.correspondence.HarrisZncc`) is where its correspondences come from.
 
 :func:`insert_view` registers view k through the registrars in the order :func:`registrars` gives (each
 changes nothing) and commits the camera at one point only; then the mode's strategy
@@ -39,18 +42,18 @@ __all__ = ["initialise", "insert_view", "finish"]
 log = logging.getLogger(__name__)
 
 
-def _refine(recon: Reconstruction, a: int, b: int, m: Matches) -> None:
+def _refine(recon: Reconstruction, source: CorrespondenceSource, a: int, b: int, m: Matches) -> None:
     """Move view b's matched interest points onto their partners in view a, if the source can."""
-    refine = optional(recon.source, "refine")
+    refine = optional(source, "refine")
     if refine is not None and len(m):
         recon.views[b].features = refine(recon.views[a].features, recon.views[b].features, m)
 
 
-def _match_known(recon: Reconstruction, a: int, b: int) -> Matches:
+def _match_known(recon: Reconstruction, source: CorrespondenceSource, a: int, b: int) -> Matches:
     """Matches between registered views a and b under their epipolar geometry."""
     va, vb = recon.views[a], recon.views[b]
-    return recon.source.match(a, b, va.features, vb.features, fundamental_from_projections(va.P, vb.P),
-                              va.image_size[0])
+    return source.match(a, b, va.features, vb.features, fundamental_from_projections(va.P, vb.P),
+                        va.image_size[0])
 
 
 def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
@@ -59,23 +62,24 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     linear + LM triangulation, filtered by reprojection error, cheirality and angle.
 
     images: the sequence (uint8 BGR); P_pair: the pair's two (3, 4) cameras; source: where
-    correspondences come from (default :class:`HarrisZncc`). Raises :class:`StereoseedError`
-    when the pair gives too few points (the calibration does not belong to these images)."""
+    correspondences come from (default :class:`HarrisZncc`; give the same one to every later
+    step). Raises :class:`StereoseedError` when the pair gives too few points (the calibration
+    does not belong to these images)."""
     t0 = time.perf_counter()
     cfg = cfg.resolve()
     recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)])
-    recon.source = source or HarrisZncc(cfg)
+    source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]
         view.P, view.status = np.asarray(P_pair[i], np.float64), "calibrated"
-        view.features = recon.source.features(i, view.image)
+        view.features = source.features(i, view.image)
         view.point_of_feature = np.full(len(view.features), -1, np.int64)
         if len(view.features) == 0:
             raise StereoseedError(f"{names[i]}: no interest points (a blank or black image?); the calibrated pair "
                                   f"must show the object")
-    _check_pair(recon, cfg)
-    m = _match_known(recon, 0, 1)
-    _refine(recon, 0, 1, m)
+    _check_pair(recon, source, cfg)
+    m = _match_known(recon, source, 0, 1)
+    _refine(recon, source, 0, 1, m)
     ids = add_two_view_points(recon, 0, 1, m, cfg, colour_view=0)
     if len(ids) < cfg.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
         raise StereoseedError(f"{names[0]}, {names[1]}: only {len(ids)} points triangulated from the calibrated pair "
@@ -84,7 +88,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
                    "seconds": {"total": time.perf_counter() - t0}}
 
 
-def _check_pair(recon: Reconstruction, cfg: Config) -> None:
+def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config) -> None:
     """The calibration must fit its two images: their matches found without it (robust F) must
     lie on its epipolar lines (``PairCheckConfig.min_consistent``), or, when they do not,
     matching under the calibration's epipolar geometry must find more of them. Raises
@@ -93,13 +97,13 @@ def _check_pair(recon: Reconstruction, cfg: Config) -> None:
     if v0.image.shape == v1.image.shape and np.array_equal(v0.image, v1.image):
         raise StereoseedError(f"{v0.name}, {v1.name}: the calibrated pair is the same image twice; give the two "
                               f"images the two calibrated cameras took")
-    m = recon.source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
+    m = source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
     if len(m) < cfg.pair_check.min_matches:
         return  # repeated patterns or little texture: no robust F to judge by
     x0, x1 = m.points(v0.features, v1.features)
     d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
     consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
-    if consistent < cfg.pair_check.min_consistent and len(_match_known(recon, 0, 1)) < len(m):
+    if consistent < cfg.pair_check.min_consistent and len(_match_known(recon, source, 0, 1)) < len(m):
         # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
         # then the calibration's own epipolar geometry still matches more than that F does,
         # while a calibration of other images matches only what falls in its bands by chance.
@@ -116,21 +120,24 @@ def registrars(cfg: Config) -> tuple[Registrar, ...]:
     return (SparseRegistrar(), QuasiDenseRegistrar())
 
 
-def insert_view(recon: Reconstruction, k: int, cfg: Config = Config()) -> dict[str, Any]:
+def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
+                source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
+    source: the correspondences :func:`initialise` was given (default :class:`HarrisZncc`).
 
     Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
     view leaves ``recon`` as it was (only the view's status records why)."""
     cfg = cfg.resolve()
+    source = source or HarrisZncc(cfg)
     view = recon.views[k]
     found = None
     for registrar in registrars(cfg):
-        found = registrar.register(recon, k, found, cfg)
+        found = registrar.register(recon, source, k, found, cfg)
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
     state = recon.checkpoint()
     try:
-        return _commit_and_grow(recon, k, found, cfg)
+        return _commit_and_grow(recon, source, k, found, cfg)
     except np.linalg.LinAlgError as e:
         recon.restore(state)
         return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
@@ -160,7 +167,8 @@ def _commit(view: View, reg: Registration) -> None:
     view.zoomed = reg.zoomed
 
 
-def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Config) -> dict[str, Any]:
+def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int, reg: Registration,
+                     cfg: Config) -> dict[str, Any]:
     """Commit view k's camera, then: re-match under the now-known epipolar geometry, extend the
     chained tracks, triangulate the new points, grow the tracks, adjust, drop outliers."""
     mode = mode_of(cfg)
@@ -184,8 +192,8 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     timing = dict(reg.seconds)
 
     t = time.perf_counter()
-    m = _match_known(recon, prev, k)
-    _refine(recon, prev, k, m)
+    m = _match_known(recon, source, prev, k)
+    _refine(recon, source, prev, k, m)
     # the chained observations consistent with the camera just estimated
     pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
     chain_points = pid[consistent]
@@ -200,13 +208,13 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
             more = new_points_three_view(recon, prev, k, before[0], cfg)
             ids = np.concatenate([ids, more])
             report["three_view_points"] = int(len(more))
-    expect_match = optional(recon.source, "expect_match")
+    expect_match = optional(source, "expect_match")
 
     def features_final() -> None:  # k's interest points are final: the next insertion's matching may start
         if expect_match is not None:
             expect_match(k, view.features, view.image_size[0])
 
-    report.update(mode.grow_tracks(recon, k, chain_points, cfg, features_final))
+    report.update(mode.grow_tracks(recon, source, k, chain_points, cfg, features_final))
     timing["triangulation"] = time.perf_counter() - t
     report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
 
@@ -226,14 +234,14 @@ def _commit_and_grow(recon: Reconstruction, k: int, reg: Registration, cfg: Conf
     return report
 
 
-def finish(recon: Reconstruction, cfg: Config = Config()) -> dict[str, Any]:
+def finish(recon: Reconstruction, cfg: Config = Config(), source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """After the last insertion: the mode's finishing step (accurate: loop closure, a final
     global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``), then each camera
     judged (:func:`stereoseed.sfm.trust.assess`: its uncertainty, a flag where the run cannot
     vouch for it)."""
     t = time.perf_counter()
     cfg = cfg.resolve()
-    out = mode_of(cfg).finish(recon, cfg)
+    out = mode_of(cfg).finish(recon, cfg, source or HarrisZncc(cfg))
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:
         out["dropped"] = dropped

@@ -19,6 +19,7 @@ import numpy as np
 from stereoseed.arrays import unique
 from stereoseed.config import Config
 from stereoseed.sfm.config import MODE_DEFAULTS, ModeDefaults
+from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.reconstruction import Reconstruction
@@ -42,15 +43,15 @@ class Mode(Protocol):
     def add_points(self, recon: Reconstruction, prev: int, k: int, m: Matches, chained: np.ndarray,
                    consistent: np.ndarray, chain_points: np.ndarray, cfg: Config) -> np.ndarray: ...
 
-    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
-                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]: ...
+    def grow_tracks(self, recon: Reconstruction, source: CorrespondenceSource, k: int, chain_points: np.ndarray,
+                    cfg: Config, features_final: Callable[[], None] = lambda: None) -> dict[str, Any]: ...
 
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
                      chain_points: np.ndarray, cfg: Config) -> dict[str, Any]: ...
 
     def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config: ...
 
-    def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]: ...
+    def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]: ...
 
 
 class PaperMode:
@@ -66,8 +67,8 @@ class PaperMode:
         recon.add_observations(k, m.idx2[consistent], chain_points, link=False)
         return add_two_view_points(recon, prev, k, m, cfg, colour_view=k, link_a=False)
 
-    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
-                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
+    def grow_tracks(self, recon: Reconstruction, source: CorrespondenceSource, k: int, chain_points: np.ndarray,
+                    cfg: Config, features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
         """The paper's points stay two-view points (k's interest points are final already)."""
         features_final()
         return {}
@@ -93,7 +94,7 @@ class PaperMode:
         """The paper's BA adjusts the run's camera model."""
         return cfg
 
-    def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+    def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """One global BA when asked (``ba="final"``)."""
         return {"final_ba": global_adjust(recon, cfg)[0]} if cfg.pipeline.ba == "final" else {}
 
@@ -109,16 +110,16 @@ class AccurateMode:
         new = m.subset(~chained & (recon.views[k].point_of_feature[m.idx2] < 0))
         return add_two_view_points(recon, prev, k, new, cfg, colour_view=k)
 
-    def grow_tracks(self, recon: Reconstruction, k: int, chain_points: np.ndarray, cfg: Config,
-                    features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
+    def grow_tracks(self, recon: Reconstruction, source: CorrespondenceSource, k: int, chain_points: np.ndarray,
+                    cfg: Config, features_final: Callable[[], None] = lambda: None) -> dict[str, Any]:
         """The points of the window's older views searched in k and k's points in them; every
         point whose track grew (``chain_points`` too) re-triangulated from its whole track.
         ``features_final`` is called as soon as k's interest points are (once the points are
         tracked into k: the rest adds interest points to the older views only)."""
         older = recon.registered_before(k, cfg.pipeline.window + 1)
-        tracked = [track_by_projection(recon, k, older, cfg)]
+        tracked = [track_by_projection(recon, k, older, cfg, source)]
         features_final()
-        tracked += [track_by_projection(recon, j, [k], cfg) for j in older]
+        tracked += [track_by_projection(recon, j, [k], cfg, source) for j in older]
         tracked = np.concatenate(tracked)
         grown = np.concatenate([chain_points, tracked])
         if cfg.pipeline.retriangulate and len(grown):
@@ -142,7 +143,7 @@ class AccurateMode:
         resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
         return cfg.replace(pipeline={"camera_model": CameraModel.FIXED}) if _unzoomed(recon, cfg) else cfg
 
-    def finish(self, recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+    def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's
         resection found a zoom (``hold_unzoomed``, the "focal" model), that global BA holds
         every image at the calibrated intrinsics: one lens setting for the whole sequence (a
@@ -151,7 +152,7 @@ class AccurateMode:
         out: dict[str, Any] = {}
         adjusted = False  # closing the loop ran a global BA
         if pc.loop_closure:
-            adjusted, out["loop_closure"] = close_loop(recon, cfg)
+            adjusted, out["loop_closure"] = close_loop(recon, cfg, source)
         later = [v for v in recon.registered_views if v > 1]
         if later and _unzoomed(recon, cfg) and (adjusted or pc.ba == "final"):
             out["no_zoom"] = True

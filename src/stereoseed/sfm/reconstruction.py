@@ -296,7 +296,6 @@ class Reconstruction:
     ``obs_point``. Read them through the properties (views of growing buffers: valid until the
     next change); change them through the methods.
 
-    source: where correspondences come from (set by :func:`stereoseed.sfm.mapper.initialise`).
     """
 
     def __init__(self, views: list[View]):
@@ -308,7 +307,6 @@ class Reconstruction:
         self._obs_feature = _Growing(np.int64)
         self._obs_point = _Growing(np.int64)
         self._obs_linked = _Growing(bool)
-        self.source: Any = None
 
     # ------------------------------------------------------------ arrays (views, read them)
     points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")

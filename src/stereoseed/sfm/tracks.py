@@ -13,7 +13,7 @@ from stereoseed.matching.containers import Matches
 from stereoseed.matching.two_view import epipolar_band_mask
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction, View
-from stereoseed.sfm.correspondence import optional
+from stereoseed.sfm.correspondence import CorrespondenceSource, optional
 from stereoseed.estimators.triangulation import triangulate, triangulate_tracks
 
 __all__ = ["colors_at", "triangulate_matches", "add_two_view_points", "new_points_three_view", "track_by_projection",
@@ -125,14 +125,15 @@ def _clear_of_linked(view: View, xy: np.ndarray, radius: float) -> np.ndarray:
     return np.isinf(nearest_within(linked, xy, radius)[0])
 
 
-def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg: Config) -> np.ndarray:
+def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg: Config,
+                        source: CorrespondenceSource | None = None) -> np.ndarray:
     """Give view ``target`` its observations of the live points seen in views ``refs`` (nearest
     first) but not yet in ``target``: project each point with the target's camera and align the
     patch of its observation in the reference view there (COLMAP and ORB-SLAM search by
     projection; here sub-pixel by alignment). An observation is kept when the alignment
     converges within ``TrackingConfig.max_shift_px`` of the projection and does not land on another
     point's interest point. Returns the ids of the points whose track grew."""
-    track = optional(recon.source, "track")
+    track = optional(source, "track")
     vt = recon.views[target]
     if track is None or vt.features is None:
         return np.zeros(0, np.int64)

@@ -52,7 +52,7 @@ def _json_for_script(data: Any) -> str:
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
-def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | None:
+def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[str, Any] | None:
     """The registered image k >= 2 with the fewest resection inliers, matched again against the
     previous registered image j under the known geometry: a PNG (base64) and a caption."""
     from stereoseed.geometry.projection import fundamental_from_projections
@@ -79,10 +79,10 @@ def _weakest_insertion(recon: Any, report: dict[str, Any]) -> dict[str, Any] | N
         return None
     j = previous[0]
     vj, vk = recon.views[j], recon.views[k]
-    if vj.features is None or vk.features is None or recon.source is None:
+    if vj.features is None or vk.features is None or source is None:
         return None
     F = fundamental_from_projections(vj.P, vk.P)
-    matches = recon.source.match(j, k, vj.restore_gray(), vk.restore_gray(), F, vj.image_size[0])
+    matches = source.match(j, k, vj.restore_gray(), vk.restore_gray(), F, vj.image_size[0])
     canvas = draw_matches(vj.image, vj.features.points, vk.image, vk.features.points, matches)
     if canvas.shape[1] > MAX_MATCH_IMAGE_WIDTH:
         scale = MAX_MATCH_IMAGE_WIDTH / canvas.shape[1]
@@ -224,7 +224,8 @@ _SCRIPT = """
 """
 
 
-def render_report_html(recon: Any, report: dict[str, Any], title: str | None = None, dense: Any = None) -> str:
+def render_report_html(recon: Any, report: dict[str, Any], title: str | None = None, dense: Any = None,
+                       source: Any = None) -> str:
     """The report's HTML text (see :func:`write_report_html`); optional parts that fail are
     logged and left out."""
     report = report if isinstance(report, dict) else {}
@@ -246,7 +247,7 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
         fig = _optional(what, lambda: build(report))
         if fig is not None:
             figures[key] = fig
-    matches = _optional("the weakest insertion's matches", lambda: _weakest_insertion(recon, report))
+    matches = _optional("the weakest insertion's matches", lambda: _weakest_insertion(recon, report, source))
     summary = _optional("the summary", lambda: _summary(dense, report)) or ""
     table = _optional("the per-image table", lambda: _table(recon, report)) or '<p class="note">no per-image report</p>'
     encoded = {key: _optional(f"figure {key!r}", lambda: _json_for_script(fig)) for key, fig in figures.items()}
@@ -301,17 +302,19 @@ def _plotly_js() -> str:
     return get_plotlyjs()
 
 
-def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None) -> Path:
+def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None,
+                      source: Any = None) -> Path:
     """Write ``out_dir/report.html``, one self-contained file (no network), atomically (a
     temporary file in out_dir replaces it). Returns its path.
 
     recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
-    dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given.
+    dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given;
+    source: a correspondence source (``match``) to draw the weakest insertion's matches with.
     A part that cannot be built is logged and left out; only an error writing the file raises.
     """
     path = Path(out_dir) / "report.html"
     text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}",
-                              dense=dense)
+                              dense=dense, source=source)
     write_text(path, text)
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
     return path

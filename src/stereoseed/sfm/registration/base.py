@@ -25,7 +25,7 @@ from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
-from stereoseed.sfm.correspondence import optional
+from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
@@ -125,18 +125,18 @@ class Registrar(Protocol):
     the view (None for the first): it returns that outcome or a better-founded one, and changes
     nothing in ``recon`` (the mapper commits). The mapper owns the order (:func:`stereoseed.sfm.mapper.registrars`)."""
 
-    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
-                 cfg: Config) -> Registration | RegistrationFailure: ...
+    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
+                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure: ...
 
 
 class SparseRegistrar:
     """Interest-point matches with the last registered view: the epipolar chain, checked against
     the motion prior's hypotheses (the camera explaining the most recent points wins)."""
 
-    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
-                 cfg: Config) -> Registration | RegistrationFailure:
+    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
+                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
         try:
-            return register_view(recon, k, cfg)
+            return register_view(recon, k, cfg, source)
         except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
             return RegistrationFailure(f"{recon.views[k].name}: numerical failure ({e}); skipped")
 
@@ -269,12 +269,15 @@ def _turned(source, cand: Candidate) -> Candidate:
     return Candidate(cand.index, cand.name, image, source.features(cand.index, image), not cand.rotated_180)
 
 
-def register_view(recon: Reconstruction, k: int, cfg: Config) -> Registration | RegistrationFailure:
-    """A camera for view k from the last registered view before it. Changes nothing in
+def register_view(recon: Reconstruction, k: int, cfg: Config,
+                  source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
+    """A camera for view k from the last registered view before it, from the correspondences of
+    ``source`` (default :class:`~stereoseed.sfm.correspondence.HarrisZncc`). Changes nothing in
     ``recon``."""
     cfg = cfg.resolve()
+    source = source or HarrisZncc(cfg)
     prev = recon.registered_before(k, 1)[0]
-    vp, view, source = recon.views[prev], recon.views[k], recon.source
+    vp, view = recon.views[prev], recon.views[k]
     moving = recon.views[1]
     if view.image_size != moving.image_size:
         (w, h), (w1, h1) = view.image_size, moving.image_size

@@ -50,7 +50,7 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
-from stereoseed.sfm.correspondence import optional
+from stereoseed.sfm.correspondence import CorrespondenceSource, optional
 from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, RegistrationFailure, Resector,
                                              consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
@@ -372,8 +372,9 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
     return found
 
 
-def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
-                         cfg: Config) -> tuple[Registration | str, QuasiDenseMatches | None]:
+def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg: Config,
+                         source: CorrespondenceSource | None = None
+                         ) -> tuple[Registration | str, QuasiDenseMatches | None]:
     """Steps 1-4 for candidate ``cand`` after the registered view ``prev``: (a
     :class:`Registration` (found_by "quasi-dense") or the reason, the propagated matches when
     they gave a robust F, else None). The previous pair's points do not depend on the
@@ -391,7 +392,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
             return np.vstack([_observed(recon, prev)[2], pair.xa])
 
         # grow_quasi_dense (keep_tracks) reads the pixels of points added after this: all refined
-        qd = _propagated_to_candidate(recon, prev, cand, cfg, None if cfg.quasi_dense.keep_tracks else chained_pixels)
+        qd = _propagated_to_candidate(recon, source, prev, cand, cfg,
+                                      None if cfg.quasi_dense.keep_tracks else chained_pixels)
         seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
         seconds["propagation"] -= waited
         if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
@@ -422,13 +424,13 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate,
                         quasi_dense=qd), qd
 
 
-def _propagated_to_candidate(recon: Reconstruction, prev: int, cand: Candidate, cfg: Config,
-                             chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
+def _propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource, prev: int, cand: Candidate,
+                             cfg: Config, chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
     """Steps 1-3: the seeds of (prev, cand) and their propagation (``chained_pixels``: as
     :func:`propagate_pair`'s)."""
     vp = recon.views[prev]
     t = time.perf_counter()
-    pair_cache = optional(recon.source, "pair_cache")  # a source without one computes afresh
+    pair_cache = optional(source, "pair_cache")  # a source without one computes afresh
     harris = localised_candidates(vp.features, cand.features, cfg,
                                   pair_cache(vp.features, cand.features) if pair_cache else None)
     sift = sift_seeds(vp.image, cand.image, cfg.quasi_dense.sift_ratio)
@@ -444,15 +446,15 @@ class QuasiDenseRegistrar:
     """Matches propagated from seeds between the last registered view and this one, tried when the
     sparse outcome is weak or failed (:func:`reconsider`)."""
 
-    def register(self, recon: Reconstruction, k: int, found: Registration | RegistrationFailure | None,
-                 cfg: Config) -> Registration | RegistrationFailure:
+    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
+                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
         if found is None:
             raise ValueError("the quasi-dense registrar reconsiders a sparse attempt; it cannot come first")
-        return reconsider(recon, k, found, cfg)
+        return reconsider(recon, k, found, cfg, source)
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
-               cfg: Config) -> Registration | RegistrationFailure:
+               cfg: Config, source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
     """The sparse attempt ``found`` for view k, or the quasi-dense one when the sparse chain is
     weak (fewer resection inliers than :func:`weak_chain_limit`, or none) and the quasi-dense
     camera rests on more inliers. Changes nothing in ``recon``; the choice is in ``notes``."""
@@ -468,7 +470,7 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     why_weak = (f"{sparse_inliers} sparse resection inliers < {limit}" if isinstance(found, Registration)
                 else found.reason)
     try:
-        attempt, qd = register_quasi_dense(recon, prev, cand, cfg)
+        attempt, qd = register_quasi_dense(recon, prev, cand, cfg, source)
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
         attempt, qd = f"{cand.name}: numerical failure of the quasi-dense registration ({e})", None
     notes = {"sparse_weak": why_weak}
