@@ -68,3 +68,19 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     assert found.camera.model == found.resection.info["model"] in (cfg.pipeline.camera_model, "fixed")
     with pytest.raises(ValueError, match="cannot come first"):
         QuasiDenseRegistrar().register(recon, source, 4, None, cfg)
+
+
+def test_a_failure_says_its_kind():
+    from stereoseed.sfm.registration.base import FailureKind
+
+    images, names, Ps, source = ring(6, blind=(3,))
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    insert_view(recon, 2, cfg, source)
+    report = insert_view(recon, 3, cfg, source)  # sees nothing: no match with the model's points
+    assert report["failure"] == FailureKind.TOO_FEW_MATCHES == "too few matches"
+    found = register_view(recon, 3, cfg.resolve(), source)
+    assert isinstance(found, RegistrationFailure) and found.kind is FailureKind.TOO_FEW_MATCHES
+    # an image of another size than the moving camera's
+    recon.views[4]._size = (100, 80)
+    assert register_view(recon, 4, cfg.resolve(), source).kind is FailureKind.IMAGE_SIZE

@@ -30,7 +30,7 @@ from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
-from stereoseed.sfm.registration.base import (FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
+from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
                                              consistent_chain)
 from stereoseed.sfm.trust import assess
 from stereoseed.sfm.view_store import view_of_input
@@ -149,7 +149,8 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
 def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
     view.status = f"failed: {reason}"
     log.info("%s", reason)
-    return {"image": view.name, "status": "failed", "reason": reason, "matches": found.matches,
+    failure = found.kind if isinstance(found, RegistrationFailure) else FailureKind.NUMERICAL
+    return {"image": view.name, "status": "failed", "reason": reason, "failure": failure, "matches": found.matches,
             "chained_points": found.chained_points, **found.notes,
             "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
 

@@ -29,9 +29,19 @@ from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, opti
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["FoundBy", "Registrar", "SparseRegistrar", "Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
+__all__ = ["FailureKind", "FoundBy", "Registrar", "SparseRegistrar", "Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
            "consistent_chain"]
 
+
+
+class FailureKind(StrEnum):
+    """Why no camera was found, for a program (the report's ``failure``)."""
+
+    IMAGE_SIZE = "image size"  # not the size of the calibrated moving camera's images
+    TOO_FEW_MATCHES = "too few matches"  # too few correspondences with reconstructed points
+    NO_CAMERA = "no consistent camera"  # the correspondences agree on no plausible camera
+    NUMERICAL = "numerical failure"  # a degenerate configuration the checks did not foresee
+    DISAGREES = "disagrees with the propagated matches"  # a weak camera the quasi-dense matches refute
 
 
 class FoundBy(StrEnum):
@@ -109,8 +119,9 @@ class Registration:
 
 @dataclass(frozen=True)
 class RegistrationFailure:
-    """Why an image could not be registered (``reason`` names the image); ``candidate``: the
-    image as matched, when it got that far (a second attempt can start from it)."""
+    """Why an image could not be registered: ``kind`` for a program, ``reason`` (naming the image)
+    for a user; ``candidate``: the image as matched, when it got that far (a second attempt can
+    start from it)."""
 
     reason: str
     matches: int = 0
@@ -118,6 +129,7 @@ class RegistrationFailure:
     seconds: dict[str, float] = field(default_factory=dict)
     candidate: Candidate | None = None
     notes: dict[str, Any] = field(default_factory=dict)
+    kind: FailureKind = FailureKind.NO_CAMERA
 
 
 class Registrar(Protocol):
@@ -138,7 +150,16 @@ class SparseRegistrar:
         try:
             return register_view(recon, k, cfg, source)
         except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
-            return RegistrationFailure(f"{recon.views[k].name}: numerical failure ({e}); skipped")
+            return RegistrationFailure(f"{recon.views[k].name}: numerical failure ({e}); skipped",
+                                       kind=FailureKind.NUMERICAL)
+
+
+@dataclass(frozen=True)
+class _Failed:
+    """No camera from these correspondences: why, for a user and for a program."""
+
+    reason: str
+    kind: FailureKind
 
 
 @dataclass(frozen=True)
@@ -282,7 +303,8 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
     if view.image_size != moving.image_size:
         (w, h), (w1, h1) = view.image_size, moving.image_size
         return RegistrationFailure(f"{view.name}: {w}x{h} pixels, but the calibrated moving camera's images are "
-                                   f"{w1}x{h1}; give images of that size (its intrinsics are in pixels of that size)")
+                                   f"{w1}x{h1}; give images of that size (its intrinsics are in pixels of that size)",
+                                   kind=FailureKind.IMAGE_SIZE)
     seconds = {}
     t = time.perf_counter()
     cand = Candidate(k, view.name, view.image, source.features(k, view.image), view.rotated_180)
@@ -305,15 +327,15 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
                     m.score[chained], cfg)
     seconds["resection"] = time.perf_counter() - t
     n_matches, n_chained = len(m), int(chained.sum())
-    if isinstance(found, str):
-        return RegistrationFailure(found, n_matches, n_chained, seconds, cand)
+    if isinstance(found, _Failed):
+        return RegistrationFailure(found.reason, n_matches, n_chained, seconds, cand, kind=found.kind)
     notes = {"flag": found.flag} if found.flag else {}
     return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
                         seconds, notes=notes)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
-            cfg: Config) -> _Resected | str:
+            cfg: Config) -> _Resected | _Failed:
     """The camera of ``cand`` from its chained 3D-2D correspondences (points3d (N, 3),
     points2d (N, 2), ZNCC scores (N,)), or the reason there is none.
 
@@ -362,5 +384,8 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
         flag = f"ambiguous: repeated structure ({rival})" if rival is not None else None
         return _Resected(*chosen[0], found_by, chosen[1], flag)
-    return error or (f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
-                     f"{cfg.registration.min_chained_points}); the view is too far from {recon.views[prev].name} or too poorly textured")
+    if error:
+        return _Failed(error, FailureKind.NO_CAMERA)
+    return _Failed(f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
+                   f"{cfg.registration.min_chained_points}); the view is too far from {recon.views[prev].name} or too "
+                   f"poorly textured", FailureKind.TOO_FEW_MATCHES)

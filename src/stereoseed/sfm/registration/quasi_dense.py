@@ -51,7 +51,7 @@ from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
 from stereoseed.sfm.correspondence import CorrespondenceSource, optional
-from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, RegistrationFailure, Resector,
+from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure, Resector,
                                              consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.geometry.models import CameraModel
@@ -513,7 +513,7 @@ def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, 
               f"{agrees:.2f} px, to the robust F's {floor:.2f} px)")
     log.info("%s", reason)
     return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                               notes={**found.notes, "sparse_refused": reason})
+                               notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.DISAGREES)
 
 
 def _grid_features(view_features: Features, xy: np.ndarray, patch_size: int) -> Features:
