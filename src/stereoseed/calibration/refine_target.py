@@ -139,8 +139,9 @@ class _Layout:
 def _compose(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """second o first as a 6-vector, and its 6x6 derivatives with respect to first and second."""
     r, t, dr1, dt1_r, dr2, dt2_r, dtr1, dtt1, dtr2, dtt2 = cv2.composeRT(first[:3], first[3:], second[:3], second[3:])
-    d_first = np.block([[dr1, dt1_r], [dtr1, dtt1]])
-    d_second = np.block([[dr2, dt2_r], [dtr2, dtt2]])
+    d_first, d_second = np.empty((6, 6)), np.empty((6, 6))
+    d_first[:3, :3], d_first[:3, 3:], d_first[3:, :3], d_first[3:, 3:] = dr1, dt1_r, dtr1, dtt1
+    d_second[:3, :3], d_second[:3, 3:], d_second[3:, :3], d_second[3:, 3:] = dr2, dt2_r, dtr2, dtt2
     return np.concatenate([r.ravel(), t.ravel()]), d_first, d_second
 
 
@@ -235,7 +236,7 @@ def projections(problem: Problem, state: State) -> list[np.ndarray]:
 
 
 def solve(problem: Problem, state: State, huber_px: float, max_iterations: int = 100,
-          tolerance: float = 1e-10) -> Solution:
+          tolerance: float = 1e-8) -> Solution:
     """Levenberg-Marquardt (Marquardt's scaling of the diagonal) from ``state`` on the Huber cost
     with threshold ``huber_px`` (in each corner's sigmas: pixels for a corner of sigma 1).
     Converged when a step lowers the cost by less than ``tolerance`` of it."""

@@ -164,12 +164,17 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
     views = [[ViewResult(d.name, c, d, d.problem()) for d in dets] for c, dets in enumerate(detections)]
     _check_views(views, pair, labels)
     flat = [flat_stage(target, views[c], known[c], k3, cfg, labels[c], pair) for c in range(C)]
-    problem, sol, shots = _solve_all(target, views, flat, rig, rigid_target, known, k3, cfg, pair)
+    # step 3 with every view on its own; the intrinsics checked against step 2's; a rig from there
+    problem, sol, shots = _solve_all(target, views, flat, False, rigid_target, known, k3, cfg, pair)
     tests = _consistency(problem, sol, flat, cfg)
     held = [c for c, test in enumerate(tests) if test is not None and test[0] > test[1]]
+    fixed = [(flat[c][0], flat[c][1]) if c in held else known[c] for c in range(C)]
     if held:
-        fixed = [(flat[c][0], flat[c][1]) if c in held else known[c] for c in range(C)]
-        problem, sol, shots = _solve_all(target, views, flat, rig, rigid_target, fixed, k3, cfg, pair)
+        problem, sol, shots = _solve_all(target, views, flat, False, rigid_target, fixed, k3, cfg, pair)
+    if rig:
+        prior = (_view_poses(problem, sol, shots), sol.state.faces)
+        start = [(sol.state.K[c], sol.state.lens[c], *flat[c][2:]) for c in range(C)]
+        problem, sol, shots = _solve_all(target, views, start, True, rigid_target, fixed, k3, cfg, pair, prior)
     cal = _results(target, views, problem, sol, shots, rig, rigid_target, known, cfg, labels, leave_one_out, pair)
     for c, test in enumerate(tests):
         cal.cameras[c].consistency, cal.cameras[c].from_faces = test, c in held
@@ -181,9 +186,10 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
 
 
 def _solve_all(target: Target, views: list[list[ViewResult]], flat: list[tuple], rig: bool, rigid: bool, known: list,
-               k3: bool, cfg: CalibrationConfig, pair: bool) -> tuple[Problem, Solution, list]:
-    """Step 3: the joint fit, then again without the views it does not explain, until none is left."""
-    problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3)
+               k3: bool, cfg: CalibrationConfig, pair: bool, prior: tuple | None = None) -> tuple[Problem, Solution, list]:
+    """Step 3: the joint fit, then again without the views it does not explain, until none is left.
+    A rig starts from ``prior``, its cameras fitted as independent views (:func:`joint_problem`)."""
+    problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3, prior)
     sol = fit(problem, state, cfg)
     while True:
         per_view = {k: rms(e) for k, e in view_errors(problem, sol).items()}
@@ -197,9 +203,32 @@ def _solve_all(target: Target, views: list[list[ViewResult]], flat: list[tuple],
             views[c][i].reason = (
                 f"its corners reproject at {per_view[k]:.1f} px while the views reproject at {median:.2f} px (median): "
                 "another camera's image, a moved lens, or a target that moved between the rig's two exposures")
-        problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3)
+        problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3, prior)
         state.K, state.lens, state.rig = sol.state.K, sol.state.lens, sol.state.rig
         sol = fit(problem, state, cfg)
+
+
+def _view_poses(problem: Problem, sol: Solution, shots: list) -> dict[tuple[int, int], np.ndarray]:
+    """Each view's pose (camera from the target's frame, 6-vector) in a solution."""
+    out = {}
+    for s, members in enumerate(shots):
+        for c, i in members:
+            pose = rt.compose(sol.state.rig[c], sol.state.shots[s])
+            if problem.local[s]:
+                face = next(g.face for g in problem.groups if g.shot == s)
+                pose = rt.compose(pose, rt.inverse(sol.state.faces[face]))
+            out[c, i] = pose
+    return out
+
+
+def chi2_quantile_4(p: float) -> float:
+    """The p-quantile of the chi-square distribution with 4 degrees of freedom, whose CDF is
+    1 - exp(-x / 2) (1 + x / 2): bisection to 1e-9 (18.467 at 0.999)."""
+    low, high = 0.0, 1000.0
+    while high - low > 1e-9 * max(high, 1.0):
+        x = (low + high) / 2
+        low, high = (x, high) if 1 - np.exp(-x / 2) * (1 + x / 2) < p else (low, x)
+    return (low + high) / 2
 
 
 def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: CalibrationConfig
@@ -207,9 +236,7 @@ def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: Calibr
     """Per camera whose intrinsics were estimated, the chi-square of the whole model's fx, fy, cx,
     cy against its faces' one by one (step 2) over step 2's covariance, and the limit
     (cfg.consistency_quantile of chi-square with 4 degrees of freedom)."""
-    from scipy.stats import chi2  # here: only a calibration needs it
-
-    limit = float(chi2.ppf(cfg.consistency_quantile, 4))
+    limit = chi2_quantile_4(cfg.consistency_quantile)
     out: list[tuple[float, float] | None] = []
     for c in range(problem.n_cameras):
         cov = flat[c][3]

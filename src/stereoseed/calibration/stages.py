@@ -205,7 +205,12 @@ def _shots(views: list[list[ViewResult]], rig: bool) -> list[list[tuple[int, int
 
 
 def joint_problem(target: Target, views: list[list[ViewResult]], flat: list[tuple], rig: bool, rigid: bool,
-                   known: list, k3: bool) -> tuple[Problem, State, list[list[tuple[int, int]]]]:
+                  known: list, k3: bool, prior: tuple[dict, np.ndarray] | None = None
+                  ) -> tuple[Problem, State, list[list[tuple[int, int]]]]:
+    """The model of step 3 and its start: step 2's intrinsics, and each view's pose from its
+    largest face's (step 2), or from ``prior`` = (each view's pose in the target's frame, the
+    faces' poses): a rig starts from its cameras' fit as independent views, where one pose per
+    view averages over every face it saw."""
     C, F = len(views), len(target.faces)
     shots = [s for s in _shots(views, rig) if s]
     faces_of = [set().union(*({f for f, _ in face_groups(views[c][i].detection)} for c, i in s)) for s in shots]
@@ -220,6 +225,9 @@ def joint_problem(target: Target, views: list[list[ViewResult]], flat: list[tupl
             pose = next((flat[c][2][(i, f)] for f, _ in ranked if (i, f) in flat[c][2]), None)
             if pose is not None:
                 start[c, i] = pose
+    faces = np.zeros((F, 6))
+    if prior is not None:
+        start, faces = {k: v for k, v in prior[0].items() if k in start}, prior[1].copy()
     rig_poses = np.zeros((C, 6))
     if rig:
         for c in range(1, C):
@@ -232,14 +240,17 @@ def joint_problem(target: Target, views: list[list[ViewResult]], flat: list[tupl
     shot_poses, groups = [], []
     for s_index, s in enumerate(shots):
         c, i = next(((c, i) for c, i in s if (c, i) in start), s[0])
-        shot_poses.append(rt.compose(rt.inverse(rig_poses[c]), start[c, i]))
+        pose = rt.compose(rt.inverse(rig_poses[c]), start[c, i])
+        if prior is not None and local[s_index]:  # a pose in the target's frame, the shot's from its face's
+            pose = rt.compose(pose, faces[next(iter(faces_of[s_index]))])
+        shot_poses.append(pose)
         for c, i in s:
             det = views[c][i].detection
             for f, idx in face_groups(det):
                 groups.append(_group(c, s_index, f, view_key(c, i), det, idx))
     problem = Problem(groups, C, F, len(shots), local, free_faces, np.array([k is None for k in known]),
                       np.array([rig and c > 0 for c in range(C)]), 5 if k3 else 4)
-    state = State(np.array([fl[0] for fl in flat]), np.array([fl[1] for fl in flat]), rig_poses, np.zeros((F, 6)),
+    state = State(np.array([fl[0] for fl in flat]), np.array([fl[1] for fl in flat]), rig_poses, faces,
                   np.array(shot_poses))
     return problem, state, shots
 
@@ -258,10 +269,13 @@ def fit(problem: Problem, state: State, cfg: CalibrationConfig) -> Solution:
     """The model fitted with the faces at their nominal pose and, where faces could move
     (``problem.free_faces``), with them free; the free fit is kept when its BIC is lower by
     cfg.refine_evidence_bic (else the faces are fixed again in ``problem``). Both start from
-    ``state``, which never depends on the nominal geometry's errors (step 2)."""
+    ``state`` (the nominal fit with its faces at their nominal pose), which never depends on the
+    nominal geometry's errors (step 2)."""
     free = problem.free_faces.copy()
     problem.free_faces = np.zeros_like(free)
-    nominal = _robust_solve(problem, state, cfg)
+    at_nominal = state.copy()
+    at_nominal.faces[:] = 0.0  # a start may hold faces found before (a rig's): nominal means nominal
+    nominal = _robust_solve(problem, at_nominal, cfg)
     if not free.any():
         return nominal
     problem.free_faces = free

@@ -158,11 +158,21 @@ def _calibrate_from_target(args: argparse.Namespace) -> dict:
     target = load_target(args.target)
     out = Path(args.output)
     labels = ["camera 1", "camera 2"]
+    lens = [list(args.lens_images1 or []), list(args.lens_images2 or [])]
+    if args.rig and len(lens[0]) != len(lens[1]):
+        raise StereoseedError(f"--rig: {len(lens[0])} photos in --lens-images1 but {len(lens[1])} in --lens-images2; "
+                              "the rig's photos go in pairs, taken together, in the same order")
+    # the pair's photos may be among the lens photos (all of a rig's shots given): each is used once;
+    # a rig's shots stay paired, so a shot holding a pair photo is dropped for both cameras
+    same = [[Path(p).resolve() == Path(args.inputs[c]).resolve() for p in lens[c]] for c in (0, 1)]
+    if args.rig:
+        keep = [not (a or b) for a, b in zip(*same)]
+        lens = [[p for p, k in zip(lens[c], keep) if k] for c in (0, 1)]
+    else:
+        lens = [[p for p, dup in zip(lens[c], same[c]) if not dup] for c in (0, 1)]
     detections, known = [], []
-    for c, (image, more, intrinsics) in enumerate(((args.inputs[0], args.lens_images1, args.intrinsics1),
-                                                   (args.inputs[1], args.lens_images2, args.intrinsics2))):
-        paths = [image] + [p for p in (more or []) if Path(p).resolve() != Path(image).resolve()]
-        detections.append(_detect_all(target, paths))
+    for c, intrinsics in enumerate((args.intrinsics1, args.intrinsics2)):
+        detections.append(_detect_all(target, [args.inputs[c]] + lens[c]))
         known.append(_known(intrinsics, labels[c], detections[-1][0].image_size))
     if not args.rig and args.lens_images1 and args.lens_images2 and len(detections[0]) == len(detections[1]):
         print("note: as many lens photos for both cameras; if each pair was taken together by the fixed pair, --rig "
