@@ -26,7 +26,7 @@ from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
-from stereoseed.sfm.modes import mode_of
+from stereoseed.sfm.modes import Mode, mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
@@ -225,6 +225,11 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
         report["ba_intrinsics"] = "calibrated (no zoom found yet)"
     if cfg.pipeline.ba == "global":
         ba = ba_report(adjust(recon, ba_cfg, free_views=recon.registered_views))
+    elif _first_zoom(recon, k, cfg):
+        ba, report["zoom_evidence"] = _zoom_judged_by_the_window(recon, mode, prev, k, ids, chain_points, cfg)
+        if not report["zoom_evidence"]["kept"]:
+            view.zoomed = False
+            report["ba_intrinsics"] = "calibrated (the resection's zoom did not pay for itself in the window's BA)"
     else:
         ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
     timing["bundle"] = time.perf_counter() - t
@@ -233,6 +238,47 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
     report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
+
+
+def _first_zoom(recon: Reconstruction, k: int, cfg: Config) -> bool:
+    """Whether view k is the first whose resection took a zoom while the run holds the calibrated
+    intrinsics (accurate mode, "focal" model, ``hold_unzoomed``)."""
+    pc = cfg.pipeline
+    return (pc.hold_unzoomed and pc.camera_model == CameraModel.FOCAL and recon.views[k].zoomed
+            and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1 and v != k))
+
+
+def _zoom_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,
+                               chain_points: np.ndarray, cfg: Config) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The window's BA with the calibrated intrinsics held and with a focal length per free view,
+    from the same start, compared by BIC over the window's observations (a focal length more per
+    free view) with the resections' margin ``ResectionConfig.zoom_evidence_bic``. A resection
+    judges a zoom on its 3D points as if they were exact; a narrow view of weak texture lets their
+    errors pass for a 1 % zoom, which then frees every later focal length and lets the walk drift
+    along the optical axes (dinoRing1-24: centimetres). Here the points move with the cameras.
+    The model is left with the BA the evidence chose. -> (that BA's report, the evidence)."""
+    window = recon.registered_views[-cfg.pipeline.window:]
+    sel = np.isin(recon.obs_view, window)
+    start = recon.checkpoint()
+    held_cfg = cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
+    ba_held = mode.local_adjust(recon, prev, k, ids, chain_points, held_cfg)
+    rss_held = _window_rss(recon, sel)
+    held = recon.checkpoint()
+    recon.restore(start)
+    ba_zoom = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
+    rss_zoom = _window_rss(recon, sel)
+    n = 2 * int(np.sum(sel & recon.alive[recon.obs_point]))
+    free = len([v for v in window if v > 1])
+    evidence = (n * np.log(rss_held / rss_zoom) - free * np.log(n)) if n and rss_zoom > 0 else -np.inf
+    kept = bool(evidence > cfg.resection.zoom_evidence_bic)
+    if not kept:
+        recon.restore(held)
+    return (ba_zoom if kept else ba_held), {"bic_for_the_zoom": float(evidence), "kept": kept}
+
+
+def _window_rss(recon: Reconstruction, sel: np.ndarray) -> float:
+    err = recon.observation_errors()[sel & recon.alive[recon.obs_point]]
+    return float(np.sum(err ** 2))
 
 
 def finish(recon: Reconstruction, cfg: Config = Config(), source: CorrespondenceSource | None = None) -> dict[str, Any]:
