@@ -51,8 +51,9 @@ class CalibrationConfig:
     # two fits' fx, fy, cx, cy differ by more than chance allows (chi-square with 4 degrees of
     # freedom over the one-by-one fit's covariance, beyond its 0.999 quantile), the target is
     # not the rigid body the model assumes (a face bent, the cube flexed) and that camera keeps
-    # the one-by-one intrinsics (a Hausman-style specification test).
-    consistency_quantile: float = 0.999
+    # the one-by-one intrinsics (a Hausman-style specification test). None: no test, the whole
+    # model's intrinsics whatever they are.
+    consistency_quantile: float | None = 0.999
     max_iterations: int = 200
 
     # --- what the user is told (not fatal unless max_rms_px is given) ---
@@ -66,7 +67,8 @@ class CalibrationConfig:
                  "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views",
                  "refine_evidence_bic")
         in_range(self, "principal_point_region", 0.0, 1.0)
-        in_range(self, "consistency_quantile", 0.5, 1.0)
+        if self.consistency_quantile is not None:
+            in_range(self, "consistency_quantile", 0.5, 0.999999)
         if self.max_rms_px is not None and not self.max_rms_px > 0:
             raise ValueError(f"CalibrationConfig.max_rms_px must be > 0 or None, got {self.max_rms_px!r}")
 

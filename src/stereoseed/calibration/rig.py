@@ -1,16 +1,23 @@
 """One or more cameras calibrated from their views of a target: each camera's K and lens, every
 view's pose, the target's faces where they really are, and a fixed stereo rig's relative pose.
 
-How (each step's reason in its function):
+How (the fitting itself in :mod:`stereoseed.calibration.stages`, each step's reason there):
 
 1. Views that cannot be used are set aside with their reason (no target, too few corners, a
-   view that disagrees with the camera's others); the calibration goes on while enough remain.
-2. Each camera on its own, every face of every view taken as a flat board (:func:`_flat_stage`):
+   view of another size; later, a view that disagrees with the others); the calibration goes on
+   while enough remain.
+2. Each camera on its own, every face of every view taken as a flat board (``flat_stage``):
    Zhang's closed form (:mod:`stereoseed.calibration.intrinsics`), then a fit of the intrinsics,
    the lens and a pose per board. Nothing here depends on how the faces were assembled.
-3. Everything together (:mod:`stereoseed.calibration.refine_target`): the cameras, every shot's
-   pose, each face's pose on the target (unless ``rigid_target``), the rig's relative pose.
-4. Each camera is checked to be a physical one (:func:`stereoseed.calibration.config.camera_problems`).
+3. Everything together (:mod:`stereoseed.calibration.refine_target`): the cameras, every view's
+   pose, each face's pose on the target where the photos show it off its nominal place (BIC;
+   never with ``rigid_target``).
+4. Each camera's intrinsics from 3 are checked against 2's (:func:`_consistency`): a target that
+   is not the rigid body 3 assumes biases them, and that camera keeps 2's; 3 again.
+5. A rig: one relative pose for all the shots the cameras took together, from 3's poses; its
+   leave-one-shot-out spread.
+6. Each camera is checked to be a physical one (:func:`stereoseed.calibration.config.camera_problems`),
+   its RMS judged (a warning, or refused above ``CalibrationConfig.max_rms_px``).
 
 The target's frame is face 0's nominal frame (or, for faces never seen together with face 0,
 their own group's lowest face's): the cameras come out in the target's unit (mm).
@@ -130,11 +137,13 @@ def _check_views(views: list[list[ViewResult]], pair: bool, labels: list[str]) -
     """Set aside views of another size or given twice; refuse when the pair's own view is not
     usable (it is the camera the sequence starts from)."""
     for c, cam in enumerate(views):
-        size, seen = cam[0].detection.image_size, {}
+        # the size of the pair's photo, or else of the first photo showing the target
+        first = cam[0] if pair else next((v for v in cam if v.used), cam[0])
+        size, seen = first.detection.image_size, {}
         for i, v in enumerate(cam):
             if v.used and v.detection.image_size != size:
                 w, h = v.detection.image_size
-                v.reason = f"{w}x{h} pixels, but {cam[0].name} is {size[0]}x{size[1]}: not this camera's image"
+                v.reason = f"{w}x{h} pixels, but {first.name} is {size[0]}x{size[1]}: not this camera's image"
             elif v.used and v.name in seen:
                 v.reason = f"the same image as view {seen[v.name] + 1} of {labels[c]}"
             seen.setdefault(v.name, i)
@@ -236,6 +245,8 @@ def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: Calibr
     """Per camera whose intrinsics were estimated, the chi-square of the whole model's fx, fy, cx,
     cy against its faces' one by one (step 2) over step 2's covariance, and the limit
     (cfg.consistency_quantile of chi-square with 4 degrees of freedom)."""
+    if cfg.consistency_quantile is None:
+        return [None] * problem.n_cameras
     limit = chi2_quantile_4(cfg.consistency_quantile)
     out: list[tuple[float, float] | None] = []
     for c in range(problem.n_cameras):
@@ -277,7 +288,7 @@ def _results(target: Target, views: list[list[ViewResult]], problem: Problem, so
     for c, cam in enumerate(views):
         used = [v for v in cam if v.used]
         errors = np.concatenate([np.linalg.norm(v.reprojected - v.detection.pixels, axis=1) for v in used])
-        size = cam[0].detection.image_size
+        size = used[0].detection.image_size
         result = CameraResult(state.K[c].copy(), state.lens[c].copy(), size, float(np.sqrt(np.mean(errors ** 2))),
                               len(errors), _coverage(cam, size), cam, known[c] is not None)
         if known[c] is None:

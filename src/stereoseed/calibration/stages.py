@@ -112,7 +112,7 @@ def flat_stage(target: Target, views: list[ViewResult], known: tuple | None, k3:
     the camera, and the covariance of fx, fy, cx, cy (None when given). Views that disagree with
     the others are marked unused (never the first when ``keep_first``: the pair's view, judged
     by the whole calibration)."""
-    size = views[0].detection.image_size
+    size = next(v.detection.image_size for v in views if v.used)
     K = None if known is None else known[0]
     lens = np.zeros(5) if known is None else known[1]
     boards = []  # (view index, face, corner indices, homography or None)
