@@ -212,9 +212,9 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     paths = _image_list(args.images)
     detections = _detect_all(target, [str(p) for p in paths])
     cal = calibrate_cameras(target, [detections], rigid_target=args.rigid_target, k3=args.k3, cfg=cfg, pair=False,
-                            labels=["the camera"])
-    _report_views(cal, ["the camera"], None)
-    _report_cameras(cal, ["the camera"])
+                            labels=["camera"])
+    _report_views(cal, ["camera"], None)
+    _report_cameras(cal, ["camera"])
     cam = cal.cameras[0]
     write_opencv_camera(out, cam.K, cam.lens, cam.image_size, cam.rms_px,
                         [(v.name, v.rms_px) for v in cam.views if v.used])
