@@ -182,7 +182,7 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
         problem, sol, shots = _solve_all(target, views, flat, False, rigid_target, fixed, k3, cfg, pair)
     if rig:
         prior = (_view_poses(problem, sol, shots), sol.state.faces)
-        start = [(sol.state.K[c], sol.state.lens[c], *flat[c][2:]) for c in range(C)]
+        start = [(sol.state.K[c], sol.state.lens[c], *flat[c][2:]) for c in range(C)]  # the poses, cov, lens terms
         problem, sol, shots = _solve_all(target, views, start, True, rigid_target, fixed, k3, cfg, pair, prior)
     cal = _results(target, views, problem, sol, shots, rig, rigid_target, known, cfg, labels, leave_one_out, pair)
     for c, test in enumerate(tests):
@@ -251,7 +251,9 @@ def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: Calibr
     out: list[tuple[float, float] | None] = []
     for c in range(problem.n_cameras):
         cov = flat[c][3]
-        if cov is None or not problem.free_intrinsics[c]:
+        # the test holds only between the same camera models: step 2 with too few boards for a
+        # lens fits none, and its intrinsics then carry the lens's error, not the target's
+        if cov is None or not problem.free_intrinsics[c] or flat[c][4] != problem.n_lens:
             out.append(None)
             continue
         K0, K1 = flat[c][0], sol.state.K[c]
