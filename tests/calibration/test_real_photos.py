@@ -120,8 +120,9 @@ def test_the_rig_from_twelve_shots_against_opencvs_stereo_calibration(cube):
 
 def test_the_flat_board_against_opencv_on_the_same_corners(flat):
     """22 views, four without a board in view and some defocused: the empty ones skipped with the
-    reason, the defocused ones keeping OpenCV's corners (cal13 holds at least 15, most at OpenCV's position); the RMS
-    within 1.05 times OpenCV's calibrateCamera on the corners used and f within 1 % of it."""
+    reason, the defocused ones keeping OpenCV's corners (cal13 holds at least 15, most at
+    OpenCV's position); the RMS within 1.05 times OpenCV's calibrateCamera on the corners used
+    and f within 1 % of it."""
     paths, target, detections = flat
     blurred = detections[12]  # cal13.jpg
     assert len(blurred) >= 15 and sum(blurred.unrefined) >= 10
