@@ -5,20 +5,13 @@ from pathlib import Path
 
 import pytest
 
-from conftest import shared_data_dir
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_real  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _data_where_the_tests_find_it(monkeypatch):
-    monkeypatch.setenv("STEREOSEED_DATA", str(shared_data_dir()))
-
-
 def _run(name):
     folder = bench_real.SETS[name][0]
-    if not (shared_data_dir() / folder).is_dir():
+    if not (bench_real.data_dir() / folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
         pytest.skip(f"../shared/data/{folder} not found; set STEREOSEED_DATA to the folder holding it")
     return bench_real.run_set(name)
 
