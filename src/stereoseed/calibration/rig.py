@@ -34,30 +34,14 @@ from stereoseed.calibration import poses as rt
 from stereoseed.calibration.config import CalibrationConfig, camera_problems
 from stereoseed.calibration.detection import Detection
 from stereoseed.calibration.refine_target import Problem, Solution, leave_one_out, projections
-from stereoseed.calibration.stages import fit, flat_stage, joint_problem, rms, view_errors, view_key, view_of
+from stereoseed.calibration.stages import (ViewResult, fit, flat_stage, joint_problem, rms, view_errors, view_key,
+                                          view_of)
 from stereoseed.calibration.target import Target
 from stereoseed.errors import StereoseedError
 
 log = logging.getLogger(__name__)
 
 __all__ = ["ViewResult", "CameraResult", "RigResult", "Calibration", "calibrate_cameras", "camera_entry", "calibration_json"]
-
-
-@dataclass
-class ViewResult:
-    """One photo: where its camera was (R, t: camera from target, mm), how well it fits."""
-    name: str
-    camera: int
-    detection: Detection
-    reason: str | None = None  # why it was not used (None: used)
-    R: np.ndarray | None = None
-    t: np.ndarray | None = None
-    rms_px: float = float("nan")
-    reprojected: np.ndarray | None = None  # (N, 2) where the calibrated camera puts each corner
-
-    @property
-    def used(self) -> bool:
-        return self.reason is None
 
 
 @dataclass

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+
 
 import cv2
 import numpy as np
@@ -21,12 +21,26 @@ from stereoseed.calibration.refine_target import (Group, Problem, State, Solutio
 from stereoseed.calibration.target import Target
 from stereoseed.errors import StereoseedError
 
-if TYPE_CHECKING:
-    from stereoseed.calibration.rig import ViewResult
-
 log = logging.getLogger(__name__)
 
-__all__ = ["flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
+__all__ = ["ViewResult", "flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
+
+
+@dataclass
+class ViewResult:
+    """One photo: where its camera was (R, t: camera from target, mm), how well it fits."""
+    name: str
+    camera: int
+    detection: Detection
+    reason: str | None = None  # why it was not used (None: used)
+    R: np.ndarray | None = None
+    t: np.ndarray | None = None
+    rms_px: float = float("nan")
+    reprojected: np.ndarray | None = None  # (N, 2) where the calibrated camera puts each corner
+
+    @property
+    def used(self) -> bool:
+        return self.reason is None
 
 
 _VIEWS = 100000  # views per camera the keys leave room for
