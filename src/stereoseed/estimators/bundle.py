@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from stereoseed.geometry import models as camera_models
+from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.config import BundleConfig
 from stereoseed.estimators.robust import huber_cost_of_norms
 from stereoseed.threads import current_chunks, map_chunks
@@ -52,6 +53,7 @@ class BundleProblem:
     obs_xy: np.ndarray
     model: str = "free"
     reference_K: np.ndarray | None = None
+    cameras: list | None = None  # the Camera of each row of Ps (its K, R, t decomposed once), or None
 
 
 @dataclass
@@ -334,7 +336,9 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     n = camera_models.n_params(model) if len(free_cams) else 0
     cam_slot = np.full(len(Ps), -1, dtype=np.int64)
     cam_slot[free_cams] = np.arange(len(free_cams))
-    params = np.array([camera_models.params_from_projection(Ps[c], model, ref_K(c))[0] for c in free_cams]
+    # a camera's decomposition comes from its Camera, made once per camera value (not per BA)
+    cams = problem.cameras if problem.cameras is not None else [Camera(P) for P in Ps]
+    params = np.array([camera_models.params_from_decomposition(*cams[c].krt, model, ref_K(c)) for c in free_cams]
                       ).reshape(len(free_cams), n)
     free_ref_K = ref_Ks if ref_Ks is None or ref_Ks.ndim == 2 else ref_Ks[free_cams]
     if len(free_cams):  # start from the model's closest camera

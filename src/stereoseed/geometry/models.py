@@ -92,13 +92,19 @@ def params_from_krt(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: str,
 def params_from_projection(P: np.ndarray, model: str, reference_K: np.ndarray | None = None
                            ) -> tuple[np.ndarray, np.ndarray | None]:
     """(params, reference_K) for P (3, 4); a constrained model takes the closest K of its family."""
-    K, R, t = decompose_projection(P)
+    return params_from_decomposition(*decompose_projection(P), model, reference_K), reference_K
+
+
+def params_from_decomposition(K: np.ndarray, R: np.ndarray, t: np.ndarray, model: str,
+                              reference_K: np.ndarray | None = None) -> np.ndarray:
+    """The parameters of the camera K [R | t] (P's decomposition) under ``model``: a constrained
+    model takes the closest K of its family and keeps the camera centre."""
     if model != CameraModel.FREE:
         # Re-express t for the constrained K so the camera centre is kept: t = -R C.
         C = -R.T @ t
         Kc = K_from_intrinsics(_intrinsics_from_K(K, model, reference_K), model, reference_K)
-        return params_from_krt(Kc, R, -R @ C, model, reference_K), reference_K
-    return params_from_krt(K, R, t, model, reference_K), reference_K
+        return params_from_krt(Kc, R, -R @ C, model, reference_K)
+    return params_from_krt(K, R, t, model, reference_K)
 
 
 def rotation_from_vector(rvec: np.ndarray) -> np.ndarray:

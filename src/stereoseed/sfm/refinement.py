@@ -62,6 +62,7 @@ def bundle_problem(recon: Reconstruction, cfg: Config, free_views: list[int], fr
         obs_xy=recon.observation_xy(involved),
         model=model,
         reference_K=np.stack([recon.reference_K(v) for v in cams]),
+        cameras=[recon.views[v].camera for v in cams],
     )
     return problem, cams, pts
 
