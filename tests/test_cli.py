@@ -122,3 +122,13 @@ def test_a_first_run_says_it_compiles_the_kernels_first(tmp_path, capsys, monkey
     assert err[0].startswith("stereoseed: first run on this installation: compiling the Numba kernels")
     assert main(args + ["--quiet"]) != 0
     assert "compiling" not in capsys.readouterr().err
+
+
+def test_the_demo_takes_the_result_folders_lock(tmp_path, capsys):
+    from stereoseed.output.result_set import ResultSet
+
+    out = tmp_path / "demo"
+    with ResultSet(out):  # as another run writing there
+        assert main(["demo", "--images", "4", "--sparse", "--out", str(out)]) == 2
+    assert "another stereoseed run is writing" in capsys.readouterr().err
+    assert not out.exists() or not any(out.iterdir())

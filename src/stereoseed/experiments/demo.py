@@ -25,15 +25,15 @@ log = logging.getLogger(__name__)
 
 def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = True,
              say: Callable[[str], None] = log.info) -> int:
-    results = ResultSet(out)
-    results.check()
-    staging = results.open()
-    try:
-        code = _run(staging, out, n_images, noise, dense, say)
-        results.commit()
-    except BaseException:
-        results.abandon()
-        raise
+    with ResultSet(out) as results:  # one run per result folder: a second one is refused at once
+        results.check()
+        staging = results.open()
+        try:
+            code = _run(staging, out, n_images, noise, dense, say)
+            results.commit()
+        except BaseException:
+            results.abandon()
+            raise
     return code
 
 
