@@ -343,3 +343,17 @@ def test_a_scheduler_address_where_something_else_listens_fails_within_the_conne
     assert took < 2 + 3, f"{took:.1f} s"  # measured 2.5-2.9 s
     print(f"{listener}: refused after {took:.2f} s")
     assert not (tmp_path / "o").exists()
+
+
+def test_a_job_the_dask_cluster_gave_up_is_one_line():
+    distributed = pytest.importorskip("distributed")
+    from stereoseed.cluster import _OnCluster
+    from stereoseed.errors import StereoseedError
+
+    class GivenUp:  # a Dask future whose job killed its worker each time it ran
+        def result(self):
+            raise distributed.KilledWorker("_run_pair-3", "tcp://127.0.0.1:1")
+
+    with pytest.raises(StereoseedError, match="gave a job up") as e:
+        _OnCluster(GivenUp(), "tcp://10.0.0.1:8786").result()
+    assert "\n" not in str(e.value) and "tcp://10.0.0.1:8786" in str(e.value)

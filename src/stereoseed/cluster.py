@@ -81,6 +81,23 @@ class JobPool:
             yield in_flight.popleft()
 
 
+class _OnCluster:
+    """A Dask future whose ``result()`` says in one line when the cluster gave the job up (Dask
+    reruns a job whose worker died, then raises ``KilledWorker`` after ``allowed-failures``)."""
+
+    def __init__(self, future: Any, scheduler: str):
+        self._future, self._scheduler = future, scheduler
+
+    def result(self) -> Any:
+        from distributed import KilledWorker  # the cluster extra: imported where it is used
+
+        try:
+            return self._future.result()
+        except KilledWorker as e:
+            raise StereoseedError(f"the Dask cluster at {self._scheduler} gave a job up: its worker died each time "
+                                  f"it ran it ({e}); give the workers more memory, or run without --scheduler") from None
+
+
 @contextmanager
 def executor_for(scheduler: str | None, workers: int,
                  connect_timeout: float = CONNECT_TIMEOUT_S) -> Iterator[JobPool]:
@@ -111,7 +128,8 @@ def executor_for(scheduler: str | None, workers: int,
         log.info("Dask cluster at %s: %d worker threads", scheduler, slots)
 
         def submit(fn: Callable[..., Any], *args: Any) -> Any:
-            return client.submit(fn, *args, pure=False)  # every job is run, none deduplicated by hash
+            # every job is run, none deduplicated by hash
+            return _OnCluster(client.submit(fn, *args, pure=False), scheduler)
 
         yield JobPool(slots, submit, f"on the Dask cluster at {scheduler}", remote=True)
     finally:
