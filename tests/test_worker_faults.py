@@ -352,7 +352,7 @@ def test_a_job_the_dask_cluster_gave_up_is_one_line():
 
     class GivenUp:  # a Dask future whose job killed its worker each time it ran
         def result(self):
-            raise distributed.KilledWorker("_run_pair-3", "tcp://127.0.0.1:1")
+            raise distributed.KilledWorker("_run_pair-3", "tcp://127.0.0.1:1", 3)
 
     with pytest.raises(StereoseedError, match="gave a job up") as e:
         _OnCluster(GivenUp(), "tcp://10.0.0.1:8786").result()
