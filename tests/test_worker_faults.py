@@ -346,13 +346,15 @@ def test_a_scheduler_address_where_something_else_listens_fails_within_the_conne
 
 
 def test_a_job_the_dask_cluster_gave_up_is_one_line():
+    import types
+
     distributed = pytest.importorskip("distributed")
     from stereoseed.cluster import _OnCluster
     from stereoseed.errors import StereoseedError
 
     class GivenUp:  # a Dask future whose job killed its worker each time it ran
         def result(self):
-            raise distributed.KilledWorker("_run_pair-3", "tcp://127.0.0.1:1", 3)
+            raise distributed.KilledWorker("_run_pair-3", types.SimpleNamespace(address="tcp://127.0.0.1:1"), 3)
 
     with pytest.raises(StereoseedError, match="gave a job up") as e:
         _OnCluster(GivenUp(), "tcp://10.0.0.1:8786").result()

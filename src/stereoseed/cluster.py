@@ -94,8 +94,9 @@ class _OnCluster:
         try:
             return self._future.result()
         except KilledWorker as e:
-            raise StereoseedError(f"the Dask cluster at {self._scheduler} gave a job up: its worker died each time "
-                                  f"it ran it ({e}); give the workers more memory, or run without --scheduler") from None
+            raise StereoseedError(f"the Dask cluster at {self._scheduler} gave a job up ({getattr(e, 'task', '?')}): its "
+                                  f"worker died each time it ran it; give the workers more memory, or run without "
+                                  f"--scheduler") from None
 
 
 @contextmanager
