@@ -16,7 +16,7 @@ import numpy as np
 
 from stereoseed.calibration.config import CalibrationConfig
 from stereoseed.calibration.detection import detect_target
-from stereoseed.calibration.intrinsics import plane_coordinates
+from stereoseed.calibration.intrinsics import plane_coordinates, shared_face_boards
 from stereoseed.calibration.rig import calibrate_cameras
 from stereoseed.calibration.target import load_target
 
@@ -143,15 +143,7 @@ def cube(folder: Path) -> dict:
     start = time.perf_counter()
     rig = calibrate_cameras(target, detections, rig=True)
     seconds = time.perf_counter() - start
-    obj, img1, img2 = [], [], []
-    for d1, d2 in zip(*detections):
-        for f in set(d1.faces_found) & set(d2.faces_found):
-            common, i1, i2 = np.intersect1d(d1.ids[d1.face == f], d2.ids[d2.face == f], return_indices=True)
-            if len(common) >= 12:
-                m1 = np.flatnonzero(d1.face == f)[i1]
-                obj.append(np.c_[plane_coordinates(target.faces[f], d1.points3d[m1]), np.zeros(len(m1))].astype(np.float32))
-                img1.append(d1.pixels[m1].astype(np.float32))
-                img2.append(d2.pixels[np.flatnonzero(d2.face == f)[i2]].astype(np.float32))
+    obj, img1, img2 = shared_face_boards(target, detections)
     c0, c1 = rig.cameras
     rms, *_, R, T, _, _ = cv2.stereoCalibrate(obj, img1, img2, c0.K, c0.lens, c1.K, c1.lens, c0.image_size,
                                               flags=cv2.CALIB_FIX_INTRINSIC)

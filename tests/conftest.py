@@ -5,6 +5,7 @@ import os
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from stereoseed.experiments.paper import noisy_images
@@ -94,3 +95,16 @@ def temple_run(temple_dir):
     truth = read_middlebury_par(temple_dir / "templeSR_par.txt")
     recon, report = reconstruct(images, names, P_pair)
     return recon, report, [truth[n] for n in names]
+
+
+@pytest.fixture
+def files(tmp_path):
+    """Five small textured images on disk (80 x 60, band-limited noise): their paths."""
+    from geometry_helpers import band_noise
+    from stereoseed.io.files import write_image
+
+    paths = []
+    for i in range(5):
+        image = (np.dstack([band_noise((60, 80), seed=i)] * 3) * 255).astype(np.uint8)
+        paths.append(write_image(tmp_path / f"{i}.png", image))
+    return paths

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from stereoseed.calibration.detection import detect_target
-from stereoseed.calibration.intrinsics import plane_coordinates
+from stereoseed.calibration.intrinsics import plane_coordinates, shared_face_boards
 from stereoseed.calibration.rig import calibrate_cameras
 from stereoseed.calibration.target import load_target
 
@@ -100,15 +100,7 @@ def test_the_rig_from_twelve_shots_against_opencvs_stereo_calibration(cube):
     within 1 mm and 0.1 degree."""
     _, target, detections = cube
     cal = calibrate_cameras(target, detections, rig=True)
-    obj, img1, img2 = [], [], []
-    for d1, d2 in zip(*detections):
-        for f in set(d1.faces_found) & set(d2.faces_found):
-            common, i1, i2 = np.intersect1d(d1.ids[d1.face == f], d2.ids[d2.face == f], return_indices=True)
-            if len(common) >= 12:
-                m1 = np.flatnonzero(d1.face == f)[i1]
-                obj.append(np.c_[plane_coordinates(target.faces[f], d1.points3d[m1]), np.zeros(len(m1))].astype(np.float32))
-                img1.append(d1.pixels[m1].astype(np.float32))
-                img2.append(d2.pixels[np.flatnonzero(d2.face == f)[i2]].astype(np.float32))
+    obj, img1, img2 = shared_face_boards(target, detections)
     cams = cal.cameras
     _, _, _, _, _, R, T, *_ = cv2.stereoCalibrate(obj, img1, img2, cams[0].K, cams[0].lens, cams[1].K, cams[1].lens,
                                                   cams[0].image_size, flags=cv2.CALIB_FIX_INTRINSIC)

@@ -5,16 +5,6 @@ import pytest
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_image
 from stereoseed.io.sequence import ImageSequence
-from geometry_helpers import band_noise
-
-
-@pytest.fixture
-def files(tmp_path):
-    paths = []
-    for i in range(5):
-        image = (np.dstack([band_noise((60, 80), seed=i)] * 3) * 255).astype(np.uint8)
-        paths.append(write_image(tmp_path / f"{i}.png", image))
-    return paths
 
 
 def test_images_are_read_when_asked_and_the_last_few_kept(files):

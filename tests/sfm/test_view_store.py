@@ -3,21 +3,10 @@ file and read back, and a long run that spills finding the cameras of one that k
 import numpy as np
 import pytest
 
-from geometry_helpers import band_noise
 from stereoseed.features.harris import extract_features
-from stereoseed.io.files import write_image
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.sfm.reconstruction import View
 from stereoseed.sfm.view_store import release_pixels
-
-
-@pytest.fixture
-def files(tmp_path):
-    paths = []
-    for i in range(5):
-        image = (np.dstack([band_noise((60, 80), seed=i)] * 3) * 255).astype(np.uint8)
-        paths.append(write_image(tmp_path / f"{i}.png", image))
-    return paths
 
 
 def test_a_view_releases_its_grey_image_and_restores_the_same_one(files):

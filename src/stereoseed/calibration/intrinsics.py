@@ -14,6 +14,8 @@ and only the focal lengths solved for, as OpenCV's ``initIntrinsicParams2D`` doe
 """
 from __future__ import annotations
 
+from typing import Any
+
 import logging
 
 import numpy as np
@@ -22,7 +24,7 @@ from stereoseed.calibration.target import Face
 
 log = logging.getLogger(__name__)
 
-__all__ = ["face_frame", "plane_coordinates", "homography", "zhang_intrinsics", "pose_from_homography",
+__all__ = ["shared_face_boards", "face_frame", "plane_coordinates", "homography", "zhang_intrinsics", "pose_from_homography",
            "MIN_HOMOGRAPHY_CORNERS"]
 
 # A board's view enters the closed form with at least this many corners spread over two
@@ -157,3 +159,22 @@ def pose_from_homography(H: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.n
     if np.linalg.det(R) < 0:
         R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     return R, t
+
+
+def shared_face_boards(target: Any, pairs: Any, min_common: int = 12
+                       ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """The corners two cameras saw of the same face in the same shot, each face a flat board of
+    its own, as OpenCV's ``stereoCalibrate`` takes them: (object points (N, 3) float32 on the
+    face's plane, camera 1's pixels (N, 2), camera 2's), one entry per face and shot with at least
+    ``min_common`` corners in both. ``pairs``: (camera 1's detections, camera 2's) by shot."""
+    obj, img1, img2 = [], [], []
+    for d1, d2 in zip(*pairs):
+        for f in set(d1.faces_found) & set(d2.faces_found):
+            common, i1, i2 = np.intersect1d(d1.ids[d1.face == f], d2.ids[d2.face == f], return_indices=True)
+            if len(common) >= min_common:
+                m1 = np.flatnonzero(d1.face == f)[i1]
+                plane = plane_coordinates(target.faces[f], d1.points3d[m1])
+                obj.append(np.c_[plane, np.zeros(len(m1))].astype(np.float32))
+                img1.append(d1.pixels[m1].astype(np.float32))
+                img2.append(d2.pixels[np.flatnonzero(d2.face == f)[i2]].astype(np.float32))
+    return obj, img1, img2
