@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.calibration.printing import DPI, PAPER_MM, box_size_mm, make_target, pdf_page, png_with_dpi
+from stereoseed.calibration.printing import DPI, PAPER_MM, box_size_mm, pdf_page, png_with_dpi
 from stereoseed.cli import main
 
 

@@ -1,7 +1,6 @@
 """The view store: a view's grey image let go and computed again, its descriptors spilled to a
 file and read back, and a long run that spills finding the cameras of one that keeps everything."""
 import numpy as np
-import pytest
 
 from stereoseed.features.harris import extract_features
 from stereoseed.io.sequence import ImageSequence

@@ -13,17 +13,16 @@ import os
 import signal
 import sys
 import warnings
-from pathlib import Path
 
 # One BLAS thread unless the user says otherwise, set before NumPy loads OpenBLAS: the pipeline's
 # linear algebra is small matrices, where OpenBLAS's extra threads only spin against the
 # feature thread and the dense workers (docs/scaling.md).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402 - after the BLAS setting
-
-from stereoseed.cli import calibration, reconstruct, tools
-from stereoseed.errors import StereoseedError
+# the commands' modules import NumPy: after the BLAS setting
+from stereoseed.cli import calibration, reconstruct, tools  # noqa: E402
+from stereoseed.cli._terminal import complain, warn  # noqa: E402
+from stereoseed.errors import StereoseedError  # noqa: E402
 
 
 def _version() -> str:
@@ -46,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings as one line for a user, not a source excerpt."""
-    print(f"stereoseed: warning: {message}", file=sys.stderr if file is None else file)
+    warn(str(message))
 
 def _configure_logging(args: argparse.Namespace) -> None:
     """The library logs; the terminal shows warnings, or every step with --verbose, or errors
@@ -80,14 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except StereoseedError as e:
-        print(f"stereoseed: error: {e}", file=sys.stderr)
+        complain(f"stereoseed: error: {e}")
         return 2
     except KeyboardInterrupt:
         hint = "; run the same command with --resume to continue" if args.command == "reconstruct" else ""
-        print(f"stereoseed: interrupted{hint}", file=sys.stderr)
+        complain(f"stereoseed: interrupted{hint}")
         return 130
     except OSError as e:  # e.g. an output folder that cannot be created
-        print(f"stereoseed: error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
+        complain(f"stereoseed: error: {e.filename or ''}: {e.strerror or e}")
         return 2
     finally:
         warnings.showwarning = shown_before  # main() is also called in-process (tests, notebooks)

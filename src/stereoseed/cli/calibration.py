@@ -3,16 +3,12 @@ one camera's intrinsics from a (flat or 3D) target, and the printable target."""
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from stereoseed.cli._terminal import say, warn
 from stereoseed.errors import StereoseedError
-
-
-def _warn(message: str) -> None:
-    print(f"stereoseed: warning: {message}", file=sys.stderr)
 
 
 def _config(args: argparse.Namespace):
@@ -33,7 +29,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         data = {"cameras": _calibrate_from_points(args)}
     write_json(args.output, data)
-    print(f"wrote {args.output}")
+    say(f"wrote {args.output}")
     return 0
 
 
@@ -59,12 +55,12 @@ def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
             entry, rms, K = cal.to_dict(), cal.rms_px[0], cal.K
             centre = -cal.R[0].T @ cal.t[0]
             for w in cal.warnings:
-                _warn(w)
+                warn(w)
         else:
             single = calibrate_camera(pattern, pixels, what=str(path))
             entry, rms, K, centre = single.to_dict(), single.rms_px, single.K, -single.R.T @ single.t
         cameras.append(entry)
-        print(f"camera {i}: {len(pattern)} points, reprojection RMS {rms:.3f} px, "
+        say(f"camera {i}: {len(pattern)} points, reprojection RMS {rms:.3f} px, "
               f"f = ({K[0, 0]:.1f}, {K[1, 1]:.1f}) px, centre = {np.round(centre, 4).tolist()}"
               + (f", distortion {np.round(entry['distortion'], 4).tolist()}" if args.lens else ""))
     return cameras
@@ -110,39 +106,39 @@ def _report_views(cal, labels: list[str], out: Path | None) -> None:
     for c, cam in enumerate(cal.cameras):
         for v in cam.views:
             if not v.used:
-                _warn(f"{labels[c]}, {v.name}: skipped: {v.reason}")
+                warn(f"{labels[c]}, {v.name}: skipped: {v.reason}")
                 continue
             line = f"{labels[c]}, {v.name}: {v.detection.summary()}, RMS {v.rms_px:.3f} px"
             if out is not None:
                 png = _unique_png(out, c + 1, v.name, taken)
                 draw_calibration_check(read_image(v.name), v.detection.pixels, v.reprojected, png)
                 line += f"; check {png}"
-            print(line)
+            say(line)
 
 
 def _report_cameras(cal, labels: list[str]) -> None:
     min_coverage = 1 / 3  # below this share of the frame the lens is extrapolated where no corner was
     for c, cam in enumerate(cal.cameras):
         used = sum(v.used for v in cam.views)
-        print(f"{labels[c]}: {used} view(s), {cam.n_points} corners, RMS {cam.rms_px:.3f} px, f = ({cam.K[0, 0]:.1f}, "
+        say(f"{labels[c]}: {used} view(s), {cam.n_points} corners, RMS {cam.rms_px:.3f} px, f = ({cam.K[0, 0]:.1f}, "
               f"{cam.K[1, 1]:.1f}) px, principal point ({cam.K[0, 2]:.1f}, {cam.K[1, 2]:.1f}), distortion "
               f"{np.round(cam.lens, 4).tolist()}" + (" (given)" if cam.known else ""))
         if not cam.known and cam.coverage < min_coverage:
-            _warn(f"{labels[c]}: the corners of its views cover {100 * cam.coverage:.0f} % of the frame: the lens is "
+            warn(f"{labels[c]}: the corners of its views cover {100 * cam.coverage:.0f} % of the frame: the lens is "
                   "poorly determined outside them (add views with the target elsewhere in the frame)")
     moved = [(f, m) for f, m in enumerate(cal.face_moves) if m is not None]
     if moved:
-        print("target: faces found " + ", ".join(f"face {f} {mm:.2f} mm / {deg:.2f} deg" for f, (mm, deg) in moved)
+        say("target: faces found " + ", ".join(f"face {f} {mm:.2f} mm / {deg:.2f} deg" for f, (mm, deg) in moved)
               + " from where target.json puts them")
     if cal.rig is not None:
         spread = ("" if cal.rig.spread_mm is None else
                   f"; leaving out one shot moves it by up to {cal.rig.spread_mm:.2f} mm, {cal.rig.spread_deg:.3f} deg")
-        print(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
+        say(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
               f"from {cal.rig.shots} shots{spread}")
     for note in cal.notes:
-        print(f"note: {note}")
+        say(f"note: {note}")
     for w in cal.warnings:
-        _warn(w)
+        warn(w)
 
 
 def _calibrate_from_target(args: argparse.Namespace) -> dict:
@@ -175,7 +171,7 @@ def _calibrate_from_target(args: argparse.Namespace) -> dict:
         detections.append(_detect_all(target, [args.inputs[c]] + lens[c]))
         known.append(_known(intrinsics, labels[c], detections[-1][0].image_size))
     if not args.rig and args.lens_images1 and args.lens_images2 and len(detections[0]) == len(detections[1]):
-        print("note: as many lens photos for both cameras; if each pair was taken together by the fixed pair, --rig "
+        say("note: as many lens photos for both cameras; if each pair was taken together by the fixed pair, --rig "
               "estimates one relative pose from all of them")
     cal = calibrate_cameras(target, detections, rig=args.rig, rigid_target=args.rigid_target, k3=args.k3,
                             known=known, cfg=cfg, pair=True, leave_one_out=args.rig, labels=labels)
@@ -184,7 +180,7 @@ def _calibrate_from_target(args: argparse.Namespace) -> dict:
     refined = out.with_name(f"{out.stem}_target.json")
     write_json(refined, target_json(cal.target, refined.parent.resolve(),
                                     "the target's faces where the calibration found them (stereoseed calibrate)"))
-    print(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
+    say(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
     return calibration_json(cal)
 
 
@@ -218,7 +214,7 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     cam = cal.cameras[0]
     write_opencv_camera(out, cam.K, cam.lens, cam.image_size, cam.rms_px,
                         [(v.name, v.rms_px) for v in cam.views if v.used])
-    print(f"wrote {out} (give it to calibrate with --intrinsics1 or --intrinsics2)")
+    say(f"wrote {out} (give it to calibrate with --intrinsics1 or --intrinsics2)")
     return 0
 
 
@@ -228,8 +224,8 @@ def _cmd_target(args: argparse.Namespace) -> int:
     path = make_target(Path(args.out), size=args.size, faces=args.faces, force=args.force)
     names = ", ".join(f"face_{k}.png/.pdf" for k in range(args.faces))
     x, y, z = box_size_mm(args.size, args.faces)
-    print(f"wrote {names} (print the PDFs at 100 %, or the PNGs at 300 dpi), assembly.png and {path}")
-    print(f"glue them on a box of at least {x:.0f} x {y:.0f} x {z:.0f} mm (x, y, z) as assembly.png shows")
+    say(f"wrote {names} (print the PDFs at 100 %, or the PNGs at 300 dpi), assembly.png and {path}")
+    say(f"glue them on a box of at least {x:.0f} x {y:.0f} x {z:.0f} mm (x, y, z) as assembly.png shows")
     return 0
 
 

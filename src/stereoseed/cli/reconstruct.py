@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from stereoseed.cli._terminal import complain, say, warn
 from stereoseed.cluster import CONNECT_TIMEOUT_S
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.camera_model import MODELS
@@ -68,8 +69,8 @@ def _say_if_compiling(quiet: bool) -> None:
     from stereoseed.precompile import kernels_cached
 
     if not quiet and kernels_cached() is False:
-        print("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
-              "two cores; `stereoseed precompile` does it ahead)", file=sys.stderr)
+        complain("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
+              "two cores; `stereoseed precompile` does it ahead)")
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from stereoseed.pipeline import reconstruct_to_folder
@@ -84,23 +85,23 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
                                        progress=progress, pool=pool, dense_progress=dense_progress)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
-        print(f"resumed after {len(report['resumed_images'])} images already placed")
+        say(f"resumed after {len(report['resumed_images'])} images already placed")
     if report["final"].get("no_zoom"):
-        print("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
+        say("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
     for r in failed:
-        print(f"skipped: {r['reason']}")
+        say(f"skipped: {r['reason']}")
     flagged = (report["final"].get("trust") or {}).get("flagged") or {}
     for name, reason in flagged.items():
-        print(f"flagged: {name}: {reason}")
+        say(f"flagged: {name}: {reason}")
     loop = report["final"].get("loop_closure") or {}
     if loop.get("links") and not loop.get("closed"):
-        print(f"loop closure: {loop.get('reason')}")
+        say(f"loop closure: {loop.get('reason')}")
     if "dense" in report:
-        print(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
+        say(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
                                                                      if report["dense"].get("note") else ""))
     flags = f", {len(flagged)} flagged: " + ", ".join(f"{n} {r.split(' (')[0]}" for n, r in flagged.items()) \
         if flagged else ", 0 flagged"
-    print(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped{flags}), "
+    say(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped{flags}), "
           f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
     return EXIT_SKIPPED if (args.strict and (failed or flagged)) else 0
 
@@ -116,12 +117,12 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         if o.ok:
             s = o.summary
             dense = f", {s['dense_points']} dense points" if "dense_points" in s else ""
-            print(f"{o.sequence.name}: registered {s['registered']}/{s['images']} images ({s['skipped']} skipped), "
+            say(f"{o.sequence.name}: registered {s['registered']}/{s['images']} images ({s['skipped']} skipped), "
                   f"{s['points']} points{dense}; wrote {o.sequence.out}")
         else:
-            print(f"{o.sequence.name}: failed: {o.reason}")
+            say(f"{o.sequence.name}: failed: {o.reason}")
     failed = [o for o in outcomes if not o.ok]
-    print(f"batch: {len(outcomes) - len(failed)} of {len(outcomes)} sequences reconstructed"
+    say(f"batch: {len(outcomes) - len(failed)} of {len(outcomes)} sequences reconstructed"
           + ("; failed: " + ", ".join(f"{o.sequence.name} ({o.reason})" for o in failed) if failed else ""))
     return EXIT_SEQUENCES_FAILED if failed else 0
 
@@ -141,8 +142,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
         warnings_ = write_bundler(result, out, force=args.force)
         written = [out / "bundle.out", out / "list.txt"]
     for w in warnings_:
-        print(f"stereoseed: warning: {w}", file=sys.stderr)
-    print(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
+        warn(w)
+    say(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
           + ", ".join(str(p) for p in written))
     return 0
 
@@ -154,11 +155,11 @@ def _cmd_view(args: argparse.Namespace) -> int:
         raise StereoseedError(f"{args.result}: no report.html; run stereoseed reconstruct --out {args.result} first")
     uri = page.resolve().as_uri()
     if args.print:
-        print(uri)
+        say(uri)
     elif webbrowser.open(uri):
-        print(f"opened {uri}")
+        say(f"opened {uri}")
     else:
-        print(f"stereoseed: warning: no browser to open; open {uri}", file=sys.stderr)
+        warn(f"no browser to open; open {uri}")
     return 0
 
 def _cmd_demo(args: argparse.Namespace) -> int:

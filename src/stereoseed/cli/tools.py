@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+from stereoseed.cli._terminal import complain, say, warn
 from pathlib import Path
 
 def _cmd_match(args: argparse.Namespace) -> int:
@@ -19,15 +19,14 @@ def _cmd_match(args: argparse.Namespace) -> int:
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
     for path, f in ((args.image1, f1), (args.image2, f2)):
         if len(f) == 0:
-            print(f"stereoseed: warning: {path}: no interest points (a flat or empty image?); no matches",
-                  file=sys.stderr)
+            warn(f"{path}: no interest points (a flat or empty image?); no matches")
     pair = match_pair(f1, f2, cfg.matching, image_width=img1.shape[1])
     matches, stats = pair.matches, pair.stats
-    print(f"{len(f1.points)} / {len(f2.points)} interest points; "
+    say(f"{len(f1.points)} / {len(f2.points)} interest points; "
           + ", ".join(f"{k}: {v}" for k, v in stats.items()))
     if args.output:
         draw_matches(img1, f1.points, img2, f2.points, matches, args.output)
-        print(f"wrote {args.output}")
+        say(f"wrote {args.output}")
     return 0
 
 def _cmd_propagate(args: argparse.Namespace) -> int:
@@ -50,10 +49,10 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     seeds = recon.shared_pixels(0, 1)
     result = propagate(img1, img2, seeds, fundamental_from_projections(P1, P2), cfg.propagation,
                        subpixel_method=cfg.propagation.subpixel_method)
-    print(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")
+    say(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")
     if args.output:
         save_propagation_png(img1, result, args.output)
-        print(f"wrote {args.output}")
+        say(f"wrote {args.output}")
     return 0
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -66,14 +65,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise StereoseedError("stereoseed bench paper draws its figures with matplotlib; install it with "
                               "pip install 'stereoseed[bench]'")
     run_paper_bench(Path(args.out), quick=args.quick, seed=args.seed)
-    print(f"wrote {args.out}")
+    say(f"wrote {args.out}")
     return 0
 
 
 def _cmd_precompile(args: argparse.Namespace) -> int:
     from stereoseed.precompile import precompile
 
-    print(f"stereoseed: Numba kernels compiled and cached ({precompile():.0f} s)", file=sys.stderr)
+    complain(f"stereoseed: Numba kernels compiled and cached ({precompile():.0f} s)")
     return 0
 
 

@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.estimators.bundle import observation_errors
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.modes import mode_of
