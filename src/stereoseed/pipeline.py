@@ -24,6 +24,7 @@ from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from stereoseed.errors import StereoseedError
+from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration
 from stereoseed.geometry.lens import undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
@@ -146,8 +147,6 @@ RECENTRE_ABOVE_BASELINES = 1e3
 def _frame_offset(P_pair: list[np.ndarray]) -> np.ndarray | None:
     """The point (3,) the run's frame is moved to (the middle of the pair's centres, rounded to a
     whole baseline), or None when the world frame is near enough."""
-    from stereoseed.geometry.projection import camera_center
-
     c0, c1 = (camera_center(np.asarray(P, np.float64)) for P in P_pair)
     baseline = float(np.linalg.norm(c1 - c0))
     middle = 0.5 * (c0 + c1)

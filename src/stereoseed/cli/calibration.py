@@ -229,6 +229,15 @@ def _cmd_target(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_fit_options(p: argparse.ArgumentParser) -> None:
+    """The options of a camera fit, shared by calibrate and intrinsics."""
+    p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
+    p.add_argument("--rigid-target", action="store_true",
+                   help="keep the target's faces where target.json puts them (default: estimate where they are)")
+    p.add_argument("--max-rms", type=float, metavar="PX",
+                   help="refuse a camera whose corners reproject worse than this RMS (default: only a warning)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the calibrate, intrinsics and target subcommands."""
     p = sub.add_parser("calibrate", help="calibrate the stereo pair: from photos of a target (--target), "
@@ -242,14 +251,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rig", action="store_true",
                    help="the pair is fixed and took each lens photo together (--lens-images1/2 as many, in the same "
                         "order): one relative pose from every shot, its leave-one-out spread reported")
-    p.add_argument("--rigid-target", action="store_true",
-                   help="keep the target's faces where target.json puts them (default: estimate where they are)")
     p.add_argument("--intrinsics1", help="camera 1's known intrinsics and lens (OpenCV FileStorage YAML/XML/JSON)")
     p.add_argument("--intrinsics2", help="camera 2's known intrinsics and lens (OpenCV FileStorage YAML/XML/JSON)")
     p.add_argument("--lens", action="store_true", help="typed points: also estimate the lens distortion")
-    p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
-    p.add_argument("--max-rms", type=float, metavar="PX",
-                   help="refuse a camera whose corners reproject worse than this RMS (default: only a warning)")
+    _add_fit_options(p)
     p.add_argument("-o", "--output", default="calib.json", help="calib.json to write (default: %(default)s)")
     p.set_defaults(func=_cmd_calibrate)
 
@@ -257,10 +262,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                           "or a 3D one), written as an OpenCV calibration file")
     p.add_argument("images", nargs="+", metavar="IMAGE", help="photos of the target by one camera (or folders of them)")
     p.add_argument("--target", required=True, help="target.json of the target")
-    p.add_argument("--k3", action="store_true", help="also estimate the third radial term (wide-angle lenses)")
-    p.add_argument("--rigid-target", action="store_true", help="keep a 3D target's faces where target.json puts them")
-    p.add_argument("--max-rms", type=float, metavar="PX",
-                   help="refuse the camera if its corners reproject worse than this RMS (default: only a warning)")
+    _add_fit_options(p)
     p.add_argument("-o", "--output", default="camera.yaml", help="the file to write (default: %(default)s)")
     p.set_defaults(func=_cmd_intrinsics)
 

@@ -97,6 +97,11 @@ class CameraUncertainty:
     def determined(self) -> bool:
         return self.reason is None
 
+    def summary(self) -> dict:
+        """What a report keeps of it (:meth:`to_dict` without the covariance matrices)."""
+        d = self.to_dict()
+        return {k: d[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px", "sigma_px", "reason")}
+
     def to_dict(self) -> dict:
         """JSON-ready: finite floats, non-finite ones as None, plus ``reason`` (None when
         determined)."""

@@ -102,10 +102,6 @@ class Camera:
         the "focal" and "fixed" models are relative to ``reference_K``."""
         return params_from_projection(self.P, self.model, reference_K)[0]
 
-    def with_model(self, model: CameraModel) -> "Camera":
-        """The same P under another model's name (no projection onto that model's family)."""
-        return Camera(self.P, model, self.lens)
-
     def turned_180(self, image_size: tuple[int, int]) -> "Camera":
         """The same camera for its image turned by 180 degrees (``image_size`` = (width, height)
         of the image it sees): pixel (x, y) becomes (W - 1 - x, H - 1 - y)."""

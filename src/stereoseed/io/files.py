@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
-from stereoseed.io.atomic import atomic_path, jsonable, write_json, write_text  # re-exported: the writers' home
+from stereoseed.io.atomic import atomic_path, write_json, write_text  # re-exported: the writers' home
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 

@@ -197,8 +197,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     if binary:
         _write_colmap_binary(out, cameras, images, tr, tracks)
     else:
-        flagged = tuple(result.names[i] for i, why in enumerate(result.flags) if why and result.P[i] is not None)
-        _write_colmap_text(out, cameras, images, tr, tracks, flagged)
+        _write_colmap_text(out, cameras, images, tr, tracks, tuple(result.names[i] for i in _flagged_images(result)))
     _record(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
     return _logged(result.warnings + warnings + _flagged(result))
 
@@ -319,10 +318,15 @@ def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> l
     return _logged(result.warnings + warnings + _flagged(result))
 
 
+def _flagged_images(result: Result) -> list[int]:
+    """The exported images whose camera the run flagged."""
+    return [i for i, why in enumerate(result.flags) if why is not None and result.P[i] is not None]
+
+
 def _flagged(result: Result) -> list[str]:
     """What an export says of the cameras the run flagged: exported, not vouched for."""
-    return [f"{result.names[i]}: flagged by the run ({why}); exported, but stereoseed does not vouch for this camera"
-            for i, why in enumerate(result.flags) if why is not None and result.P[i] is not None]
+    return [f"{result.names[i]}: flagged by the run ({result.flags[i]}); exported, but stereoseed does not vouch "
+            f"for this camera" for i in _flagged_images(result)]
 
 
 def _logged(warnings: list[str]) -> list[str]:

@@ -68,7 +68,7 @@ def load_result(folder: str | Path) -> Result:
                                   f"(version {FORMAT_VERSION} or later)")
     again = "give a folder written by stereoseed reconstruct, or run it again"
     try:
-        names, sizes, Ps, lens = _cameras(cams_path)
+        names, sizes, Ps, lens, flags = _cameras(cams_path)
     except _Bad as e:
         raise StereoseedError(f"{cams_path}: {e}; {again}") from None
     try:
@@ -85,18 +85,13 @@ def load_result(folder: str | Path) -> Result:
         tracks = _without_images(tracks, [P is not None for P in Ps])
         for w in warnings:
             log.info("%s", w)  # the exports hand them on with their own
-    return Result(folder, names, sizes, Ps, tracks, lens, warnings, _flags(cams_path, len(names)))
+    return Result(folder, names, sizes, Ps, tracks, lens, warnings, flags)
 
 
-def _flags(path: Path, n: int) -> list[str | None]:
-    """Per image, the flag_reason of a camera cameras.json marks ``"reliable": false`` (results
-    written before the field existed: None)."""
-    images = json.loads(path.read_text(encoding="utf-8"))["images"]
-    return [str(im.get("flag_reason") or "flagged") if im.get("reliable") is False else None for im in images[:n]]
-
-
-def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndarray | None], list]:
-    """(names, sizes, P or None, lens or None) per image of cameras.json."""
+def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndarray | None], list, list]:
+    """(names, sizes, P or None, lens or None, flag or None) per image of cameras.json; the flag:
+    the flag_reason of a camera marked ``"reliable": false`` (results written before the field
+    existed: None)."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
@@ -104,7 +99,7 @@ def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndar
     images = data.get("images") if isinstance(data, dict) else None
     if not isinstance(images, list) or not images:
         raise _Bad('no "images" list')
-    names, sizes, Ps, lens = [], [], [], []
+    names, sizes, Ps, lens, flags = [], [], [], [], []
     for n, im in enumerate(images):
         where = f"image {n}"
         if not isinstance(im, dict) or not isinstance(im.get("name"), str) or not im["name"]:
@@ -125,7 +120,8 @@ def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndar
         names.append(im["name"])
         sizes.append((w, h))
         Ps.append(P)
-    return names, sizes, Ps, lens
+        flags.append(str(im.get("flag_reason") or "flagged") if im.get("reliable") is False else None)
+    return names, sizes, Ps, lens, flags
 
 
 def _numbers(value: Any, shape: tuple[int, ...] | None, what: str) -> np.ndarray:

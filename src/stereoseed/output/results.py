@@ -120,9 +120,7 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str
             if not v.reliable:
                 entry["flag_reason"] = v.flag_reason
             if v.uncertainty is not None:
-                u = v.uncertainty.to_dict()
-                entry["uncertainty"] = {k: u[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px",
-                                                          "sigma_px", "reason")}
+                entry["uncertainty"] = v.uncertainty.summary()
         lens = lenses[min(i, 1)] if lenses else None
         if lens is not None:
             # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)

@@ -39,7 +39,7 @@ import numpy as np
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
-from stereoseed.io.files import jsonable
+from stereoseed.io.atomic import jsonable
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.sfm.view_store import view_of_input
 from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction

@@ -26,7 +26,7 @@ from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
-from stereoseed.sfm.modes import Mode, mode_of
+from stereoseed.sfm.modes import Mode, holds_intrinsics, mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
@@ -163,8 +163,7 @@ def _commit(view: View, reg: Registration) -> None:
     view.point_of_feature = np.full(len(cand.features), -1, np.int64)
     view.camera_model = CameraModel.FOCAL if reg.free_camera_refused else None
     view.camera = reg.resection.camera
-    view.registration_flag = reg.notes.get("flag")
-    view.reliable, view.flag_reason = view.registration_flag is None, view.registration_flag
+    view.registration_flag = view.flag_reason = reg.notes.get("flag")
     view.zoomed = reg.zoomed
 
 
@@ -243,9 +242,7 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
 def _first_zoom(recon: Reconstruction, k: int, cfg: Config) -> bool:
     """Whether view k is the first whose resection took a zoom while the run holds the calibrated
     intrinsics (accurate mode, "focal" model, ``hold_unzoomed``)."""
-    pc = cfg.pipeline
-    return (pc.hold_unzoomed and pc.camera_model == CameraModel.FOCAL and recon.views[k].zoomed
-            and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1 and v != k))
+    return recon.views[k].zoomed and holds_intrinsics(recon, cfg, besides=k)
 
 
 def _zoom_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,

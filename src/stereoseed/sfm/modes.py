@@ -28,7 +28,7 @@ from stereoseed.sfm.registration.base import implausible_motion
 from stereoseed.sfm.tracks import add_two_view_points, retriangulate, track_by_projection
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["Mode", "PaperMode", "AccurateMode", "mode_of"]
+__all__ = ["Mode", "PaperMode", "AccurateMode", "mode_of", "holds_intrinsics"]
 
 PAPER_COST_IMAGES = 3  # eq. 12: the local BA's cost runs over the last three images
 
@@ -133,7 +133,7 @@ class AccurateMode:
 
     def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
         """The configuration of the BA after an insertion: ``cfg`` with the "fixed" camera model
-        (the calibrated intrinsics, pose only) while :func:`_unzoomed`, else ``cfg`` itself.
+        (the calibrated intrinsics, pose only) while :func:`holds_intrinsics`, else ``cfg`` itself.
 
         The final BA's no-zoom hold, applied from the start: a small object seen with a long
         focal length barely tells the focal length from the distance, and a free focal length
@@ -141,7 +141,7 @@ class AccurateMode:
         truth) to 3397, 3649, 4401 px over three insertions while the cameras moved away (a
         camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
         resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
-        return cfg.replace(pipeline={"camera_model": CameraModel.FIXED}) if _unzoomed(recon, cfg) else cfg
+        return cfg.replace(pipeline={"camera_model": CameraModel.FIXED}) if holds_intrinsics(recon, cfg) else cfg
 
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's
@@ -154,7 +154,7 @@ class AccurateMode:
         if pc.loop_closure:
             adjusted, out["loop_closure"] = close_loop(recon, cfg, source)
         later = [v for v in recon.registered_views if v > 1]
-        if later and _unzoomed(recon, cfg) and (adjusted or pc.ba == "final"):
+        if later and holds_intrinsics(recon, cfg) and (adjusted or pc.ba == "final"):
             out["no_zoom"] = True
             out["final_ba"] = global_adjust(recon, cfg.replace(pipeline={"camera_model": CameraModel.FIXED}))[0]
         elif pc.ba == "final" and not adjusted:
@@ -162,12 +162,13 @@ class AccurateMode:
         return out
 
 
-def _unzoomed(recon: Reconstruction, cfg: Config) -> bool:
+def holds_intrinsics(recon: Reconstruction, cfg: Config, besides: int | None = None) -> bool:
     """Whether the run holds the calibrated intrinsics: the "focal" model with
-    ``PipelineConfig.hold_unzoomed``, and no image after the pair found zoomed by its resection."""
+    ``PipelineConfig.hold_unzoomed``, and no image after the pair (``besides`` that view) found
+    zoomed by its resection."""
     pc = cfg.pipeline
     return (pc.hold_unzoomed and pc.camera_model == CameraModel.FOCAL
-            and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1))
+            and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1 and v != besides))
 
 
 def mode_of(cfg: Config) -> Mode:

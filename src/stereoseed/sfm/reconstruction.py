@@ -79,7 +79,6 @@ class View:
         # is committed; then what the finishing step says (stereoseed.sfm.trust): whether the run
         # can vouch for it, why not, and its 1-sigma uncertainty from the final BA
         self.registration_flag: str | None = None
-        self.reliable = True
         self.flag_reason: str | None = None
         self.uncertainty: Any = None
 
@@ -177,6 +176,11 @@ class View:
     def focal(self) -> float:
         """Focal length (px, along x)."""
         return self._camera.focal
+
+    @property
+    def reliable(self) -> bool:
+        """Whether the run vouches for the camera (no ``flag_reason``)."""
+        return self.flag_reason is None
 
     @property
     def registered(self) -> bool:

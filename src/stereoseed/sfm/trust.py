@@ -24,12 +24,11 @@ from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertain
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.refinement import bundle_problem
+from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
 __all__ = ["camera_uncertainties", "contradicted_cameras", "assess"]
 
 log = logging.getLogger(__name__)
-CALIBRATED = (0, 1)  # the pair: the metric frame itself, never flagged
 
 
 def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
@@ -58,16 +57,17 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
     if not views or not live.any():
         return {}
     err = recon.observation_errors()
-    rms = {}
-    for v in recon.registered_views:
-        e = err[(recon.obs_view == v) & live]
-        if len(e):
-            rms[v] = float(np.sqrt(np.mean(e ** 2)))
-    if not rms:
+    n_views = len(recon.views)
+    seen = np.bincount(recon.obs_view[live], minlength=n_views)
+    sq = np.bincount(recon.obs_view[live], weights=err[live] ** 2, minlength=n_views)
+    observed = [v for v in recon.registered_views if seen[v]]
+    if not observed:
         return {}
+    rms = {v: float(np.sqrt(sq[v] / seen[v])) for v in observed}
     typical = float(np.median(list(rms.values())))
     limit = max(tc.residual_factor * typical, tc.residual_floor_px)
-    return {v: (f"contradicted by the other cameras: its {int(np.sum(recon.obs_view == v))} observations "
+    observations = np.bincount(recon.obs_view, minlength=n_views)
+    return {v: (f"contradicted by the other cameras: its {int(observations[v])} observations "
                 f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
             for v in views if v in rms and rms[v] > limit}
 
@@ -101,9 +101,9 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
                   or (None if u is None else _uncertain(recon, v, u, cfg)))
         if v in CALIBRATED:
             reason = None
-        view.reliable, view.flag_reason = reason is None, reason
+        view.flag_reason = reason
         cameras[view.name] = {"reliable": view.reliable, "flag_reason": reason,
-                              "uncertainty": None if u is None else _summary(u)}
+                              "uncertainty": None if u is None else u.summary()}
         if reason:
             flagged[view.name] = reason
             log.warning("%s: flagged, %s", view.name, reason)
@@ -112,9 +112,3 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         recon.remove_observations(out)
         recon.remove_lonely_points()
     return {"cameras": cameras, "flagged": flagged}
-
-
-def _summary(u: CameraUncertainty) -> dict[str, Any]:
-    """What report.json and cameras.json keep of an uncertainty (not the full covariance)."""
-    d = u.to_dict()
-    return {k: d[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px", "sigma_px", "reason")}

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from stereoseed.geometry.projection import camera_center
-from stereoseed.io.files import jsonable, write_text
+from stereoseed.io.atomic import jsonable, write_text
 from stereoseed.output.report.figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
                              _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
 
