@@ -214,15 +214,27 @@ def _cli(*args) -> list[str]:
 
 
 def _first_worker(proc: subprocess.Popen) -> int | None:
-    """A pool worker of the command once its dense stage has started one (the command starts no
-    other process), None if the command ended first."""
+    """A pool worker of the command once its dense stage has started one, None if the command
+    ended first. The workers are forked (their command line is the command's); multiprocessing's
+    resource tracker is forked too but then runs another command line, so a child counts when it
+    still has the command's line 50 ms after it was first seen."""
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline:
-        workers = _children(proc.pid)
-        if workers:
-            return min(workers)
+        forked = [pid for pid in _children(proc.pid) if _cmdline(pid) == _cmdline(proc.pid)]
+        if forked:
+            time.sleep(0.05)
+            workers = [pid for pid in forked if _cmdline(pid) == _cmdline(proc.pid)]
+            if workers:
+                return min(workers)
         time.sleep(0.01)
     return None
+
+
+def _cmdline(pid: int) -> bytes | None:
+    try:
+        return (Path("/proc") / str(pid) / "cmdline").read_bytes() or None
+    except OSError:
+        return None
 
 
 def test_reconstruct_dense_survives_a_killed_worker_with_the_same_cloud(ring, tmp_path):
