@@ -1,5 +1,5 @@
 """Command-line interface: each subcommand is a few lines over the Python API (the commands'
-modules: :mod:`.calibration`, :mod:`.reconstruct`, :mod:`.tools`).
+modules: :mod:`.calibration`, :mod:`.reconstruct`, :mod:`.results`, :mod:`.tools`).
 
 Errors the user can fix (bad input, degenerate data) are :class:`StereoseedError`: printed as
 one line ``stereoseed: error: ...`` with exit code 2, never a traceback.
@@ -20,7 +20,7 @@ import warnings
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # the commands' modules import NumPy: after the BLAS setting
-from stereoseed.cli import calibration, reconstruct, tools  # noqa: E402
+from stereoseed.cli import calibration, reconstruct, results, tools  # noqa: E402
 from stereoseed.cli._terminal import complain, warn  # noqa: E402
 from stereoseed.errors import StereoseedError  # noqa: E402
 
@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for commands in (calibration, reconstruct, tools):
+    for commands in (calibration, reconstruct, results, tools):
         commands.register(sub)
     return parser
 

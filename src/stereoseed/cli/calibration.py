@@ -35,9 +35,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
     """The paper's form: a pattern file and the pixels of its points in each pair image."""
+    from stereoseed.calibration.lens_calibration import calibrate_lens
     from stereoseed.estimators.calibration import calibrate_camera
     from stereoseed.io.files import read_points_file
-    from stereoseed.calibration.lens_calibration import calibrate_lens
 
     if len(args.inputs) != 3 or args.lens_images1 or args.lens_images2 or args.rig:
         raise StereoseedError("calibrate: give PATTERN POINTS1 POINTS2 (typed points), or --target target.json "

@@ -1,11 +1,11 @@
-"""`stereoseed reconstruct`, `batch`, `export`, `view` and `demo`: runs and their result folders."""
+"""`stereoseed reconstruct`, `batch` and `demo`: the runs."""
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from stereoseed.cli._terminal import complain, say, warn
+from stereoseed.cli._progress import Bar, say_if_compiling
+from stereoseed.cli._terminal import say
 from stereoseed.cluster import CONNECT_TIMEOUT_S
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.camera_model import MODELS
@@ -36,51 +36,15 @@ def _pool(args: argparse.Namespace, workers: int):
         return nullcontext()
     return executor_for(args.scheduler, workers, connect_timeout=args.connect_timeout)
 
-class _Bar:
-    """The progress callback (done, total, message) as a tqdm bar on stderr, shown from the
-    first report on: a run refused before any work leaves only its error line. ``after``: the
-    bar of the stage before, closed (its time stopped) when this one starts."""
-
-    def __init__(self, unit: str, quiet: bool, after: "_Bar | None" = None):
-        self.unit, self.quiet, self.after, self.bar = unit, quiet, after, None
-
-    def __call__(self, done: int, total: int, message: str) -> None:
-        from tqdm import tqdm
-
-        if self.bar is None:
-            if self.after is not None:
-                self.after.close()
-            self.bar = tqdm(total=total, unit=self.unit, file=sys.stderr, disable=self.quiet)
-        self.bar.total, self.bar.n = total, done
-        self.bar.set_postfix_str(message[:40])
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-    def __enter__(self) -> "_Bar":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-def _say_if_compiling(quiet: bool) -> None:
-    """One line before a first run on this installation: it compiles the kernels first."""
-    from stereoseed.precompile import kernels_cached
-
-    if not quiet and kernels_cached() is False:
-        complain("stereoseed: first run on this installation: compiling the Numba kernels once (about a minute on "
-              "two cores; `stereoseed precompile` does it ahead)")
-
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from stereoseed.pipeline import reconstruct_to_folder
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
         raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
-    _say_if_compiling(args.quiet)
-    with (_pool(args, cfg.dense.pool_size()) as pool, _Bar("image", args.quiet) as progress,
-          _Bar("pair", args.quiet, after=progress) as dense_progress):
+    say_if_compiling(args.quiet)
+    with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
+          Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
                                        progress=progress, pool=pool, dense_progress=dense_progress)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
@@ -110,8 +74,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root, allow_outside=args.allow_outside)
-    _say_if_compiling(args.quiet)
-    with _pool(args, cfg.dense.pool_size()) as pool, _Bar("sequence", args.quiet) as progress:
+    say_if_compiling(args.quiet)
+    with _pool(args, cfg.dense.pool_size()) as pool, Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
     for o in outcomes:
         if o.ok:
@@ -126,42 +90,6 @@ def _cmd_batch(args: argparse.Namespace) -> int:
           + ("; failed: " + ", ".join(f"{o.sequence.name} ({o.reason})" for o in failed) if failed else ""))
     return EXIT_SEQUENCES_FAILED if failed else 0
 
-def _cmd_export(args: argparse.Namespace) -> int:
-    from stereoseed.output.export import write_bundler, write_colmap, write_nvm
-    from stereoseed.output.reader import load_result
-
-    result = load_result(args.result)
-    out = Path(args.out)
-    if args.format == "colmap":
-        warnings_ = write_colmap(result, out, binary=args.binary, force=args.force)
-        written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
-    elif args.format == "nvm":
-        warnings_ = write_nvm(result, out / "model.nvm", force=args.force)
-        written = [out / "model.nvm"]
-    else:
-        warnings_ = write_bundler(result, out, force=args.force)
-        written = [out / "bundle.out", out / "list.txt"]
-    for w in warnings_:
-        warn(w)
-    say(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
-          + ", ".join(str(p) for p in written))
-    return 0
-
-def _cmd_view(args: argparse.Namespace) -> int:
-    import webbrowser
-
-    page = Path(args.result) / "report.html"
-    if not page.is_file():
-        raise StereoseedError(f"{args.result}: no report.html; run stereoseed reconstruct --out {args.result} first")
-    uri = page.resolve().as_uri()
-    if args.print:
-        say(uri)
-    elif webbrowser.open(uri):
-        say(f"opened {uri}")
-    else:
-        warn(f"no browser to open; open {uri}")
-    return 0
-
 def _cmd_demo(args: argparse.Namespace) -> int:
     from stereoseed.experiments.demo import run_demo
 
@@ -169,7 +97,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
     if not args.noise >= 0:
         raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
-    _say_if_compiling(quiet=False)
+    say_if_compiling(quiet=False)
     return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=print)
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -200,7 +128,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the reconstruct, batch, export, view, demo subcommands."""
+    """Add the reconstruct, batch and demo subcommands."""
     p = sub.add_parser("reconstruct", help="incremental reconstruction of an ordered image sequence")
     p.add_argument("images", nargs="+",
                    help="a folder (images in name order) or a text file listing image paths; or the two calibrated "
@@ -227,21 +155,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_run_options(p)
     p.set_defaults(func=_cmd_batch)
 
-
-    p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file")
-    p.add_argument("result", help="a folder written by stereoseed reconstruct --out")
-    p.add_argument("--format", choices=["colmap", "nvm", "bundler"], default="colmap")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--binary", action="store_true", help="COLMAP's binary .bin files instead of .txt")
-    p.add_argument("--force", action="store_true",
-                   help="write into a folder that holds other files (files of the export's names are replaced)")
-    p.set_defaults(func=_cmd_export)
-
-
-    p = sub.add_parser("view", help="open a result folder's report.html in the default browser")
-    p.add_argument("result", help="a result folder (stereoseed reconstruct --out RESULT)")
-    p.add_argument("--print", action="store_true", help="only print the report's file URI (headless machines)")
-    p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("demo", help="render the synthetic box scene, calibrate, reconstruct, report the error")
     p.add_argument("--out", default="demo_output", help="output folder (default: %(default)s)")

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
-from stereoseed.cli._terminal import complain, say, warn
 from pathlib import Path
+
+from stereoseed.cli._terminal import complain, say, warn
+
 
 def _cmd_match(args: argparse.Namespace) -> int:
     from stereoseed.config import Config
@@ -30,12 +32,12 @@ def _cmd_match(args: argparse.Namespace) -> int:
     return 0
 
 def _cmd_propagate(args: argparse.Namespace) -> int:
-    from stereoseed.geometry.projection import fundamental_from_projections
     from stereoseed.config import Config
+    from stereoseed.geometry.projection import fundamental_from_projections
     from stereoseed.io.files import check_image_output, read_calibration, read_image
-    from stereoseed.sfm.mapper import initialise
     from stereoseed.matching.propagation.core import propagate
     from stereoseed.output.visualize import save_propagation_png
+    from stereoseed.sfm.mapper import initialise
 
     if args.output:
         check_image_output(args.output)
