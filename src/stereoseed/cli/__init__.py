@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import sys
+import textwrap
 import warnings
 
 # One BLAS thread unless the user says otherwise, set before NumPy loads OpenBLAS: the pipeline's
@@ -34,12 +35,44 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+DESCRIPTION = ("A metric 3D model (cameras, sparse points, a quasi-dense cloud) from an ordered image sequence "
+               "whose first two images were taken by a calibrated stereo pair.")
+
+# the workflow: (command, what it does); the steps after a run are left out where their command
+# is not registered (an optional module)
+WORKFLOW = [
+    ("stereoseed target --out target/", "print a calibration target (or describe your own: examples/)"),
+    ("stereoseed calibrate --target target/target.json PAIR1.png PAIR2.png \\\n"
+     "         --lens-images1 ... --lens-images2 ... -o calib.json", "the pair's two cameras from photos of the target"),
+    ("stereoseed reconstruct IMAGES --calib calib.json --out result/ [--dense] [--config run.toml]",
+     "IMAGES: a folder or list file, the pair's two photos first, then the walk"),
+]
+AFTER = [
+    ("stereoseed view result/", "report.html in the browser"),
+    ("stereoseed export result/ --format colmap --out model/", "for COLMAP, OpenMVS, splatting trainers"),
+    ("stereoseed mesh result/", "a surface mesh of the quasi-dense cloud"),
+]
+
+
+def _epilog(commands: set[str]) -> str:
+    lines = ["workflow:"]
+    for n, (cmd, what) in enumerate(WORKFLOW, 1):
+        lines += [f"  {n}. {cmd}", f"       {what}"]
+    after = [(cmd, what) for cmd, what in AFTER if cmd.split()[1] in commands]
+    lines += [f"  {len(WORKFLOW) + 1}. then:"] + [f"       {cmd}   ({what})" for cmd, what in after]
+    lines += ["", "Try it on a synthetic scene: stereoseed demo. Every option: stereoseed COMMAND --help.",
+              "From Python: stereoseed.calibrate, stereoseed.reconstruct, stereoseed.load_result (README)."]
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="stereoseed", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="stereoseed", description=textwrap.fill(DESCRIPTION, 90),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for commands in (calibration, reconstruct, results, tools):
         commands.register(sub)
+    parser.epilog = _epilog(set(sub.choices))
     return parser
 
 

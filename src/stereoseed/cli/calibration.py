@@ -20,50 +20,24 @@ def _config(args: argparse.Namespace):
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from stereoseed.io.files import write_json
+    from stereoseed.api import calibrate
 
     if Path(args.output).is_dir():
         raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
-    if args.target:
-        data = _calibrate_from_target(args)
+    if not args.target:
+        pair = calibrate(args.inputs, lens_images=(args.lens_images1 or [], args.lens_images2 or []), rig=args.rig,
+                         lens=args.lens, k3=args.k3, cfg=_config(args))
+        for i, cam in enumerate(pair.cameras, 1):
+            say(f"camera {i}: {cam.n_points} points, reprojection RMS {cam.rms_px:.3f} px, "
+                f"f = ({cam.K[0, 0]:.1f}, {cam.K[1, 1]:.1f}) px, centre = {np.round(cam.centre, 4).tolist()}"
+                + (f", distortion {np.round(cam.distortion, 4).tolist()}" if cam.distortion is not None else ""))
+        for w in pair.warnings:
+            warn(w)
     else:
-        data = {"cameras": _calibrate_from_points(args)}
-    write_json(args.output, data)
+        pair = _calibrate_from_target(args)
+    pair.write(args.output)
     say(f"wrote {args.output}")
     return 0
-
-
-def _calibrate_from_points(args: argparse.Namespace) -> list[dict]:
-    """The paper's form: a pattern file and the pixels of its points in each pair image."""
-    from stereoseed.calibration.lens_calibration import calibrate_lens
-    from stereoseed.estimators.calibration import calibrate_camera
-    from stereoseed.io.files import read_points_file
-
-    if len(args.inputs) != 3 or args.lens_images1 or args.lens_images2 or args.rig:
-        raise StereoseedError("calibrate: give PATTERN POINTS1 POINTS2 (typed points), or --target target.json "
-                              "IMAGE1 IMAGE2 (photos of the printed target, with --lens-images1/2)")
-    pattern_path, *point_paths = args.inputs
-    pattern = read_points_file(pattern_path, 3)
-    cameras = []
-    for i, path in enumerate(point_paths, 1):
-        pixels = read_points_file(path, 2)
-        if len(pixels) != len(pattern):
-            raise StereoseedError(f"{path}: {len(pixels)} image points but {len(pattern)} pattern points "
-                                  f"in {pattern_path}; give one pixel per pattern point, same order")
-        if args.lens:
-            cal = calibrate_lens([(pattern, pixels)], k3=args.k3, what=[str(path)], max_rms_px=args.max_rms)
-            entry, rms, K = cal.to_dict(), cal.rms_px[0], cal.K
-            centre = -cal.R[0].T @ cal.t[0]
-            for w in cal.warnings:
-                warn(w)
-        else:
-            single = calibrate_camera(pattern, pixels, what=str(path))
-            entry, rms, K, centre = single.to_dict(), single.rms_px, single.K, -single.R.T @ single.t
-        cameras.append(entry)
-        say(f"camera {i}: {len(pattern)} points, reprojection RMS {rms:.3f} px, "
-              f"f = ({K[0, 0]:.1f}, {K[1, 1]:.1f}) px, centre = {np.round(centre, 4).tolist()}"
-              + (f", distortion {np.round(entry['distortion'], 4).tolist()}" if args.lens else ""))
-    return cameras
 
 
 def _detect_all(target, paths: list[str]) -> list:
@@ -72,18 +46,6 @@ def _detect_all(target, paths: list[str]) -> list:
     from stereoseed.calibration.detection import detect_target
 
     return [detect_target(p, target, what=str(p)) for p in paths]
-
-
-def _known(path: str | None, label: str, size: tuple[int, int] | None):
-    from stereoseed.calibration.lens_calibration import read_opencv_camera
-
-    if not path:
-        return None
-    K, d, file_size = read_opencv_camera(path)
-    if file_size is not None and size is not None and tuple(file_size) != tuple(size):
-        raise StereoseedError(f"{path}: calibrated for {file_size[0]}x{file_size[1]} images, but {label}'s images are "
-                              f"{size[0]}x{size[1]}; give the file of this camera at this resolution")
-    return K, d
 
 
 def _unique_png(out: Path, camera: int, image: str, taken: set[str]) -> Path:
@@ -141,47 +103,25 @@ def _report_cameras(cal, labels: list[str]) -> None:
         warn(w)
 
 
-def _calibrate_from_target(args: argparse.Namespace) -> dict:
-    """Photos of the target: corners found, the cameras, their lenses, the target's faces (and the
-    rig) estimated together; a check PNG per photo and the refined target beside calib.json."""
-    from stereoseed.calibration.rig import calibrate_cameras, calibration_json
-    from stereoseed.calibration.target import load_target, target_json
-    from stereoseed.io.files import write_json
+def _calibrate_from_target(args: argparse.Namespace):
+    """Photos of the target (:func:`stereoseed.api.calibrate`): a line per photo and camera, a
+    check PNG per photo and the refined target beside calib.json."""
+    from stereoseed.api import calibrate
 
-    if len(args.inputs) != 2:
-        raise StereoseedError("calibrate --target target.json: give the two images of the calibrated pair")
-    cfg = _config(args)
-    target = load_target(args.target)
     out = Path(args.output)
     labels = ["camera 1", "camera 2"]
-    lens = [list(args.lens_images1 or []), list(args.lens_images2 or [])]
-    if args.rig and len(lens[0]) != len(lens[1]):
-        raise StereoseedError(f"--rig: {len(lens[0])} photos in --lens-images1 but {len(lens[1])} in --lens-images2; "
-                              "the rig's photos go in pairs, taken together, in the same order")
-    # the pair's photos may be among the lens photos (all of a rig's shots given): each is used once;
-    # a rig's shots stay paired, so a shot holding a pair photo is dropped for both cameras
-    same = [[Path(p).resolve() == Path(args.inputs[c]).resolve() for p in lens[c]] for c in (0, 1)]
-    if args.rig:
-        keep = [not (a or b) for a, b in zip(*same)]
-        lens = [[p for p, k in zip(lens[c], keep) if k] for c in (0, 1)]
-    else:
-        lens = [[p for p, dup in zip(lens[c], same[c]) if not dup] for c in (0, 1)]
-    detections, known = [], []
-    for c, intrinsics in enumerate((args.intrinsics1, args.intrinsics2)):
-        detections.append(_detect_all(target, [args.inputs[c]] + lens[c]))
-        known.append(_known(intrinsics, labels[c], detections[-1][0].image_size))
-    if not args.rig and args.lens_images1 and args.lens_images2 and len(detections[0]) == len(detections[1]):
+    if (not args.rig and args.lens_images1 and args.lens_images2
+            and len(args.lens_images1) == len(args.lens_images2)):
         say("note: as many lens photos for both cameras; if each pair was taken together by the fixed pair, --rig "
-              "estimates one relative pose from all of them")
-    cal = calibrate_cameras(target, detections, rig=args.rig, rigid_target=args.rigid_target, k3=args.k3,
-                            known=known, cfg=cfg, pair=True, leave_one_out=args.rig, labels=labels)
-    _report_views(cal, labels, out)
-    _report_cameras(cal, labels)
-    refined = out.with_name(f"{out.stem}_target.json")
-    write_json(refined, target_json(cal.target, refined.parent.resolve(),
-                                    "the target's faces where the calibration found them (stereoseed calibrate)"))
+            "estimates one relative pose from all of them")
+    pair = calibrate(args.inputs, target=args.target, lens_images=(args.lens_images1 or [], args.lens_images2 or []),
+                     intrinsics=(args.intrinsics1, args.intrinsics2), rig=args.rig, rigid_target=args.rigid_target,
+                     k3=args.k3, cfg=_config(args))
+    _report_views(pair.calibration, labels, out)
+    _report_cameras(pair.calibration, labels)
+    refined = pair.write_target(out.with_name(f"{out.stem}_target.json"))
     say(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
-    return calibration_json(cal)
+    return pair
 
 
 def _image_list(items: list[str]) -> list[Path]:

@@ -15,15 +15,22 @@ EXIT_SKIPPED = 3  # --strict: every step worked but some image could not be plac
 EXIT_SEQUENCES_FAILED = 1  # batch: some sequence could not be reconstructed (the others were)
 
 def _config(args: argparse.Namespace):
-    """The run's Config from the options reconstruct and batch share (:func:`_add_run_options`)."""
+    """The run's Config: the --config file's (a TOML file, or a run's report.json replayed), then
+    the options given on the command line over it, field by field (:func:`_add_config_options`)."""
     from stereoseed.config import Config
-    from stereoseed.sfm.config import PipelineConfig, TrustConfig
 
+    cfg = Config.from_file(args.config) if args.config else Config()
     try:
-        return Config(pipeline=PipelineConfig(mode=args.mode, camera_model=args.camera_model, window=args.window,
-                                              ba=args.ba), trust=TrustConfig(keep_flagged=args.keep_flagged))
+        if args.mode is not None and args.mode != cfg.pipeline.mode:
+            cfg = cfg.with_mode(args.mode)  # what the file held at its mode's defaults follows the new mode
+        given = {"camera_model": args.camera_model, "window": args.window, "ba": args.ba}
+        changes = {"pipeline": {k: v for k, v in given.items() if v is not None}}
+        if args.keep_flagged:
+            changes["trust"] = {"keep_flagged": True}
+        return cfg.replace(**changes)
     except ValueError as e:
         raise StereoseedError(str(e)) from None
+
 
 def _pool(args: argparse.Namespace, workers: int):
     """Where the jobs run: the Dask cluster of --scheduler (connected now, before any work),
@@ -37,7 +44,7 @@ def _pool(args: argparse.Namespace, workers: int):
     return executor_for(args.scheduler, workers, connect_timeout=args.connect_timeout)
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from stereoseed.pipeline import reconstruct_to_folder
+    from stereoseed.api import reconstruct
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
@@ -45,8 +52,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     say_if_compiling(args.quiet)
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
-        report = reconstruct_to_folder(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
-                                       progress=progress, pool=pool, dense_progress=dense_progress)
+        report = reconstruct(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
+                             progress=progress, pool=pool, dense_progress=dense_progress).report
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         say(f"resumed after {len(report['resumed_images'])} images already placed")
@@ -98,11 +105,19 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if not args.noise >= 0:
         raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
     say_if_compiling(quiet=False)
-    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=print)
+    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=say)
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    """The options of a run, shared by reconstruct and batch."""
-    p.add_argument("--mode", choices=["paper", "accurate"], default="accurate",
+def _cmd_config(args: argparse.Namespace) -> int:
+    say(_config(args).to_toml().rstrip("\n"))
+    return 0
+
+
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    """The options that set the run's Config: a file, then single fields over it."""
+    p.add_argument("--config", metavar="FILE",
+                   help="the settings: a TOML file with a table per section of Config (docs/config.md), or a run's "
+                        "report.json to run again with its configuration; the options below override it")
+    p.add_argument("--mode", choices=["paper", "accurate"], default=None,
                    help="'paper': the paper's chain (2-view points, 11-DOF cameras, 3-image local BA); "
                         "'accurate': multi-view tracks, constrained camera, wider window (default)")
     p.add_argument("--camera-model", choices=list(MODELS), default=None,
@@ -112,10 +127,15 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ba", choices=["local", "global", "final"], default=None,
                    help="local BA after each insertion, global BA after each insertion, or local + one final global BA "
                         "(default: local in paper mode, final in accurate mode)")
-    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
     p.add_argument("--keep-flagged", action="store_true",
                    help="keep the observations of cameras the run flagged (reliable false in cameras.json) in the model "
                         "and their images in the dense stage (default: no point or dense match rests on them)")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """The options of a run, shared by reconstruct and batch."""
+    _add_config_options(p)
+    p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
                         "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "
@@ -162,4 +182,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
     p.add_argument("--sparse", action="store_true", help="skip the dense stage")
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("config", help="print the configuration a run would use, resolved, as TOML (every field: "
+                                      "a starting point for --config)")
+    _add_config_options(p)
+    p.set_defaults(func=_cmd_config)
 
