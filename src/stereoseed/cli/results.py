@@ -12,8 +12,16 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from stereoseed.output.export import write_bundler, write_colmap, write_nvm
     from stereoseed.output.reader import load_result
 
+    if args.undistort and args.format != "colmap":
+        raise StereoseedError(f"--undistort is for --format colmap (--format {args.format} "
+                              + ("always writes undistorted images)" if args.format == "nerfstudio" else
+                                 "has no images); leave it out"))
+    if args.images and not (args.undistort or args.format == "nerfstudio"):
+        raise StereoseedError("--images is read by --format colmap --undistort and --format nerfstudio only; leave it out")
     result = load_result(args.result)
     out = Path(args.out)
+    if args.format == "nerfstudio" or args.undistort:
+        return _handoff(result, out, args)
     if args.format == "colmap":
         warnings_ = write_colmap(result, out, binary=args.binary, force=args.force)
         written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
@@ -28,6 +36,29 @@ def _cmd_export(args: argparse.Namespace) -> int:
     say(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
           + ", ".join(str(p) for p in written))
     return 0
+
+
+def _handoff(result, out: Path, args: argparse.Namespace) -> int:
+    """The hand-offs with images: COLMAP's undistorted workspace, nerfstudio's folder."""
+    from stereoseed.output.handoff import (
+        NERFSTUDIO_PLY,
+        write_colmap_undistorted,
+        write_nerfstudio,
+    )
+
+    if args.format == "nerfstudio":
+        done = write_nerfstudio(result, out, args.images, force=args.force)
+        files = [out / "transforms.json", out / NERFSTUDIO_PLY]
+    else:
+        done = write_colmap_undistorted(result, out, args.images, binary=args.binary, force=args.force)
+        files = [out / "sparse" / "0" / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+    for w in done.warnings:
+        warn(w)
+    how = "undistorted" if done.undistorted else "copied (no lens)"
+    say(f"{done.images} images {how} into {out / 'images'}, {done.cameras} PINHOLE camera"
+        f"{'s' if done.cameras != 1 else ''}, {done.points} points; wrote " + ", ".join(str(p) for p in files))
+    return 0
+
 
 def _cmd_view(args: argparse.Namespace) -> int:
     import webbrowser
@@ -47,11 +78,20 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the export and view subcommands."""
-    p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file")
+    p = sub.add_parser("export", help="write a result folder as a COLMAP model (text or binary), NVM or Bundler file, "
+                                      "or hand it to Gaussian-splatting (colmap --undistort) or nerfstudio")
     p.add_argument("result", help="a folder written by stereoseed reconstruct --out")
-    p.add_argument("--format", choices=["colmap", "nvm", "bundler"], default="colmap")
+    p.add_argument("--format", choices=["colmap", "nvm", "bundler", "nerfstudio"], default="colmap",
+                   help="nerfstudio: OUT/transforms.json, OUT/images/ (undistorted, PINHOLE) and the sparse cloud "
+                        "OUT/sparse_pc.ply")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--binary", action="store_true", help="COLMAP's binary .bin files instead of .txt")
+    p.add_argument("--undistort", action="store_true",
+                   help="colmap: OUT/images/ (the photos undistorted) and OUT/sparse/0/ with PINHOLE cameras, as colmap "
+                        "image_undistorter leaves them (what Gaussian-splatting trainers read)")
+    p.add_argument("--images", nargs="+", metavar="SOURCE",
+                   help="the photos the run read (folders, list files or images, as given to reconstruct), found by "
+                        "name; for --undistort and --format nerfstudio (a video's keyframes are read from RESULT/keyframes)")
     p.add_argument("--force", action="store_true",
                    help="write into a folder that holds other files (files of the export's names are replaced)")
     p.set_defaults(func=_cmd_export)

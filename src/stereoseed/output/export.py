@@ -1,5 +1,7 @@
 """Exports of a result folder for the field's tools: COLMAP's model (text or binary), VisualSFM's
-NVM and Bundler's bundle.out (the reader of COLMAP models is :mod:`stereoseed.io.colmap`).
+NVM and Bundler's bundle.out (the reader of COLMAP models is :mod:`stereoseed.io.colmap`; the
+hand-offs with undistorted images, for Gaussian-splatting and nerfstudio, are
+:mod:`stereoseed.output.handoff`).
 
 An export writes into a folder of its own: a folder holding files it did not write (its
 manifest ``.stereoseed-export.json`` lists those it wrote) is refused unless ``force``; each file
@@ -17,20 +19,23 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import struct
 from pathlib import Path
 
 import numpy as np
 
-from stereoseed.geometry.camera import Camera
-from stereoseed.geometry.models import quaternion_from_rotation
 from stereoseed.errors import StereoseedError
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.lens import distort_pixels
+from stereoseed.geometry.models import quaternion_from_rotation
 from stereoseed.io.colmap import COLMAP_MODELS
 from stereoseed.io.files import atomic_path, name_trouble, write_json, write_text
-from stereoseed.geometry.lens import distort_pixels
 from stereoseed.output.reader import Result
 
-__all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST"]
+__all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST", "claim_folder",
+           "record_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
+           "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px"]
 
 log = logging.getLogger(__name__)
 
@@ -51,27 +56,41 @@ def _written_before(folder: Path) -> set[str]:
     return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
 
 
-def _claim(folder: Path, force: bool) -> None:
+def claim_folder(folder: Path, force: bool) -> None:
     """Refuse, before writing, an output folder that holds anything the exports did not write
-    (unless ``force``: files of the export's names are then replaced, the others left)."""
+    (unless ``force``: files of the export's names are then replaced, the others left). A
+    sub-folder is the export's when every file in it is (``images/``, ``sparse/0/``)."""
     if folder.exists() and not folder.is_dir():
         raise StereoseedError(f"{folder}: exists and is not a folder; give a folder for the export")
     if force or not folder.is_dir():
         return
     ours = _written_before(folder) | {EXPORT_MANIFEST}
-    foreign = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir() if e.name not in ours)
+    foreign = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir() if not _ours(e, folder, ours))
     if foreign:
         more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
         raise StereoseedError(f"{folder}: holds files stereoseed export did not write ({', '.join(foreign[:3])}{more}); "
                               f"give an empty or new folder, or --force to replace the export's files there")
 
 
-def _record(folder: Path, files: list[str]) -> None:
-    """Add ``files`` to the folder's export manifest."""
+def _ours(entry: Path, folder: Path, ours: set[str]) -> bool:
+    """Whether ``entry`` of the export folder is the exports': a file the manifest lists, or a
+    real folder holding only such files (the walk stops at the first other one)."""
+    if entry.is_symlink() or not entry.is_dir():
+        return entry.relative_to(folder).as_posix() in ours
+    for root, dirs, files in os.walk(entry):
+        here = Path(root)
+        for name in files + [d for d in dirs if (here / d).is_symlink()]:
+            if (here / name).relative_to(folder).as_posix() not in ours:
+                return False
+    return True
+
+
+def record_written(folder: Path, files: list[str]) -> None:
+    """Add ``files`` (paths relative to ``folder``, with ``/``) to the folder's export manifest."""
     write_json(folder / EXPORT_MANIFEST, {"files": sorted(_written_before(folder) | set(files))})
 
 
-def _check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False,
+def check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False,
                  space_hint: str = "") -> None:
     """Refuse a registered image whose name ``fmt`` cannot hold, or two images of one name."""
     seen: set[str] = set()
@@ -98,7 +117,7 @@ def _num(v: float) -> str:
     return repr(float(v))
 
 
-def _moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_focal: bool = False) -> float:
+def moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_focal: bool = False) -> float:
     """How far (px, at worst over the image) a pixel moves when K (3, 3) loses its skew and,
     with ``one_focal``, takes the mean of fx and fy."""
     w, h = size
@@ -119,7 +138,7 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distorti
     when that moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
     K, R, t = Camera(P).krt
     warning = None
-    moved = _moved_px(K, size)
+    moved = moved_px(K, size)
     if moved > MAX_APPROXIMATION_PX:
         warning = (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no COLMAP model "
                    f"has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
@@ -162,7 +181,7 @@ def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
     return cameras, images, warnings
 
 
-def _observations_by_point(result: Result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def observations_by_point(result: Result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The observations grouped by point: (starts (P + 1,): point p's are rows starts[p] to
     starts[p + 1]; image (O,), keypoint (O,), xy (O, 2) in our pixel convention)."""
     tr = result.tracks
@@ -174,11 +193,13 @@ def _observations_by_point(result: Result) -> tuple[np.ndarray, np.ndarray, np.n
     return starts, image, keypoint, xy
 
 
-def _tracks_by_point(result: Result) -> list[np.ndarray]:
-    """Per point, its track (T, 2): (COLMAP image id, 2D point index)."""
-    image_id = np.zeros(len(result.names), np.int64)
-    image_id[result.registered] = np.arange(1, len(result.registered) + 1)
-    starts, image, keypoint, _ = _observations_by_point(result)
+def tracks_by_point(result: Result, image_id: np.ndarray | None = None) -> list[np.ndarray]:
+    """Per point, its track (T, 2): (COLMAP image id, 2D point index). ``image_id`` (n_images,):
+    each image's COLMAP id (default: the registered images numbered from 1 in order)."""
+    if image_id is None:
+        image_id = np.zeros(len(result.names), np.int64)
+        image_id[result.registered] = np.arange(1, len(result.registered) + 1)
+    starts, image, keypoint, _ = observations_by_point(result)
     return np.split(np.stack([image_id[image], keypoint], axis=1), starts[1:-1])
 
 
@@ -188,21 +209,21 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     images left out and why, the approximations made."""
     out = Path(out_dir)
     # COLMAP's text reader ends a name at its first space (pycolmap 3.x reads "a b.png" as "a")
-    _check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", any_space=not binary,
+    check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", any_space=not binary,
                  space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
-    _claim(out, force)
+    claim_folder(out, force)
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
-    tracks = _tracks_by_point(result)
+    tracks = tracks_by_point(result)
     if binary:
-        _write_colmap_binary(out, cameras, images, tr, tracks)
+        write_colmap_binary(out, cameras, images, tr, tracks)
     else:
-        _write_colmap_text(out, cameras, images, tr, tracks, tuple(result.names[i] for i in _flagged_images(result)))
-    _record(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
-    return _logged(result.warnings + warnings + _flagged(result))
+        write_colmap_text(out, cameras, images, tr, tracks, tuple(result.names[i] for i in flagged_images(result)))
+    record_written(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
+    return logged(result.warnings + warnings + flagged_warnings(result))
 
 
-def _write_colmap_text(out: Path, cameras, images, tr, tracks, flagged: tuple[str, ...] = ()) -> None:
+def write_colmap_text(out: Path, cameras, images, tr, tracks, flagged: tuple[str, ...] = ()) -> None:
     lines = ["# Camera list with one line of data per camera:",
              "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
     lines += [f"{c} {m} {w} {h} " + " ".join(repr(p) for p in params) for c, m, w, h, params in cameras]
@@ -225,7 +246,7 @@ def _write_colmap_text(out: Path, cameras, images, tr, tracks, flagged: tuple[st
     write_text(out / "points3D.txt", "\n".join(lines) + "\n")
 
 
-def _write_colmap_binary(out: Path, cameras, images, tr, tracks) -> None:
+def write_colmap_binary(out: Path, cameras, images, tr, tracks) -> None:
     def write(name: str, chunks: list[bytes]) -> None:
         with atomic_path(out / name) as tmp:
             tmp.write_bytes(b"".join(chunks))
@@ -255,7 +276,7 @@ def _single_focal_cameras(result: Result, fmt: str) -> tuple[dict[int, tuple], l
     cams, warnings = {}, []
     for i in result.registered:
         K, R, t = Camera(result.P[i]).krt
-        moved = _moved_px(K, result.sizes[i], one_focal=True)
+        moved = moved_px(K, result.sizes[i], one_focal=True)
         if moved > MAX_APPROXIMATION_PX:
             warnings.append(f"{result.names[i]}: {fmt} has one focal length and no skew; fx, fy averaged "
                             f"(pixels move by up to {moved:.2f} px)")
@@ -267,7 +288,7 @@ def _measurements(result: Result, cams: dict[int, tuple], y_up: bool) -> list[st
     """Per point, its measurements "camera keypoint dx dy", relative to each camera's principal
     point (y up for Bundler), the cameras numbered in registration order."""
     index = {i: n for n, i in enumerate(result.registered)}
-    starts, image, keypoint, xy = _observations_by_point(result)
+    starts, image, keypoint, xy = observations_by_point(result)
     return [" ".join(f"{index[i]} {k} {_num(x - cams[i][3][0])} "
                      f"{_num(cams[i][3][1] - y if y_up else y - cams[i][3][1])}"
                      for i, k, (x, y) in zip(image[a:b].tolist(), keypoint[a:b].tolist(), xy[a:b].tolist()))
@@ -279,8 +300,8 @@ def write_nvm(result: Result, path: str | Path, force: bool = False) -> list[str
     point assumed at the measurement origin, so measurements are written relative to each
     camera's principal point. Returns the warnings."""
     path = Path(path)
-    _check_names(result, "NVM", any_space=True)
-    _claim(path.parent, force)
+    check_names(result, "NVM", any_space=True)
+    claim_folder(path.parent, force)
     tr = result.tracks
     cams, warnings = _single_focal_cameras(result, "NVM")
     lines = ["NVM_V3", "", str(len(cams))]
@@ -288,20 +309,20 @@ def write_nvm(result: Result, path: str | Path, force: bool = False) -> list[str
         w, x, y, z = quaternion_from_rotation(R)
         lines.append(f"{result.names[i]} {_num(f)} " + " ".join(_num(v) for v in (w, x, y, z, *(-R.T @ t))) + " 0 0")
     lines.append(str(len(tr["point_xyz"])))
-    counts = np.diff(_observations_by_point(result)[0])
+    counts = np.diff(observations_by_point(result)[0])
     for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=False)):
         lines.append(f"{_num(X[0])} {_num(X[1])} {_num(X[2])} {rgb[0]} {rgb[1]} {rgb[2]} {n} {meas}")
     write_text(path, "\n".join(lines) + "\n")
-    _record(path.parent, [path.name])
-    return _logged(result.warnings + warnings + _flagged(result))
+    record_written(path.parent, [path.name])
+    return logged(result.warnings + warnings + flagged_warnings(result))
 
 
 def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> list[str]:
     """Bundler's bundle.out (v0.3) and list.txt: cameras look down -z with y up, measurements
     relative to the principal point with y up. Returns the warnings."""
     out, tr = Path(out_dir), result.tracks
-    _check_names(result, "Bundler's list.txt", edge_space=True)
-    _claim(out, force)
+    check_names(result, "Bundler's list.txt", edge_space=True)
+    claim_folder(out, force)
     cams, warnings = _single_focal_cameras(result, "Bundler")
     flip = np.diag([1.0, -1.0, -1.0])
     lines = ["# Bundle file v0.3", f"{len(cams)} {len(tr['point_xyz'])}"]
@@ -309,27 +330,27 @@ def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> l
         lines.append(f"{_num(f)} 0 0")
         lines += [" ".join(_num(v) for v in row) for row in flip @ R]
         lines.append(" ".join(_num(v) for v in flip @ t))
-    counts = np.diff(_observations_by_point(result)[0])
+    counts = np.diff(observations_by_point(result)[0])
     for X, rgb, n, meas in zip(tr["point_xyz"], tr["point_rgb"], counts, _measurements(result, cams, y_up=True)):
         lines += [" ".join(_num(v) for v in X), f"{rgb[0]} {rgb[1]} {rgb[2]}", f"{n} {meas}"]
     write_text(out / "bundle.out", "\n".join(lines) + "\n")
     write_text(out / "list.txt", "\n".join(result.names[i] for i in result.registered) + "\n")
-    _record(out, ["bundle.out", "list.txt"])
-    return _logged(result.warnings + warnings + _flagged(result))
+    record_written(out, ["bundle.out", "list.txt"])
+    return logged(result.warnings + warnings + flagged_warnings(result))
 
 
-def _flagged_images(result: Result) -> list[int]:
+def flagged_images(result: Result) -> list[int]:
     """The exported images whose camera the run flagged."""
     return [i for i, why in enumerate(result.flags) if why is not None and result.P[i] is not None]
 
 
-def _flagged(result: Result) -> list[str]:
+def flagged_warnings(result: Result) -> list[str]:
     """What an export says of the cameras the run flagged: exported, not vouched for."""
     return [f"{result.names[i]}: flagged by the run ({result.flags[i]}); exported, but stereoseed does not vouch "
-            f"for this camera" for i in _flagged_images(result)]
+            f"for this camera" for i in flagged_images(result)]
 
 
-def _logged(warnings: list[str]) -> list[str]:
+def logged(warnings: list[str]) -> list[str]:
     """The warnings, also logged (the CLI prints what it gets back)."""
     for w in warnings:
         log.info("%s", w)
