@@ -132,3 +132,28 @@ def test_the_demo_takes_the_result_folders_lock(tmp_path, capsys):
         assert main(["demo", "--images", "4", "--sparse", "--out", str(out)]) == 2
     assert "another stereoseed run is writing" in capsys.readouterr().err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_top_level_help_describes_the_workflow(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert done.value.code == 0 and "workflow:" in out and "Command-line interface" not in out
+    steps = out[out.index("workflow:"):]
+    order = [steps.index(f"stereoseed {c} ") for c in ("target", "calibrate", "reconstruct", "view", "export")]
+    assert order == sorted(order)
+    commands = set(cli.build_parser()._subparsers._group_actions[0].choices)
+    named = {line.split("stereoseed ")[1].split()[0] for line in steps.splitlines()
+             if "stereoseed " in line and "COMMAND" not in line and "stereoseed." not in line}
+    assert named <= commands and {"calibrate", "reconstruct", "view", "export"} <= named  # only commands that exist
+
+
+def test_config_prints_the_resolved_configuration_as_toml(capsys):
+    import tomllib
+
+    from stereoseed.config import Config
+
+    assert main(["config", "--mode", "paper"]) == 0
+    shown = tomllib.loads(capsys.readouterr().out)
+    assert shown["pipeline"]["camera_model"] == "free" and shown["matching"]["first_pass_ratio"] == "none"
+    assert Config.from_dict(shown).resolve() == Config().with_mode("paper").resolve()

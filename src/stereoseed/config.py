@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -298,8 +299,9 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
-        return repr(value) if value == value and abs(value) != float("inf") else \
-            ("nan" if value != value else "inf" if value > 0 else "-inf")
+        if math.isfinite(value):
+            return repr(value)
+        return "nan" if math.isnan(value) else "inf" if value > 0 else "-inf"
     if isinstance(value, str):
         return json.dumps(str(value))
     if isinstance(value, (tuple, list)):
