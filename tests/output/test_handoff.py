@@ -304,6 +304,13 @@ def test_the_hand_offs_refuse_a_folder_of_other_files_and_missing_photos(lens_ru
     with pytest.raises(StereoseedError, match="320x200 pixels, but .* 320x240"):
         write_colmap_undistorted(result, tmp_path / "wrong", [small])
     assert not (tmp_path / "none").exists() and not (tmp_path / "wrong").exists()
+    photos = tmp_path / "ws" / "images"  # the photos where the export would put its images
+    photos.mkdir(parents=True)
+    for name in scene.names:
+        (photos / name).write_bytes((images_txt.parent / name).read_bytes())
+    with pytest.raises(StereoseedError, match="would write over the photo it reads"):
+        write_nerfstudio(result, photos.parent, [photos], force=True)
+    assert all((photos / n).read_bytes() == (images_txt.parent / n).read_bytes() for n in scene.names)
 
 
 def test_export_hands_off_from_the_command_line(lens_run, tmp_path, capsys):

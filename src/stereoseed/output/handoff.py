@@ -354,6 +354,10 @@ def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cf
                 space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
     images, warnings = pinhole_images(result, cfg)
     photos = _photos(result, list(image_sources or []), images)
+    for im in images:  # --force replaces the export's files: never the photos it reads
+        if (out / "images" / result.names[im.index]).resolve() == photos[im.index].resolve():
+            raise StereoseedError(f"{photos[im.index]}: the export would write over the photo it reads; give --out "
+                                  f"another folder")
     claim_folder(out, force)
     return images, warnings, photos
 
