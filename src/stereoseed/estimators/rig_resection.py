@@ -34,7 +34,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.estimators.config import BundleConfig, ResectionConfig
 from stereoseed.geometry.models import rotation_from_vector
 from stereoseed.geometry.projection import compose_projection, decompose_projection
-from stereoseed.validation import in_range, positive, whole
+from stereoseed.validation import positive, whole
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ class Rig:
             raise StereoseedError("rig: R_rl is not a rotation (orthonormal, determinant +1); check the calibration")
 
     @classmethod
-    def from_projections(cls, P_left: np.ndarray, P_right: np.ndarray) -> "Rig":
+    def from_projections(cls, P_left: np.ndarray, P_right: np.ndarray) -> Rig:
         """The rig of a calibrated pair of cameras P_left, P_right (3, 4) taken together (the
         first station): both decomposed, the right camera's pose related to the left's."""
         K_l, R_l, t_l = decompose_projection(np.asarray(P_left, np.float64))
@@ -323,10 +323,10 @@ def _ransac(rig: Rig, X: np.ndarray, x: np.ndarray, side: np.ndarray, config: Ri
                 needed = []
                 for q in sides:
                     ratio = inliers[members[q]].mean()
-                    denom = np.log(max(1e-12, 1.0 - ratio ** 3))
-                    needed.append(np.log(1.0 - config.ransac_confidence) / denom if denom < 0 else 0.0)
+                    denom = np.log(max(1e-12, 1.0 - ratio ** 3))  # 0 when no pair agrees: no bound
+                    needed.append(np.log(1.0 - config.ransac_confidence) / denom if denom < 0 else np.inf)
                 # the sides take turns: the better one is sampled every len(sides)-th time
-                stop_at = min(config.ransac_max_iters, int(np.ceil(min(needed))) * len(sides))
+                stop_at = int(min(config.ransac_max_iters, np.ceil(min(needed)) * len(sides)))
     return best[2], best[3], best[4], tried
 
 

@@ -1,0 +1,305 @@
+"""Bundle adjustment of a stereo rig's walk: one pose per station, the rig held.
+
+Each station is the left camera's pose (R, t); its right camera is the rig's
+(:class:`stereoseed.estimators.rig_resection.Rig`: ``X_right = R_rl X_left + t_rl``), so both
+images of a station move together and every station keeps the calibrated relative pose exactly.
+The intrinsics are the rig's and held. With ``refine_rig`` the relative pose is refined once,
+shared by all stations: its rotation and the direction of its translation; the baseline's length
+is held, since it carries the model's scale (a fixed first station alone leaves the scale free).
+
+The gauge: the fixed stations (by default the first) and the fixed points; at least one of them
+must be given.
+
+The solver is :mod:`stereoseed.estimators.bundle`'s: Levenberg-Marquardt on the Huber loss of each
+observation's 2D error (iteratively reweighted), the points eliminated by the Schur complement
+with that module's kernels. Its "cameras" are the free stations (6 parameters: a rotation
+increment on the left, the translation) and, when refined, the rig (a rotation increment and 2
+coordinates across the baseline, padded to 6). A right camera's observation depends on both its
+station and the rig: it enters the kernels once per block (both with the point's Jacobian), which
+is the Schur complement of the whole observation, and the station-rig block of the normal
+equations is added here.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stereoseed.estimators.bundle import (
+    _back_substitute,
+    _eliminate_points,
+    _reduced_camera_matrix,
+    _solve_symmetric,
+    _thread_rows,
+    observation_errors,
+)
+from stereoseed.estimators.config import BundleConfig
+from stereoseed.estimators.rig_resection import Rig, _skew_rows
+from stereoseed.estimators.robust import huber_cost_of_norms
+from stereoseed.geometry.models import rotation_from_vector, rotations_from_vectors
+from stereoseed.validation import positive, whole
+
+__all__ = ["RigBundleConfig", "RigBundleProblem", "RigBundleResult", "rig_bundle_adjust", "rig_observation_errors",
+           "station_projections"]
+
+_N = 6  # parameters per block (a station's pose; the rig's 5, padded)
+
+
+@dataclass(frozen=True)
+class RigBundleConfig:
+    huber_px: float = BundleConfig.huber_px  # the BA's Huber threshold on each 2D error; inf: least squares
+    # LM iterations: the BA's 20 serve a local window after one insertion; a walk of stations
+    # started from resections needs a few more
+    max_iterations: int = 50
+    # stop once an iteration lowers the cost by less than this fraction: the BA's own criterion
+    min_improvement: float = 1e-6
+
+    def __post_init__(self) -> None:
+        positive(self, "huber_px", "min_improvement")
+        whole(self, "max_iterations")
+
+
+@dataclass
+class RigBundleProblem:
+    """What a rig bundle adjustment sees.
+
+    rig: the rig (intrinsics and relative pose); R (N, 3, 3), t (N, 3): each station's left camera
+    (``cam_from_world``); points (M, 3); obs_station, obs_side (0 left, 1 right), obs_point (O,)
+    int; obs_xy (O, 2) undistorted pixels; free_stations (N,) bool or None (every station but the
+    first); free_points (M,) bool or None (all); refine_rig: refine the relative pose (module
+    docstring).
+    """
+
+    rig: Rig
+    R: np.ndarray
+    t: np.ndarray
+    points: np.ndarray
+    obs_station: np.ndarray
+    obs_side: np.ndarray
+    obs_point: np.ndarray
+    obs_xy: np.ndarray
+    free_stations: np.ndarray | None = None
+    free_points: np.ndarray | None = None
+    refine_rig: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class RigBundleResult:
+    """R (N, 3, 3), t (N, 3), points (M, 3) refined (fixed ones unchanged); rig: the rig the
+    stations use (the input one unless refined); RMS (px) over all observations before and after."""
+
+    R: np.ndarray
+    t: np.ndarray
+    points: np.ndarray
+    rig: Rig = field(repr=False)
+    rms_before: float
+    rms_after: float
+    iterations: int
+    seconds: float
+
+    def projections(self) -> np.ndarray:
+        """(N, 2, 3, 4): each station's P_left, P_right."""
+        return station_projections(self.rig, self.R, self.t)
+
+
+def station_projections(rig: Rig, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, 2, 3, 4): P_left, P_right of stations (R (N, 3, 3), t (N, 3)) of ``rig``."""
+    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    t = np.asarray(t, np.float64).reshape(-1, 3)
+    Rr = np.einsum("ij,njk->nik", rig.R_rl, R)
+    tr = t @ rig.R_rl.T + rig.t_rl
+    left = np.einsum("ij,njk->nik", rig.K_left, np.concatenate([R, t[:, :, None]], axis=2))
+    right = np.einsum("ij,njk->nik", rig.K_right, np.concatenate([Rr, tr[:, :, None]], axis=2))
+    return np.stack([left, right], axis=1)
+
+
+def rig_observation_errors(rig: Rig, R: np.ndarray, t: np.ndarray, points: np.ndarray, obs_station: np.ndarray,
+                           obs_side: np.ndarray, obs_point: np.ndarray, obs_xy: np.ndarray) -> np.ndarray:
+    """Reprojection distance (O,) px of each observation in its station's camera (NaN or inf for
+    a point on a camera's principal plane)."""
+    Ps = station_projections(rig, R, t).reshape(-1, 3, 4)
+    cams = 2 * np.asarray(obs_station, np.int64) + np.asarray(obs_side, np.int64)
+    return observation_errors(Ps, points, cams, obs_point, obs_xy)
+
+
+def _across(d: np.ndarray) -> np.ndarray:
+    """(2, 3): two orthonormal directions across the unit vector d."""
+    e1 = np.cross(d, np.eye(3)[int(np.argmin(np.abs(d)))])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(d, e1)])
+
+
+def _jacobians(rig: Rig, R: np.ndarray, t: np.ndarray, X: np.ndarray, st: np.ndarray, side: np.ndarray,
+               pt: np.ndarray, xy: np.ndarray) -> tuple:
+    """Residuals r (O, 2) and their Jacobians with respect to the station's increments (O, 2, 6),
+    the rig's (O, 2, 6: rotation, 2 across the baseline, a zero pad; zero for the left camera)
+    and the point (O, 2, 3), at the current estimate."""
+    right = side == 1
+    RX = np.einsum("oij,oj->oi", R[st], X[pt])
+    Y = RX + t[st]
+    Z = Y.copy()
+    Z[right] = Y[right] @ rig.R_rl.T + rig.t_rl
+    K = rig.Ks[side]
+    z = Z[:, 2]
+    dn = np.zeros((len(st), 2, 3))  # d(Z1/Z3, Z2/Z3)/dZ
+    dn[:, 0, 0] = dn[:, 1, 1] = 1.0 / z
+    dn[:, 0, 2] = -Z[:, 0] / z ** 2
+    dn[:, 1, 2] = -Z[:, 1] / z ** 2
+    r = np.einsum("oij,oj->oi", K[:, :2, :2], Z[:, :2] / z[:, None]) + K[:, :2, 2] - xy
+    D = np.einsum("oij,ojk->oik", K[:, :2, :2], dn)  # d(pixel)/dZ
+    DY = D.copy()
+    DY[right] = D[right] @ rig.R_rl  # d(pixel)/dY
+    J_station = np.concatenate([DY @ -_skew_rows(RX), DY], axis=2)
+    J_rig = np.zeros((len(st), 2, _N))
+    if right.any():
+        J_rig[right, :, :3] = D[right] @ -_skew_rows(Y[right] @ rig.R_rl.T)
+        J_rig[right, :, 3:5] = D[right] @ (rig.baseline * _across(rig.t_rl / rig.baseline)).T
+    J_point = DY @ R[st]
+    return r, J_station, J_rig, J_point
+
+
+def _check(problem: RigBundleProblem) -> tuple[np.ndarray, np.ndarray]:
+    n_st = len(np.asarray(problem.R).reshape(-1, 3, 3))
+    n_pt = len(np.asarray(problem.points).reshape(-1, 3))
+    free_st = np.arange(n_st) > 0 if problem.free_stations is None else np.asarray(problem.free_stations, bool)
+    free_pt = np.ones(n_pt, bool) if problem.free_points is None else np.asarray(problem.free_points, bool)
+    if free_st.shape != (n_st,) or free_pt.shape != (n_pt,) or np.asarray(problem.t).reshape(-1, 3).shape[0] != n_st:
+        raise ValueError(f"RigBundleProblem: {n_st} stations and {n_pt} points need free_stations ({n_st},), "
+                         f"t ({n_st}, 3) and free_points ({n_pt},)")
+    O = len(problem.obs_station)
+    if not (len(problem.obs_side) == len(problem.obs_point) == O and np.shape(problem.obs_xy) == (O, 2)):
+        raise ValueError("RigBundleProblem: obs_station, obs_side, obs_point (O,) and obs_xy (O, 2) must agree")
+    if free_st.all() and free_pt.all():
+        raise ValueError("RigBundleProblem: every station and every point is free: the gauge is not fixed "
+                         "(hold a station or some points)")
+    return free_st, free_pt
+
+
+def _sum_blocks(slots: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
+    """The sum of blocks (K, ...) per slot (K,) in [0, n): (n, ...)."""
+    out = np.zeros((n,) + blocks.shape[1:])
+    np.add.at(out, slots, blocks)
+    return out
+
+
+def _step(rig: Rig, R, t, X, dc: np.ndarray, dp: np.ndarray, free_idx: np.ndarray, pt_idx: np.ndarray,
+          rig_slot: int) -> tuple:
+    """The estimate moved by the cameras' step dc (blocks, 6) and the points' dp (free points, 3)."""
+    R, t, X = R.copy(), t.copy(), X.copy()
+    n_st = len(free_idx)
+    if n_st:
+        R[free_idx] = rotations_from_vectors(dc[:n_st, :3]) @ R[free_idx]
+        t[free_idx] += dc[:n_st, 3:]
+    X[pt_idx] += dp
+    if rig_slot >= 0:
+        d = rig.t_rl / rig.baseline
+        v = d + dc[rig_slot, 3:5] @ _across(d)
+        rig = Rig(rig.K_left, rig.K_right, rotation_from_vector(dc[rig_slot, :3]) @ rig.R_rl,
+                  rig.baseline * v / np.linalg.norm(v))
+    return rig, R, t, X
+
+
+def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBundleConfig()) -> RigBundleResult:
+    """Minimise the robust reprojection error of the rig's observations over the free stations,
+    the free points and, with ``refine_rig``, the shared relative pose (module docstring)."""
+    t0 = time.perf_counter()
+    free_st, free_pt = _check(problem)
+    rig = problem.rig
+    R = np.array(problem.R, np.float64).reshape(-1, 3, 3)
+    t = np.array(problem.t, np.float64).reshape(-1, 3)
+    X = np.array(problem.points, np.float64).reshape(-1, 3)
+    st, side, pt = (np.asarray(a, np.int64) for a in (problem.obs_station, problem.obs_side, problem.obs_point))
+    xy = np.asarray(problem.obs_xy, np.float64)
+    delta = config.huber_px
+
+    def errors(rig_: Rig, R_: np.ndarray, t_: np.ndarray, X_: np.ndarray) -> np.ndarray:
+        return rig_observation_errors(rig_, R_, t_, X_, st, side, pt, xy)
+
+    rms_before = float(np.sqrt(np.mean(errors(rig, R, t, X) ** 2))) if len(st) else 0.0
+    free_idx, pt_idx = np.flatnonzero(free_st), np.flatnonzero(free_pt)
+    refine_rig = problem.refine_rig and bool(np.any(side == 1))
+    if refine_rig and not rig.baseline > 0:
+        raise ValueError("RigBundleProblem: a rig without a baseline has no direction to refine")
+    st_slot = np.full(len(R), -1, np.int64)
+    st_slot[free_idx] = np.arange(len(free_idx))
+    rig_slot = len(free_idx) if refine_rig else -1
+    n_cams = len(free_idx) + (1 if refine_rig else 0)
+    p_slot = np.full(len(X), -1, np.int64)
+    p_slot[pt_idx] = np.arange(len(pt_idx))
+    # only observations touching something free matter: the others add a constant
+    relevant = (st_slot[st] >= 0) | (p_slot[pt] >= 0) | (refine_rig & (side == 1))
+    st, side, pt, xy = st[relevant], side[relevant], pt[relevant], xy[relevant]
+    if not len(st) or (n_cams == 0 and not len(pt_idx)):
+        return RigBundleResult(R, t, X, rig, rms_before, rms_before, 0, time.perf_counter() - t0)
+
+    # Each observation enters the Schur kernels once per free block it depends on ("virtual"
+    # observations): its station, and the rig for a right camera's when the rig is refined.
+    obs_cam = st_slot[st]
+    obs_pt = p_slot[pt]
+    by_station = np.flatnonzero(obs_cam >= 0)
+    by_rig = np.flatnonzero(side == 1) if refine_rig else np.zeros(0, np.int64)
+    virt_obs = np.concatenate([by_station, by_rig])
+    virt_cam = np.concatenate([obs_cam[by_station], np.full(len(by_rig), rig_slot, np.int64)])
+    both = obs_pt[virt_obs] >= 0  # the virtual observations of free points: the rows of W
+    w_obs, w_cam, w_pt = virt_obs[both], virt_cam[both], obs_pt[virt_obs[both]]
+    pair_order = np.lexsort((w_cam, w_pt))
+    grouped = w_pt[pair_order]
+    starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, np.int64)
+    rows = _thread_rows(pair_order, starts, w_cam, n_cams) if n_cams else None
+    cross = np.flatnonzero((obs_cam >= 0) & (side == 1)) if refine_rig else np.zeros(0, np.int64)
+    point_obs = np.flatnonzero(obs_pt >= 0)
+    eye = np.eye(_N)
+
+    def cost_of(rig_: Rig, R_: np.ndarray, t_: np.ndarray, X_: np.ndarray) -> float:
+        with np.errstate(all="ignore"):  # a trial step may put a point on a principal plane: refused
+            return huber_cost_of_norms(errors(rig_, R_, t_, X_), delta)
+
+    lam = 1e-3
+    cost = cost_of(rig, R, t, X)
+    iterations = 0
+    for iterations in range(1, config.max_iterations + 1):
+        r, J_st, J_rig, J_pt = _jacobians(rig, R, t, X, st, side, pt, xy)
+        norm = np.linalg.norm(r, axis=1)
+        w = np.ones(len(r)) if not np.isfinite(delta) else np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
+        J_virt = np.concatenate([J_st[by_station], J_rig[by_rig]])  # (virtual, 2, 6)
+        w_virt = w[virt_obs]
+        U = _sum_blocks(virt_cam, np.einsum("v,vai,vaj->vij", w_virt, J_virt, J_virt), n_cams)
+        gc = _sum_blocks(virt_cam, np.einsum("v,vai,va->vi", w_virt, J_virt, r[virt_obs]), n_cams)
+        Jp, wp = J_pt[point_obs], w[point_obs]
+        V = _sum_blocks(obs_pt[point_obs], np.einsum("o,oai,oaj->oij", wp, Jp, Jp), len(pt_idx))
+        gp = _sum_blocks(obs_pt[point_obs], np.einsum("o,oai,oa->oi", wp, Jp, r[point_obs]), len(pt_idx))
+        W = np.ascontiguousarray(np.einsum("v,vai,vaj->vij", w[w_obs], J_virt[both], J_pt[w_obs]))  # (rows, 6, 3)
+        U_cross = _sum_blocks(obs_cam[cross], np.einsum("o,oai,oaj->oij", w[cross], J_st[cross], J_rig[cross]), n_cams)
+        Wt = np.swapaxes(W, 1, 2).copy()
+        while True:
+            Vinv, Y, rhs = _eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
+            if n_cams:
+                S = _reduced_camera_matrix(pair_order, starts, w_cam, Wt, Y, n_cams, rows)
+                Ud = U + lam * (U * eye) + 1e-12 * eye
+                for c in range(n_cams):
+                    S[c * _N:(c + 1) * _N, c * _N:(c + 1) * _N] += Ud[c]
+                if refine_rig:  # the station-rig blocks no single observation block carries
+                    g = slice(rig_slot * _N, (rig_slot + 1) * _N)
+                    for c in range(len(free_idx)):
+                        S[c * _N:(c + 1) * _N, g] += U_cross[c]
+                        S[g, c * _N:(c + 1) * _N] += U_cross[c].T
+                dc = _solve_symmetric(S, rhs.ravel()).reshape(n_cams, _N)
+            else:
+                dc = np.zeros((0, _N))
+            dp = _back_substitute(Vinv, gp, W, dc, w_pt, w_cam)
+            trial = _step(rig, R, t, X, dc, dp, free_idx, pt_idx, rig_slot) if np.all(np.isfinite(dc)) else None
+            new_cost = cost_of(*trial) if trial is not None else np.inf
+            if np.isfinite(new_cost) and new_cost < cost:
+                improvement = (cost - new_cost) / max(cost, 1e-300)
+                (rig, R, t, X), cost = trial, new_cost
+                lam = max(lam * 0.3, 1e-9)
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                improvement = 0.0
+                break
+        if improvement < config.min_improvement:
+            break
+    rms_after = float(np.sqrt(np.mean(errors(rig, R, t, X) ** 2)))
+    return RigBundleResult(R, t, X, rig, rms_before, rms_after, iterations, time.perf_counter() - t0)
