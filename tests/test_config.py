@@ -256,3 +256,13 @@ def test_a_report_json_replays_its_runs_configuration_and_cameras(ring_files, tm
     cams1, cams2 = (json.loads((out / "cameras.json").read_text())["images"] for out in (first, again))
     assert all(c["registered"] for c in cams1)
     assert [c["P"] for c in cams2] == [c["P"] for c in cams1]  # the same run, to the bit
+
+
+def test_batch_takes_the_config_file_too(tmp_path, capsys):
+    path = tmp_path / "run.toml"
+    path.write_text('[trust]\nkeep_flaged = true\n')
+    sequences = tmp_path / "sequences.txt"
+    sequences.write_text("images calib.json out\n")
+    assert main(["batch", str(sequences), "--config", str(path)]) == 2
+    assert capsys.readouterr().err == (f"stereoseed: error: {path}: [trust] unknown key 'keep_flaged' "
+                                       f"(did you mean keep_flagged?)\n")
