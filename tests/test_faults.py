@@ -1,7 +1,8 @@
 """Faults and hostile input around the result folder (issue "safe under faults and hostile
 input"): runs that resume with other inputs, an --out that is a link, the current folder or
 holds the inputs, two runs on one folder, the user's own files beside or in the way of ours, a
-full disk, group-writable umasks, image names and lenses no result can hold. Each case is
+full disk, group-writable umasks, image names and lenses no result can hold, an image of the walk
+that cannot be decoded (skipped with its reason, the run resumable). Each case is
 refused with one line or handled; nothing the user wrote is removed or overwritten; every
 subprocess is bounded by a timeout."""
 from __future__ import annotations
@@ -358,3 +359,64 @@ def test_batch_keeps_every_result_under_the_output_root(tmp_path, capsys):
         "sequences.txt"]
     outside = read_sequence_list(_sequence_list(root, "ok", "../../elsewhere"), allow_outside=True)
     assert outside[1].out == str(tmp_path.parent / "elsewhere")
+
+
+# --- 11. an image of the walk that cannot be decoded ----------------------------------------------
+def corrupted(seq, folder: Path, kind: str, index: int = 3) -> Path:
+    """A copy of the sequence whose image ``index`` is damaged (``kind``: a truncated PNG, or a
+    text file named .png): its list file."""
+    images = folder / "images"
+    images.mkdir(parents=True)
+    paths = [images / Path(p).name for p in seq[0]["images"]]
+    for source, copy in zip(seq[0]["images"], paths):
+        copy.write_bytes(Path(source).read_bytes())
+    if kind == "truncated":
+        paths[index].write_bytes(paths[index].read_bytes()[:2000])
+    else:
+        paths[index].write_text("this is not an image\n")
+    listing = folder / "images.txt"
+    listing.write_text("".join(f"{p}\n" for p in paths))
+    return listing
+
+
+@pytest.mark.parametrize("kind, says", [("truncated", "a damaged or truncated PNG file"),
+                                        ("text", "not an image format it reads")])
+def test_an_unreadable_image_is_skipped_with_its_reason_and_the_run_goes_on(seq, tmp_path, capsys, kind, says):
+    listing = corrupted(seq, tmp_path / "in", kind)
+    bad = tmp_path / "in" / "images" / "img_003.png"
+    out = tmp_path / "o"
+    code, stdout, err = run(capsys, "reconstruct", listing, "--calib", seq[1], "--out", out, "--quiet")
+    assert code == 0 and "Traceback" not in err, err
+    assert f"skipped: {bad}: not a readable image (OpenCV cannot decode it: {says}" in stdout, stdout
+    report = json.loads((out / "report.json").read_text())
+    row = report["per_image"][3]
+    assert row["image"] == "img_003.png" and row["status"] == "failed" and row["failure"] == pipeline.UNREADABLE
+    assert row["reason"].startswith(f"{bad}: not a readable image")
+    assert [r["status"] for r in report["per_image"][2:]] == ["registered", "failed", "registered"]
+    cameras = json.loads((out / "cameras.json").read_text())["images"]
+    assert [c["registered"] for c in cameras] == [True, True, True, False, True]
+    assert (cameras[3]["width"], cameras[3]["height"]) == (320, 240)  # its header's, or the size expected
+    assert row["reason"] in (out / "report.html").read_text(encoding="utf-8").replace("&#x27;", "'")
+
+
+def test_a_run_with_an_unreadable_image_resumes_where_it_stopped(seq, tmp_path):
+    """Interrupted once the damaged image was skipped, the run resumes from its checkpoint (the
+    damaged file is part of the inputs it was made for) and ends as the uninterrupted run."""
+    listing = corrupted(seq, tmp_path / "in", "truncated")
+    whole = pipeline.reconstruct_to_folder(str(listing), str(seq[1]), tmp_path / "whole")
+
+    def stop_after_the_damaged_image(done, total, message):
+        if done == 4:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "o"
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.reconstruct_to_folder(str(listing), str(seq[1]), out, progress=stop_after_the_damaged_image)
+    assert (tmp_path / ".o.partial" / pipeline.CHECKPOINT).is_file()
+    report = pipeline.reconstruct_to_folder(str(listing), str(seq[1]), out, resume=True)
+    assert report["resumed_images"] == ["img_000.png", "img_001.png", "img_002.png", "img_003.png"]
+    assert report["per_image"][3] == whole["per_image"][3]
+    assert [r["status"] for r in report["per_image"]] == [r["status"] for r in whole["per_image"]]
+    got, expected = (json.loads((folder / "cameras.json").read_text())["images"]
+                     for folder in (out, tmp_path / "whole"))
+    assert [c.get("P") for c in got] == [c.get("P") for c in expected]  # the uninterrupted run's cameras

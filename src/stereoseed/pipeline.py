@@ -25,7 +25,8 @@ from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.projection import camera_center
-from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration
+from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration,
+                                 read_calibration_unit)
 from stereoseed.geometry.lens import undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view
@@ -49,6 +50,7 @@ Progress = Callable[[int, int, str], None]
 AfterInsertion = Callable[[Reconstruction, list[dict[str, Any]]], None]
 
 CHECKPOINT = ".checkpoint.npz"  # in the staging folder, kept after an interruption for resume
+UNREADABLE = "unreadable image"  # the report's "failure" of an image file that cannot be decoded
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
@@ -118,7 +120,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             spill_holder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(spill_holder.name)
         for k in range(len(per_image), n):
-            rep = insert_view(recon, k, cfg, prefetching)
+            rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
             per_image.append(rep)
             release_old_views(recon, cfg, spill)
             saver.save(recon, per_image)
@@ -173,12 +175,14 @@ def _forget_checkpoint(checkpoint: str | Path) -> None:
 
 
 class _NotRead(Exception):
-    """An image the sequence does not decode (:meth:`ImageSequence.withheld`)."""
+    """An image the sequence does not decode (:meth:`ImageSequence.withheld`) or cannot
+    (:meth:`ImageSequence.unreadable`)."""
 
 
 def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarray]:
-    """What the prefetching thread reads: an image the sequence withholds for its size is not
-    worked on ahead (the mapper refuses it by its size alone)."""
+    """What the prefetching thread reads: an image the sequence withholds for its size, or
+    cannot decode, is not worked on ahead (the mapper refuses it by its size alone, the loop
+    skips it by its reason)."""
     withheld = getattr(images, "withheld", None)
     if withheld is None:
         return images.__getitem__
@@ -186,9 +190,23 @@ def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarra
     def image_of(i: int) -> np.ndarray:
         if withheld(i):
             raise _NotRead(i)
-        return images[i]
+        image = images[i]
+        if images.unreadable(i):  # type: ignore[attr-defined]
+            raise _NotRead(i)
+        return image
 
     return image_of
+
+
+def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> dict[str, Any] | None:
+    """The report of image k skipped because its file cannot be decoded (as the mapper skips an
+    image of another size: reported with the reason, the run goes on), or None."""
+    reason = images.unreadable(k) if isinstance(images, ImageSequence) else None
+    if reason is None:
+        return None
+    recon.views[k].status = f"failed: {reason}"
+    log.info("%s", reason)
+    return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": UNREADABLE}
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
@@ -289,6 +307,7 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
                      for lens in lenses]).encode()  # the undistortion decides the pixels the run sees
     images = ImageSequence(entries, undistort, transform_key=lens_key)
     images[0]  # noqa: B018 - read now: an unreadable pair image fails before any work
+    images.skip_unreadable(first=2)  # an unreadable image of the walk is skipped with its reason
     # an image of the walk of another size than the second camera's is skipped by the mapper:
     # its header says so, it is not decoded (a 48-megapixel photo costs seconds and gigabytes)
     images.withhold_other_sizes(images[1].shape[1::-1], first=2)
@@ -353,7 +372,10 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     is refused at once): on failure it keeps what it held, and after an interruption, or a full
     disk, the staging folder keeps the checkpoint for ``resume``. Returns the report.
     progress: called after the pair and after each insertion; dense_progress: as each of the
-    dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`)."""
+    dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`). The report's
+    "timing": the command's wall time up to the writing of the results and its stages'; its
+    "unit": the calibration's (:func:`stereoseed.io.files.read_calibration_unit`)."""
+    t0 = time.perf_counter()
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
     with ResultSet(out) as results:  # before any staging folder is touched
         results.check()  # before any work: never clobber what the user made
@@ -364,19 +386,24 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
             # a video's keyframes are kept with the result, which names them
             images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
             _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
+            unit = read_calibration_unit(calib_path)
         except BaseException:
             if not resume:  # a resumed run's checkpoint outlives a mistyped input
                 results.abandon()
             raise
         try:
+            stages = {"loading": time.perf_counter() - t0}
             recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
                                         checkpoint=staging / CHECKPOINT, resume=resume)
+            stages["sparse"] = time.perf_counter() - t0 - sum(stages.values())
             if dense:
                 from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run
 
                 cloud, report["dense"] = densify(recon, cfg, staging, pool, dense_progress)
+                stages["dense"] = time.perf_counter() - t0 - sum(stages.values())
             else:
                 cloud = None
+            report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
             save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
             results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
         except KeyboardInterrupt:

@@ -42,3 +42,34 @@ def test_the_fingerprint_reads_the_files_without_decoding_them(files, tmp_path):
     changed = tmp_path / "changed.png"
     write_image(changed, np.zeros((8, 8, 3), np.uint8))
     assert ImageSequence([files[0], changed] + list(files[2:])).fingerprint() != key
+
+
+def test_an_unreadable_image_of_the_walk_reads_as_empty_and_says_why(files, tmp_path):
+    """From the first covered image on, a text file named .png and a truncated PNG do not raise:
+    each reads as a black image of its header's size (for the text: the size expected, if any)
+    holding no pixels, and says the reader's reason; an image before the first covered one
+    still raises."""
+    text = tmp_path / "text.png"
+    text.write_text("not an image\n")
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(files[2].read_bytes()[:200])
+    seq = ImageSequence([files[0], files[1], text, truncated, files[4]])
+    seq.skip_unreadable(first=2)
+    assert seq.unreadable(0) is None and seq.unreadable(4) is None
+    assert seq.unreadable(2).startswith(f"{text}: not a readable image") and "not an image format" in seq.unreadable(2)
+    assert seq.unreadable(3).startswith(f"{truncated}: not a readable image") and "truncated PNG" in seq.unreadable(3)
+    assert seq[2].shape == (0, 0, 3)  # no header, no size expected
+    blank = seq[3]
+    assert blank.shape == (60, 80, 3) and not blank.any()
+    assert blank.strides[:2] == (0, 0)  # the header's size, no memory
+    reads = seq.reads
+    seq[3], seq[3]
+    assert seq.reads == reads  # decoded once: the answer stays for the run
+    part = seq[1:]  # a slice keeps what is covered
+    assert part.unreadable(1) == seq.unreadable(2) and part.unreadable(0) is None
+    seq.withhold_other_sizes((80, 60), first=2)
+    assert seq[2].shape == (60, 80, 3)  # the size the images are expected to have
+    later = ImageSequence([files[0], text])
+    later.skip_unreadable(first=2)
+    with pytest.raises(StereoseedError, match="text.png: not a readable image"):
+        later[1]  # the pair's images are not covered: they fail the run before any work

@@ -27,8 +27,9 @@ from stereoseed.io.atomic import atomic_path, write_json, write_text  # re-expor
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
-__all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file", "read_calibration", "write_json",
-           "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
+__all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file", "read_calibration",
+           "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS",
+           "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- reading text safely
@@ -509,6 +510,23 @@ def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None 
         raise StereoseedError(f"{path}: not a calibration stereoseed reads (neither JSON nor a Middlebury par file); "
                               f"give {_CALIB_FORMATS}")
     return _pair_by_name(_parse_par(text, path), names, path, "par file")
+
+
+def read_calibration_unit(path: str | os.PathLike) -> str | None:
+    """The unit of the calibration's coordinates, in which the model is metric: calib.json's
+    optional "unit" (such as "mm"); None when the calibration does not say (no "unit", a par
+    file, a COLMAP model). What else is wrong with the file is :func:`read_calibration`'s to say."""
+    path = Path(path)
+    text = _read_text(path, "calibration", f"give {_CALIB_FORMATS}") if path.is_file() else ""
+    try:
+        data = json.loads(text) if text.lstrip()[:1] == "{" else None
+    except (ValueError, RecursionError):
+        return None
+    unit = data.get("unit") if isinstance(data, dict) else None
+    if unit is not None and not (isinstance(unit, str) and 0 < len(unit.strip()) <= 20):
+        raise StereoseedError(f'{path}: "unit" is {_show(json.dumps(unit), 40)}; give a short name such as "mm", '
+                              f"or leave it out")
+    return None if unit is None else unit.strip()
 
 
 _CALIB_JSON = '{"cameras": [{"P": 3x4}, {"P": 3x4}]}'

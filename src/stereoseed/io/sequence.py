@@ -5,6 +5,11 @@ last few (and the loop closure on the first few), so holding every decoded image
 memory grow with the sequence. :class:`ImageSequence` decodes an image when it is asked for and
 keeps the most recently used ones (a small LRU, shared by the mapper and the thread that
 prefetches interest points). It is a ``Sequence``: ``reconstruct`` takes it or a plain list.
+
+Two kinds of image of the walk are not decoded into the run, so that the mapper skips them with
+their reason instead of the run stopping: one whose header gives another size than the camera's
+(:meth:`ImageSequence.withhold_other_sizes`) and one that cannot be decoded at all
+(:meth:`ImageSequence.skip_unreadable`).
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from typing import Callable, Union
 
 import numpy as np
 
+from stereoseed.errors import StereoseedError
 from stereoseed.io.files import read_image
 
 __all__ = ["ImageSequence", "header_size"]
@@ -46,6 +52,8 @@ class ImageSequence(Sequence):
         self._expected: tuple[int, int] | None = None  # (width, height) of the images from _checked_from on
         self._checked_from = len(self._entries)
         self._withheld: dict[int, tuple[int, int] | None] = {}  # index -> its header's size if withheld
+        self._skip_from = len(self._entries)  # images from here on that cannot be decoded are skipped
+        self._unreadable: dict[int, str] = {}  # index -> why it cannot be decoded
 
     def withhold_other_sizes(self, size: tuple[int, int], first: int = 0) -> None:
         """From image ``first`` on, an image file whose header gives another size than ``size``
@@ -56,6 +64,28 @@ class ImageSequence(Sequence):
         self._expected = (int(size[0]), int(size[1]))
         self._checked_from = first
         self._withheld.clear()
+
+    def skip_unreadable(self, first: int = 0) -> None:
+        """From image ``first`` on, an image file that cannot be decoded (damaged, truncated, not
+        an image) does not raise: its reason is kept (:meth:`unreadable`) and it reads as a
+        black image that takes no memory, for a consumer that asks :meth:`unreadable` before
+        working on it. Its size is its header's; when the header says nothing, the size the
+        images are expected to have (:meth:`withhold_other_sizes`), else 0 x 0: the result
+        lists every input image with a size."""
+        self._skip_from = first
+
+    def unreadable(self, index: int) -> str | None:
+        """Why image ``index`` cannot be decoded (the reader's message), None when it can or when
+        :meth:`skip_unreadable` does not cover it (it then raises as it is read). The image is
+        read to know, and then kept in the cache like any other."""
+        i = range(len(self))[index]
+        if i < self._skip_from or isinstance(self._entries[i], np.ndarray) or self._withheld_size(i) is not None:
+            return None
+        with self._lock:
+            if i in self._unreadable or i in self._cache:
+                return self._unreadable.get(i)
+        self[i]
+        return self._unreadable.get(i)
 
     def withheld(self, index: int) -> bool:
         """Whether image ``index`` is not decoded (:meth:`withhold_other_sizes`)."""
@@ -68,6 +98,9 @@ class ImageSequence(Sequence):
             size = header_size(self._entries[i])
             self._withheld[i] = None if size is None or self._expected in (size, size[::-1]) else size
         return self._withheld[i]
+
+    def _unreadable_size(self, i: int) -> tuple[int, int]:
+        return header_size(self._entries[i]) or self._expected or (0, 0)
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -82,18 +115,28 @@ class ImageSequence(Sequence):
             if self._expected is not None:  # the images checked here stay checked there
                 part.withhold_other_sizes(self._expected, next((j for j, i in enumerate(subset)
                                                                 if i >= self._checked_from), len(subset)))
+            part.skip_unreadable(next((j for j, i in enumerate(subset) if i >= self._skip_from), len(subset)))
             return part
         i = range(len(self))[index]  # IndexError and negative indices as a list has them
         size = self._withheld_size(i)
         if size is not None:
-            return np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (size[1], size[0], 3))
+            return _blank(size)
         with self._lock:
+            if i in self._unreadable:  # decoded once: the same answer for the rest of the run
+                return _blank(self._unreadable_size(i))
             image = self._cache.get(i)
             if image is not None:
                 self._cache.move_to_end(i)
                 return image
         entry = self._entries[i]
-        image = entry if isinstance(entry, np.ndarray) else read_image(entry)
+        try:
+            image = entry if isinstance(entry, np.ndarray) else read_image(entry)
+        except StereoseedError as e:
+            if i < self._skip_from:
+                raise
+            with self._lock:
+                self._unreadable[i] = str(e)
+            return _blank(self._unreadable_size(i))
         if self._transform is not None:
             image = self._transform(i, image)
         if not isinstance(entry, np.ndarray):
@@ -122,6 +165,11 @@ class ImageSequence(Sequence):
         """Where image ``index`` comes from (its path; "memory" for an array)."""
         entry = self._entries[index]
         return "memory" if isinstance(entry, np.ndarray) else str(entry)
+
+
+def _blank(size: tuple[int, int]) -> np.ndarray:
+    """A black image of ``size`` (width, height) that takes no memory (a zero-stride view)."""
+    return np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (size[1], size[0], 3))
 
 
 def header_size(path: str | Path) -> tuple[int, int] | None:
