@@ -29,10 +29,15 @@ from stereoseed.geometry.lens import lens_coefficients, principal_r2
 from stereoseed.geometry.projection import camera_center, compose_projection
 from stereoseed.synthetic import scene as box
 from stereoseed.synthetic.render import _render_kernel, add_noise
-from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, box_corners, noise_generator
+from stereoseed.synthetic.scene import (
+    SceneConfig,
+    SyntheticScene,
+    box_corners,
+    noise_generator,
+)
 from stereoseed.validation import positive, whole
 
-__all__ = ["RigConfig", "RigScene", "rig_of", "render_rig", "render_views"]
+__all__ = ["RigConfig", "RigScene", "render_rig", "render_views", "rig_of"]
 
 
 @dataclass(frozen=True)
@@ -51,7 +56,7 @@ class RigConfig:
     stations: int = 12
     noise_sigma: float = 0.0  # Gaussian grey-level noise of every image (0..255 scale)
     textured: bool = True  # False: the paper's plain box (uniform faces and dark squares)
-    view: SceneConfig = SceneConfig()
+    view: SceneConfig = field(default_factory=SceneConfig)
 
     def __post_init__(self) -> None:
         positive(self, "baseline", "focal_ratio")
@@ -202,8 +207,10 @@ class RigScene:
 
 def render_rig(config: RigConfig = RigConfig()) -> RigScene:
     """Render the rig walked round the box (deterministic: same config, same bytes)."""
-    ring = replace(config.view, n_images=config.stations, step_deg=config.step_deg)
-    _, R_left, t_left = box._cameras(ring)  # the ring's placement and jitter; its intrinsics are not the rig's
+    # the ring's placement and jitter (a view depends on its index alone; a ring has 2 views at
+    # least); its intrinsics are not the rig's
+    ring = replace(config.view, n_images=max(config.stations, 2), step_deg=config.step_deg)
+    _, R_left, t_left = (cams[:config.stations] for cams in box._cameras(ring))
     rig = rig_of(config)
     Ks, Rs, ts, names = [], [], [], []
     for k, (R, t) in enumerate(zip(R_left, t_left)):
