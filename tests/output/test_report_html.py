@@ -2,6 +2,7 @@
 drawn in headless Chromium without console errors; `stereoseed view`."""
 from __future__ import annotations
 
+import html
 import html.parser
 import logging
 import re
@@ -108,6 +109,14 @@ def test_failed_image_reported_with_its_reason(run, written):
     row = _table(text)["blank.png"]
     assert row[2] == "failed" and row[3] == failed[0]["reason"] and row[3]
     assert report["registered"] == report["images"] - 1
+
+
+def test_the_weakest_insertions_panel_draws_a_few_dozen_of_its_matches(written):
+    _, text = written
+    caption = html.unescape(re.search(r"Matches of the weakest insertion</h2><p class=\"note\">(.*?)</p>", text).group(1))
+    drawn, total = map(int, re.search(r"; (\d+) of the (\d+) matches under the known epipolar geometry drawn, "
+                                      r"spread over the image", caption).groups())
+    assert drawn == report_html.MAX_MATCH_LINES < total
 
 
 def test_report_is_self_contained(written):
@@ -258,3 +267,106 @@ def test_the_dense_cloud_given_is_drawn_and_counted(run):
     without = report_html.render_report_html(recon, report)
     assert not any(t["name"].startswith("dense") for t in json.loads(re.search(
         r'<script type="application/json" id="figures">(.*?)</script>', without, re.S).group(1))["view3d"]["data"])
+
+
+def _rects_overlap(a: dict, b: dict) -> bool:
+    return a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"] and \
+        a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"]
+
+
+@pytest.mark.slow  # a browser, and the mouse moved over the view until it is over two points
+def test_the_scale_bar_the_distance_readout_and_the_toolbars_in_chromium(run, tmp_path):
+    """In a real browser: the scale bar is drawn (its yellow goes when it is hidden); two clicks
+    on points of the sparse cloud give their distance in the model's unit; Plotly's toolbar,
+    shown as the mouse is over a plot, covers none of its legend."""
+    import json
+
+    import cv2
+
+    from stereoseed.output.report.measure import length_text
+
+    sync_playwright, chromium = _browser()
+    recon, report = run
+    path = write_report_html(recon, {**report, "unit": "m"}, tmp_path)  # the synthetic box is in metres
+    figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>',
+                                   path.read_text(encoding="utf-8"), re.S).group(1))
+    names = [t["name"] for t in figures["view3d"]["data"]]
+    sparse = next(t for t in figures["view3d"]["data"] if t["name"].startswith("sparse"))
+    cloud = np.column_stack([sparse["x"], sparse["y"], sparse["z"]])
+    problems: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(chromium), args=CHROMIUM_ARGS, env={"HOME": str(tmp_path)})
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+            page.goto(path.resolve().as_uri())
+            page.wait_for_selector("body[data-rendered]", timeout=20_000)
+            page.wait_for_selector("#view3d canvas", timeout=10_000)
+            page.wait_for_timeout(500)
+            # the toolbars beside the legends
+            for plot in ("view3d", "reprojection", "times"):
+                page.locator(f"#{plot}").scroll_into_view_if_needed()
+                page.locator(f"#{plot}").hover(position={"x": 60, "y": 120})
+                page.wait_for_timeout(200)
+                toolbar = page.locator(f"#{plot} .modebar").bounding_box()
+                legend = page.locator(f"#{plot} .legend").bounding_box()
+                assert toolbar and toolbar["width"] > 50 and legend and legend["width"] > 20, plot
+                assert not _rects_overlap(toolbar, legend), (plot, toolbar, legend)
+            # the scale bar: its yellow is drawn, and goes when the bar is hidden
+            page.locator("#view3d").scroll_into_view_if_needed()
+            page.mouse.move(0, 0)
+            page.wait_for_timeout(200)
+
+            def yellow() -> tuple[np.ndarray, int]:
+                shot = cv2.imdecode(np.frombuffer(page.locator("#view3d").screenshot(), np.uint8), cv2.IMREAD_COLOR)
+                bgr = shot.astype(int)
+                return shot, int(np.sum(np.all(np.abs(bgr - [0x4F, 0xD5, 0xFF]) < 40, axis=2)))
+
+            shot, with_bar = yellow()
+            bar = names.index(next(n for n in names if n.startswith("scale bar")))
+            page.evaluate(f"() => Plotly.restyle('view3d', {{visible: false}}, [{bar}])")
+            page.wait_for_timeout(300)
+            _, without_bar = yellow()
+            page.evaluate(f"() => Plotly.restyle('view3d', {{visible: true}}, [{bar}])")
+            page.wait_for_timeout(300)
+            assert with_bar > 60 and without_bar < with_bar / 5, (with_bar, without_bar)
+            # two points of the sparse cloud, found where the mouse over the view picks them
+            page.evaluate("""() => { window.hovered = null; document.getElementById('view3d').on('plotly_hover',
+                function(e){ var q = e.points[0]; window.hovered = {c: q.curveNumber, x: q.x, y: q.y, z: q.z}; }); }""")
+            box = page.locator("#view3d").bounding_box()
+            background = np.array([0x30, 0x24, 0x1F])
+            lit = np.argwhere(np.abs(shot.astype(int) - background).sum(axis=2) > 120)
+            found = []
+            for k in np.random.default_rng(0).permutation(len(lit))[:300]:
+                y, x = map(float, lit[k])
+                page.evaluate("() => { window.hovered = null; }")
+                page.mouse.move(box["x"] + x, box["y"] + y)
+                page.wait_for_timeout(40)
+                hit = page.evaluate("() => window.hovered")
+                if hit and names[hit["c"]].startswith("sparse") and all(
+                        np.hypot(x - fx, y - fy) > 40 for fx, fy, _ in found):
+                    found.append((x, y, hit))
+                    if len(found) == 2:
+                        break
+            assert len(found) == 2, "no two points of the sparse cloud under the mouse"
+            for x, y, _ in found:  # a click: the button held while Plotly draws a frame
+                page.mouse.move(box["x"] + x, box["y"] + y)
+                page.wait_for_timeout(100)
+                page.mouse.down()
+                page.wait_for_timeout(150)
+                page.mouse.up()
+                page.wait_for_timeout(150)
+            readout = page.locator("#distance")
+            text, distance = readout.text_content(), float(readout.get_attribute("data-distance"))
+            picked = np.array(json.loads(readout.get_attribute("data-points")))
+            drawn = page.evaluate(f"() => {{ var t = document.getElementById('view3d').data[{len(names) - 1}]; "
+                                  f"return [t.x, t.y, t.z]; }}")
+        finally:
+            browser.close()
+    assert not problems, problems
+    expected = np.array([[h["x"], h["y"], h["z"]] for _, _, h in found])
+    assert np.allclose(picked, expected, atol=1e-12)  # the points clicked, ...
+    assert all(np.min(np.abs(cloud - q).max(axis=1)) < 1e-9 for q in picked)  # ... points of the cloud
+    assert distance == pytest.approx(float(np.linalg.norm(expected[1] - expected[0])), rel=1e-12)
+    assert text.startswith(f"distance: {length_text(distance, 'm')} between ("), text
+    assert np.allclose(np.array(drawn).T, expected)  # the measured segment drawn in the view

@@ -12,6 +12,9 @@ Written by :func:`write_result` (atomically, file by file):
   views; ``cameras.ply`` — a small frustum per registered camera;
 * ``report.json`` — the run's report.
 
+The coordinates are in the calibration's unit; cameras.json's ``unit`` names it when the
+calibration did (calib.json ``unit``, the report's ``unit``).
+
 Far outliers are left out of every export (:func:`exported_points`).
 :func:`stereoseed.output.reader.load_result` reads a folder back; :class:`stereoseed.output.result_set.ResultSet`
 writes it as a whole (a staging folder swapped in at the end).
@@ -104,7 +107,7 @@ def frustum_mesh(P: np.ndarray, size: tuple[int, int], depth: float) -> tuple[np
     return vertices, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
 
 
-def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str, Any]:
+def _cameras_json(recon: Reconstruction, lenses: list | None = None, unit: str | None = None) -> dict[str, Any]:
     images = []
     for i, v in enumerate(recon.views):
         w, h = v.image_size
@@ -126,13 +129,16 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None) -> dict[str
             # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
             entry.update(distortion=lens.distortion.tolist(), distortion_K=np.asarray(lens.K).tolist())
         images.append(entry)
-    return {"format_version": FORMAT_VERSION,
-            "units": "those of the calibration (the pattern's coordinates): the model is metric in them",
-            "convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
-                          "R, t are cam_from_world; uncertainty: 1-sigma of the centre along the camera's axes "
-                          "(x right, y down, z forward, in the model's unit) and of its rotation about them "
-                          "(degrees); reliable false: the run cannot vouch for the camera (flag_reason)",
-            "images": images}
+    out = {"format_version": FORMAT_VERSION,
+           "units": "those of the calibration (the pattern's coordinates): the model is metric in them",
+           "convention": "P maps world (pattern frame) to pixels; pixel (0,0) = centre of the top-left pixel; "
+                         "R, t are cam_from_world; uncertainty: 1-sigma of the centre along the camera's axes "
+                         "(x right, y down, z forward, in the model's unit) and of its rotation about them "
+                         "(degrees); reliable false: the run cannot vouch for the camera (flag_reason)",
+           "images": images}
+    if unit:  # the calibration named it (calib.json "unit")
+        out["unit"] = unit
+    return out
 
 
 def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: str | Path,
@@ -145,7 +151,8 @@ def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: 
     tracks = _tracks(recon, ids)
     counts = np.bincount(tracks["obs_point"], minlength=len(ids))
     views = _views_per_point(tracks, len(ids))
-    written = {"cameras": write_json(out / "cameras.json", _cameras_json(recon, lenses))}
+    unit = report.get("unit") if isinstance(report, dict) else None
+    written = {"cameras": write_json(out / "cameras.json", _cameras_json(recon, lenses, unit))}
     with atomic_path(out / "tracks.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **tracks)

@@ -2,6 +2,7 @@
 (paper Fig. 10b) and the propagation's colour-coded disparity (paper Fig. 10d)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,7 @@ from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.propagation.core import PropagationResult
 
-__all__ = ["draw_matches", "disparity_image", "save_propagation_png", "draw_calibration_check"]
+__all__ = ["draw_matches", "spread_matches", "disparity_image", "save_propagation_png", "draw_calibration_check"]
 
 
 def _to_bgr_u8(image: np.ndarray) -> np.ndarray:
@@ -37,11 +38,14 @@ def draw_matches(
     path: str | Path | None = None,
     *,
     max_lines: int | None = None,
+    thickness: int = 1,
 ) -> np.ndarray:
     """Side-by-side image with a line per match (paper Fig. 10b), written as PNG if ``path``.
 
     img1, img2: grey or BGR images (uint8 or float in [0, 1]); kp1, kp2: Features or (N, 2).
-    Line colour goes from red (lowest ZNCC) to green (highest). ``max_lines`` keeps the best.
+    Line colour goes from red (lowest ZNCC) to green (highest). ``max_lines`` keeps the best
+    (:func:`spread_matches` picks a few spread over the image instead). ``thickness``: of the
+    lines and circles in pixels (a canvas shown scaled down needs more than 1).
     Returns the (max(H1, H2), W1 + W2, 3) uint8 BGR canvas.
     """
     a, b = _to_bgr_u8(img1), _to_bgr_u8(img2)
@@ -65,12 +69,35 @@ def draw_matches(
             colour = (0, int(255 * t[k]), int(255 * (1 - t[k])))
             q1 = (int(p1[k, 0]), int(p1[k, 1]))
             q2 = (int(p2[k, 0]), int(p2[k, 1]))
-            cv2.line(canvas, q1, q2, colour, 1, cv2.LINE_AA, shift)
-            cv2.circle(canvas, q1, 2 << shift, colour, 1, cv2.LINE_AA, shift)
-            cv2.circle(canvas, q2, 2 << shift, colour, 1, cv2.LINE_AA, shift)
+            cv2.line(canvas, q1, q2, colour, thickness, cv2.LINE_AA, shift)
+            cv2.circle(canvas, q1, (1 + thickness) << shift, colour, thickness, cv2.LINE_AA, shift)
+            cv2.circle(canvas, q2, (1 + thickness) << shift, colour, thickness, cv2.LINE_AA, shift)
     if path is not None:
         write_image(path, canvas)
     return canvas
+
+
+def spread_matches(matches: Matches, kp1: Features | np.ndarray, image_size: tuple[int, int], limit: int) -> np.ndarray:
+    """Positions (sorted) of at most ``limit`` of ``matches`` spread over image 1 (``image_size``:
+    width, height): the image is cut into about ``limit`` cells, and the matches are taken
+    round by round, in each round the best ZNCC not yet taken of every cell, best cells first; so
+    a drawing of them shows where the matches are, not a band of lines where they crowd."""
+    n = len(matches)
+    if n <= limit:
+        return np.arange(n)
+    w, h = image_size
+    cols = max(1, round(math.sqrt(limit * w / max(h, 1))))
+    rows = max(1, math.ceil(limit / cols))
+    x1 = np.asarray(kp1.points if isinstance(kp1, Features) else kp1, np.float64)[matches.idx1]
+    cell = (np.clip((x1[:, 1] * rows / h).astype(np.int64), 0, rows - 1) * cols
+            + np.clip((x1[:, 0] * cols / w).astype(np.int64), 0, cols - 1))
+    by_score = np.lexsort((-matches.score, cell))  # cell by cell, best first
+    sorted_cells = cell[by_score]
+    rank = np.empty(n, np.int64)
+    starts = np.searchsorted(sorted_cells, sorted_cells, side="left")
+    rank[by_score] = np.arange(n) - starts  # the match's place in its cell
+    order = np.lexsort((-matches.score, rank))
+    return np.sort(order[:limit])
 
 
 def disparity_image(result: PropagationResult, shape: tuple[int, ...]) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import Any, Callable
 import numpy as np
 
 from stereoseed.geometry.projection import backproject, camera_center, is_finite_camera, viewing_direction
+from stereoseed.output.report.measure import measure_spec, measurement_trace, scale_bar, unit_label
 
 log = logging.getLogger("stereoseed.output.report.html")  # one logger for the whole report
 
@@ -23,6 +24,12 @@ FRUSTUM_DEPTH = 0.07  # frustum depth as a fraction of the scene size
 
 
 _TIME_PARTS = ("features", "matching", "resection", "triangulation", "bundle")
+
+# Plotly's toolbar (its modebar) sits in the top right corner of a plot when the mouse is over it:
+# the 2D plots keep this margin above their plotting area free for it and put their legends to the
+# right of the area, below the margin; the 3D view's legend sits in its bottom left corner
+TOOLBAR_MARGIN_PX = 36
+_LEGEND_RIGHT = {"x": 1.02, "xanchor": "left", "y": 1.0, "yanchor": "top"}
 
 
 # ---------------------------------------------------------------- small helpers
@@ -153,7 +160,9 @@ _DARK = "#1f2430"
 
 
 def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
-               cams: list[tuple[int, str, np.ndarray, tuple[int, int]]]) -> dict[str, Any]:
+               cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None) -> dict[str, Any]:
+    """The clouds (a click picks a point: "hoverinfo" none, not skip), the frustums, a scale bar
+    and the (empty) trace the page's script draws a measured distance in (``fig["measure"]``)."""
     size = frame["size"]
     data: list[dict[str, Any]] = []
     dense = None if dense_cloud is None else _optional(
@@ -164,14 +173,14 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
         n_all = len(dense[0])
         data.append({"type": "scatter3d", "mode": "markers", "name": f"dense ({len(pts)} of {n_all} points{far})",
                      "x": _rounded(pts[:, 0], size), "y": _rounded(pts[:, 1], size), "z": _rounded(pts[:, 2], size),
-                     "marker": {"size": 1.2, "color": _hex_colors(cols)}, "hoverinfo": "skip"})
+                     "marker": {"size": 1.2, "color": _hex_colors(cols)}, "hoverinfo": "none"})
     near_pts, near_cols, far = _shown(*sparse, frame)
     pts, cols = _subsample(near_pts, near_cols, MAX_SPARSE_POINTS)
     if len(pts):
         data.append({"type": "scatter3d", "mode": "markers", "name": f"sparse ({len(sparse[0])} points{far})",
                      "x": _rounded(pts[:, 0], size), "y": _rounded(pts[:, 1], size), "z": _rounded(pts[:, 2], size),
                      "marker": {"size": 2.0 if dense is None or not len(dense[0]) else 1.5, "color": _hex_colors(cols)},
-                     "hoverinfo": "skip"})
+                     "hoverinfo": "none"})
     depth = FRUSTUM_DEPTH * size
     groups: dict[str, list] = {"calibrated pair": [], "registered": []}
     for i, name, P, (w, h) in cams:
@@ -204,26 +213,28 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
                      "z": _rounded(centres[:, 2], size), "text": [f"{i}: {n}" for i, n, _, _ in cams],
                      "marker": {"size": 3, "color": "#ffffff", "line": {"color": "#d62728", "width": 1}},
                      "hovertemplate": "%{text}<extra></extra>"})
+    data.append(scale_bar(frame, near_pts, unit))
+    data.append(measurement_trace())
+    measure = measure_spec(unit, trace=len(data) - 1, skip=[len(data) - 2])
     up = frame["up"]
     # look from outside the ring, slightly above it, at the scene's centre
     side = frame["e1"] * 0.9 + frame["e2"] * 0.9
     eye = side + up * 0.9
     layout = {
         "margin": {"l": 0, "r": 0, "t": 0, "b": 0}, "paper_bgcolor": _DARK, "font": {"color": "#e6e6e6"},
-        "legend": {"x": 0.01, "y": 0.99, "bgcolor": "rgba(0,0,0,0.35)"},
+        "legend": {"x": 0.01, "xanchor": "left", "y": 0.01, "yanchor": "bottom", "bgcolor": "rgba(0,0,0,0.35)"},
         "scene": {"aspectmode": "data", "bgcolor": _DARK,
-                  "xaxis": {"title": {"text": "X"}, "color": "#9aa3b5", "gridcolor": "#394050"},
-                  "yaxis": {"title": {"text": "Y"}, "color": "#9aa3b5", "gridcolor": "#394050"},
-                  "zaxis": {"title": {"text": "Z"}, "color": "#9aa3b5", "gridcolor": "#394050"},
+                  **{f"{a}axis": {"title": {"text": f"{a.upper()} ({unit_label(unit)})"}, "color": "#9aa3b5",
+                                  "gridcolor": "#394050"} for a in "xyz"},
                   "camera": {"up": dict(zip("xyz", map(float, up))), "eye": dict(zip("xyz", map(float, eye))),
                              "center": {"x": 0, "y": 0, "z": 0}}},
         "uirevision": "keep",
     }
-    return {"data": data, "layout": layout}
+    return {"data": data, "layout": layout, "measure": measure}
 
 
 def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
-                 cams: list[tuple[int, str, np.ndarray, tuple[int, int]]]) -> dict[str, Any]:
+                 cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None) -> dict[str, Any]:
     e1, e2 = frame["e1"], frame["e2"]
     data: list[dict[str, Any]] = []
     sparse = sparse[_near(sparse, frame)]
@@ -254,9 +265,10 @@ def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
                      "marker": {"size": 8, "color": ["#ff7f0e" if i < 2 else "#d62728" for i, _, _, _ in cams]},
                      "line": {"color": "#d62728", "width": 1, "dash": "dot"}})
     labels = frame["labels"]
-    layout = {"margin": {"l": 50, "r": 10, "t": 10, "b": 40}, "showlegend": False,
-              "xaxis": {"title": {"text": labels[0]}, "zeroline": False},
-              "yaxis": {"title": {"text": labels[1]}, "zeroline": False, "scaleanchor": "x", "scaleratio": 1}}
+    layout = {"margin": {"l": 50, "r": 10, "t": TOOLBAR_MARGIN_PX, "b": 40}, "showlegend": False,
+              "xaxis": {"title": {"text": f"{labels[0]} ({unit_label(unit)})"}, "zeroline": False},
+              "yaxis": {"title": {"text": f"{labels[1]} ({unit_label(unit)})"}, "zeroline": False, "scaleanchor": "x",
+                        "scaleratio": 1}}
     return {"data": data, "layout": layout}
 
 
@@ -283,9 +295,9 @@ def _figure_reprojection(report: dict[str, Any]) -> dict[str, Any] | None:
         return None
     data = [{"type": "bar", "name": "before BA", "x": names, "y": before, "marker": {"color": "#ff7f0e"}},
             {"type": "bar", "name": "after BA", "x": names, "y": after, "marker": {"color": "#2ca02c"}}]
-    layout = {"barmode": "group", "margin": {"l": 55, "r": 10, "t": 10, "b": 90},
+    layout = {"barmode": "group", "margin": {"l": 55, "r": 10, "t": TOOLBAR_MARGIN_PX, "b": 90},
               "yaxis": {"title": {"text": "reprojection RMS (px)"}, "rangemode": "tozero"},
-              "xaxis": {"type": "category", "tickangle": -45}, "legend": {"orientation": "h", "y": 1.1}}
+              "xaxis": {"type": "category", "tickangle": -45}, "legend": _LEGEND_RIGHT}
     return {"data": data, "layout": layout}
 
 
@@ -307,9 +319,9 @@ def _figure_times(report: dict[str, Any]) -> dict[str, Any] | None:
                 ys.append(_num(s.get(part)))
         if any(y for y in ys):
             data.append({"type": "bar", "name": part, "x": names, "y": ys})
-    layout = {"barmode": "stack", "margin": {"l": 55, "r": 10, "t": 10, "b": 90},
+    layout = {"barmode": "stack", "margin": {"l": 55, "r": 10, "t": TOOLBAR_MARGIN_PX, "b": 90},
               "yaxis": {"title": {"text": "seconds"}, "rangemode": "tozero"},
-              "xaxis": {"type": "category", "tickangle": -45}, "legend": {"orientation": "h", "y": 1.1}}
+              "xaxis": {"type": "category", "tickangle": -45}, "legend": _LEGEND_RIGHT}
     return {"data": data, "layout": layout}
 
 

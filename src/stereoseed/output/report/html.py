@@ -3,15 +3,19 @@
 One file, no network: Plotly's offline bundle is inlined once, the data of each figure is
 inlined as JSON and the match image as a base64 PNG. It shows
 
-* a summary header: registered / total images, points, reprojection RMS, mode, total time;
+* a summary header: registered / total images, points, reprojection RMS, mode, the model's unit,
+  the run's wall time and its stages';
 * an interactive 3D view of the sparse cloud (coloured), the dense cloud when the run has one
-  (subsampled), and a small frustum per registered camera, the image name on hover;
+  (subsampled), and a small frustum per registered camera, the image name on hover; a scale bar
+  and a distance readout (click two points) in the model's unit (:mod:`.measure`);
 * the camera path seen from above (the camera centres in the ground plane of the scene);
 * the reprojection error before / after bundle adjustment and the time of each insertion;
 * a per-image table (status, why an image was skipped, matches, chained points, inliers,
   camera model, RMS before / after BA, time);
 * the matches of the weakest insertion (the registered image with the fewest resection
-  inliers against the previous registered image).
+  inliers against the previous registered image), a few dozen of them spread over the image.
+
+Its title is the result folder's name (the staging folder's while the run writes it).
 
 The report is optional: a part that cannot be built is logged and left out, and
 :func:`write_report_html` itself raises only when the file cannot be written.
@@ -32,11 +36,17 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed.io.atomic import jsonable, write_text
 from stereoseed.output.report.figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
                              _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
+from stereoseed.output.report.measure import MEASURE_SCRIPT, unit_label
+from stereoseed.output.result_set import STAGING_MARKER
 
-__all__ = ["write_report_html", "render_report_html"]
+__all__ = ["write_report_html", "render_report_html", "result_name"]
 
 log = logging.getLogger(__name__)
 MAX_MATCH_IMAGE_WIDTH = 1280  # px
+# lines drawn in the match panel: a few dozen stay apart at the panel's width; hundreds make a band
+MAX_MATCH_LINES = 60
+
+
 def _fmt(value: Any, digits: int = 3) -> str:
     f = _num(value)
     if f is None:
@@ -56,7 +66,7 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
     """The registered image k >= 2 with the fewest resection inliers, matched again against the
     previous registered image j under the known geometry: a PNG (base64) and a caption."""
     from stereoseed.geometry.projection import fundamental_from_projections
-    from stereoseed.output.visualize import draw_matches
+    from stereoseed.output.visualize import draw_matches, spread_matches
 
     names = [str(v.name) for v in recon.views]
     best = None
@@ -83,7 +93,10 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
         return None
     F = fundamental_from_projections(vj.P, vk.P)
     matches = source.match(j, k, vj.restore_gray(), vk.restore_gray(), F, vj.image_size[0])
-    canvas = draw_matches(vj.image, vj.features.points, vk.image, vk.features.points, matches)
+    drawn = matches.subset(spread_matches(matches, vj.features.points, vj.image_size, MAX_MATCH_LINES))
+    width = vj.image_size[0] + vk.image_size[0]
+    thickness = max(1, round(width / MAX_MATCH_IMAGE_WIDTH))  # a line stays a pixel wide once scaled down
+    canvas = draw_matches(vj.image, vj.features.points, vk.image, vk.features.points, drawn, thickness=thickness)
     if canvas.shape[1] > MAX_MATCH_IMAGE_WIDTH:
         scale = MAX_MATCH_IMAGE_WIDTH / canvas.shape[1]
         canvas = cv2.resize(canvas, (MAX_MATCH_IMAGE_WIDTH, max(1, round(canvas.shape[0] * scale))),
@@ -92,13 +105,16 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
     if not ok:
         raise ValueError("PNG encoding failed")
     turned = [v.name for v in (vj, vk) if getattr(v, "rotated_180", False)]
+    shown = (f"all {len(matches)} matches under the known epipolar geometry drawn" if len(drawn) == len(matches) else
+             f"{len(drawn)} of the {len(matches)} matches under the known epipolar geometry drawn, spread over the "
+             f"image (the best of each part first)")
     caption = (f"{vj.name} (left) and {vk.name} (right), the weakest insertion: {row['resection_inliers']} resection "
-               f"inliers; {len(matches)} matches under the known epipolar geometry, red (lowest ZNCC) to green "
-               f"(highest).")
+               f"inliers; {shown}; red (lowest ZNCC) to green (highest).")
     if turned:
         caption += f" Drawn as the run used them: {', '.join(turned)} turned by 180°."
     return {"png": base64.b64encode(png.tobytes()).decode("ascii"), "caption": caption,
-            "width": int(canvas.shape[1]), "height": int(canvas.shape[0])}
+            "width": int(canvas.shape[1]), "height": int(canvas.shape[0]), "drawn": len(drawn),
+            "matches": len(matches)}
 
 
 # ---------------------------------------------------------------- HTML parts
@@ -111,24 +127,42 @@ def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
              ("mode", html.escape(str(report.get("mode", "—")))),
              ("camera model", html.escape(str(report.get("camera_model", "—")))),
              ("BA", html.escape(f"{report.get('ba', '—')}" + (f", window {report['window']}" if report.get("window") else ""))),
-             ("total time", f"{_fmt(report.get('seconds'), 1)} s" if _num(report.get("seconds")) is not None else "—")]
+             ("unit", html.escape(report["unit"]) if report.get("unit") else "the calibration's (not named)")]
     dense = report.get("dense") if isinstance(report.get("dense"), dict) else None
     n_dense = (dense or {}).get("points")
     if n_dense is None and dense_cloud is not None:
         n_dense = len(dense_cloud)
     if n_dense is not None:
         items.insert(2, ("dense points", _fmt(n_dense)))
-    if dense and _num(dense.get("seconds")) is not None:
-        items.append(("dense stage", f"{_fmt(dense.get('seconds'), 1)} s"))
+    items += _times(report, dense)
     loop = (report.get("final") or {}).get("loop_closure") if isinstance(report.get("final"), dict) else None
     if isinstance(loop, dict):
         items.append(("loop closure", "closed" if loop.get("closed") else html.escape(f"not closed ({loop.get('reason', '')})")))
     return "".join(f'<div class="kv"><span>{html.escape(k)}</span><b>{v}</b></div>' for k, v in items)
 
 
-_COLUMNS = ("#", "image", "status", "reason / registered by", "matches", "chained points", "inliers",
+def _times(report: dict[str, Any], dense: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """The run's wall time and its stages' (report "timing", written by the whole run) or, for a
+    report without it, the stages the report holds and their sum."""
+    timing = report.get("timing") if isinstance(report.get("timing"), dict) else {}
+    stages = timing.get("stages_s") if isinstance(timing.get("stages_s"), dict) else {}
+    stages = {str(k): _num(v) for k, v in stages.items() if _num(v) is not None}
+    total = _num(timing.get("total_s"))
+    label = "total time (this command; resumed)" if report.get("resumed_images") else "total time"
+    if total is None:  # the incremental run's and the dense stage's times, as the report holds them
+        stages = {k: v for k, v in (("sparse", _num(report.get("seconds"))),
+                                    ("dense", _num((dense or {}).get("seconds")))) if v is not None}
+        total, label = (sum(stages.values()), "total time (sparse + dense)") if stages else (None, label)
+    if total is None:
+        return [("total time", "—")]
+    parts = " · ".join(f"{html.escape(k)} {v:.1f} s" for k, v in stages.items())
+    return [(label, f"{total:.1f} s")] + ([("stages", parts)] if parts else [])
+
+
+def _columns(unit: str | None) -> tuple[str, ...]:
+    return ("#", "image", "status", "reason / registered by", "matches", "chained points", "inliers",
             "camera model", "RMS before BA (px)", "RMS after BA (px)", "new points", "time (s)",
-            "position σ (model unit)", "trust")
+            f"position σ ({unit_label(unit)})", "trust")
 
 
 def _trust_cells(judged: dict[str, Any] | None) -> list[str]:
@@ -170,7 +204,7 @@ def _table(recon: Any, report: dict[str, Any]) -> str:
             cls = cls or "flagged"
         tds = "".join(f"<td>{c}</td>" for c in cells)
         rows.append(f'<tr class="{cls}" data-status="{html.escape(status)}">{tds}</tr>')
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in _COLUMNS)
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in _columns(report.get("unit")))
     return f'<table id="per-image"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
 
 
@@ -218,6 +252,7 @@ _SCRIPT = """
       return;
     }
     Plotly.newPlot(el, fig.data, fig.layout, config);
+    if (fig.measure) stereoseedMeasure(el, fig.measure);
   });
   document.body.setAttribute('data-rendered', 'true');
 })();
@@ -235,11 +270,12 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     cams = _optional("the cameras", lambda: _registered_cameras(recon)) or []
     frame = _optional("the scene frame", lambda: _scene_frame(sparse[0], np.array([camera_center(P) for _, _, P, _ in cams]).reshape(-1, 3)))
     figures: dict[str, Any] = {}
+    unit = report.get("unit") if isinstance(report.get("unit"), str) else None
     if frame is not None:
-        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams))
+        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit))
         if fig is not None and fig["data"]:
             figures["view3d"] = {**fig, "webgl": True}
-        fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams))
+        fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams, unit))
         if fig is not None and fig["data"]:
             figures["path"] = fig
     for key, what, build in (("reprojection", "the reprojection plot", _figure_reprojection),
@@ -256,11 +292,11 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     if plotly_js is None:
         figures = {}
 
-    def plot_section(key: str, heading: str, note: str = "") -> str:
+    def plot_section(key: str, heading: str, note: str = "", after: str = "") -> str:
         if key not in figures:
             return ""
         extra = f'<p class="note">{note}</p>' if note else ""
-        return f'<section><h2>{heading}</h2>{extra}<div id="{key}" class="plot"></div></section>'
+        return f'<section><h2>{heading}</h2>{extra}<div id="{key}" class="plot"></div>{after}</section>'
 
     title = title or "stereoseed reconstruction"
     parts = [
@@ -271,8 +307,11 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
         f'<header><h1>{html.escape(title)}</h1><div class="summary">{summary}</div></header><main>',
         plot_section("view3d", "3D view",
                      "Sparse cloud (coloured), dense cloud when computed (subsampled), and a frustum per registered "
-                     "camera (orange: the calibrated pair; the tick marks the top of the image). Drag to rotate, "
-                     "scroll to zoom, hover a frustum for its image; click a legend entry to hide it."),
+                     "camera (orange: the calibrated pair; the tick marks the top of the image); the yellow scale bar "
+                     f"and the coordinates are in {html.escape(unit or 'the calibration’s unit')}. Drag to rotate, "
+                     "scroll to zoom, hover a frustum for its image; click a legend entry to hide it; click two points "
+                     "to measure their distance.",
+                     '<p id="distance" class="note">distance: click two points of the view</p>'),
         '<div class="grid">',
         plot_section("path", "Camera path seen from above",
                      "Camera centres in the ground plane of the scene, in sequence order, with their viewing "
@@ -291,7 +330,7 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
         figures_json = "{" + ",".join(f"{json.dumps(key)}:{encoded[key]}" for key in figures) + "}"
         parts.append(f'<script type="application/json" id="figures">{figures_json}</script>')
         parts.append(f"<script>{plotly_js}</script>")
-        parts.append(f"<script>{_SCRIPT}</script>")
+        parts.append(f"<script>{MEASURE_SCRIPT}{_SCRIPT}</script>")
     parts.append("</body></html>\n")
     return "\n".join(parts)
 
@@ -302,10 +341,22 @@ def _plotly_js() -> str:
     return get_plotlyjs()
 
 
+def result_name(folder: str | Path) -> str:
+    """The result folder's name: ``folder``'s, or for a staging folder (``.NAME.partial`` holding
+    stereoseed's marker, :class:`~stereoseed.output.result_set.ResultSet`) the NAME it becomes."""
+    folder = Path(folder).resolve()
+    name = folder.name
+    if name.startswith(".") and name.endswith(".partial") and len(name) > len("..partial") \
+            and (folder / STAGING_MARKER).is_file():
+        return name[1:-len(".partial")]
+    return name
+
+
 def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None,
                       source: Any = None) -> Path:
     """Write ``out_dir/report.html``, one self-contained file (no network), atomically (a
-    temporary file in out_dir replaces it). Returns its path.
+    temporary file in out_dir replaces it), titled by the result folder's name (:func:`result_name`).
+    Returns its path.
 
     recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
     dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given;
@@ -313,7 +364,7 @@ def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, d
     A part that cannot be built is logged and left out; only an error writing the file raises.
     """
     path = Path(out_dir) / "report.html"
-    text = render_report_html(recon, report, title=f"stereoseed reconstruction: {path.parent.resolve().name}",
+    text = render_report_html(recon, report, title=f"{result_name(path.parent)} — stereoseed reconstruction",
                               dense=dense, source=source)
     write_text(path, text)
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
