@@ -162,3 +162,17 @@ def test_the_gauge_must_be_fixed():
     np.testing.assert_allclose(res.R, R, atol=1e-10)
     np.testing.assert_array_equal(res.points, X)
     assert decompose_projection(res.projections()[0, 1])[0] == pytest.approx(rig.K_right, abs=1e-9)
+
+
+def test_the_rms_counts_every_observation_fixed_ones_too():
+    rig = make_rig()
+    rng = np.random.default_rng(8)
+    R, t, X, st, sd, pt, xy = walk(rig, rng, n_stations=3, n_points=60, noise=1.0)
+    free_points = np.arange(len(X)) % 2 == 0  # the first station's views of the others touch nothing free
+    R0, t0, X0 = perturbed(rng, R, t, X)
+    res = rig_bundle_adjust(RigBundleProblem(rig, R0, t0, X0, st, sd, pt, xy, free_points=free_points))
+    np.testing.assert_array_equal(res.points[~free_points], X0[~free_points])
+    for rms, (R_, t_, X_) in ((res.rms_before, (R0, t0, X0)), (res.rms_after, (res.R, res.t, res.points))):
+        every = rig_observation_errors(rig, R_, t_, X_, st, sd, pt, xy)
+        assert rms == pytest.approx(np.sqrt(np.mean(every ** 2)), rel=1e-12)
+    assert res.rms_after < 0.5 * res.rms_before
