@@ -183,15 +183,14 @@ def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarra
     """What the prefetching thread reads: an image the sequence withholds for its size, or
     cannot decode, is not worked on ahead (the mapper refuses it by its size alone, the loop
     skips it by its reason)."""
-    withheld = getattr(images, "withheld", None)
-    if withheld is None:
+    if not isinstance(images, ImageSequence):
         return images.__getitem__
 
     def image_of(i: int) -> np.ndarray:
-        if withheld(i):
+        if images.withheld(i):
             raise _NotRead(i)
         image = images[i]
-        if images.unreadable(i):  # type: ignore[attr-defined]
+        if images.unreadable(i):
             raise _NotRead(i)
         return image
 
