@@ -164,5 +164,8 @@ def test_failures_are_values_with_a_reason_and_bad_input_is_refused():
         resect_rig(rig, X, x[:-1], side)
     with pytest.raises(StereoseedError, match="R_rl"):
         Rig(rig.K_left, rig.K_right, 2 * np.eye(3), rig.t_rl)
+    with pytest.raises(StereoseedError, match="K_right"):
+        Rig(rig.K_left, rig.K_right.T, rig.R_rl, rig.t_rl)
+    np.testing.assert_array_equal(Rig(2 * rig.K_left, rig.K_right, rig.R_rl, rig.t_rl).K_left, rig.K_left)
     with pytest.raises(ValueError, match="min_inliers"):
         RigResectionConfig(min_inliers=2)

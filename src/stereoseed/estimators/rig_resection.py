@@ -53,7 +53,8 @@ def _read_only(a: np.ndarray) -> np.ndarray:
 class Rig:
     """A calibrated stereo rig: K_left, K_right (3, 3) and the right camera's pose in the left
     camera's frame, R_rl (3, 3), t_rl (3,): ``X_right = R_rl X_left + t_rl`` (the rig's unit is
-    the world's: ``|t_rl|`` is the baseline). Arrays are stored read-only."""
+    the world's: ``|t_rl|`` is the baseline). Arrays are stored read-only, each K scaled to
+    K[2, 2] = 1."""
 
     K_left: np.ndarray
     K_right: np.ndarray
@@ -68,10 +69,14 @@ class Rig:
                                       f"check the calibration")
             object.__setattr__(self, name, _read_only(a))
         for name in ("K_left", "K_right"):
-            K = getattr(self, name)
-            if K[2, 2] <= 0 or np.any(K[2, :2] != 0) or K[1, 0] != 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
+            K = np.array(getattr(self, name))
+            lower = np.abs(K[np.tril_indices(3, -1)])
+            if not (K[2, 2] > 0 and K[0, 0] / K[2, 2] > 0 and K[1, 1] / K[2, 2] > 0
+                    and np.all(lower <= 1e-9 * abs(K[0, 0]))):
                 raise StereoseedError(f"rig: {name} is not an intrinsic matrix (upper triangular, positive focal "
-                                      f"lengths, last row 0 0 1); check the calibration")
+                                      f"lengths); check the calibration")
+            K[np.tril_indices(3, -1)] = 0.0  # a decomposition's rounding: the pixels are computed from (0, 0, 1)
+            object.__setattr__(self, name, _read_only(K / K[2, 2]))
         R = self.R_rl
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
             raise StereoseedError("rig: R_rl is not a rotation (orthonormal, determinant +1); check the calibration")
@@ -116,7 +121,7 @@ class RigResectionConfig:
     # a pair is an inlier within this distance of its camera's reprojection: the resection's
     # (paper.md: "6-point DLT in RANSAC, 2 px")
     ransac_threshold_px: float = ResectionConfig.ransac_threshold_px
-    ransac_confidence: float = ResectionConfig.ransac_confidence
+    ransac_confidence: float = ResectionConfig.ransac_confidence  # the resection's adaptive stopping
     # P3P samples are small (3 pairs): 30 % outliers need ~20 samples at 0.999, 60 % ~110; the
     # cap bounds a hopeless station's cost
     ransac_max_iters: int = 1000
@@ -305,7 +310,7 @@ def _ransac(rig: Rig, X: np.ndarray, x: np.ndarray, side: np.ndarray, config: Ri
     members = [np.flatnonzero(side == s) for s in (0, 1)]
     sides = [s for s in (0, 1) if len(members[s]) >= 3]
     thr2 = config.ransac_threshold_px ** 2
-    X32 = np.ascontiguousarray(X)
+    Xc = np.ascontiguousarray(X)  # OpenCV takes contiguous samples
     best: tuple = (-1, np.inf, None, None, np.zeros(len(X), bool))
     stop_at = config.ransac_max_iters
     tried = 0
@@ -313,7 +318,7 @@ def _ransac(rig: Rig, X: np.ndarray, x: np.ndarray, side: np.ndarray, config: Ri
         s = sides[tried % len(sides)]
         tried += 1
         sample = rng.choice(members[s], 3, replace=False)
-        for R, t in _p3p(rig, s, X32[sample], np.ascontiguousarray(x[sample])):
+        for R, t in _p3p(rig, s, Xc[sample], np.ascontiguousarray(x[sample])):
             err, front = rig_reprojection_errors(rig, R, t, X, x, side)
             err2 = np.where(front, err ** 2, np.inf)
             inliers = err2 < thr2
