@@ -1,0 +1,359 @@
+"""A surface from the quasi-dense cloud: screened Poisson reconstruction (Kazhdan & Hoppe 2013,
+through PyMeshLab, the optional extra ``mesh``), trimmed to where the cloud is, coloured from it.
+
+Poisson fits a closed implicit surface to oriented points, so it also makes surface where there
+are none (it closes an open ground plane with a bubble underneath, bridges the gaps). The mesh is
+therefore trimmed: a vertex farther than ``max_gap_cells`` Poisson cells from every cloud point,
+or whose Poisson density (the octree depth its samples call for, PoissonRecon's measure of the
+sampling density: one unit more is four times the points per area) is more than
+``density_drop`` below the typical density of the surface the cloud covers, is dropped with
+its faces. Each kept vertex takes the mean colour of its nearest cloud points.
+
+:func:`poisson_mesh` is arrays in, :class:`Mesh` out; :func:`write_mesh` writes it as a PLY;
+:func:`mesh_result` does both for a result folder's ``dense.ply``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stereoseed.errors import StereoseedError
+from stereoseed.io.files import write_json
+from stereoseed.io.ply import read_ply_vertices, write_ply
+from stereoseed.validation import positive, whole
+
+__all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
+
+log = logging.getLogger(__name__)
+
+MESH_NAME = "mesh.ply"  # the mesh's name in the result folder when no other is given
+INSTALL_HINT = "pip install 'stereoseed[mesh]'"
+_OUR_COMMENT = b"comment written by stereoseed"  # what io.ply writes in every header
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    # Octree depth of the Poisson solve: the grid cell is scale x the cloud's largest extent
+    # / 2**depth. PoissonRecon's default; each level more is about three times the time and
+    # memory for detail finer than the dense cloud's own noise at the scenes' sizes.
+    depth: int = 8
+    # Poisson's bounding cube over the cloud's box (PoissonRecon's default): room for the
+    # implicit function to close beyond the outermost points.
+    scale: float = 1.1
+    # Minimum points per octree leaf (PoissonRecon's default): fewer make noise into surface.
+    samples_per_node: float = 1.5
+    # The screening weight: how strongly the surface is pulled through the points, against
+    # smoothness (PoissonRecon's default for screened Poisson).
+    point_weight: float = 4.0
+    # A vertex farther than this many grid cells from every cloud point is not backed by the
+    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents.
+    max_gap_cells: float = 2.0
+    # A vertex whose Poisson density is this far below the median of the vertices the cloud
+    # backs is dropped: 2 units = 16 times fewer points per area than the typical surface,
+    # the density of the extrapolated rims, not of a sparsely matched but real surface.
+    density_drop: float = 2.0
+    # Each vertex's colour: the mean of this many nearest cloud points (a vertex stands for
+    # a patch of about a grid cell, which holds several cloud points).
+    color_neighbours: int = 8
+    # Normals estimated (a dense.ply without them): neighbours of the local plane fit, as the
+    # dense stage's own estimate uses.
+    normal_neighbours: int = 10
+    # Fewer cloud points cannot describe a surface at the grid's resolution: refused.
+    min_points: int = 100
+    # Threads of the Poisson solve (0: the cores this process may use). One: PyMeshLab's OpenMP
+    # threads spin while they wait, which on cores shared with other work (the dense workers,
+    # other processes) burns more than the threads gain; the wait policy cannot be changed once
+    # Numba's parallel kernels have started OpenMP in the process.
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        whole(self, "depth", minimum=4)
+        whole(self, "color_neighbours", "normal_neighbours")
+        whole(self, "min_points", minimum=10)
+        whole(self, "threads", minimum=0)
+        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop")
+        if self.depth > 12:
+            raise ValueError(f"MeshConfig.depth must be <= 12 (a finer grid needs memory no machine here has), "
+                             f"got {self.depth}")
+        if self.scale < 1.0:
+            raise ValueError(f"MeshConfig.scale must be >= 1 (the cube holds the cloud), got {self.scale}")
+        if self.point_weight < 0:
+            raise ValueError(f"MeshConfig.point_weight must be >= 0 (0: unscreened Poisson), got {self.point_weight}")
+
+    def pool_size(self) -> int:
+        from stereoseed.threads import CORES
+
+        return self.threads or CORES
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh: vertices (V, 3) float64, faces (F, 3) int64 (counter-clockwise seen from
+    outside, where the normals point), colors (V, 3) uint8 RGB, normals (V, 3) unit vectors,
+    density (V,) Poisson's sampling density at each vertex."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray
+    density: np.ndarray
+
+    def area(self) -> float:
+        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
+        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def _pymeshlab() -> Any:
+    try:
+        import pymeshlab
+    except ImportError:
+        raise StereoseedError(f"meshing needs PyMeshLab, which is not installed: {INSTALL_HINT}") from None
+    return pymeshlab
+
+
+def poisson_mesh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
+                 cfg: MeshConfig = MeshConfig()) -> tuple[Mesh, dict[str, Any]]:
+    """Screened Poisson surface of an oriented cloud, trimmed to the cloud, coloured from it.
+
+    points (N, 3), normals (N, 3) unit vectors towards the outside (where the cameras were),
+    colors (N, 3) uint8 RGB. Returns the mesh and a summary (counts before and after each trim,
+    the grid cell, seconds). Raises :class:`StereoseedError` for too few points, a cloud without
+    finite coordinates, or when the extra is missing."""
+    from scipy.spatial import cKDTree
+
+    t0 = time.perf_counter()
+    points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    normals = np.ascontiguousarray(normals, np.float64).reshape(-1, 3)
+    colors = np.asarray(colors).reshape(-1, 3)
+    if not len(points) == len(normals) == len(colors):
+        raise ValueError(f"points, normals and colors differ in length ({len(points)}, {len(normals)}, {len(colors)})")
+    good = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(normals), axis=1)
+    points, normals, colors = points[good], normals[good], colors[good]
+    if len(points) < cfg.min_points:
+        raise StereoseedError(f"the cloud has {len(points)} usable points, fewer than the {cfg.min_points} a mesh "
+                              f"needs; reconstruct with more images or --dense on a textured object")
+    vertices, faces, vertex_normals, density = _screened_poisson(points, normals, cfg)
+    cell = cfg.scale * float(np.max(points.max(axis=0) - points.min(axis=0))) / 2 ** cfg.depth
+    tree = cKDTree(points)
+    gap, _ = tree.query(vertices, workers=cfg.pool_size())
+    near = gap <= cfg.max_gap_cells * cell
+    reference = float(np.median(density[near])) if near.any() else float("nan")
+    dense_enough = density >= reference - cfg.density_drop
+    keep = near & dense_enough
+    mesh = _submesh(vertices, faces, vertex_normals, density, keep)
+    k = min(cfg.color_neighbours, len(points))
+    _, idx = tree.query(mesh.vertices, k=k, workers=cfg.pool_size())
+    idx = idx.reshape(len(mesh.vertices), k)
+    mean = colors[idx].astype(np.float64).mean(axis=1) if len(idx) else np.zeros((0, 3))
+    mesh = Mesh(mesh.vertices, mesh.faces, np.rint(mean).astype(np.uint8), mesh.normals, mesh.density)
+    summary = {"points": int(len(points)), "depth": cfg.depth, "cell": cell,
+               "poisson_vertices": int(len(vertices)), "poisson_faces": int(len(faces)),
+               "dropped_far_from_cloud": int((~near).sum()), "dropped_low_density": int((near & ~dense_enough).sum()),
+               "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "area": mesh.area(),
+               "seconds": time.perf_counter() - t0}
+    log.info("mesh: %d faces (%d before trimming) from %d points, grid cell %.3g", summary["faces"],
+             summary["poisson_faces"], summary["points"], cell)
+    return mesh, summary
+
+
+def _screened_poisson(points: np.ndarray, normals: np.ndarray, cfg: MeshConfig
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """PyMeshLab's screened Poisson: vertices, faces, vertex normals, density (its vertex
+    quality)."""
+    pymeshlab = _pymeshlab()
+    meshes = pymeshlab.MeshSet()
+    meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=points, v_normals_matrix=normals))
+    meshes.generate_surface_reconstruction_screened_poisson(
+        depth=cfg.depth, scale=cfg.scale, samplespernode=cfg.samples_per_node, pointweight=cfg.point_weight,
+        preclean=False, threads=cfg.pool_size())
+    out = meshes.current_mesh()
+    if out.face_number() == 0 or not out.has_vertex_scalar():
+        raise StereoseedError("screened Poisson made no surface of the cloud (all its points on a line or a "
+                              "point?); check dense.ply in a viewer")
+    vertices = np.asarray(out.vertex_matrix(), np.float64)
+    faces = np.asarray(out.face_matrix(), np.int64)
+    vn = np.asarray(out.vertex_normal_matrix(), np.float64)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    return vertices, faces, vn / np.where(length > 0, length, 1.0), np.asarray(out.vertex_scalar_array(), np.float64)
+
+
+def _submesh(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, density: np.ndarray,
+             keep: np.ndarray) -> Mesh:
+    """The faces whose three vertices are kept, and the vertices they use, renumbered."""
+    faces = faces[keep[faces].all(axis=1)]
+    used = np.zeros(len(vertices), bool)
+    used[faces.reshape(-1)] = True
+    number = np.cumsum(used) - 1
+    return Mesh(vertices[used], number[faces], np.zeros((int(used.sum()), 3), np.uint8), normals[used],
+                density[used])
+
+
+def camera_viewpoints(points: np.ndarray, projections: list[np.ndarray], sizes: list[tuple[int, int]]) -> np.ndarray:
+    """Where each point (N, 3) was seen from (N, 3): the centre of the nearest camera that has it
+    in front and inside its image (P (3, 4), (width, height) each); a point no camera frames
+    takes the nearest centre. With :func:`stereoseed.dense.densify.estimate_normals` it turns
+    estimated normals to the outside, where the cameras stood."""
+    from stereoseed.geometry.projection import camera_center
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if not projections:
+        raise ValueError("camera_viewpoints needs at least one camera")
+    centres = np.array([camera_center(P) for P in projections])
+    best = np.full(len(points), np.inf)
+    nearest_any = np.full(len(points), np.inf)
+    view = np.zeros(len(points), np.int64)
+    fallback = np.zeros(len(points), np.int64)
+    homogeneous = np.c_[points, np.ones(len(points))]
+    for c, (P, (w, h)) in enumerate(zip(projections, sizes)):
+        x = homogeneous @ np.asarray(P, np.float64).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = x[:, 0] / x[:, 2], x[:, 1] / x[:, 2]
+        # in front: the depth's sign with P's own (a P scaled by -1 is the same camera)
+        depth = x[:, 2] * np.sign(np.linalg.det(np.asarray(P, np.float64)[:, :3]))
+        framed = (depth > 0) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
+        distance = np.linalg.norm(points - centres[c], axis=1)
+        closer = framed & (distance < best)
+        best[closer], view[closer] = distance[closer], c
+        closer_any = distance < nearest_any
+        nearest_any[closer_any], fallback[closer_any] = distance[closer_any], c
+    return centres[np.where(np.isfinite(best), view, fallback)]
+
+
+def _is_our_mesh(path: Path) -> bool:
+    """Whether ``path`` is a mesh this module wrote: a plain file (not a link) with stereoseed's
+    PLY header, a face element and the vertex density (sparse.ply, dense.ply and cameras.ply are
+    not meshes of this kind)."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    header = head.split(b"end_header", 1)[0]
+    return (head.startswith(b"ply") and _OUR_COMMENT in header and b"element face" in header
+            and b"property float density" in header)
+
+
+def write_mesh(path: str | os.PathLike, mesh: Mesh) -> Path:
+    """The mesh as a binary PLY (x y z, colour, normal, density per vertex; triangles),
+    atomically. An existing file is replaced only when it is a mesh stereoseed wrote; anything
+    else there (the user's file, another result file, a folder) is refused, untouched."""
+    path = Path(path)
+    if (path.exists() or path.is_symlink()) and not _is_our_mesh(path):
+        raise StereoseedError(f"{path}: exists and is not a mesh stereoseed wrote; give another --out or move it "
+                              f"away")
+    properties = {"nx": mesh.normals[:, 0].astype(np.float32), "ny": mesh.normals[:, 1].astype(np.float32),
+                  "nz": mesh.normals[:, 2].astype(np.float32), "density": mesh.density.astype(np.float32)}
+    return write_ply(path, mesh.vertices, mesh.colors, properties, faces=mesh.faces)
+
+
+def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """Points, normals, colours of the folder's dense.ply, and where the normals come from: the
+    file's, or estimated and turned towards the cameras of cameras.json that frame each point."""
+    dense = folder / "dense.ply"
+    vertex = read_ply_vertices(dense)
+    names = set(vertex.dtype.names or ())
+    if not {"x", "y", "z"} <= names:
+        raise StereoseedError(f"{dense}: has no x, y, z; run stereoseed reconstruct --dense --out {folder} again")
+    points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
+    if {"red", "green", "blue"} <= names:
+        colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
+    else:
+        colors = np.full((len(points), 3), 200, np.uint8)
+    if {"nx", "ny", "nz"} <= names:
+        normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
+        length = np.linalg.norm(normals, axis=1)
+        if np.all(np.isfinite(length)) and np.all(np.abs(length - 1.0) < 1e-3):
+            return points, normals, colors, "dense.ply"
+    from stereoseed.dense.densify import estimate_normals
+    from stereoseed.output.reader import load_result
+
+    result = load_result(folder)
+    registered = result.registered
+    if not registered:
+        raise StereoseedError(f"{folder / 'cameras.json'}: no registered camera to turn the normals towards")
+    views = camera_viewpoints(points, [result.P[i] for i in registered], [result.sizes[i] for i in registered])
+    good = np.all(np.isfinite(points), axis=1)
+    normals = np.full(points.shape, np.nan)
+    if good.sum() >= 3:
+        normals[good] = estimate_normals(points[good], views[good], cfg.normal_neighbours)
+    return points, normals, colors, "estimated"
+
+
+def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = None, cfg: Any = None,
+                *, lock: bool = True) -> tuple[Path, dict[str, Any]]:
+    """Mesh a result folder's ``dense.ply`` (:func:`poisson_mesh`) and write it (:func:`write_mesh`)
+    to ``out`` (default ``RESULT/mesh.ply``). Returns the path and the summary.
+
+    cfg: a :class:`MeshConfig`, or a configuration holding one as ``.mesh``; None: the defaults.
+    Written into the result folder, the mesh is added to the folder's manifest, so the folder
+    stays stereoseed's (a later ``reconstruct --out`` there replaces it with the rest); meanwhile
+    the folder's lock is held (``lock=False``: the caller holds it, e.g. a run meshing its own
+    folder). Raises :class:`StereoseedError`: no such folder, no dense.ply, the extra missing,
+    ``out`` taken by a file stereoseed did not write."""
+    cfg = getattr(cfg, "mesh", cfg) or MeshConfig()
+    if not isinstance(cfg, MeshConfig):
+        raise TypeError(f"cfg must be a MeshConfig or hold one as .mesh, got {type(cfg).__name__}")
+    folder = Path(result_dir)
+    if not folder.is_dir():
+        raise StereoseedError(f"{folder}: no such result folder; give a folder written by stereoseed reconstruct --dense")
+    if not (folder / "dense.ply").is_file():
+        raise StereoseedError(f"{folder}: no dense.ply to mesh; run stereoseed reconstruct --dense --out {folder} first")
+    _pymeshlab()  # before any work: the one-line hint, not a half-done run
+    target = Path(out) if out is not None else folder / MESH_NAME
+    if target.resolve() == (folder / "dense.ply").resolve():
+        raise StereoseedError(f"{target}: is the cloud being meshed; give another --out")
+    if target.is_dir():
+        raise StereoseedError(f"{target}: is a folder; give a file name for the mesh (e.g. {target / MESH_NAME})")
+    if (target.exists() or target.is_symlink()) and not _is_our_mesh(target):  # refused before the meshing
+        raise StereoseedError(f"{target}: exists and is not a mesh stereoseed wrote; give another --out or move it away")
+    t0 = time.perf_counter()
+    points, normals, colors, source = _read_cloud(folder, cfg)
+    mesh, summary = poisson_mesh(points, normals, colors, cfg)
+    summary = {"normals": source, **summary}
+    inside = _inside(target, folder)
+    if inside is None:
+        write_mesh(target, mesh)
+    else:
+        _write_into_result(folder, target, inside, mesh, lock)
+    summary["seconds"] = time.perf_counter() - t0
+    return target, summary
+
+
+def _inside(target: Path, folder: Path) -> str | None:
+    """``target``'s path relative to the result folder, or None when it lies elsewhere."""
+    try:
+        return str(target.resolve().relative_to(folder.resolve()))
+    except ValueError:
+        return None
+
+
+def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lock: bool) -> None:
+    """Write the mesh into the result folder and list it in the folder's manifest (when the
+    folder has one: a staging folder gets its manifest when it is committed)."""
+    from contextlib import nullcontext
+
+    from stereoseed.output.result_set import MANIFEST, ResultSet
+
+    with ResultSet(folder) if lock else nullcontext():
+        write_mesh(target, mesh)
+        manifest = folder / MANIFEST
+        if not manifest.is_file():
+            return
+        try:
+            data = json.loads(manifest.read_text(encoding="utf-8"))
+            files = data["files"]
+        except (OSError, ValueError, KeyError, TypeError):
+            log.warning("%s: unreadable; the mesh is not listed in it", manifest)
+            return
+        if isinstance(files, list) and relative not in files:
+            data["files"] = sorted([*files, relative])
+            write_json(manifest, data)
