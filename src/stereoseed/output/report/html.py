@@ -113,8 +113,7 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
     if turned:
         caption += f" Drawn as the run used them: {', '.join(turned)} turned by 180°."
     return {"png": base64.b64encode(png.tobytes()).decode("ascii"), "caption": caption,
-            "width": int(canvas.shape[1]), "height": int(canvas.shape[0]), "drawn": len(drawn),
-            "matches": len(matches)}
+            "width": int(canvas.shape[1]), "height": int(canvas.shape[0])}
 
 
 # ---------------------------------------------------------------- HTML parts
