@@ -23,9 +23,9 @@ def test_castle_cameras_a_window_period_off_are_flagged():
     flagged = {e["image"]: e for e in r["per_image"] if "flag" in e}
     assert {"0008.jpg", "0016.jpg"} <= set(flagged), flagged
     assert all("repeated structure" in flagged[n]["flag"] for n in ("0008.jpg", "0016.jpg"))
-    # every camera more than 5 % of the distance off is flagged; the unflagged median stays 0.25 %
-    assert all(e.get("centre_error_pct", 0) <= 5 or "flag" in e for e in r["per_image"])
-    assert r["unflagged"]["median_pct"] < 0.25 and r["unflagged"]["count"] >= 15
+    # every camera more than 1 % of the distance off is flagged; the unflagged median within 0.2 %
+    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] >= 14
 
 
 def test_fountain_is_placed_to_a_tenth_of_a_percent():
@@ -34,11 +34,14 @@ def test_fountain_is_placed_to_a_tenth_of_a_percent():
     assert r["unflagged"]["median_pct"] < 0.1 and r["unflagged"]["worst_pct"] < 0.15
 
 
-def test_weak_texture_first_zoom_is_refused_by_the_window():
-    # dinoRing1-24 every 2nd view: a 1 % zoom on the first insertion drifted the walk by 37 mm
+def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
+    # dinoRing1-24 every 2nd view (the lens never zoomed): a 1 % zoom taken on the first insertion
+    # drifted the walk by 37 mm; zooms of 4-24 % that the view measures to 1-2 % are not taken
     r = _run("dinoRing1-24/2")
-    assert r["registered"] == 12
-    assert r["placed"]["median"] < 0.015 and r["unflagged"]["worst"] < 0.02
+    assert r["registered"] == 12 and r["unflagged"]["count"] >= 8
+    assert r["unflagged"]["median"] < 0.002 and r["unflagged"]["worst"] < 0.005
+    third = _run("dinoRing1-24/3")
+    assert third["unflagged"]["count"] >= 5 and third["unflagged"]["median"] < 0.002
 
 
 def test_dino_sparse_ring_and_temple_keep_their_millimetre():

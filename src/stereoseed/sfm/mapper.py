@@ -36,6 +36,9 @@ from stereoseed.sfm.trust import assess
 from stereoseed.sfm.view_store import view_of_input
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
+from stereoseed.geometry.camera import Camera
+from stereoseed.estimators.robust import huber_cost_of_norms
+from stereoseed.estimators.rig_resection import Rig
 
 __all__ = ["initialise", "insert_view", "finish"]
 
@@ -57,17 +60,19 @@ def _match_known(recon: Reconstruction, source: CorrespondenceSource, a: int, b:
 
 
 def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
-               source: CorrespondenceSource | None = None) -> tuple[Reconstruction, dict[str, Any]]:
+               source: CorrespondenceSource | None = None, rig: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
     """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
     linear + LM triangulation, filtered by reprojection error, cheirality and angle.
 
     images: the sequence (uint8 BGR); P_pair: the pair's two (3, 4) cameras; source: where
     correspondences come from (default :class:`HarrisZncc`; give the same one to every later
-    step). Raises :class:`StereoseedError` when the pair gives too few points (the calibration
-    does not belong to these images)."""
+    step). rig: the images are a stereo rig's stations (left, right, left, ...; the pair is the
+    first station, :mod:`stereoseed.sfm.rig`). Raises :class:`StereoseedError` when the pair
+    gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
     cfg = cfg.resolve()
-    recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)])
+    recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)],
+                           Rig.from_projections(*P_pair[:2]) if rig else None)
     source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]
@@ -113,10 +118,15 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
             f"swapped, the images in the wrong order, or the calibration another pair's?")
 
 
-def registrars(cfg: Config) -> tuple[Registrar, ...]:
+def registrars(cfg: Config, recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
     """The registrars tried for each view, in order: the sparse matches (epipolar chain against the
     motion prior), then the quasi-dense matches where the sparse outcome is weak (a registrar
-    that does not apply returns the outcome it was given)."""
+    that does not apply returns the outcome it was given). A rig walk's (``recon.rig``): its
+    stations' generalised resection (:class:`stereoseed.sfm.rig.RigRegistrar`)."""
+    if recon is not None and recon.rig is not None:
+        from stereoseed.sfm.rig import RigRegistrar  # rig.py builds on the modes this module imports
+
+        return (RigRegistrar(),)
     return (SparseRegistrar(), QuasiDenseRegistrar())
 
 
@@ -131,7 +141,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
     found = None
-    for registrar in registrars(cfg):
+    for registrar in registrars(cfg, recon):
         found = registrar.register(recon, source, k, found, cfg)
     if isinstance(found, RegistrationFailure):
         return _failed(view, found.reason, found)
@@ -171,7 +181,7 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
                      cfg: Config) -> dict[str, Any]:
     """Commit view k's camera, then: re-match under the now-known epipolar geometry, extend the
     chained tracks, triangulate the new points, grow the tracks, adjust, drop outliers."""
-    mode = mode_of(cfg)
+    mode = mode_of(cfg, recon)
     view = recon.views[k]
     prev = recon.registered_before(k, 1)[0]
     _commit(view, reg)
@@ -224,11 +234,10 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
         report["ba_intrinsics"] = "calibrated (no zoom found yet)"
     if cfg.pipeline.ba == "global":
         ba = ba_report(adjust(recon, ba_cfg, free_views=recon.registered_views))
-    elif _first_zoom(recon, k, cfg):
-        ba, report["zoom_evidence"] = _zoom_judged_by_the_window(recon, mode, prev, k, ids, chain_points, cfg)
-        if not report["zoom_evidence"]["kept"]:
-            view.zoomed = False
-            report["ba_intrinsics"] = "calibrated (the resection's zoom did not pay for itself in the window's BA)"
+    elif _lens_in_question(recon, k, cfg):
+        ba, report["zoom_evidence"] = _lens_judged_by_the_window(recon, mode, prev, k, ids, chain_points, cfg)
+        if not view.zoomed:
+            report["ba_intrinsics"] = "calibrated (the window's BA did not take the resection's zoom)"
     else:
         ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
     timing["bundle"] = time.perf_counter() - t
@@ -239,43 +248,81 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
     return report
 
 
-def _first_zoom(recon: Reconstruction, k: int, cfg: Config) -> bool:
+def _lens_in_question(recon: Reconstruction, k: int, cfg: Config) -> bool:
     """Whether view k is the first whose resection took a zoom while the run holds the calibrated
-    intrinsics (accurate mode, "focal" model, ``hold_unzoomed``)."""
+    intrinsics (the "focal" model with ``hold_unzoomed``): the window's BA judges it
+    (:func:`_lens_judged_by_the_window`)."""
     return recon.views[k].zoomed and holds_intrinsics(recon, cfg, besides=k)
 
 
-def _zoom_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,
+def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,
                                chain_points: np.ndarray, cfg: Config) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The window's BA with the calibrated intrinsics held and with a focal length per free view,
-    from the same start, compared by BIC over the window's observations (a focal length more per
-    free view) with the resections' margin ``ResectionConfig.zoom_evidence_bic``. A resection
-    judges a zoom on its 3D points as if they were exact; a narrow view of weak texture lets their
-    errors pass for a 1 % zoom, which then frees every later focal length and lets the walk drift
-    along the optical axes (dinoRing1-24: centimetres). Here the points move with the cameras.
-    The model is left with the BA the evidence chose. -> (that BA's report, the evidence)."""
+    """Whether view k's resection found the walk's first zoom, or the calibrated lens setting
+    holds: the window's BA under each (k's focal length free, or held), compared by BIC over the
+    window's observations (one parameter more) with the resections' margin
+    ``ResectionConfig.zoom_evidence_bic``, on the Huber cost the BA minimises (an outlier's square
+    would pass for evidence). A resection judges a zoom on its 3D points as if they were exact;
+    here the points move with the cameras. Each hypothesis starts from the resection's pose, the
+    held one's centre moved along the ray through the points' centroid so that the points keep
+    their image size. A zoom is taken only where the window measures it
+    (``RegistrationConfig.max_focal_sigma``, ``zoom_certain_sigmas``); one it asks for but cannot
+    measure is not, and the view is flagged uncertain. The model is left with the BA chosen
+    (``view.zoomed`` says which). -> (that BA's report, the evidence)."""
+    view = recon.views[k]
     window = recon.registered_views[-cfg.pipeline.window:]
     sel = np.isin(recon.obs_view, window)
     start = recon.checkpoint()
+    seen = recon.points[recon.obs_point[(recon.obs_view == k) & recon.alive[recon.obs_point]]]
     held_cfg = cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
-    ba_held = mode.local_adjust(recon, prev, k, ids, chain_points, held_cfg)
-    rss_held = _window_rss(recon, sel)
-    held = recon.checkpoint()
-    recon.restore(start)
-    ba_zoom = mode.local_adjust(recon, prev, k, ids, chain_points, cfg)
-    rss_zoom = _window_rss(recon, sel)
+    runs = {}
+    for zoomed in (False, True):
+        recon.restore(start)
+        view.zoomed = zoomed
+        if not zoomed:  # the calibrated focal length, the points at the same image size
+            view.camera = _refocused(view.camera, recon.reference_K(k)[0, 0], seen)
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg if zoomed else held_cfg)
+        runs[zoomed] = (ba, _window_cost(recon, sel, cfg), recon.checkpoint(), view.camera.focal)
     n = 2 * int(np.sum(sel & recon.alive[recon.obs_point]))
-    free = len([v for v in window if v > 1])
-    evidence = (n * np.log(rss_held / rss_zoom) - free * np.log(n)) if n and rss_zoom > 0 else -np.inf
-    kept = bool(evidence > cfg.resection.zoom_evidence_bic)
-    if not kept:
-        recon.restore(held)
-    return (ba_zoom if kept else ba_held), {"bic_for_the_zoom": float(evidence), "kept": kept}
+    (_, cost_same, _, f_same), (_, cost_new, _, f_new) = runs[False], runs[True]
+    # the likelihood-ratio statistic, about (zoom / its 1-sigma)^2 (Wilks): the profile of the
+    # cost along the focal length gives the sigma without inverting the normal equations
+    ratio = n * np.log(cost_same / cost_new) if n and cost_new > 0 else np.inf
+    evidence = ratio - np.log(n) if n else -np.inf
+    zoom = abs(f_new / f_same - 1.0)
+    sigma = zoom / np.sqrt(ratio) if ratio > 0 else np.inf
+    asked = bool(evidence > cfg.resection.zoom_evidence_bic)
+    rc = cfg.registration
+    measured = sigma <= rc.max_focal_sigma or zoom >= rc.zoom_certain_sigmas * sigma
+    # a camera chosen on a margin (a repeated pattern) does not decide the lens of the whole walk
+    kept = bool(asked and measured and not view.registration_flag)
+    recon.restore(runs[kept][2])
+    view.zoomed = kept
+    out = {"bic_for_the_zoom": float(evidence), "zoom": float(zoom), "focal_sigma": float(sigma), "kept": kept}
+    if asked and not measured:
+        view.registration_flag = view.flag_reason = (
+            f"uncertain: its residuals ask for a {100 * zoom:.1f} % zoom that this view measures only to "
+            f"{100 * sigma:.1f} % (1 sigma; a zoom and a step along the optical axis look alike here)")
+        out["flag"] = view.flag_reason
+    return runs[kept][0], out
 
 
-def _window_rss(recon: Reconstruction, sel: np.ndarray) -> float:
+def _refocused(camera: Camera, focal: float, points: np.ndarray) -> Camera:
+    """``camera`` with focal length ``focal`` (px; the principal point and aspect kept) and its
+    centre moved along the ray to the centroid of ``points`` (N, 3) by the focal lengths' ratio:
+    the points keep their image size (a zoom and a step back look alike)."""
+    K = camera.K.copy()
+    ratio = focal / camera.focal
+    K[:2, :2] *= ratio
+    C = camera.centre
+    if len(points):
+        target = points.mean(axis=0)
+        C = target + (C - target) * ratio
+    return Camera.from_krt(K, camera.R, -camera.R @ C, camera.model, camera.lens)
+
+
+def _window_cost(recon: Reconstruction, sel: np.ndarray, cfg: Config) -> float:
     err = recon.observation_errors()[sel & recon.alive[recon.obs_point]]
-    return float(np.sum(err ** 2))
+    return 2.0 * huber_cost_of_norms(err[np.isfinite(err)], cfg.bundle.huber_px)
 
 
 def finish(recon: Reconstruction, cfg: Config = Config(), source: CorrespondenceSource | None = None) -> dict[str, Any]:
@@ -285,7 +332,7 @@ def finish(recon: Reconstruction, cfg: Config = Config(), source: Correspondence
     vouch for it)."""
     t = time.perf_counter()
     cfg = cfg.resolve()
-    out = mode_of(cfg).finish(recon, cfg, source or HarrisZncc(cfg))
+    out = mode_of(cfg, recon).finish(recon, cfg, source or HarrisZncc(cfg))
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:
         out["dropped"] = dropped

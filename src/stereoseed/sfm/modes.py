@@ -171,6 +171,11 @@ def holds_intrinsics(recon: Reconstruction, cfg: Config, besides: int | None = N
             and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1 and v != besides))
 
 
-def mode_of(cfg: Config) -> Mode:
-    """The strategy of ``cfg.pipeline.mode``."""
+def mode_of(cfg: Config, recon: Reconstruction | None = None) -> Mode:
+    """The strategy of ``cfg.pipeline.mode``; a rig walk's (``recon.rig``) its own
+    (:class:`stereoseed.sfm.rig.RigMode`)."""
+    if recon is not None and recon.rig is not None:
+        from stereoseed.sfm.rig import RigMode  # rig.py builds on this module
+
+        return RigMode()
     return PaperMode() if cfg.pipeline.mode == "paper" else AccurateMode()

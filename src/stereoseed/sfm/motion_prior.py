@@ -91,14 +91,25 @@ def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, feature
     extrapolate (no registered view before ``prev``) or with fewer than 4 recent points.
     """
     mp: MotionPriorConfig = cfg.motion_prior
-    none: list[list[Hypothesis]] = [[] for _ in mp.radius_fractions]
     before = recon.registered_before(prev, 1)
-    pids, desc = recent
-    if not before or len(pids) < cfg.resection.min_points or len(features) == 0:
-        return none
+    if not before:
+        return [[] for _ in mp.radius_fractions]
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
-    P_pred = predict_camera(recon.views[before[0]].P, recon.views[prev].P, steps)
+    return hypotheses_near(recon, predict_camera(recon.views[before[0]].P, recon.views[prev].P, steps), features,
+                           cfg, recent)
+
+
+def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Features, cfg: Config,
+                    recent: tuple[np.ndarray, np.ndarray]) -> list[list[Hypothesis]]:
+    """:func:`hypotheses_by_motion_prior`'s search around the projections of the ``recent``
+    points by a predicted camera ``P_pred`` (3, 4): one list of hypotheses per search radius
+    (empty lists with fewer than a resection's points)."""
+    mp: MotionPriorConfig = cfg.motion_prior
+    none: list[list[Hypothesis]] = [[] for _ in mp.radius_fractions]
+    pids, desc = recent
+    if len(pids) < cfg.resection.min_points or len(features) == 0:
+        return none
     pred = project(P_pred, recon.points[pids])
     width = features.image_shape[1]
     d = np.linalg.norm(pred[:, None, :] - features.points[None, :, :], axis=2)

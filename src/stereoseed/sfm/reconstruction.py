@@ -302,8 +302,12 @@ class Reconstruction:
 
     """
 
-    def __init__(self, views: list[View]):
+    def __init__(self, views: list[View], rig=None):
         self.views = views
+        # a stereo rig walked with both cameras (:class:`stereoseed.estimators.rig_resection.Rig`):
+        # views 2s and 2s + 1 are station s's left and right images (stereoseed.sfm.rig); None: one
+        # moving camera after the pair
+        self.rig = rig
         self._points = _Growing(np.float64, 3)
         self._colors = _Growing(np.uint8, 3)
         self._alive = _Growing(bool)
@@ -470,8 +474,10 @@ class Reconstruction:
     def reference_K(self, view: int) -> np.ndarray:
         """The calibrated second camera's K, the reference of the constrained camera models, in
         view ``view``'s image frame (a view turned by 180 degrees keeps the unturned principal
-        point, now at (W - 1 - cx, H - 1 - cy))."""
-        return self.views[view].in_frame_of(self.views[1].K, self.views[1])
+        point, now at (W - 1 - cx, H - 1 - cy)). On a rig walk, the calibrated camera of the
+        view's side (left: view 0's, right: view 1's)."""
+        source = self.views[view % 2 if self.rig is not None else 1]
+        return self.views[view].in_frame_of(source.K, source)
 
     def live_points(self) -> tuple[np.ndarray, np.ndarray]:
         """(points (K, 3), colours (K, 3)) of the points still alive and observed."""

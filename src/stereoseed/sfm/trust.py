@@ -35,7 +35,7 @@ def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, Camera
     """{view: its uncertainty} for every registered view after the pair, from the normal
     equations of all registered views (the pair fixed) and every live point."""
     # the model the final BA used (the accurate mode holds the calibrated intrinsics when no image zoomed)
-    built = bundle_problem(recon, mode_of(cfg).adjustment_config(recon, cfg), recon.registered_views)
+    built = bundle_problem(recon, mode_of(cfg, recon).adjustment_config(recon, cfg), recon.registered_views)
     if built is None:
         return {}
     problem, cams, _ = built

@@ -50,6 +50,7 @@ class FoundBy(StrEnum):
     EPIPOLAR_CHAIN = "epipolar chain"  # robust-F matches chained to the previous view's points
     MOTION_PRIOR = "motion prior"  # matches searched where the walk's motion predicts the points
     QUASI_DENSE = "quasi-dense"  # matches propagated from seeds (Lhuillier-Quan), chained
+    RIG = "stereo rig"  # both images of a rig's station, their pose resected together (stereoseed.sfm.rig)
 
 
 
