@@ -124,7 +124,8 @@ def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) 
 # -------------------------------------------------------------------------------- reconstruct
 def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCalibration | Sequence[np.ndarray],
                 out: PathLike | None = None, cfg: Config | None = None, *, dense: bool = False, resume: bool = False,
-                progress: Progress | None = None, pool=None, dense_progress: Progress | None = None) -> Result:
+                progress: Progress | None = None, pool=None, dense_progress: Progress | None = None,
+                rig_right: PathLike | Sequence[PathLike] | None = None) -> Result:
     """Reconstruct an ordered sequence whose first two images are the calibrated pair.
 
     images: a folder (its images in name order), a text file listing image paths, or a list of
@@ -140,7 +141,9 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     checkpoint for ``resume``) and read back. progress(done, total, message): after the pair and
     each insertion; pool: where the dense stage's pair jobs run
     (:func:`stereoseed.cluster.executor_for`, default local processes); dense_progress: as each
-    dense pair comes in. Raises :class:`StereoseedError` (one line) for input it cannot use."""
+    dense pair comes in. rig_right: a stereo rig walked with both cameras: ``images`` are the left
+    camera's, these the right one's, image k of each taken together (the calibrated pair is the
+    first station). Raises :class:`StereoseedError` (one line) for input it cannot use."""
     from stereoseed import pipeline
     from stereoseed.calibration.lens_calibration import read_lenses
 
@@ -152,10 +155,10 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     with _calibration_file(calib) as calib_path:
         if out is not None:
             pipeline.reconstruct_to_folder(images, calib_path, out, cfg, dense=dense, resume=resume, progress=progress,
-                                           pool=pool, dense_progress=dense_progress)
+                                           pool=pool, dense_progress=dense_progress, rig_right=rig_right)
             return load_result(out)
-        sequence, names, P_pair = pipeline.load_sequence(images, calib_path, cfg.video)
-        recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress)
+        sequence, names, P_pair = pipeline.load_sequence(images, calib_path, cfg.video, rig_right=rig_right)
+        recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress, rig=rig_right is not None)
         cloud = None
         if dense:
             from stereoseed.dense.densify import densify

@@ -31,6 +31,7 @@ from stereoseed.geometry.lens import undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view
 from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.estimators.rig_resection import Rig
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes
 from stereoseed.output.report.html import write_report_html
@@ -56,7 +57,7 @@ UNREADABLE = "unreadable image"  # the report's "failure" of an image file that 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
                 progress: Progress | None = None, source: CorrespondenceSource | None = None,
                 checkpoint: str | Path | None = None, resume: bool = False,
-                after_insertion: AfterInsertion | None = None) -> tuple[Reconstruction, dict[str, Any]]:
+                after_insertion: AfterInsertion | None = None, rig: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
     """The incremental loop over an ordered sequence whose first two images are the calibrated
     pair (P_pair: their two (3, 4) cameras). An image that cannot be placed is reported and
     skipped; the next one is placed from the last registered images. Returns the
@@ -68,13 +69,15 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     after_insertion: called after the pair and after each insertion this run performs (not those
     a resumed run takes from its checkpoint) with the model and the per-image reports so far; it
     must leave both as it found them (:func:`as_finished` gives
-    what a run on the images so far would return, without disturbing this one)."""
+    what a run on the images so far would return, without disturbing this one).
+    rig: the images are a stereo rig's stations, left and right interleaved (:func:`load_sequence`'s
+    ``rig_right``; the pair is the first station)."""
     t0 = time.perf_counter()
     n = len(images)
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolve()
-    key = inputs_key(images, names, P_pair, cfg) if checkpoint is not None else ""
+    key = inputs_key(images, names, P_pair, cfg) + ("+rig" if rig else "") if checkpoint is not None else ""
     # a world frame far from the cameras (UTM-sized coordinates) is moved next to them for the
     # run and put back at the end: float64 keeps ~16 digits, and 1e7 m of offset leaves a BA
     # centimetres of resolution
@@ -97,11 +100,12 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             Prefetching(source, _prefetched_image(images), n, first=first_prefetched) as prefetching:
         if state is not None:
             recon, per_image = state
+            recon.rig = Rig.from_projections(*P_pair[:2]) if rig else None
             for i in working_set(recon, cfg):  # the next insertions read their grey images
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
-            recon, init = initialise(images, names, P_pair, cfg, prefetching)
+            recon, init = initialise(images, names, P_pair, cfg, prefetching, rig=rig)
             per_image = [{"image": names[0], "status": "calibrated"}, init]
             saver.save(recon, per_image)
             if after_insertion:
@@ -265,7 +269,8 @@ def _allow_open_files(count: int) -> None:
 
 
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
-                  keyframes_to: str | Path | None = None) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
+                  keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None
+                  ) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
     (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
 
@@ -278,18 +283,27 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     first camera's lens, every later image through the second camera's: the moving camera
     keeps its lens, so a zoom that changes the distortion is not modelled), and the cameras hold
     for the undistorted pixels. The first two images are read here: a bad pair is refused
-    before any work."""
+    before any work.
+
+    ``rig_right``: a stereo rig walked with both cameras (:mod:`stereoseed.sfm.rig`):
+    ``images_source`` holds the left camera's images, this the right one's, image k of each taken
+    together, the first two the calibrated pair; the sequence interleaves them (left, right, ...)
+    and each image goes through its own camera's lens."""
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
-    entries, names = _sequence_entries(sources, video, keyframes_to)
+    if rig_right is None:
+        entries, names = _sequence_entries(sources, video, keyframes_to)
+    else:
+        entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right))
     if len(entries) < 2:
         raise StereoseedError(f"{' '.join(map(str, sources))}: {len(entries)} image(s); the calibrated pair needs two")
+    side = (lambda i: i % 2) if rig_right is not None else (lambda i: min(i, 1))
     paths = [e if isinstance(e, Path) else Path(n) for e, n in zip(entries, names)]
     P_pair = read_calibration(calib_path, names)
     lenses = read_lenses(calib_path)
     maps: dict[int, Any] = {}
 
     def undistort(i: int, image: np.ndarray) -> np.ndarray:
-        lens = lenses[min(i, 1)]
+        lens = lenses[side(i)]
         if lens is None:
             return image
         size = image.shape[1::-1]
@@ -298,9 +312,9 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
                 return image
             raise StereoseedError(f"{paths[i]}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
                                   f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
-        if min(i, 1) not in maps:
-            maps[min(i, 1)] = undistortion_maps(lens.K, lens.distortion, size)
-        return undistort_image(image, lens.K, lens.distortion, maps[min(i, 1)])
+        if side(i) not in maps:
+            maps[side(i)] = undistortion_maps(lens.K, lens.distortion, size)
+        return undistort_image(image, lens.K, lens.distortion, maps[side(i)])
 
     lens_key = repr([None if lens is None else (lens.K.tobytes(), lens.distortion.tobytes(), lens.image_size)
                      for lens in lenses]).encode()  # the undistortion decides the pixels the run sees
@@ -309,8 +323,43 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     images.skip_unreadable(first=2)  # an unreadable image of the walk is skipped with its reason
     # an image of the walk of another size than the second camera's is skipped by the mapper:
     # its header says so, it is not decoded (a 48-megapixel photo costs seconds and gigabytes)
-    images.withhold_other_sizes(images[1].shape[1::-1], first=2)
+    if rig_right is None:
+        images.withhold_other_sizes(images[1].shape[1::-1], first=2)
+    elif images[0].shape != images[1].shape:  # the registrar compares each image with its own side's
+        log.info("rig: left images %s, right images %s", images[0].shape[1::-1], images[1].shape[1::-1])
     return images, names, P_pair
+
+
+def _rig_entries(left: list, right: list) -> tuple[list, list[str]]:
+    """The paths of a rig's two image sources interleaved (left, right, left, ...) and their
+    names; names the two sides share get their folder's name in front (cam0_0001.png)."""
+    sides = []
+    for sources in (left, right):
+        paths: list[Path] = []
+        for source in map(Path, sources):
+            if source.suffix.lower() in VIDEO_EXTENSIONS:
+                raise StereoseedError(f"{source}: --rig takes two folders or lists of images (a video's keyframes "
+                                      f"are not chosen in step with another video's); extract the frames first")
+            paths.extend([source] if source.is_file() and source.suffix.lower() in IMAGE_EXTENSIONS
+                         else list_images(source))
+        for path in paths:
+            check_image_name(path, path)
+        sides.append(paths)
+    (lp, rp) = sides
+    if len(lp) != len(rp):
+        raise StereoseedError(f"{' '.join(map(str, left))}: {len(lp)} images, but {' '.join(map(str, right))}: "
+                              f"{len(rp)}; a rig's two cameras take their images together (image k of each)")
+    shared = {p.name for p in lp} & {p.name for p in rp}
+    lname, rname = (lp[0].parent.name, rp[0].parent.name) if lp else ("", "")
+    if lname == rname:
+        lname, rname = "left", "right"
+
+    def name(path: Path, prefix: str) -> str:
+        return f"{prefix}_{path.name}" if path.name in shared else path.name
+
+    entries = [p for pair in zip(lp, rp) for p in pair]
+    names = [n for a, b in zip(lp, rp) for n in (name(a, lname), name(b, rname))]
+    return entries, names
 
 
 def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Path | None
@@ -363,7 +412,8 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
 
 def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: str | Path, cfg: Config = Config(),
                           dense: bool = False, resume: bool = False, progress: Progress | None = None,
-                          pool: JobPool | None = None, dense_progress: Progress | None = None) -> dict[str, Any]:
+                          pool: JobPool | None = None, dense_progress: Progress | None = None,
+                          rig_right: str | list[str] | None = None) -> dict[str, Any]:
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
@@ -373,7 +423,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     progress: called after the pair and after each insertion; dense_progress: as each of the
     dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`). The report's
     "timing": the command's wall time up to the writing of the results and its stages'; its
-    "unit": the calibration's (:func:`stereoseed.io.files.read_calibration_unit`)."""
+    "unit": the calibration's (:func:`stereoseed.io.files.read_calibration_unit`). rig_right: the
+    right camera's images of a stereo rig walked with both cameras (:func:`load_sequence`)."""
     t0 = time.perf_counter()
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
     with ResultSet(out) as results:  # before any staging folder is touched
@@ -383,7 +434,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         staging = results.open(keep=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX) if resume else ())
         try:
             # a video's keyframes are kept with the result, which names them
-            images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes")
+            images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes",
+                                                  rig_right=rig_right)
             _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
             unit = read_calibration_unit(calib_path)
         except BaseException:
@@ -393,7 +445,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         try:
             stages = {"loading": time.perf_counter() - t0}
             recon, report = reconstruct(images, names, P_pair, cfg, progress=progress,
-                                        checkpoint=staging / CHECKPOINT, resume=resume)
+                                        checkpoint=staging / CHECKPOINT, resume=resume, rig=rig_right is not None)
             stages["sparse"] = time.perf_counter() - t0 - sum(stages.values())
             if dense:
                 from stereoseed.dense.densify import densify  # the dense stage's modules only for a dense run

@@ -49,11 +49,17 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.scheduler and not args.dense:
         raise StereoseedError("--scheduler sends the dense stage's pair jobs to a Dask cluster; add --dense")
+    images, right = args.images, None
+    if args.rig:
+        if len(args.images) != 2:
+            raise StereoseedError(f"--rig takes two image sources, the left camera's then the right one's (a folder or "
+                                  f"a list file each); got {len(args.images)}")
+        images, right = args.images
     say_if_compiling(args.quiet)
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
-        report = reconstruct(args.images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
-                             progress=progress, pool=pool, dense_progress=dense_progress).report
+        report = reconstruct(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
+                             progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right).report
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         say(f"resumed after {len(report['resumed_images'])} images already placed")
@@ -156,6 +162,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--rig", action="store_true",
+                   help="a stereo rig walked with both cameras: IMAGES is the left camera's folder (or list) then the "
+                        "right camera's, image k of each taken together; the calibrated pair is the first station")
     _add_run_options(p)
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run into the same --out from its checkpoint (same result as an "

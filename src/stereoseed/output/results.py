@@ -113,6 +113,8 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None, unit: str |
         w, h = v.image_size
         entry: dict[str, Any] = {"name": v.name, "width": int(w), "height": int(h), "registered": v.registered,
                                  "status": v.status}
+        if recon.rig is not None:  # a rig walk: views 2s, 2s + 1 are station s's left and right images
+            entry.update(station=i // 2, side="right" if i % 2 else "left")
         if v.registered:
             K, R, t = Camera(v.P_input).krt
             entry.update(P=v.P_input.tolist(), K=K.tolist(), R=R.tolist(), t=t.tolist(),
@@ -124,7 +126,7 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None, unit: str |
                 entry["flag_reason"] = v.flag_reason
             if v.uncertainty is not None:
                 entry["uncertainty"] = v.uncertainty.summary()
-        lens = lenses[min(i, 1)] if lenses else None
+        lens = lenses[i % 2 if recon.rig is not None else min(i, 1)] if lenses else None
         if lens is not None:
             # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
             entry.update(distortion=lens.distortion.tolist(), distortion_K=np.asarray(lens.K).tolist())

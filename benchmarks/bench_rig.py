@@ -1,0 +1,94 @@
+"""`make bench` section `rig`: a stereo rig walked with both cameras (issue #38) against the
+paper's single moving camera over the same second-camera images, on the project's renderer.
+
+Per scene: every image registered or not, the mean camera-centre error of the right camera's
+images after the first station (the images both runs place), each station's relative pose against
+the calibrated rig, the scale over the walk (the first and last stations' distance against the
+truth) and the time per station against the time per single-camera insertion (whole runs, after
+a warm-up). The calibrated pair is the true first station, as the other synthetic benchmarks take
+the true pair.
+
+    python benchmarks/bench_rig.py      # prints the JSON
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from stereoseed.config import Config
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.projection import camera_center
+from stereoseed.pipeline import reconstruct
+from stereoseed.synthetic.rig import RigConfig, render_rig
+
+SCENES = {
+    "textured_30deg": RigConfig(noise_sigma=1.0),
+    "plain_box_30deg": RigConfig(noise_sigma=1.0, textured=False),
+    "textured_45deg": RigConfig(noise_sigma=1.0, step_deg=45.0, stations=8),
+}
+
+
+def _errors(recon, truth) -> list[float | None]:
+    return [float(np.linalg.norm(camera_center(v.P_input) - camera_center(P))) if v.registered else None
+            for v, P in zip(recon.views, truth)]
+
+
+def _relative_pose_error(recon, rig) -> float:
+    """The largest difference over the stations between the right camera's pose relative to the
+    left and the calibrated rig's (rotation matrix entries and translation, the model's unit)."""
+    worst = 0.0
+    for s in range(len(recon.views) // 2):
+        left, right = recon.views[2 * s], recon.views[2 * s + 1]
+        if not (left.registered and right.registered):
+            continue
+        (Rl, tl), (Rr, tr) = (Camera(v.P).krt[1:] for v in (left, right))
+        R_rl = Rr @ Rl.T
+        worst = max(worst, float(np.abs(R_rl - rig.R_rl).max()), float(np.abs(tr - R_rl @ tl - rig.t_rl).max()))
+    return worst
+
+
+def run_scene(config: RigConfig) -> dict:
+    scene = render_rig(config)
+    s = scene.scene
+    walk = scene.single_camera_walk()
+    reconstruct(s.images[:4], s.names[:4], s.P[:2], Config(), rig=True)  # warm-up: compile, caches
+    t = time.perf_counter()
+    recon, report = reconstruct(s.images, s.names, s.P[:2], Config(), rig=True)
+    rig_s = time.perf_counter() - t
+    t = time.perf_counter()
+    single, single_report = reconstruct(walk.images, walk.names, walk.P[:2], Config())
+    single_s = time.perf_counter() - t
+    rig_err, single_err = _errors(recon, s.P), _errors(single, walk.P)
+    right = [e for e in rig_err[3::2]]  # the right images after the first station: the single walk's images
+    both = [(a, b) for a, b in zip(right, single_err[2:]) if a is not None and b is not None]
+    centres = [camera_center(recon.views[v].P_input) for v in (0, len(recon.views) - 2)]
+    truth = [camera_center(s.P[v]) for v in (0, len(recon.views) - 2)]
+    scale = (np.linalg.norm(centres[1] - centres[0]) / np.linalg.norm(truth[1] - truth[0]) - 1.0
+             if recon.views[-2].registered else None)
+    stations = config.stations - 1
+    return {
+        "rig": {"registered": f"{report['registered']}/{report['images']}",
+                "flagged": len((report["final"].get("trust") or {}).get("flagged") or {}),
+                "right_centre_error_mm_mean": 1000 * float(np.mean([a for a, _ in both])) if both else None,
+                "centre_error_mm_per_image": [None if e is None else round(1000 * e, 3) for e in rig_err],
+                "relative_pose_max_error": _relative_pose_error(recon, recon.rig),
+                "scale_error_pct": None if scale is None else 100 * float(scale),
+                "seconds": rig_s, "seconds_per_station": rig_s / stations},
+        "single": {"registered": f"{single_report['registered']}/{single_report['images']}",
+                   "right_centre_error_mm_mean": 1000 * float(np.mean([b for _, b in both])) if both else None,
+                   "centre_error_mm_per_image": [None if e is None else round(1000 * e, 3) for e in single_err],
+                   "seconds": single_s, "seconds_per_insertion": single_s / stations},
+        "error_ratio_rig_over_single": (float(np.mean([a for a, _ in both]) / np.mean([b for _, b in both]))
+                                        if both else None),
+        "cost_ratio_station_over_insertion": rig_s / single_s,
+    }
+
+
+def run() -> dict:
+    return {name: run_scene(config) for name, config in SCENES.items()}
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=1))

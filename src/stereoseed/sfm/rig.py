@@ -1,0 +1,282 @@
+"""Walking with a calibrated stereo rig: both cameras at every station (issue #38).
+
+The views interleave the stations: view ``2 s`` is station s's left image, ``2 s + 1`` its
+right one; views 0 and 1 are the calibrated pair, station 0, which gives the rig (each camera's
+intrinsics and the right camera's pose relative to the left, :class:`Rig`). The same mapper
+loop places them, behind the same protocols:
+
+* :class:`RigRegistrar` places a station's left image from the 2D-3D pairs of *both* its
+  images with the previous station's points (a generalised resection,
+  :func:`stereoseed.estimators.rig_resection.resect_rig`), and its right image by the rig from
+  the left one (or, when the left one could not be placed, from its own pairs alone);
+* :class:`RigMode` grows the model as the accurate mode does (the right image's matches with
+  its own left image are the station's metric stereo pair) and adjusts with the rig held: one
+  pose per station (:func:`stereoseed.estimators.rig_bundle.rig_bundle_adjust`), the local
+  window counted in stations, then a global rig BA at the end.
+
+The scale is the rig's baseline at every station: it cannot drift along the walk.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from stereoseed.config import Config
+from stereoseed.estimators.resection import ResectionResult
+from stereoseed.estimators.rig_bundle import RigBundleProblem, rig_bundle_adjust
+from stereoseed.estimators.rig_resection import Rig, resect_rig, rig_reprojection_errors
+from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.models import CameraModel
+from stereoseed.sfm.correspondence import CorrespondenceSource
+from stereoseed.sfm.modes import AccurateMode
+from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, recent_points
+from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.refinement import drop_outliers
+from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
+                                              _rival, chained_points)
+
+__all__ = ["RigMode", "RigRegistrar", "rig_adjust", "station_of", "side_of"]
+
+
+def station_of(view: int) -> int:
+    """The station of view ``view`` (views interleave the stations: left, right)."""
+    return view // 2
+
+
+def side_of(view: int) -> int:
+    """0 for a station's left image, 1 for its right one."""
+    return view % 2
+
+
+def _pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _predicted_station(recon: Reconstruction, rig: Rig, s: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Station s's pose as the walk's constant motion predicts it: from the last two placed
+    stations (the steps between them counted), or after station 0 alone one rig baseline on from
+    its right camera (the way the single-camera walk's first insertion extrapolates the pair)."""
+    placed = sorted({station_of(v) for v in recon.registered_views if station_of(v) < s})
+    if not placed:
+        return None
+    if len(placed) == 1:
+        T_before = _pose_matrix(*_station_pose(recon, rig, placed[0]))
+        T_last = _pose_matrix(*rig.right_pose(*_station_pose(recon, rig, placed[0])))
+        steps = 1
+    else:
+        a, b = placed[-2:]
+        T_before, T_last = (_pose_matrix(*_station_pose(recon, rig, i)) for i in (a, b))
+        steps = max(1, round((s - b) / (b - a)))
+    step = T_last @ np.linalg.inv(T_before)
+    T = T_last
+    for _ in range(steps):
+        T = step @ T
+    return T[:3, :3], T[:3, 3]
+
+
+def _station_pose(recon: Reconstruction, rig: Rig, s: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Station s's pose (the left camera's R (3, 3), t (3,)) from whichever of its views is
+    registered (the left first), or None."""
+    for side in (0, 1):
+        v = 2 * s + side
+        if v < len(recon.views) and recon.views[v].registered:
+            cam = recon.views[v].camera
+            return rig.left_pose(side, cam.R, cam.t)
+    return None
+
+
+class RigRegistrar:
+    """A station's images placed together: the left image's camera from the 2D-3D pairs of both
+    images with the last placed station's points (a generalised resection), the right image's
+    from the left one through the rig."""
+
+    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
+                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+        rig = recon.rig
+        view = recon.views[k]
+        t0 = time.perf_counter()
+        if view.image_size != recon.views[side_of(k)].image_size:
+            (w, h), (w1, h1) = view.image_size, recon.views[side_of(k)].image_size
+            return RegistrationFailure(f"{view.name}: {w}x{h} pixels, but the rig's {'right' if side_of(k) else 'left'} "
+                                       f"camera was calibrated on {w1}x{h1} images", kind=FailureKind.IMAGE_SIZE)
+        cand = Candidate(k, view.name, view.image, source.features(k, view.image))
+        s = station_of(k)
+        if side_of(k) == 1 and recon.views[k - 1].registered:  # the left image placed the station
+            R, t = _station_pose(recon, rig, s)
+            return _registration(cand, rig.projections(R, t)[1], None, t0)
+        # the station's images that are still to be placed, each with its 2D-3D pairs
+        cands = {side_of(k): cand}
+        if side_of(k) == 0 and k + 1 < len(recon.views) and recon.views[k + 1].image_size == recon.views[1].image_size:
+            right = recon.views[k + 1]
+            cands[1] = Candidate(k + 1, right.name, right.image, source.features(k + 1, right.image))
+        placed = [v for v in recon.registered_views if station_of(v) < s]
+        if not placed:
+            return RegistrationFailure(f"{view.name}: no station placed before it", kind=FailureKind.TOO_FEW_MATCHES)
+        last = station_of(placed[-1])
+        previous = [v for v in placed if station_of(v) == last]
+        # candidates for the station's pose, each from one set of 2D-3D pairs: the previous
+        # station's matches under a robust F (steps of 10-20 degrees), and each set the walk's
+        # predicted motion finds around the projections of the recent points (wider steps: the
+        # matcher's search radius is a quarter of the image). The pose explaining the most recent
+        # points in both images wins, as the single camera's motion prior decides.
+        recent = recent_points(recon, previous[-1], cfg.motion_prior.recent_views)
+        pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (X, x, side) per set
+        matches = 0
+        chained_sets = []
+        for sd, c in cands.items():  # each image with the previous station's image of its side
+            p = next((v for v in previous if side_of(v) == sd), previous[-1])
+            vp = recon.views[p]
+            m = source.match(p, c.index, vp.features, c.features, None, vp.image_size[0])
+            pid, chained = chained_points(recon, p, m)
+            matches += len(m)
+            chained_sets.append((recon.points[pid[chained]], c.features.points[m.idx2[chained]],
+                                 np.full(int(chained.sum()), sd)))
+        pairs.append(tuple(np.concatenate(a) for a in zip(*chained_sets)))
+        predicted = _predicted_station(recon, rig, s)
+        trusted = cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers * len(cands)
+        if predicted is not None and len(pairs[0][0]) < trusted:  # a strong chain needs no prediction
+            for sd, c in cands.items():
+                for found in hypotheses_near(recon, rig.projections(*predicted)[sd], c.features, cfg, recent):
+                    pairs += [(h.points3d, h.points2d, np.full(len(h), sd)) for h in found]
+        # a pose per set: the robust-F set from both images at once, each predicted set by P3P in its image
+        poses = []
+        if len(pairs[0][0]) >= cfg.registration.min_chained_points:
+            first = resect_rig(rig, *pairs[0], what=f"station {s} ({view.name})")
+            if first.success:
+                poses.append((first.R, first.t))
+        poses += [pose for ps in pairs[1:] if (pose := _pose_from_one_image(rig, *ps, cfg)) is not None]
+        n_pairs = sum(len(ps[0]) for ps in pairs)
+        if not poses:
+            return RegistrationFailure(f"{view.name}: station {s}: no pose from its images' {n_pairs} matches with "
+                                       f"reconstructed points", matches, n_pairs, kind=FailureKind.NO_CAMERA)
+        mp = cfg.motion_prior
+        counts = np.zeros(len(poses), np.int64)
+        for sd, c in cands.items():
+            counts += explained_points(c.features, [rig.projections(*pose)[sd] for pose in poses],
+                                       recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
+        best = int(np.argmax(counts))
+        rival = _rival(recon, previous[-1], recent[0], [rig.projections(*pose)[0] for pose in poses], counts, best, cfg)
+        # the winner refitted on every pair of both images it explains, from all sets
+        X, x, side = (np.concatenate(a) for a in zip(*pairs))
+        err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)
+        agree = (err <= 2 * cfg.resection.ransac_threshold_px) & in_front
+        res = resect_rig(rig, X[agree], x[agree], side[agree], what=f"station {s} ({view.name})")
+        if not res.success:
+            return RegistrationFailure(f"{view.name}: station {s}: {res.reason}", matches, n_pairs,
+                                       kind=FailureKind.NO_CAMERA)
+        reg = _registration(cand, res.projections()[side_of(k)], (res, matches, n_pairs), t0)
+        if rival is not None:
+            reg.notes["flag"] = f"ambiguous: repeated structure ({rival})"
+        return reg
+
+
+def _pose_from_one_image(rig: Rig, X: np.ndarray, x: np.ndarray, side: np.ndarray,
+                         cfg: Config) -> tuple[np.ndarray, np.ndarray] | None:
+    """The station pose (R, t of its left camera) from 2D-3D pairs X (N, 3), x (N, 2) of one of its
+    images (``side`` (N,), all alike): P3P in RANSAC (OpenCV) with that camera's calibrated K,
+    carried to the left camera through the rig; None when too few pairs agree."""
+    if len(X) < max(cfg.registration.min_chained_points, 4):
+        return None
+    sd = int(side[0])
+    # OpenCV's RANSAC registrator seeds its own generator: deterministic without cv2.setRNGSeed
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, rig.Ks[sd], None, iterationsCount=int(cfg.resection.ransac_max_iters),
+                                             reprojectionError=2 * cfg.resection.ransac_threshold_px,
+                                             confidence=cfg.resection.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
+    if not ok or inl is None or len(inl) < cfg.resection.min_inliers:
+        return None
+    return rig.left_pose(sd, cv2.Rodrigues(rvec)[0], tvec.ravel())
+
+
+def _registration(cand: Candidate, P: np.ndarray, resected, t0: float) -> Registration:
+    """The Registration of ``cand`` with camera P (the rig's calibrated intrinsics); resected:
+    (the station's rig resection, matches, 2D-3D pairs) or None when the station's other image
+    placed it."""
+    if resected is None:
+        result = ResectionResult(Camera(P, CameraModel.FIXED), np.zeros(0, bool), 0.0, 0,
+                                 {"n_pairs": 0, "n_inliers": 0, "model": CameraModel.FIXED})
+        return Registration(cand, result, FoundBy.RIG, 0, 0, seconds={"total": time.perf_counter() - t0},
+                            notes={"station_placed_by": "its other image, through the rig"})
+    res, matches, chained = resected
+    result = ResectionResult(Camera(P, CameraModel.FIXED), res.inliers, res.rms_px, res.n_hypotheses,
+                             {"n_pairs": int(len(res.inliers)), "n_inliers": int(res.inliers.sum()),
+                              "model": CameraModel.FIXED, "inliers_per_side": list(res.n_inliers)})
+    return Registration(cand, result, FoundBy.RIG, matches, chained, seconds={"total": time.perf_counter() - t0})
+
+
+def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config) -> dict[str, Any] | None:
+    """Bundle-adjust the stations ``free_stations`` (station 0, the calibration, never moves) and
+    every point their images see, with the rig held: one pose per station, its two cameras the
+    rig's. Observations of those points in other stations' images pin them. Writes the registered
+    views' cameras and the points back; returns a JSON-able report (None: nothing to adjust)."""
+    rig = recon.rig
+    free_stations = [s for s in free_stations if s > 0]
+    registered = np.zeros(len(recon.views), bool)
+    registered[recon.registered_views] = True
+    in_free = np.isin(recon.obs_view // 2, free_stations) & registered[recon.obs_view]
+    points = np.unique(recon.obs_point[in_free & recon.alive[recon.obs_point]])
+    if not len(points):
+        return None
+    involved = np.isin(recon.obs_point, points) & registered[recon.obs_view]
+    obs_view = recon.obs_view[involved]
+    stations = np.unique(obs_view // 2)
+    poses = [_station_pose(recon, rig, int(s)) for s in stations]
+    problem = RigBundleProblem(
+        rig=rig, R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]),
+        points=recon.points[points], obs_station=np.searchsorted(stations, obs_view // 2), obs_side=obs_view % 2,
+        obs_point=np.searchsorted(points, recon.obs_point[involved]), obs_xy=recon.observation_xy(involved),
+        free_stations=np.isin(stations, free_stations))
+    result = rig_bundle_adjust(problem)
+    cams = result.projections()
+    for i, s in enumerate(stations):
+        if problem.free_stations[i]:
+            for sd in (0, 1):
+                v = 2 * int(s) + sd
+                if v < len(recon.views) and registered[v]:
+                    recon.views[v].P = cams[i, sd]
+    recon.points[points] = result.points
+    return {"free_stations": int(problem.free_stations.sum()), "free_points": int(len(points)),
+            "observations": int(involved.sum()), "iterations": result.iterations, "seconds": result.seconds,
+            "rms_before_px": result.rms_before, "rms_after_px": result.rms_after}
+
+
+class RigMode(AccurateMode):
+    """The accurate mode's tracks and points, adjusted with the rig held (module docstring)."""
+
+    name = "rig"
+
+    def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
+                     chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
+        """After a station's last image: the last ``window`` stations (the local BA's window
+        counted in stations). A left image whose right one comes next waits for it: one BA per
+        station."""
+        if side_of(k) == 0 and k + 1 < len(recon.views) and recon.views[k + 1].status == "pending":
+            return {"skipped": True, "reason": "the station's right image comes next"}
+        placed = sorted({station_of(v) for v in recon.registered_views})
+        report = rig_adjust(recon, placed[-cfg.pipeline.window:], cfg)
+        return {"skipped": True} if report is None else report
+
+    def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
+        """The rig's calibrated intrinsics: the "fixed" model (what the cameras' uncertainty uses)."""
+        return cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
+
+    def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
+        """A global rig BA over every station, then the observations it cannot explain dropped,
+        again while a round drops more than ``BundleConfig.negligible_drop`` of them (at most
+        ``global_rounds``), as :func:`stereoseed.sfm.refinement.global_adjust` does. The loop is
+        not closed: each station's own pair keeps the scale, and the walk's ends are matched by
+        the tracks' window only."""
+        stations = sorted({station_of(v) for v in recon.registered_views})
+        removed, report = [], None
+        for _ in range(cfg.bundle.global_rounds):
+            report = rig_adjust(recon, stations, cfg)
+            n = len(recon.obs_view)
+            removed.append(drop_outliers(recon, cfg))
+            if not n or removed[-1] <= cfg.bundle.negligible_drop * n:
+                break
+        final = {"skipped": True} if report is None else dict(report, rounds=len(removed), removed_per_round=removed)
+        return {"final_ba": final, "loop_closure": {"closed": False, "reason": "not attempted on a rig walk"}}
