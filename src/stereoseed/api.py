@@ -109,9 +109,9 @@ def load_result(folder: PathLike) -> Result:
 
 def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) -> Result:
     """The :class:`Result` that the result folder of ``recon`` would read back as, without writing it."""
-    from stereoseed.output.results import _tracks, exported_points
+    from stereoseed.output.results import tracks_arrays, exported_points
 
-    tracks = _tracks(recon, exported_points(recon, cfg.export.far_point_factor))
+    tracks = tracks_arrays(recon, exported_points(recon, cfg.export.far_point_factor))
     views = recon.views
     lens = [lenses[min(i, 1)] if lenses else None for i in range(len(views))]
     return Result(folder=None, names=[v.name for v in views], sizes=[tuple(map(int, v.image_size)) for v in views],

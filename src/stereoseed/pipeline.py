@@ -31,6 +31,7 @@ from stereoseed.geometry.lens import undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view
 from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.estimators.rig_resection import Rig
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes
@@ -51,7 +52,7 @@ Progress = Callable[[int, int, str], None]
 AfterInsertion = Callable[[Reconstruction, list[dict[str, Any]]], None]
 
 CHECKPOINT = ".checkpoint.npz"  # in the staging folder, kept after an interruption for resume
-UNREADABLE = "unreadable image"  # the report's "failure" of an image file that cannot be decoded
+UNREADABLE = FailureKind.UNREADABLE  # the report's "failure" of an image file that cannot be decoded
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),

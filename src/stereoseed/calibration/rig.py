@@ -328,7 +328,8 @@ def camera_entry(cal: Calibration, c: int) -> dict:
 def calibration_json(cal: Calibration) -> dict:
     """calib.json: the cameras (:func:`camera_entry`), where the target's faces were found to be
     and, for a rig, its relative pose."""
-    out: dict = {"cameras": [camera_entry(cal, c) for c in range(len(cal.cameras))]}
+    out: dict = {"cameras": [camera_entry(cal, c) for c in range(len(cal.cameras))],
+                 "unit": cal.target.unit}  # the model a run makes is metric in it (report.html's unit)
     out["target_faces"] = [{"face": f, "moved_mm": None if m is None else m[0], "turned_deg": None if m is None else m[1]}
                            for f, m in enumerate(cal.face_moves)]
     if cal.rig is not None:

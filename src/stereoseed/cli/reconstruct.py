@@ -110,8 +110,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise StereoseedError(f"--images {args.images}: the demo needs at least 2 images (the calibrated pair)")
     if not args.noise >= 0:
         raise StereoseedError(f"--noise {args.noise}: image noise is a standard deviation, >= 0")
+    from stereoseed.config import Config
+
+    cfg = Config.from_file(args.config) if args.config else None
     say_if_compiling(quiet=False)
-    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=say)
+    return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=say, cfg=cfg)
 
 def _cmd_config(args: argparse.Namespace) -> int:
     say(_config(args).to_toml().rstrip("\n"))
@@ -190,6 +193,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--images", type=int, default=14, help="number of images (default: %(default)s)")
     p.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, grey levels (default: 0)")
     p.add_argument("--sparse", action="store_true", help="skip the dense stage")
+    p.add_argument("--config", metavar="FILE", help="the run's settings: a TOML file (docs/config.md) or a result's "
+                                                   "report.json")
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("config", help="print the configuration a run would use, resolved, as TOML (every field: "

@@ -24,12 +24,14 @@ log = logging.getLogger(__name__)
 
 
 def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = True,
-             say: Callable[[str], None] = log.info) -> int:
+             say: Callable[[str], None] = log.info, cfg: Config | None = None) -> int:
+    """Render the box scene, calibrate its pair, reconstruct it into ``out`` and ``say`` the
+    errors against the ground truth (cfg: the run's settings, default ``Config()``)."""
     with ResultSet(out) as results:  # one run per result folder: a second one is refused at once
         results.check()
         staging = results.open()
         try:
-            code = _run(staging, out, n_images, noise, dense, say)
+            code = _run(staging, out, n_images, noise, dense, say, cfg or Config())
             results.commit()
         except BaseException:
             results.abandon()
@@ -37,7 +39,8 @@ def run_demo(out: Path, n_images: int = 14, noise: float = 0.0, dense: bool = Tr
     return code
 
 
-def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say: Callable[[str], None]) -> int:
+def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say: Callable[[str], None],
+         cfg: Config) -> int:
     """The demo, writing into ``staging``, which becomes ``out`` when it is done."""
     t0 = time.perf_counter()
     scene = render_scene(SceneConfig(n_images=n_images, noise_sigma=noise))
@@ -46,14 +49,15 @@ def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say
 
     pattern, pts1, pts2 = scene.calibration_points()
     cams = [calibrate_camera(pattern, pts, what=f"pair image {i + 1}") for i, pts in enumerate((pts1, pts2))]
-    write_json(staging / "calib.json", {"cameras": [c.to_dict() for c in cams]})
+    write_json(staging / "calib.json", {"cameras": [c.to_dict() for c in cams], "unit": "m"})  # the scene's
     for i, c in enumerate(cams):
         err = np.linalg.norm(camera_center(c.P) - camera_center(scene.P[i]))
         say(f"calibrated camera {i + 1} from {c.n_points} pattern corners: reprojection RMS {c.rms_px:.3f} px, "
               f"centre error {err * 1000:.2f} mm")
 
-    cfg = Config()
+    t_run = time.perf_counter()
     recon, report = reconstruct(scene.images, scene.names, [c.P for c in cams], cfg)
+    stages = {"sparse": time.perf_counter() - t_run}
     errors = camera_errors([v.P_input for v in recon.views], scene.P)
     corners, seen = reconstruct_corners([v.P for v in recon.views], [v.features for v in recon.views],
                                         scene.corners, scene.P,
@@ -63,8 +67,10 @@ def _run(staging: Path, out: Path, n_images: int, noise: float, dense: bool, say
                               "corners_reconstructed": int(len(seen)), "corners_rms_3d_m": corner_rms}
     if dense:
         cloud, report["dense"] = densify(recon, cfg, staging)
+        stages["dense"] = time.perf_counter() - t_run - stages["sparse"]
         distance = surface_distance(cloud.points)
         report["dense"]["median_surface_distance_m"] = float(np.median(distance)) if len(distance) else None
+    report.update(unit="m", timing={"total_s": sum(stages.values()), "stages_s": stages})
     save_outputs(recon, report, staging, cfg, dense=cloud if dense else None)
     centre = [e for e in errors["center_m"][2:] if e is not None]
     say(f"registered {report['registered']}/{report['images']} images, {report['points']} sparse points, "

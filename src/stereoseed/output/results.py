@@ -65,7 +65,7 @@ def _input_frame(view: View, xy: np.ndarray) -> np.ndarray:
     return np.array([w - 1.0, h - 1.0]) - xy
 
 
-def _tracks(recon: Reconstruction, ids: np.ndarray) -> dict[str, np.ndarray]:
+def tracks_arrays(recon: Reconstruction, ids: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of tracks.npz for the points ``ids`` (see docs/formats.md)."""
     n_images = len(recon.views)
     new_id = np.full(len(recon.points), -1, np.int64)
@@ -150,7 +150,7 @@ def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: 
     when the run worked on undistorted images."""
     out = Path(out_dir)
     ids = exported_points(recon, cfg.export.far_point_factor)
-    tracks = _tracks(recon, ids)
+    tracks = tracks_arrays(recon, ids)
     counts = np.bincount(tracks["obs_point"], minlength=len(ids))
     views = _views_per_point(tracks, len(ids))
     unit = report.get("unit") if isinstance(report, dict) else None

@@ -42,6 +42,7 @@ class FailureKind(StrEnum):
     NO_CAMERA = "no consistent camera"  # the correspondences agree on no plausible camera
     NUMERICAL = "numerical failure"  # a degenerate configuration the checks did not foresee
     DISAGREES = "disagrees with the propagated matches"  # a weak camera the quasi-dense matches refute
+    UNREADABLE = "unreadable image"  # the image file cannot be decoded (the run skips it)
 
 
 class FoundBy(StrEnum):
