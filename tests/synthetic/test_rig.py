@@ -15,13 +15,11 @@ from stereoseed.geometry.projection import (
     rotation_angle_deg,
     viewing_direction,
 )
-from stereoseed.synthetic.rig import RigConfig, render_rig, render_views
+from stereoseed.synthetic.rig import RigConfig, render_rig
 from stereoseed.synthetic.scene import (
     SQUARE_GAP,
     SQUARE_SIZE,
     SceneConfig,
-    _cameras,
-    render_scene,
 )
 
 # 320 x 240 (3 x 3 samples a pixel: the squares' edges anti-aliased): the squares ~15 px wide, the gaps ~10 px
@@ -114,14 +112,6 @@ def test_the_first_station_calibrates_to_the_rig(plain_rig):
     assert calibrated.baseline == pytest.approx(truth.baseline, rel=0.03)
     assert rotation_angle_deg(calibrated.R_rl, truth.R_rl) < 0.6
     assert calibrated.K_right[0, 0] / calibrated.K_left[0, 0] == pytest.approx(1.03, rel=0.015)
-
-
-@pytest.mark.parametrize("textured, noise", [(True, 2.0), (False, 0.0)])
-def test_the_renderer_is_the_scene_s(textured, noise):
-    cfg = replace(TINY, n_images=3, textured=textured, noise_sigma=noise, supersample=2)
-    expected = render_scene(cfg).images
-    for got, want in zip(render_views(cfg, *_cameras(cfg)), expected):
-        np.testing.assert_array_equal(got, want)
 
 
 def test_noise_is_added_to_every_image():

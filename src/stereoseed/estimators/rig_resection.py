@@ -32,6 +32,7 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 from stereoseed.estimators.config import BundleConfig, ResectionConfig
+from stereoseed.geometry.camera import _read_only
 from stereoseed.geometry.models import rotation_from_vector
 from stereoseed.geometry.projection import compose_projection, decompose_projection
 from stereoseed.validation import positive, whole
@@ -41,12 +42,6 @@ log = logging.getLogger(__name__)
 __all__ = ["Rig", "RigResectionConfig", "RigResectionResult", "resect_rig", "rig_reprojection_errors"]
 
 _SIDES = ("left", "right")
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, np.float64)
-    a.flags.writeable = False
-    return a
 
 
 @dataclass(frozen=True, eq=False)

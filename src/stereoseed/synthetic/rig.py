@@ -25,19 +25,12 @@ import numpy as np
 
 from stereoseed.estimators.calibration import CalibrationResult, calibrate_camera
 from stereoseed.estimators.rig_resection import Rig
-from stereoseed.geometry.lens import lens_coefficients, principal_r2
 from stereoseed.geometry.projection import camera_center, compose_projection
 from stereoseed.synthetic import scene as box
-from stereoseed.synthetic.render import _render_kernel, add_noise
-from stereoseed.synthetic.scene import (
-    SceneConfig,
-    SyntheticScene,
-    box_corners,
-    noise_generator,
-)
+from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, box_corners, render_views
 from stereoseed.validation import positive, whole
 
-__all__ = ["RigConfig", "RigScene", "render_rig", "render_views", "rig_of"]
+__all__ = ["RigConfig", "RigScene", "render_rig", "rig_of"]
 
 
 @dataclass(frozen=True)
@@ -87,42 +80,6 @@ def rig_of(config: RigConfig) -> Rig:
     R_rl = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
     centre = np.array([config.baseline, 0.0, 0.0])  # the right camera's centre in the left's frame
     return Rig(K_left, K_right, R_rl, -R_rl @ centre)
-
-
-def render_views(config: SceneConfig, Ks: list, Rs: list, ts: list) -> list[np.ndarray]:
-    """The box scene of ``config`` (texture, lens, supersampling, noise) seen by the cameras
-    K [R | t] given: (H, W, 3) uint8 BGR images, image i's noise from ``noise_generator(seed, i)``.
-    The ring's own cameras give :func:`render_scene`'s images byte for byte."""
-    cfg = config
-    lens = lens_coefficients(cfg.distortion)
-    r2_max = principal_r2(lens)
-    tex_faces, tex_ground = box._textures(cfg)
-    albedo = box._ALBEDO_TEXTURED if cfg.textured else box._ALBEDO_PLAIN
-    if cfg.textured and cfg.texture_amplitude is not None:
-        albedo = albedo.copy()
-        albedo[[0, 2], 1] = cfg.texture_amplitude
-    tints, far_ground = box._TINTS, box._FAR_GROUND_ALBEDO
-    if not cfg.textured:  # as render_scene: one uniform floor
-        tints = box._TINTS.copy()
-        tints[2] = tints[1]
-        far_ground = albedo[2, 0]
-    scene_args = (
-        cfg.height, cfg.width, cfg.supersample,
-        box.BOX_HALF, box.BOX_HEIGHT, box.FACE_ORIGIN, box.FACE_U, box.FACE_V, box._FACE_GRID, box.SQUARE_SIZE,
-        box.SQUARE_GAP, tex_faces, box._FACE_TEXEL, tex_ground, box._GROUND_TEXEL, box.GROUND_RADIUS,
-        albedo, box._SHADE, tints, box._SKY_RGB, far_ground,
-    )
-    images = []
-    for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
-        Kinv = np.linalg.inv(K)
-        rgb = _render_kernel(np.ascontiguousarray(R.T @ Kinv), np.ascontiguousarray(Kinv),
-                             np.ascontiguousarray(R.T), bool(np.any(lens)), np.asarray(lens, np.float64),
-                             float(r2_max), -R.T @ t, *scene_args)
-        image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR
-        if cfg.noise_sigma > 0:
-            image = add_noise(image, cfg.noise_sigma, noise_generator(cfg.seed, i))
-        images.append(np.ascontiguousarray(image))
-    return images
 
 
 @dataclass(eq=False)  # holds arrays: identity equality only

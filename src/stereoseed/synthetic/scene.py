@@ -517,10 +517,21 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
     before its ray is cast: the images are the pinhole images, distorted. Without one (or with
     all-zero coefficients) the pinhole kernel renders, byte for byte as before lenses existed.
     """
+    Ks, Rs, ts = _cameras(config)
+    corners, labels = box_corners()
+    return SyntheticScene(config=config, images=render_views(config, Ks, Rs, ts),
+                          P=[compose_projection(K, R, t) for K, R, t in zip(Ks, Rs, ts)], K=Ks, R=Rs, t=ts,
+                          corners=corners, names=[f"img_{i:03d}.png" for i in range(config.n_images)],
+                          corner_labels=labels)
+
+
+def render_views(config: SceneConfig, Ks: list, Rs: list, ts: list) -> list[np.ndarray]:
+    """The box scene of ``config`` (texture, lens, supersampling, noise) seen by the cameras
+    K [R | t] given: (H, W, 3) uint8 BGR images, image i's noise from ``noise_generator(seed, i)``
+    (:func:`render_scene` gives its ring's cameras; a rig gives its stations')."""
     cfg = config
     lens = lens_coefficients(cfg.distortion)
     r2_max = principal_r2(lens)
-    Ks, Rs, ts = _cameras(cfg)
     tex_faces, tex_ground = _textures(cfg)
     albedo = _ALBEDO_TEXTURED if cfg.textured else _ALBEDO_PLAIN
     if cfg.textured and cfg.texture_amplitude is not None:
@@ -532,13 +543,13 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
         tints = _TINTS.copy()
         tints[2] = tints[1]
         far_ground = albedo[2, 0]
-    images, Ps = [], []
     scene_args = (
         cfg.height, cfg.width, cfg.supersample,
         BOX_HALF, BOX_HEIGHT, FACE_ORIGIN, FACE_U, FACE_V, _FACE_GRID, SQUARE_SIZE,
         SQUARE_GAP, tex_faces, _FACE_TEXEL, tex_ground, _GROUND_TEXEL, GROUND_RADIUS,
         albedo, _SHADE, tints, _SKY_RGB, far_ground,
     )
+    images = []
     for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
         Kinv = np.linalg.inv(K)
         rgb = _render_kernel(np.ascontiguousarray(R.T @ Kinv), np.ascontiguousarray(Kinv),
@@ -548,12 +559,7 @@ def render_scene(config: SceneConfig = SceneConfig()) -> SyntheticScene:
         if cfg.noise_sigma > 0:
             image = add_noise(image, cfg.noise_sigma, noise_generator(cfg.seed, i))
         images.append(np.ascontiguousarray(image))
-        Ps.append(compose_projection(K, R, t))
-    corners, labels = box_corners()
-    return SyntheticScene(
-        config=cfg, images=images, P=Ps, K=Ks, R=Rs, t=ts, corners=corners,
-        names=[f"img_{i:03d}.png" for i in range(cfg.n_images)], corner_labels=labels,
-    )
+    return images
 
 
 def write_scene(scene: SyntheticScene, out_dir: str | os.PathLike) -> dict:
