@@ -5,7 +5,7 @@ are linked or merged, and one global BA (the pair fixed) takes the drift out.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -20,10 +20,13 @@ __all__ = ["close_loop"]
 log = logging.getLogger(__name__)
 
 
-def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> tuple[bool, dict[str, Any]]:
+def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource,
+               adjust: Callable[[Reconstruction, Config], tuple[dict[str, Any], int]] = global_adjust
+               ) -> tuple[bool, dict[str, Any]]:
     """Match each of the last ``LoopClosureConfig.span`` registered views against the first
     ``span`` (those looking within ``max_axis_angle_deg`` of each other), merge the points
-    reconstructed twice, link the observations a view lacks, then :func:`global_adjust`.
+    reconstructed twice, link the observations a view lacks, then ``adjust`` the whole model
+    (:func:`global_adjust`; a rig walk's holds the rig: (report, observations removed)).
     Returns (whether the global BA ran, a JSON-able report: "closed" only when points of the two
     ends merged; the reason otherwise)."""
     cfg = cfg.resolve()
@@ -48,7 +51,7 @@ def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource)
                 links += _link(recon, view, pid, feats, other, cfg)
     if links + merges == 0:
         return False, {"closed": False, "reason": "no shared points between the last and first views", "matches": tried}
-    ba, removed = global_adjust(recon, cfg)
+    ba, removed = adjust(recon, cfg)
     report = {"closed": merges > 0, "links": links, "merges": merges, "ba": ba, "removed_observations": removed}
     if merges == 0:
         # The last views see some of the first views' points (links) but no point was

@@ -12,7 +12,7 @@ loop places them, behind the same protocols:
 * :class:`RigMode` grows the model as the accurate mode does (the right image's matches with
   its own left image are the station's metric stereo pair) and adjusts with the rig held: one
   pose per station (:func:`stereoseed.estimators.rig_bundle.rig_bundle_adjust`), the local
-  window counted in stations, then a global rig BA at the end.
+  window counted in stations, then the loop closed and a global rig BA at the end.
 
 The scale is the rig's baseline at every station: it cannot drift along the walk.
 """
@@ -31,6 +31,7 @@ from stereoseed.estimators.rig_resection import Rig, resect_rig, rig_reprojectio
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.models import CameraModel
 from stereoseed.sfm.correspondence import CorrespondenceSource
+from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.sfm.modes import AccurateMode
 from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction
@@ -38,7 +39,7 @@ from stereoseed.sfm.refinement import drop_outliers
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
                                               _rival, chained_points)
 
-__all__ = ["RigMode", "RigRegistrar", "rig_adjust", "station_of", "side_of"]
+__all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
 
 
 def station_of(view: int) -> int:
@@ -265,18 +266,30 @@ class RigMode(AccurateMode):
         return cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
 
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
-        """A global rig BA over every station, then the observations it cannot explain dropped,
-        again while a round drops more than ``BundleConfig.negligible_drop`` of them (at most
-        ``global_rounds``), as :func:`stereoseed.sfm.refinement.global_adjust` does. The loop is
-        not closed: each station's own pair keeps the scale, and the walk's ends are matched by
-        the tracks' window only."""
-        stations = sorted({station_of(v) for v in recon.registered_views})
-        removed, report = [], None
-        for _ in range(cfg.bundle.global_rounds):
-            report = rig_adjust(recon, stations, cfg)
-            n = len(recon.obs_view)
-            removed.append(drop_outliers(recon, cfg))
-            if not n or removed[-1] <= cfg.bundle.negligible_drop * n:
-                break
-        final = {"skipped": True} if report is None else dict(report, rounds=len(removed), removed_per_round=removed)
-        return {"final_ba": final, "loop_closure": {"closed": False, "reason": "not attempted on a rig walk"}}
+        """The loop closed as the accurate mode closes it (the last stations' images matched
+        against the first ones', points merged and linked), then a global rig BA
+        (:func:`global_rig_adjust`) unless closing the loop ran one."""
+        out: dict[str, Any] = {}
+        adjusted = False
+        if cfg.pipeline.loop_closure:
+            adjusted, out["loop_closure"] = close_loop(recon, cfg, source, adjust=global_rig_adjust)
+        if not adjusted:
+            out["final_ba"] = global_rig_adjust(recon, cfg)[0]
+        return out
+
+
+def global_rig_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], int]:
+    """Every station adjusted with the rig held, then the observations it cannot explain dropped,
+    again while a round drops more than ``BundleConfig.negligible_drop`` of them (at most
+    ``global_rounds``), as :func:`stereoseed.sfm.refinement.global_adjust` does. -> (the last
+    round's report with "rounds" and "removed_per_round", observations removed)."""
+    stations = sorted({station_of(v) for v in recon.registered_views})
+    removed, report = [], None
+    for _ in range(cfg.bundle.global_rounds):
+        report = rig_adjust(recon, stations, cfg)
+        n = len(recon.obs_view)
+        removed.append(drop_outliers(recon, cfg))
+        if not n or removed[-1] <= cfg.bundle.negligible_drop * n:
+            break
+    final = {"skipped": True} if report is None else dict(report, rounds=len(removed), removed_per_round=removed)
+    return final, int(sum(removed))
