@@ -125,7 +125,7 @@ def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) 
 def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCalibration | Sequence[np.ndarray],
                 out: PathLike | None = None, cfg: Config | None = None, *, dense: bool = False, resume: bool = False,
                 progress: Progress | None = None, pool=None, dense_progress: Progress | None = None,
-                rig_right: PathLike | Sequence[PathLike] | None = None) -> Result:
+                rig_right: PathLike | Sequence[PathLike] | None = None, mesh: bool = False) -> Result:
     """Reconstruct an ordered sequence whose first two images are the calibrated pair.
 
     images: a folder (its images in name order), a text file listing image paths, or a list of
@@ -143,19 +143,22 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     (:func:`stereoseed.cluster.executor_for`, default local processes); dense_progress: as each
     dense pair comes in. rig_right: a stereo rig walked with both cameras: ``images`` are the left
     camera's, these the right one's, image k of each taken together (the calibrated pair is the
-    first station). Raises :class:`StereoseedError` (one line) for input it cannot use."""
+    first station). mesh: with ``out`` and ``dense``, the dense cloud meshed into ``mesh.ply``
+    (the mesh extra). Raises :class:`StereoseedError` (one line) for input it cannot use."""
     from stereoseed import pipeline
     from stereoseed.calibration.lens_calibration import read_lenses
 
     cfg = Config() if cfg is None else cfg
     if not isinstance(cfg, Config):
         raise TypeError(f"cfg must be a stereoseed Config, got {type(cfg).__name__}")
+    if out is None and mesh:
+        raise StereoseedError("a mesh is written into the result folder: give out")
     if out is None and resume:
         raise StereoseedError("resume continues a run written to a folder: give out, the folder of the interrupted run")
     with _calibration_file(calib) as calib_path:
         if out is not None:
             pipeline.reconstruct_to_folder(images, calib_path, out, cfg, dense=dense, resume=resume, progress=progress,
-                                           pool=pool, dense_progress=dense_progress, rig_right=rig_right)
+                                           pool=pool, dense_progress=dense_progress, rig_right=rig_right, mesh=mesh)
             return load_result(out)
         sequence, names, P_pair = pipeline.load_sequence(images, calib_path, cfg.video, rig_right=rig_right)
         recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress, rig=rig_right is not None)

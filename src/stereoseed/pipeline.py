@@ -414,7 +414,7 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
 def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: str | Path, cfg: Config = Config(),
                           dense: bool = False, resume: bool = False, progress: Progress | None = None,
                           pool: JobPool | None = None, dense_progress: Progress | None = None,
-                          rig_right: str | list[str] | None = None) -> dict[str, Any]:
+                          rig_right: str | list[str] | None = None, mesh: bool = False) -> dict[str, Any]:
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
@@ -425,8 +425,16 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`). The report's
     "timing": the command's wall time up to the writing of the results and its stages'; its
     "unit": the calibration's (:func:`stereoseed.io.files.read_calibration_unit`). rig_right: the
-    right camera's images of a stereo rig walked with both cameras (:func:`load_sequence`)."""
+    right camera's images of a stereo rig walked with both cameras (:func:`load_sequence`). mesh:
+    the dense cloud meshed into ``mesh.ply`` too (:func:`stereoseed.dense.mesh.mesh_result`; needs
+    ``dense`` and the mesh extra, checked before any work)."""
     t0 = time.perf_counter()
+    if mesh:
+        from stereoseed.dense.mesh import require_meshing
+
+        if not dense:
+            raise StereoseedError("a mesh is made from the dense cloud: add --dense")
+        require_meshing()
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
     with ResultSet(out) as results:  # before any staging folder is touched
         results.check()  # before any work: never clobber what the user made
@@ -457,6 +465,10 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                 cloud = None
             report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
             save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
+            if mesh:
+                from stereoseed.dense.mesh import mesh_result
+
+                mesh_result(staging, lock=False)  # this run holds the folder's lock (MeshConfig's defaults)
             results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
         except KeyboardInterrupt:
             raise  # the staging folder keeps the checkpoint: resume continues

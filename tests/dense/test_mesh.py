@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+from dataclasses import replace
 import sys
 from pathlib import Path
 
@@ -294,3 +295,24 @@ def test_mesh_config_refuses_what_cannot_work():
                 {"color_neighbours": 0}, {"threads": -1}, {"point_weight": -1}, {"min_points": 5}):
         with pytest.raises(ValueError, match="MeshConfig"):
             MeshConfig(**bad)
+
+
+def test_reconstruct_mesh_writes_the_mesh_with_the_run(tmp_path, small_box_scene, capsys):
+    """`reconstruct --dense --mesh`: the run's folder holds mesh.ply, listed as stereoseed's; without
+    --dense the run is refused before any work."""
+    from scene_helpers import scene_on_disk
+
+    from stereoseed.cli import main
+
+    scene = replace(small_box_scene, images=small_box_scene.images[:4], names=small_box_scene.names[:4],
+                    P=small_box_scene.P[:4])
+    paths, calib = scene_on_disk(scene, tmp_path / "walk")
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(calib), "--out", str(out), "--dense",
+                 "--mesh", "--quiet"]) == 0
+    mesh = _read_mesh(out / "mesh.ply")
+    assert len(mesh[1]) > 1000  # faces
+    assert "mesh.ply" in (out / MANIFEST).read_text()
+    assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(calib), "--out", str(tmp_path / "o2"),
+                 "--mesh", "--quiet"]) == 2
+    assert "add --dense" in capsys.readouterr().err

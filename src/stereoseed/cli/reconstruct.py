@@ -59,7 +59,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
-                             progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right).report
+                             progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right,
+                             mesh=args.mesh).report
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         say(f"resumed after {len(report['resumed_images'])} images already placed")
@@ -73,6 +74,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     loop = report["final"].get("loop_closure") or {}
     if loop.get("links") and not loop.get("closed"):
         say(f"loop closure: {loop.get('reason')}")
+    if args.mesh:
+        say(f"mesh: wrote {Path(args.out) / 'mesh.ply'}")
     if "dense" in report:
         say(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
                                                                      if report["dense"].get("note") else ""))
@@ -165,6 +168,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--mesh", action="store_true",
+                   help="also mesh the dense cloud into mesh.ply (with --dense; pip install 'stereoseed[mesh]')")
     p.add_argument("--rig", action="store_true",
                    help="a stereo rig walked with both cameras: IMAGES is the left camera's folder (or list) then the "
                         "right camera's, image k of each taken together; the calibrated pair is the first station")

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -110,7 +111,16 @@ class Mesh:
         return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
+def require_meshing() -> None:
+    """Raise :class:`StereoseedError` (how to install it) unless the mesh extra is installed:
+    a run that ends with a mesh checks it before any work."""
+    _pymeshlab()
+
+
 def _pymeshlab() -> Any:
+    # PyMeshLab loads its own (older) TBB; Numba then says, on its next parallel kernel, that it
+    # cannot use TBB and takes its OpenMP layer: nothing the user can act on
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires")
     try:
         import pymeshlab
     except ImportError:
