@@ -62,7 +62,9 @@ def to_gray(image: np.ndarray, dtype: type = np.float32) -> np.ndarray:
     return np.ascontiguousarray(np.clip(gray, 0.0, 1.0), dtype=dtype)
 
 
-@njit(cache=True, nogil=True)
+# fastmath set: left unset, Numba gives a function the fastmath of the caller that compiles it
+# first (the patch alignment's is on), and every kernel calling it would depend on that order
+@njit(cache=True, nogil=True, fastmath=False)
 def sample_bilinear(img: np.ndarray, x: float, y: float) -> float:
     """Bilinear sample of img (H, W) at (x, y), edges replicated (pixel centres at integers).
 
