@@ -158,11 +158,13 @@ _FUSION = ("cell_keys", "grid_origin", "keep_supported", "voxel_means", "cells",
 # the kernels each kind of run calls, in the order it first calls them (the helpers compile them
 # in that order, so the run finds the next one ready): "sparse" and "dense" are `stereoseed
 # reconstruct` (and batch) without and with --dense (which starts the propagation's per-image
-# work beside the sparse stage), "demo" the demo on the rendered box (its pair calibrated first)
+# work beside the sparse stage), "demo" and "demo-sparse" the demo on the rendered box (its pair
+# calibrated first) with and without its dense stage
 RUNS: dict[str, tuple[str, ...]] = {
     "sparse": _FEATURES + ("refine_camera", "nearest") + _BUNDLE + ("candidate_mask",),
     "dense": _FEATURES + ("refine_camera", "nearest") + _PROPAGATION + _BUNDLE + ("candidate_mask", "two_view")
     + _FUSION,
+    "demo-sparse": ("render", "cast", "refine_camera") + _FEATURES + ("nearest",) + _BUNDLE,
     "demo": ("render", "cast", "refine_camera") + _FEATURES + ("nearest",) + _BUNDLE + _PROPAGATION
     + ("two_view",) + _FUSION,
 }
@@ -372,10 +374,12 @@ def start_compiling(names: Iterable[str], helpers: int | None = None) -> bool:
     """Start compiling the kernels ``names`` (missing from the cache, in the order the run calls
     them) in ``helpers`` processes (default one per core) beside this run; they are stopped by
     :func:`stop_compiling` or when this process exits. False when they cannot help: one core, a
-    platform without ``flock``, or helpers already running."""
+    platform without ``flock``, or helpers of an earlier run still compiling."""
     global _running
     from stereoseed.threads import CORES
 
+    if _running is not None and not _running.busy():  # an earlier run's (a caller running several)
+        stop_compiling()
     names = list(names)
     helpers = min(helpers or CORES, len(names))
     if _running is not None or helpers < 1 or CORES < 2 or not names:
