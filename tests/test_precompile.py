@@ -14,14 +14,12 @@ import sys
 import textwrap
 from pathlib import Path
 
-import pytest
+from process_helpers import alive_in_group, wait_until
 
 import stereoseed
 from stereoseed import precompile
 from stereoseed.cli import _progress
 from stereoseed.precompile import compile_bytecode
-
-from process_helpers import alive_in_group, wait_until
 
 
 def _python(code: str, tmp_path: Path, cache: Path | None = None, timeout: float = 120.0,
@@ -234,8 +232,12 @@ def test_no_numba_function_takes_its_options_from_whichever_caller_compiles_it_f
             changed = False
             for name, d in functions.items():
                 own = d.targetoptions.get(option)
-                new = {str(own)} if own is not None else (
-                    {str(default)} if not callers[name] else set().union(*(values.get(c, set()) for c in callers[name])))
+                if own is not None:
+                    new = {str(own)}
+                elif not callers[name]:
+                    new = {str(default)}
+                else:
+                    new = set().union(*(values.get(c, set()) for c in callers[name]))
                 if new != values.get(name):
                     values[name], changed = new, True
         torn = {name: sorted(v) for name, v in values.items()

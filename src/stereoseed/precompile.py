@@ -34,8 +34,9 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -43,94 +44,95 @@ log = logging.getLogger(__name__)
 # array C-contiguous and writable; the dense stage's arrays arrive in its workers as copies)
 KERNELS: dict[str, tuple[str, str, str]] = {
     "render": ("stereoseed.synthetic.render", "_render_kernel",
-               "float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean, float64[::1], float64, float64[::1], "
-               "int64, int64, int64, float64, float64, float64[:, ::1], float64[:, ::1], float64[:, ::1], "
-               "int64[:, ::1], float64, float64, float32[:, :, ::1], float64, float32[:, :, ::1], float64, float64, "
-               "float64[:, ::1], float64[::1], float64[:, ::1], float64[::1], float64"),
+               ("float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean, float64[::1], float64, float64[::1], "
+                "int64, int64, int64, float64, float64, float64[:, ::1], float64[:, ::1], float64[:, ::1], "
+                "int64[:, ::1], float64, float64, float32[:, :, ::1], float64, float32[:, :, ::1], float64, float64, "
+                "float64[:, ::1], float64[::1], float64[:, ::1], float64[::1], float64")),
     "cast": ("stereoseed.synthetic.render", "_cast_kernel", "float64[::1], float64[:, ::1], float64, float64"),
     "refine_camera": ("stereoseed.estimators._calibration_kernels", "refine_camera",
-                      "float64[:, ::1], float64[:, :, ::1], float64[::1], float64[:, ::1], float64[::1], "
-                      "float64[:, ::1], float64[:, ::1], float64, int64"),
+                      ("float64[:, ::1], float64[:, :, ::1], float64[::1], float64[:, ::1], float64[::1], "
+                       "float64[:, ::1], float64[:, ::1], float64, int64")),
     "junctions": ("stereoseed.features.harris", "_junction_residual_kernel",
                   "float32[:, ::1], float32[:, ::1], float64[:, ::1], int64, float64, float64[::1]"),
     "edge_corners": ("stereoseed.features.edge_corners", "_edge_corner_kernel",
-                     "float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], int64, float64, float64, "
-                     "float64, float64, float64, float64, float64, float64, float64[:, ::1], boolean[::1]"),
+                     ("float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], int64, float64, float64, "
+                      "float64, float64, float64, float64, float64, float64, float64[:, ::1], boolean[::1]")),
     "repeats": ("stereoseed.geometry.neighbours", "_repeats_kernel",
                 "float64[:, ::1], float64, float64[::1], float64, int64, int64[::1], int64[::1], boolean[::1]"),
     "candidate_pairs": ("stereoseed.matching._zncc_kernels", "_candidate_pairs",
-                        "float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
-                        "float64"),
+                        ("float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
+                         "float64")),
     "pair_scores": ("stereoseed.matching._zncc_kernels", "_pair_scores",
-                    "float32[:, ::1], float32[:, :, ::1], boolean[:, ::1], int64[::1], int32[::1], float32[:, ::1], "
-                    "float32[::1], float32[:, :, ::1], float32[:, ::1], float64"),
+                    ("float32[:, ::1], float32[:, :, ::1], boolean[:, ::1], int64[::1], int32[::1], float32[:, ::1], "
+                     "float32[::1], float32[:, :, ::1], float32[:, ::1], float64")),
     "best_of_pairs": ("stereoseed.matching._zncc_kernels", "_best_of_pairs",
                       "int64[::1], int32[::1], float32[::1], int64"),
     "align": ("stereoseed.matching._alignment_kernel", "_align_kernel",
-              "float32[:, ::1], float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], float64[:, ::1], "
-              "int64, int64, float64, float64"),
+              ("float32[:, ::1], float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], float64[:, ::1], "
+               "int64, int64, float64, float64")),
     "competitors": ("stereoseed.matching._zncc_kernels", "_competitors",
-                    "int64[::1], int32[::1], float32[::1], int64[::1], int64[::1], float64[:, ::1], float64[:, ::1], "
-                    "float64"),
+                    ("int64[::1], int32[::1], float32[::1], int64[::1], int64[::1], float64[:, ::1], float64[:, ::1], "
+                     "float64")),
     "largest_angles": ("stereoseed.estimators.triangulation", "_largest_angles",
                        "float64[:, ::1], float64[:, ::1], boolean[:, ::1], float64[::1]"),
     "choose_samples": ("stereoseed.estimators._resection_kernels", "choose_samples",
                        "npy_rng, int64[:, ::1], int64[::1], boolean"),
     "score_hypotheses": ("stereoseed.estimators._resection_kernels", "score_hypotheses",
-                         "float64[:, ::1], float64[:, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1], "
-                         "float64[:, ::1], float64[:, ::1], float64"),
+                         ("float64[:, ::1], float64[:, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1], "
+                          "float64[:, ::1], float64[:, ::1], float64")),
     "nearest": ("stereoseed.geometry.neighbours", "_nearest_kernel",
-                "float64[:, ::1], float64[:, ::1], float64, float64[::1], float64, int64, int64[::1], int64[::1], "
-                "float64[::1], int64[::1]"),
+                ("float64[:, ::1], float64[:, ::1], float64, float64[::1], float64, int64, int64[::1], int64[::1], "
+                 "float64[::1], int64[::1]")),
     "tracks_lm": ("stereoseed.estimators.triangulation", "_tracks_lm",
                   "float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], int64"),
     "observation_errors": ("stereoseed.estimators.bundle", "_observation_errors",
-                           "float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], float64[::1]"),
+                           ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], "
+                            "float64[::1]")),
     "normal_equations": ("stereoseed.estimators.bundle", "_normal_equations",
-                         "float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], int64[::1], "
-                         "int64[::1], float64[:, :, :, ::1], float64, int64[::1], int64, int64, int64"),
+                         ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], int64[::1], "
+                          "int64[::1], float64[:, :, :, ::1], float64, int64[::1], int64, int64, int64")),
     "eliminate_points": ("stereoseed.estimators.bundle", "_eliminate_points",
-                         "float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64, "
-                         "int64[::1], int64[::1]"),
+                         ("float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64, "
+                          "int64[::1], int64[::1]")),
     "add_point_pairs": ("stereoseed.estimators.bundle", "_add_point_pairs",
-                        "float64[:, ::1], int64[::1], int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], "
-                        "int64, int64"),
+                        ("float64[:, ::1], int64[::1], int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], "
+                         "int64, int64")),
     "mirror_upper": ("stereoseed.estimators.bundle", "_mirror_upper", "float64[:, ::1], int64"),
     "back_substitute": ("stereoseed.estimators.bundle", "_back_substitute",
-                        "float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, ::1], int64[::1], "
-                        "int64[::1]"),
+                        ("float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, ::1], int64[::1], "
+                         "int64[::1]")),
     "candidate_mask": ("stereoseed.matching._zncc_kernels", "_candidate_kernel",
-                       "float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
-                       "float64"),
+                       ("float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
+                        "float64")),
     "window_stats": ("stereoseed.matching.propagation._kernels", "_window_stats", "float64[:, ::1], int64"),
     "zncc_points": ("stereoseed.matching.propagation._kernels", "_zncc_points",
-                    "float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
-                    "int64[:, ::1], int64"),
+                    ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
+                     "int64[:, ::1], int64")),
     "propagate": ("stereoseed.matching.propagation._kernels", "_propagate_kernel",
-                  "float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean[:, ::1], float64[:, ::1], "
-                  "float64[:, ::1], boolean[:, ::1], int64[:, ::1], float64[::1], float64, int64, int64, int64, "
-                  "boolean, float64[:, ::1], float64"),
+                  ("float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean[:, ::1], float64[:, ::1], "
+                   "float64[:, ::1], boolean[:, ::1], int64[:, ::1], float64[::1], float64, int64, int64, int64, "
+                   "boolean, float64[:, ::1], float64")),
     "refine_affine": ("stereoseed.matching.propagation.refine", "_refine_affine_pass",
-                      "float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int32[::1], int32[::1], "
-                      "float64[:, ::1], boolean, float64[:, ::1], int64, float64, float64, float64, float64[::1], "
-                      "float64[::1]"),
+                      ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int32[::1], int32[::1], "
+                       "float64[:, ::1], boolean, float64[:, ::1], int64, float64, float64, float64, float64[::1], "
+                       "float64[::1]")),
     "refine_quadratic": ("stereoseed.matching.propagation.refine", "_refine_quadratic",
-                         "float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
-                         "int32[::1], int32[::1], int32[::1], int32[::1], int64, boolean, float64[:, ::1]"),
+                         ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
+                          "int32[::1], int32[::1], int32[::1], int32[::1], int64, boolean, float64[:, ::1]")),
     "two_view": ("stereoseed.estimators.triangulation", "_two_view_kernel",
-                 "float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int64, float64[:, ::1], "
-                 "float64[::1]"),
+                 ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int64, float64[:, ::1], "
+                  "float64[::1]")),
     "cell_keys": ("stereoseed.dense.densify", "_cell_keys", "float64[:, ::1], float64"),
     "grid_origin": ("stereoseed.dense.densify", "_grid_origin", "float64[:, ::1]"),
     "keep_supported": ("stereoseed.dense.densify", "_keep_supported",
                        "int64[::1], int64[::1], int64[::1], int64, int64, boolean[::1], int64, int64"),
     "voxel_means": ("stereoseed.dense.densify", "_voxel_means",
-                    "int64[::1], int64[::1], float64[:, ::1], uint8[:, ::1], int64[::1], float64[:, ::1], "
-                    "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], int64, int64"),
+                    ("int64[::1], int64[::1], float64[:, ::1], uint8[:, ::1], int64[::1], float64[:, ::1], "
+                     "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], int64, int64")),
     "cells": ("stereoseed.dense.densify", "_cells", "float64[:, ::1], float64"),
     "grid_neighbours": ("stereoseed.dense.densify", "_grid_neighbours",
-                        "float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
-                        "int64, int64, int64[:, ::1]"),
+                        ("float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
+                         "int64, int64, int64[:, ::1]")),
     "pca_normals": ("stereoseed.dense.densify", "_pca_normals",
                     "float64[:, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
 }
