@@ -55,7 +55,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             raise StereoseedError(f"--rig takes two image sources, the left camera's then the right one's (a folder or "
                                   f"a list file each); got {len(args.images)}")
         images, right = args.images
-    say_if_compiling(args.quiet)
+    say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
@@ -90,7 +90,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root, allow_outside=args.allow_outside)
-    say_if_compiling(args.quiet)
+    say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
     with _pool(args, cfg.dense.pool_size()) as pool, Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
     for o in outcomes:
@@ -116,7 +116,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from stereoseed.config import Config
 
     cfg = Config.from_file(args.config) if args.config else None
-    say_if_compiling(quiet=False)
+    say_if_compiling(quiet=False, run="demo-sparse" if args.sparse else "demo")
     return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=say, cfg=cfg)
 
 def _cmd_config(args: argparse.Namespace) -> int:
