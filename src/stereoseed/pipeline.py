@@ -398,16 +398,18 @@ def _sequence_entries(sources: list, video: VideoConfig, keyframes_to: str | Pat
 
 def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | Path, cfg: Config = Config(),
                  lenses: list | None = None, dense: Any = None,
-                 source: CorrespondenceSource | None = None) -> dict[str, Path]:
+                 source: CorrespondenceSource | None = None, mesh: Any = None) -> dict[str, Path]:
     """The result folder (:func:`stereoseed.output.results.write_result`: cameras.json, tracks.npz,
     sparse.ply, cameras.ply, report.json) and report.html (:mod:`stereoseed.output.report.html`);
     atomic writes. lenses: the calibration's two lenses (:func:`stereoseed.calibration.lens_calibration.read_lenses`)
     when the images were undistorted: cameras.json then says how to map back to the photos.
     dense: the :class:`~stereoseed.dense.densify.DenseCloud` (shown in report.html) when the dense
     stage ran; source: what matches the weakest insertion's images again for report.html
-    (default :class:`HarrisZncc`)."""
+    (default :class:`HarrisZncc`); mesh: the :class:`~stereoseed.dense.mesh.Mesh` of the dense
+    cloud, shown in report.html (the caller writes mesh.ply)."""
     written = write_result(recon, report, out_dir, cfg, lenses)
-    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc(cfg.resolve()))
+    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc(cfg.resolve()),
+                                               mesh=mesh)
     return written
 
 
@@ -463,12 +465,15 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                 stages["dense"] = time.perf_counter() - t0 - sum(stages.values())
             else:
                 cloud = None
-            report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
-            save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud)
-            if mesh:
-                from stereoseed.dense.mesh import mesh_result
+            surface = None
+            if mesh:  # from the cloud in memory: report.html shows it
+                from stereoseed.dense.mesh import MeshConfig, poisson_mesh, write_mesh
 
-                mesh_result(staging, lock=False)  # this run holds the folder's lock (MeshConfig's defaults)
+                surface, report["mesh"] = poisson_mesh(cloud.points, cloud.normals, cloud.colors, MeshConfig())
+                write_mesh(staging / "mesh.ply", surface)
+                stages["mesh"] = time.perf_counter() - t0 - sum(stages.values())
+            report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
+            save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud, mesh=surface)
             results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
         except KeyboardInterrupt:
             raise  # the staging folder keeps the checkpoint: resume continues

@@ -313,6 +313,9 @@ def test_reconstruct_mesh_writes_the_mesh_with_the_run(tmp_path, small_box_scene
     mesh = _read_mesh(out / "mesh.ply")
     assert len(mesh[1]) > 1000  # faces
     assert "mesh.ply" in (out / MANIFEST).read_text()
+    assert json.loads((out / "report.json").read_text())["mesh"]["faces"] == len(mesh[1])
+    assert '"type": "mesh3d"' in (out / "report.html").read_text() or '"type":"mesh3d"' in (out / "report.html").read_text()
+    assert f"mesh: {len(mesh[1])} faces" in capsys.readouterr().out
     assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(calib), "--out", str(tmp_path / "o2"),
                  "--mesh", "--quiet"]) == 2
     assert "add --dense" in capsys.readouterr().err

@@ -74,8 +74,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     loop = report["final"].get("loop_closure") or {}
     if loop.get("links") and not loop.get("closed"):
         say(f"loop closure: {loop.get('reason')}")
-    if args.mesh:
-        say(f"mesh: wrote {Path(args.out) / 'mesh.ply'}")
+    if "mesh" in report:
+        say(f"mesh: {report['mesh'].get('faces')} faces ({Path(args.out) / 'mesh.ply'}, shown in report.html)")
     if "dense" in report:
         say(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
                                                                      if report["dense"].get("note") else ""))

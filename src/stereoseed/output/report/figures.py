@@ -15,6 +15,7 @@ from stereoseed.output.report.measure import measure_spec, measurement_trace, sc
 log = logging.getLogger("stereoseed.output.report.html")  # one logger for the whole report
 
 MAX_DENSE_POINTS = 50_000  # the dense cloud is subsampled to this many points
+MAX_MESH_FACES = 100_000  # a larger mesh shows this many of its faces (a few MB of the page)
 
 
 MAX_SPARSE_POINTS = 50_000
@@ -160,11 +161,23 @@ _DARK = "#1f2430"
 
 
 def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
-               cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None) -> dict[str, Any]:
-    """The clouds (a click picks a point: "hoverinfo" none, not skip), the frustums, a scale bar
-    and the (empty) trace the page's script draws a measured distance in (``fig["measure"]``)."""
+               cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None,
+               mesh: Any = None) -> dict[str, Any]:
+    """The mesh (when given; a legend click shows or hides it), the clouds (a click picks a point:
+    "hoverinfo" none, not skip), the frustums, a scale bar and the (empty) trace the page's
+    script draws a measured distance in (``fig["measure"]``)."""
     size = frame["size"]
     data: list[dict[str, Any]] = []
+    if mesh is not None and len(mesh.faces):
+        faces = mesh.faces
+        if len(faces) > MAX_MESH_FACES:
+            faces = faces[np.random.default_rng(0).choice(len(faces), MAX_MESH_FACES, replace=False)]
+        v = mesh.vertices
+        data.append({"type": "mesh3d", "name": f"mesh ({len(faces)} of {len(mesh.faces)} faces)", "showlegend": True,
+                     "x": _rounded(v[:, 0], size), "y": _rounded(v[:, 1], size), "z": _rounded(v[:, 2], size),
+                     "i": faces[:, 0].tolist(), "j": faces[:, 1].tolist(), "k": faces[:, 2].tolist(),
+                     "vertexcolor": _hex_colors(mesh.colors), "flatshading": False, "hoverinfo": "none",
+                     "lighting": {"ambient": 0.7, "diffuse": 0.5}})
     dense = None if dense_cloud is None else _optional(
         "the dense cloud", lambda: _finite_cloud(dense_cloud.points, dense_cloud.colors))
     if dense is not None and len(dense[0]):

@@ -259,7 +259,7 @@ _SCRIPT = """
 
 
 def render_report_html(recon: Any, report: dict[str, Any], title: str | None = None, dense: Any = None,
-                       source: Any = None) -> str:
+                       source: Any = None, mesh: Any = None) -> str:
     """The report's HTML text (see :func:`write_report_html`); optional parts that fail are
     logged and left out."""
     report = report if isinstance(report, dict) else {}
@@ -271,7 +271,7 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     figures: dict[str, Any] = {}
     unit = report.get("unit") if isinstance(report.get("unit"), str) else None
     if frame is not None:
-        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit))
+        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit, mesh))
         if fig is not None and fig["data"]:
             figures["view3d"] = {**fig, "webgl": True}
         fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams, unit))
@@ -352,19 +352,20 @@ def result_name(folder: str | Path) -> str:
 
 
 def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None,
-                      source: Any = None) -> Path:
+                      source: Any = None, mesh: Any = None) -> Path:
     """Write ``out_dir/report.html``, one self-contained file (no network), atomically (a
     temporary file in out_dir replaces it), titled by the result folder's name (:func:`result_name`).
     Returns its path.
 
     recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
     dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given;
-    source: a correspondence source (``match``) to draw the weakest insertion's matches with.
+    source: a correspondence source (``match``) to draw the weakest insertion's matches with;
+    mesh: the dense cloud's :class:`~stereoseed.dense.mesh.Mesh`, shown when given.
     A part that cannot be built is logged and left out; only an error writing the file raises.
     """
     path = Path(out_dir) / "report.html"
     text = render_report_html(recon, report, title=f"{result_name(path.parent)} — stereoseed reconstruction",
-                              dense=dense, source=source)
+                              dense=dense, source=source, mesh=mesh)
     write_text(path, text)
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
     return path
