@@ -27,6 +27,8 @@ def _config(args: argparse.Namespace):
         changes = {"pipeline": {k: v for k, v in given.items() if v is not None}}
         if args.keep_flagged:
             changes["trust"] = {"keep_flagged": True}
+        if getattr(args, "refine_rig", False):
+            changes["pipeline"]["refine_rig"] = True
         return cfg.replace(**changes)
     except ValueError as e:
         raise StereoseedError(str(e)) from None
@@ -168,6 +170,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--refine-rig", action="store_true",
+                   help="with --rig: refine the rig's relative pose once in the final bundle adjustment (rotation and "
+                        "baseline direction; the baseline length keeps the scale); default: held as calibrated")
     p.add_argument("--mesh", action="store_true",
                    help="also mesh the dense cloud into mesh.ply (with --dense; pip install 'stereoseed[mesh]')")
     p.add_argument("--rig", action="store_true",

@@ -217,6 +217,10 @@ class PipelineConfig:
     # trades against the depth)
     hold_unzoomed: bool = True
     loop_closure: bool = True  # accurate mode: match the last images against the first ones
+    # a rig walk: the rig's relative pose (its rotation and baseline direction; the baseline's
+    # length keeps the scale) refined once in the final BA, shared by every station; off: held
+    # as calibrated (a calibration from many shots is better than one walk's own estimate)
+    refine_rig: bool = False
 
     def __post_init__(self) -> None:
         one_of(self, "mode", MODES)

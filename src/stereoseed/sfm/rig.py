@@ -209,11 +209,13 @@ def _registration(cand: Candidate, P: np.ndarray, resected, t0: float) -> Regist
     return Registration(cand, result, FoundBy.RIG, matches, chained, seconds={"total": time.perf_counter() - t0})
 
 
-def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config) -> dict[str, Any] | None:
+def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config, refine: bool = False
+               ) -> dict[str, Any] | None:
     """Bundle-adjust the stations ``free_stations`` (station 0, the calibration, never moves) and
     every point their images see, with the rig held: one pose per station, its two cameras the
     rig's. Observations of those points in other stations' images pin them. Writes the registered
-    views' cameras and the points back; returns a JSON-able report (None: nothing to adjust)."""
+    views' cameras and the points back; returns a JSON-able report (None: nothing to adjust).
+    refine: the rig's relative pose refined too (``recon.rig`` becomes the refined rig)."""
     rig = recon.rig
     free_stations = [s for s in free_stations if s > 0]
     registered = np.zeros(len(recon.views), bool)
@@ -230,8 +232,10 @@ def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config) -> 
         rig=rig, R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]),
         points=recon.points[points], obs_station=np.searchsorted(stations, obs_view // 2), obs_side=obs_view % 2,
         obs_point=np.searchsorted(points, recon.obs_point[involved]), obs_xy=recon.observation_xy(involved),
-        free_stations=np.isin(stations, free_stations))
+        free_stations=np.isin(stations, free_stations), refine_rig=refine)
     result = rig_bundle_adjust(problem)
+    if refine:
+        recon.rig = result.rig
     cams = result.projections()
     for i, s in enumerate(stations):
         if problem.free_stations[i]:
@@ -240,7 +244,9 @@ def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config) -> 
                 if v < len(recon.views) and registered[v]:
                     recon.views[v].P = cams[i, sd]
     recon.points[points] = result.points
-    return {"free_stations": int(problem.free_stations.sum()), "free_points": int(len(points)),
+    refined = {"rig_refined": {"angle_change_deg": float(np.degrees(np.arccos(np.clip(
+        (np.trace(result.rig.R_rl @ rig.R_rl.T) - 1) / 2, -1, 1)))), "baseline": result.rig.baseline}} if refine else {}
+    return {**refined, "free_stations": int(problem.free_stations.sum()), "free_points": int(len(points)),
             "observations": int(involved.sum()), "iterations": result.iterations, "seconds": result.seconds,
             "rms_before_px": result.rms_before, "rms_after_px": result.rms_after}
 
@@ -285,8 +291,8 @@ def global_rig_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any
     round's report with "rounds" and "removed_per_round", observations removed)."""
     stations = sorted({station_of(v) for v in recon.registered_views})
     removed, report = [], None
-    for _ in range(cfg.bundle.global_rounds):
-        report = rig_adjust(recon, stations, cfg)
+    for i in range(cfg.bundle.global_rounds):
+        report = rig_adjust(recon, stations, cfg, refine=cfg.pipeline.refine_rig and i == 0)
         n = len(recon.obs_view)
         removed.append(drop_outliers(recon, cfg))
         if not n or removed[-1] <= cfg.bundle.negligible_drop * n:
