@@ -110,3 +110,13 @@ def test_refine_rig_recovers_a_rig_calibrated_slightly_wrong(rig_scene):
     assert angle_off(held.rig) == pytest.approx(0.3, abs=1e-6)
     assert angle_off(refined.rig) < 0.1
     assert refined.rig.baseline == pytest.approx(held.rig.baseline, rel=1e-12)
+
+
+def test_report_html_draws_the_rig_of_each_station(rig_scene, tmp_path):
+    from stereoseed.pipeline import save_outputs
+
+    s = rig_scene.scene
+    recon, report = reconstruct(s.images[:6], s.names[:6], s.P[:2], Config(), rig=True)
+    save_outputs(recon, report, tmp_path, Config())
+    page = (tmp_path / "report.html").read_text()
+    assert "stereo rig (each station)" in page

@@ -162,10 +162,11 @@ _DARK = "#1f2430"
 
 def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
                cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None,
-               mesh: Any = None) -> dict[str, Any]:
+               mesh: Any = None, rig: bool = False) -> dict[str, Any]:
     """The mesh (when given; a legend click shows or hides it), the clouds (a click picks a point:
-    "hoverinfo" none, not skip), the frustums, a scale bar and the (empty) trace the page's
-    script draws a measured distance in (``fig["measure"]``)."""
+    "hoverinfo" none, not skip), the frustums (on a ``rig`` walk each station's two centres
+    joined: views 2s and 2s + 1), a scale bar and the (empty) trace the page's script draws a
+    measured distance in (``fig["measure"]``)."""
     size = frame["size"]
     data: list[dict[str, Any]] = []
     if mesh is not None and len(mesh.faces):
@@ -219,6 +220,16 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
         data.append({"type": "scatter3d", "mode": "lines", "name": f"cameras: {group}", "x": rounded[0],
                      "y": rounded[1], "z": rounded[2], "text": texts, "line": {"color": colours[group], "width": 3},
                      "hovertemplate": "%{text}<extra></extra>"})
+    if rig:
+        centre_of = {i: camera_center(P) for i, _, P, _ in cams}
+        xyz = [[], [], []]
+        for i in sorted(centre_of):
+            if i % 2 == 0 and i + 1 in centre_of:
+                for d in range(3):
+                    xyz[d] += [float(centre_of[i][d]), float(centre_of[i + 1][d]), None]
+        if xyz[0]:
+            data.append({"type": "scatter3d", "mode": "lines", "name": "stereo rig (each station)", "x": xyz[0],
+                         "y": xyz[1], "z": xyz[2], "line": {"color": "#ffd700", "width": 6}, "hoverinfo": "none"})
     if cams:
         centres = np.array([camera_center(P) for _, _, P, _ in cams])
         data.append({"type": "scatter3d", "mode": "markers", "name": "camera centres", "showlegend": False,

@@ -271,7 +271,8 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     figures: dict[str, Any] = {}
     unit = report.get("unit") if isinstance(report.get("unit"), str) else None
     if frame is not None:
-        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit, mesh))
+        rig = getattr(recon, "rig", None) is not None
+        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit, mesh, rig))
         if fig is not None and fig["data"]:
             figures["view3d"] = {**fig, "webgl": True}
         fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams, unit))
