@@ -27,7 +27,7 @@ from typing import Any, Mapping
 from stereoseed.features.config import FeatureConfig
 from stereoseed.matching.config import MatchingConfig, PropagationConfig
 from stereoseed.estimators.config import TriangulationConfig, ResectionConfig, BundleConfig
-from stereoseed.dense.config import DenseConfig
+from stereoseed.dense.config import DenseConfig, MeshConfig
 from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.output.config import ExportConfig
@@ -49,6 +49,7 @@ class Config:
     bundle: BundleConfig = field(default_factory=BundleConfig)
     propagation: PropagationConfig = field(default_factory=PropagationConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)  # stereoseed mesh, reconstruct --mesh
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     outliers: OutlierConfig = field(default_factory=OutlierConfig)

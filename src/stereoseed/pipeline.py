@@ -467,9 +467,9 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                 cloud = None
             surface = None
             if mesh:  # from the cloud in memory: report.html shows it
-                from stereoseed.dense.mesh import MeshConfig, poisson_mesh, write_mesh
+                from stereoseed.dense.mesh import poisson_mesh, write_mesh
 
-                surface, report["mesh"] = poisson_mesh(cloud.points, cloud.normals, cloud.colors, MeshConfig())
+                surface, report["mesh"] = poisson_mesh(cloud.points, cloud.normals, cloud.colors, cfg.mesh)
                 write_mesh(staging / "mesh.ply", surface)
                 stages["mesh"] = time.perf_counter() - t0 - sum(stages.values())
             report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})

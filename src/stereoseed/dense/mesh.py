@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_json
 from stereoseed.io.ply import read_ply_vertices, write_ply
-from stereoseed.validation import positive, whole
 
 __all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
 
@@ -37,61 +37,6 @@ log = logging.getLogger(__name__)
 MESH_NAME = "mesh.ply"  # the mesh's name in the result folder when no other is given
 INSTALL_HINT = "pip install 'stereoseed[mesh]'"
 _OUR_COMMENT = b"comment written by stereoseed"  # what io.ply writes in every header
-
-
-@dataclass(frozen=True)
-class MeshConfig:
-    # Octree depth of the Poisson solve: the grid cell is scale x the cloud's largest extent
-    # / 2**depth. PoissonRecon's default; each level more is about three times the time and
-    # memory for detail finer than the dense cloud's own noise at the scenes' sizes.
-    depth: int = 8
-    # Poisson's bounding cube over the cloud's box (PoissonRecon's default): room for the
-    # implicit function to close beyond the outermost points.
-    scale: float = 1.1
-    # Minimum points per octree leaf (PoissonRecon's default): fewer make noise into surface.
-    samples_per_node: float = 1.5
-    # The screening weight: how strongly the surface is pulled through the points, against
-    # smoothness (PoissonRecon's default for screened Poisson).
-    point_weight: float = 4.0
-    # A vertex farther than this many grid cells from every cloud point is not backed by the
-    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents.
-    max_gap_cells: float = 2.0
-    # A vertex whose Poisson density is this far below the median of the vertices the cloud
-    # backs is dropped: 2 units = 16 times fewer points per area than the typical surface,
-    # the density of the extrapolated rims, not of a sparsely matched but real surface.
-    density_drop: float = 2.0
-    # Each vertex's colour: the mean of this many nearest cloud points (a vertex stands for
-    # a patch of about a grid cell, which holds several cloud points).
-    color_neighbours: int = 8
-    # Normals estimated (a dense.ply without them): neighbours of the local plane fit, as the
-    # dense stage's own estimate uses.
-    normal_neighbours: int = 10
-    # Fewer cloud points cannot describe a surface at the grid's resolution: refused.
-    min_points: int = 100
-    # Threads of the Poisson solve (0: the cores this process may use). One: PyMeshLab's OpenMP
-    # threads spin while they wait, which on cores shared with other work (the dense workers,
-    # other processes) burns more than the threads gain; the wait policy cannot be changed once
-    # Numba's parallel kernels have started OpenMP in the process.
-    threads: int = 1
-
-    def __post_init__(self) -> None:
-        whole(self, "depth", minimum=4)
-        whole(self, "color_neighbours", "normal_neighbours")
-        whole(self, "min_points", minimum=10)
-        whole(self, "threads", minimum=0)
-        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop")
-        if self.depth > 12:
-            raise ValueError(f"MeshConfig.depth must be <= 12 (a finer grid needs memory no machine here has), "
-                             f"got {self.depth}")
-        if self.scale < 1.0:
-            raise ValueError(f"MeshConfig.scale must be >= 1 (the cube holds the cloud), got {self.scale}")
-        if self.point_weight < 0:
-            raise ValueError(f"MeshConfig.point_weight must be >= 0 (0: unscreened Poisson), got {self.point_weight}")
-
-    def pool_size(self) -> int:
-        from stereoseed.threads import CORES
-
-        return self.threads or CORES
 
 
 @dataclass(frozen=True)
