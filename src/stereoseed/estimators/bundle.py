@@ -204,6 +204,20 @@ def _thread_rows(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, n_cams
     return np.r_[0, cuts + 1, n_cams].astype(np.int64)
 
 
+def damped_camera_system(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, Wt: np.ndarray, Y: np.ndarray,
+                         U: np.ndarray, lam: float, rows: np.ndarray) -> np.ndarray:
+    """The reduced camera system under Levenberg-Marquardt damping ``lam``: U - W V^-1 W^T with
+    each camera's diagonal block U (C, n, n) scaled by 1 + lam (plus 1e-12), camera-major
+    (C n, C n). Arguments as :func:`_reduced_camera_matrix`."""
+    n_cams, n = U.shape[0], U.shape[1]
+    eye = np.eye(n)
+    S = _reduced_camera_matrix(order, starts, cams, Wt, Y, n_cams, rows)
+    Ud = U + lam * (U * eye) + 1e-12 * eye
+    for i in range(n_cams):
+        S[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
+    return S
+
+
 def _reduced_camera_matrix(order: np.ndarray, starts: np.ndarray, cams: np.ndarray, Wt: np.ndarray, Y: np.ndarray,
                            n_cams: int, rows: np.ndarray) -> np.ndarray:
     """-W V^-1 W^T of the reduced camera system, camera-major (n_cams n, n_cams n). Forming it
@@ -363,7 +377,6 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     grouped = both_point[pair_order]
     point_starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, int)
     thread_rows = _thread_rows(pair_order, point_starts, both_camera, nC)
-    eye_n = np.eye(n)
 
     lam = 1e-3
     cost = huber_cost_of_norms(observation_errors(Ps, X, oc, op, xy), delta)
@@ -377,10 +390,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
         while True:
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, Wb, lam, both_point, both_camera)
             if nC:
-                S2 = _reduced_camera_matrix(pair_order, point_starts, both_camera, Wt, Y, nC, thread_rows)
-                Ud = U + lam * (U * eye_n) + 1e-12 * eye_n
-                for i in range(nC):
-                    S2[i * n:(i + 1) * n, i * n:(i + 1) * n] += Ud[i]
+                S2 = damped_camera_system(pair_order, point_starts, both_camera, Wt, Y, U, lam, thread_rows)
                 dc = _solve_symmetric(S2, rhs.ravel()).reshape(nC, n)
             else:
                 dc = np.zeros((0, n))

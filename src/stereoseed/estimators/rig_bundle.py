@@ -31,7 +31,7 @@ from scipy.sparse import csr_matrix
 from stereoseed.estimators.bundle import (
     _back_substitute,
     _eliminate_points,
-    _reduced_camera_matrix,
+    damped_camera_system,
     _solve_symmetric,
     _thread_rows,
     observation_errors,
@@ -288,7 +288,6 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
     rows = _thread_rows(pair_order, starts, w_cam, n_cams) if n_cams else None
     cross = np.flatnonzero((obs_cam >= 0) & (side == 1)) if refine_rig else np.zeros(0, np.int64)
     point_obs = np.flatnonzero(obs_pt >= 0)
-    eye = np.eye(_N)
 
     def cost_of(rig_: Rig, R_: np.ndarray, t_: np.ndarray, X_: np.ndarray) -> float:
         with np.errstate(all="ignore"):  # a trial step may put a point on a principal plane: refused
@@ -314,10 +313,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
         while True:
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
             if n_cams:
-                S = _reduced_camera_matrix(pair_order, starts, w_cam, Wt, Y, n_cams, rows)
-                Ud = U + lam * (U * eye) + 1e-12 * eye
-                for c in range(n_cams):
-                    S[c * _N:(c + 1) * _N, c * _N:(c + 1) * _N] += Ud[c]
+                S = damped_camera_system(pair_order, starts, w_cam, Wt, Y, U, lam, rows)
                 if refine_rig:  # the station-rig blocks no single observation block carries
                     g = slice(rig_slot * _N, (rig_slot + 1) * _N)
                     for c in range(len(free_idx)):
