@@ -109,11 +109,12 @@ def load_result(folder: PathLike) -> Result:
 
 def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) -> Result:
     """The :class:`Result` that the result folder of ``recon`` would read back as, without writing it."""
-    from stereoseed.output.results import tracks_arrays, exported_points
+    from stereoseed.geometry.lens import lens_index
+    from stereoseed.output.results import exported_points, tracks_arrays
 
     tracks = tracks_arrays(recon, exported_points(recon, cfg.export.far_point_factor))
     views = recon.views
-    lens = [lenses[min(i, 1)] if lenses else None for i in range(len(views))]
+    lens = [lenses[lens_index(i, recon.rig is not None)] if lenses else None for i in range(len(views))]
     return Result(folder=None, names=[v.name for v in views], sizes=[tuple(map(int, v.image_size)) for v in views],
                   P=[v.P_input.copy() if v.registered else None for v in views], tracks=tracks,
                   distortion=[None if L is None else np.asarray(L.distortion, np.float64).copy() for L in lens],

@@ -27,7 +27,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration,
                                  read_calibration_unit)
-from stereoseed.geometry.lens import undistort_image, undistortion_maps
+from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view
 from stereoseed.sfm.reconstruction import Reconstruction
@@ -297,14 +297,14 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
         entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right))
     if len(entries) < 2:
         raise StereoseedError(f"{' '.join(map(str, sources))}: {len(entries)} image(s); the calibrated pair needs two")
-    side = (lambda i: i % 2) if rig_right is not None else (lambda i: min(i, 1))
+    rig = rig_right is not None
     paths = [e if isinstance(e, Path) else Path(n) for e, n in zip(entries, names)]
     P_pair = read_calibration(calib_path, names)
     lenses = read_lenses(calib_path)
     maps: dict[int, Any] = {}
 
     def undistort(i: int, image: np.ndarray) -> np.ndarray:
-        lens = lenses[side(i)]
+        lens = lenses[lens_index(i, rig)]
         if lens is None:
             return image
         size = image.shape[1::-1]
@@ -313,9 +313,9 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
                 return image
             raise StereoseedError(f"{paths[i]}: {size[0]}x{size[1]} pixels, but the calibration's lens is for "
                                   f"{lens.image_size[0]}x{lens.image_size[1]} images; give images of that size")
-        if side(i) not in maps:
-            maps[side(i)] = undistortion_maps(lens.K, lens.distortion, size)
-        return undistort_image(image, lens.K, lens.distortion, maps[side(i)])
+        if lens_index(i, rig) not in maps:
+            maps[lens_index(i, rig)] = undistortion_maps(lens.K, lens.distortion, size)
+        return undistort_image(image, lens.K, lens.distortion, maps[lens_index(i, rig)])
 
     lens_key = repr([None if lens is None else (lens.K.tobytes(), lens.distortion.tobytes(), lens.image_size)
                      for lens in lenses]).encode()  # the undistortion decides the pixels the run sees

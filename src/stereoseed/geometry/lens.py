@@ -25,6 +25,7 @@ from numba import njit, prange
 
 __all__ = [
     "lens_coefficients",
+    "lens_index",
     "principal_r2",
     "lens_problem",
     "distort_normalized",
@@ -305,3 +306,10 @@ def undistort_image(image: np.ndarray, K: np.ndarray, d,
     if maps is None:
         maps = undistortion_maps(K, d, (image.shape[1], image.shape[0]))
     return cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+def lens_index(image: int, rig: bool) -> int:
+    """Which of the calibration's two lenses image ``image`` of a sequence was taken through:
+    image 0 the first camera's and every later one the second's (the moving camera), or on a
+    rig walk (left and right images interleaved) the side's."""
+    return image % 2 if rig else min(image, 1)

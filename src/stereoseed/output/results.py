@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from stereoseed.geometry.camera import Camera
+from stereoseed.geometry.lens import lens_index
 from stereoseed.arrays import distinct_pair_firsts
 from stereoseed.geometry.projection import backproject, camera_center
 from stereoseed.config import Config
@@ -126,7 +127,7 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None, unit: str |
                 entry["flag_reason"] = v.flag_reason
             if v.uncertainty is not None:
                 entry["uncertainty"] = v.uncertainty.summary()
-        lens = lenses[i % 2 if recon.rig is not None else min(i, 1)] if lenses else None
+        lens = lenses[lens_index(i, recon.rig is not None)] if lenses else None
         if lens is not None:
             # P is for the undistorted image: a photo's pixel is K_lens distort(K_lens^-1 pixel)
             entry.update(distortion=lens.distortion.tolist(), distortion_K=np.asarray(lens.K).tolist())
