@@ -279,10 +279,7 @@ class _LocalPool:
         which matters for the workers' PR_SET_PDEATHSIG."""
         from concurrent.futures import ProcessPoolExecutor  # here: every command imports this module
 
-        # fork where the platform has it: spawn/forkserver re-run the caller's __main__, which
-        # breaks unguarded user scripts
-        methods = multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        ctx = fork_context()
         self._board = ctx.RawArray("q", 2 * self.workers)
         self._executor = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_start_worker,
                                              initargs=(os.getpid(), max(1, CORES // self.workers), self._board,
@@ -518,6 +515,14 @@ def _noted(number: int, fn: Callable[..., Any], *args: Any) -> Any:
     if _board is not None:
         _board[_place + 1] = number
     return fn(*args)
+
+
+def fork_context():
+    """The multiprocessing context of our worker processes: fork where the platform has it (the
+    modules are already imported; spawn and forkserver re-run the caller's __main__, which
+    breaks unguarded user scripts), else spawn."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
 
 
 def _die_with_parent(parent_pid: int) -> None:

@@ -330,13 +330,10 @@ class _Helpers:
     dispatchers whose cache it wrapped (:class:`_Claimed`)."""
 
     def __init__(self, names: list[str], helpers: int, run_order: bool = True):
-        import multiprocessing
+        from stereoseed.cluster import fork_context
 
         self.folder = tempfile.mkdtemp(prefix="stereoseed-compile-")
-        methods = multiprocessing.get_all_start_methods()
-        # fork where the platform has it: the modules are already imported, and spawn re-runs the
-        # caller's __main__, which breaks unguarded user scripts
-        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        ctx = fork_context()
         self.processes = [ctx.Process(target=_compile_in_turn, name=f"stereoseed-compile-{i}", daemon=True,
                                       args=(self.folder, turn, os.getpid()))
                           for i, turn in enumerate(_turns(names, helpers, run_order))]

@@ -21,6 +21,7 @@ import logging
 import numpy as np
 
 from stereoseed.calibration.target import Face
+from stereoseed.estimators.calibration import normalization_2d
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +55,6 @@ def plane_coordinates(face: Face, points3d: np.ndarray) -> np.ndarray:
     return (np.asarray(points3d, np.float64) - O) @ F[:, :2]
 
 
-def _normaliser(x: np.ndarray) -> np.ndarray:
-    c = x.mean(axis=0)
-    s = np.sqrt(2.0) / max(float(np.mean(np.linalg.norm(x - c, axis=1))), 1e-12)
-    return np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
-
-
 def homography(plane: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
     """The homography (3, 3) taking plane coordinates (N, 2) to pixels (N, 2): normalised DLT
     (HZ algorithm 4.2). None for fewer than 4 points or points on a line."""
@@ -69,7 +64,7 @@ def homography(plane: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
     sv = np.linalg.svd(plane - plane.mean(0), compute_uv=False)
     if sv[1] < _COLLINEAR_RATIO * sv[0]:
         return None
-    Ta, Tb = _normaliser(plane), _normaliser(pixels)
+    Ta, Tb = normalization_2d(plane), normalization_2d(pixels)
     a = np.c_[plane, np.ones(len(plane))] @ Ta.T
     b = np.c_[pixels, np.ones(len(pixels))] @ Tb.T
     A = np.zeros((2 * len(a), 9))

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from stereoseed.estimators.robust import huber_cost_of_norms
+
 log = logging.getLogger(__name__)
 
 __all__ = ["Group", "Problem", "State", "Solution", "solve", "residuals", "projections", "rotation_vector",
@@ -188,7 +190,7 @@ def _cost(problem: Problem, state: State, delta: float) -> float:
     for g in problem.groups:
         r, _ = _group_terms(g, problem, state, False)
         e = np.hypot(r[0::2], r[1::2]) / g.scale()
-        total += float(np.sum(np.where(e <= delta, e * e, 2 * delta * e - delta * delta)))
+        total += huber_cost_of_norms(e, delta)
     return total if np.isfinite(total) else np.inf
 
 

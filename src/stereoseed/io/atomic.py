@@ -22,7 +22,8 @@ def _umask() -> int:
     return mask
 
 
-_FILE_MODE = 0o666 & ~_umask()  # what open() would give: mkstemp's files are 0600
+UMASK_AT_IMPORT = _umask()  # read once, before any thread of ours writes (setting it to read it races them)
+_FILE_MODE = 0o666 & ~UMASK_AT_IMPORT  # what open() would give: mkstemp's files are 0600
 
 
 class atomic_path:

@@ -14,6 +14,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from stereoseed.io.atomic import UMASK_AT_IMPORT
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_json
 from stereoseed.output.results import FORMAT_VERSION
@@ -278,16 +279,7 @@ def _read_umask() -> int:
                     return int(line.split()[1], 8)
     except (OSError, ValueError, IndexError):
         pass
-    return _IMPORT_UMASK
-
-
-def _umask_at_import() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_IMPORT_UMASK = _umask_at_import()
+    return UMASK_AT_IMPORT
 
 
 def _lock_owner(fd: int) -> str:
