@@ -23,7 +23,7 @@ from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction
 
-__all__ = ["predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
+__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
 
 
 @dataclass(frozen=True)
@@ -42,21 +42,28 @@ class Hypothesis:
         return len(self.points3d)
 
 
-def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
-    """Constant-motion prediction of a later camera: the rigid motion from ``P_before`` to
-    ``P_last`` (both (3, 4)) applied ``steps`` more times to ``P_last``, with ``P_last``'s
-    intrinsics. -> (3, 4)."""
-    def pose(P):
-        K, R, t = Camera(P).krt
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t
-        return K, T
-    _, T_before = pose(P_before)
-    K, T_last = pose(P_last)
+def pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4 x 4 cam_from_world matrix of rotation R (3, 3) and translation t (3,)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def predict_pose(T_before: np.ndarray, T_last: np.ndarray, steps: int = 1) -> np.ndarray:
+    """Constant motion: the rigid motion from pose ``T_before`` to ``T_last`` (4 x 4
+    cam_from_world) applied ``steps`` (at least one) more times to ``T_last``. -> (4, 4)."""
     T_next = T_last
     for _ in range(max(1, steps)):
         T_next = T_last @ np.linalg.inv(T_before) @ T_next
-    return K @ T_next[:3]
+    return T_next
+
+
+def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> np.ndarray:
+    """Constant-motion prediction of a later camera (:func:`predict_pose`) from ``P_before`` and
+    ``P_last`` (both (3, 4)), with ``P_last``'s intrinsics. -> (3, 4)."""
+    _, R_before, t_before = Camera(P_before).krt
+    K, R_last, t_last = Camera(P_last).krt
+    return K @ predict_pose(pose_matrix(R_before, t_before), pose_matrix(R_last, t_last), steps)[:3]
 
 
 def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.ndarray, np.ndarray]:

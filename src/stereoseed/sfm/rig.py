@@ -30,10 +30,11 @@ from stereoseed.estimators.rig_bundle import RigBundleProblem, rig_bundle_adjust
 from stereoseed.estimators.rig_resection import Rig, resect_rig, rig_reprojection_errors
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.models import CameraModel
+from stereoseed.geometry.projection import rotation_angle_deg
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.sfm.modes import AccurateMode
-from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, recent_points
+from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_matrix, predict_pose, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import drop_outliers
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
@@ -52,12 +53,6 @@ def side_of(view: int) -> int:
     return view % 2
 
 
-def _pose_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
 def _predicted_station(recon: Reconstruction, rig: Rig, s: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Station s's pose as the walk's constant motion predicts it: from the last two placed
     stations (the steps between them counted), or after station 0 alone one rig baseline on from
@@ -66,17 +61,14 @@ def _predicted_station(recon: Reconstruction, rig: Rig, s: int) -> tuple[np.ndar
     if not placed:
         return None
     if len(placed) == 1:
-        T_before = _pose_matrix(*_station_pose(recon, rig, placed[0]))
-        T_last = _pose_matrix(*rig.right_pose(*_station_pose(recon, rig, placed[0])))
+        first = _station_pose(recon, rig, placed[0])
+        T_before, T_last = pose_matrix(*first), pose_matrix(*rig.right_pose(*first))
         steps = 1
     else:
         a, b = placed[-2:]
-        T_before, T_last = (_pose_matrix(*_station_pose(recon, rig, i)) for i in (a, b))
+        T_before, T_last = (pose_matrix(*_station_pose(recon, rig, i)) for i in (a, b))
         steps = max(1, round((s - b) / (b - a)))
-    step = T_last @ np.linalg.inv(T_before)
-    T = T_last
-    for _ in range(steps):
-        T = step @ T
+    T = predict_pose(T_before, T_last, steps)
     return T[:3, :3], T[:3, 3]
 
 
@@ -244,8 +236,8 @@ def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config, ref
                 if v < len(recon.views) and registered[v]:
                     recon.views[v].P = cams[i, sd]
     recon.points[points] = result.points
-    refined = {"rig_refined": {"angle_change_deg": float(np.degrees(np.arccos(np.clip(
-        (np.trace(result.rig.R_rl @ rig.R_rl.T) - 1) / 2, -1, 1)))), "baseline": result.rig.baseline}} if refine else {}
+    refined = {"rig_refined": {"angle_change_deg": rotation_angle_deg(result.rig.R_rl, rig.R_rl),
+                               "baseline": result.rig.baseline}} if refine else {}
     return {**refined, "free_stations": int(problem.free_stations.sum()), "free_points": int(len(points)),
             "observations": int(involved.sum()), "iterations": result.iterations, "seconds": result.seconds,
             "rms_before_px": result.rms_before, "rms_after_px": result.rms_after}
