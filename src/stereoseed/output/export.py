@@ -155,17 +155,26 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distorti
     return model, [float(p) for p in params], q, t, warning
 
 
+def point_ids(result: Result, images: list[int]) -> dict[int, np.ndarray]:
+    """{image: (K,) the 1-based COLMAP point id of each of its keypoints, -1 for none} of the
+    ``images``, in one pass over the observations (grouped by image)."""
+    tr = result.tracks
+    order = np.argsort(tr["obs_image"], kind="stable")
+    ends = np.searchsorted(tr["obs_image"][order], [images, np.add(images, 1)]) if len(images) else ([], [])
+    out = {}
+    for i, a, b in zip(images, *ends):
+        ids = np.full(len(result.keypoints(i)), -1, np.int64)
+        here = order[a:b]
+        ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
+        out[i] = ids
+    return out
+
+
 def _colmap_model(result: Result) -> tuple[list, list, list[str]]:
     """(cameras [(id, model, w, h, params)], images [(id, q, t, camera id, name, xy (K, 2), point ids (K,))],
     warnings) with COLMAP's 1-based ids and pixel convention."""
-    tr = result.tracks
     cameras, images, warnings = [], [], []
-    point_of = {}  # image -> (K,) point id (1-based, -1 none) per keypoint
-    for i in result.registered:
-        ids = np.full(len(result.keypoints(i)), -1, np.int64)
-        here = tr["obs_image"] == i
-        ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
-        point_of[i] = ids
+    point_of = point_ids(result, result.registered)
     for n, i in enumerate(result.registered, 1):
         lens = result.distortion[i] if result.distortion else None
         model, params, q, t, warning = colmap_camera(result.P[i], result.sizes[i], result.names[i], lens)

@@ -55,6 +55,7 @@ from stereoseed.io.ply import write_ply
 from stereoseed.io.sequence import header_size
 from stereoseed.output.export import (
     MAX_APPROXIMATION_PX,
+    point_ids,
     check_names,
     claim_folder,
     flagged_images,
@@ -379,12 +380,11 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
                                        [float(v) for v in (im.K[0, 0], im.K[1, 1], im.K[0, 2] + 0.5, im.K[1, 2] + 0.5)]))
     image_id = np.zeros(len(result.names), np.int64)
     tr = result.tracks
+    point_of = point_ids(result, [im.index for im in images])
     rows = []
     for n, im in enumerate(images, 1):
         image_id[im.index] = n
-        ids = np.full(len(result.keypoints(im.index)), -1, np.int64)
-        here = tr["obs_image"] == im.index
-        ids[tr["obs_keypoint"][here]] = tr["obs_point"][here] + 1
+        ids = point_of[im.index]
         _, R, t = Camera(result.P[im.index]).krt
         rows.append((n, quaternion_from_rotation(R), t, im.camera + 1, result.names[im.index],
                      _pinhole_keypoints(result, im) + 0.5, ids))
