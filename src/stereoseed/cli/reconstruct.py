@@ -46,7 +46,7 @@ def _pool(args: argparse.Namespace, workers: int):
     return executor_for(args.scheduler, workers, connect_timeout=args.connect_timeout)
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from stereoseed.api import reconstruct
+    from stereoseed.pipeline import reconstruct_to_folder  # its report: the folder is not read back
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
@@ -60,9 +60,9 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
-        report = reconstruct(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
-                             progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right,
-                             mesh=args.mesh).report
+        report = reconstruct_to_folder(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
+                                       progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right,
+                                       mesh=args.mesh)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         say(f"resumed after {len(report['resumed_images'])} images already placed")

@@ -272,7 +272,7 @@ def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: 
     window = recon.registered_views[-cfg.pipeline.window:]
     sel = np.isin(recon.obs_view, window)
     start = recon.checkpoint()
-    seen = recon.points[recon.obs_point[(recon.obs_view == k) & recon.alive[recon.obs_point]]]
+    seen = recon.points[recon.points_seen_by(k)]
     held_cfg = cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
     runs = {}
     for zoomed in (False, True):
@@ -321,7 +321,7 @@ def _refocused(camera: Camera, focal: float, points: np.ndarray) -> Camera:
 
 
 def _window_cost(recon: Reconstruction, sel: np.ndarray, cfg: Config) -> float:
-    err = recon.observation_errors()[sel & recon.alive[recon.obs_point]]
+    err = recon.observation_errors(sel & recon.alive[recon.obs_point])
     return 2.0 * huber_cost_of_norms(err[np.isfinite(err)], cfg.bundle.huber_px)
 
 

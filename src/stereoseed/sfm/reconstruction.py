@@ -439,11 +439,13 @@ class Reconstruction:
             out[rows] = self.views[v].features.points[feats[rows]]
         return out
 
-    def observation_errors(self) -> np.ndarray:
-        """Reprojection distance (px) of every observation, (O,)."""
+    def observation_errors(self, mask: np.ndarray | None = None) -> np.ndarray:
+        """Reprojection distance (px) of every observation, (O,), or of those of ``mask`` (O,) bool."""
         no_camera = np.full((3, 4), np.nan)
         Ps = np.stack([no_camera if v.P is None else v.P for v in self.views]) if self.views else no_camera[None]
-        return observation_errors(Ps, self.points, self.obs_view, self.obs_point, self.observation_xy())
+        if mask is None:
+            return observation_errors(Ps, self.points, self.obs_view, self.obs_point, self.observation_xy())
+        return observation_errors(Ps, self.points, self.obs_view[mask], self.obs_point[mask], self.observation_xy(mask))
 
     def shared_pixels(self, a: int, b: int) -> np.ndarray:
         """(S, 4) float64 (xa, ya, xb, yb): the pixels in views a and b of the points both
