@@ -118,6 +118,7 @@ def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) 
     return Result(folder=None, names=[v.name for v in views], sizes=[tuple(map(int, v.image_size)) for v in views],
                   P=[v.P_input.copy() if v.registered else None for v in views], tracks=tracks,
                   distortion=[None if L is None else np.asarray(L.distortion, np.float64).copy() for L in lens],
+                  distortion_K=[None if L is None else np.asarray(L.K, np.float64).copy() for L in lens],
                   flags=[(v.flag_reason or "flagged") if v.registered and not v.reliable else None for v in views],
                   report=report, _dense=cloud)
 

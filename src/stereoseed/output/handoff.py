@@ -29,7 +29,6 @@ before they are written, so an interrupted export leaves a folder the next one a
 """
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 from dataclasses import dataclass
@@ -143,23 +142,6 @@ def handed_off(result: Result) -> tuple[list[int], list[str]]:
     return kept, warnings + kept_flagged
 
 
-def _lens_matrices(result: Result) -> list[np.ndarray | None]:
-    """Per image, the lens's K (cameras.json ``distortion_K``), None where the file has none."""
-    try:
-        images = json.loads((result.folder / "cameras.json").read_text(encoding="utf-8"))["images"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return [None] * len(result.names)
-    out: list[np.ndarray | None] = []
-    for im in images[:len(result.names)]:
-        try:
-            K = np.array(im.get("distortion_K"), np.float64).reshape(3, 3)
-        except (ValueError, TypeError, AttributeError):
-            K = None
-        good = K is not None and np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
-        out.append(K if good else None)
-    return out + [None] * (len(result.names) - len(out))
-
-
 def _no_skew(K: np.ndarray) -> np.ndarray:
     return np.array([[K[0, 0], 0.0, K[0, 2]], [0.0, K[1, 1], K[1, 2]], [0.0, 0.0, 1.0]])
 
@@ -253,7 +235,7 @@ def pinhole_images(result: Result, cfg: HandoffConfig = HandoffConfig()) -> tupl
     """The images a trainer gets (:func:`handed_off`), each with its PINHOLE camera (one per
     distinct intrinsics and lens: the first image of each fixes its frame), and the warnings."""
     chosen, warnings = handed_off(result)
-    lens_K = _lens_matrices(result)
+    lens_K = result.distortion_K or [None] * len(result.names)
     groups: list[tuple[tuple, np.ndarray, tuple[int, int]]] = []  # (key, K, size) per camera
     images = []
     for i in chosen:

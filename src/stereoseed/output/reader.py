@@ -42,6 +42,9 @@ class Result:
     distortion: list[np.ndarray | None] = field(default_factory=list)  # the lens, where the run undistorted
     warnings: list[str] = field(default_factory=list)  # what was left out, and why
     flags: list[str | None] = field(default_factory=list)  # why the run could not vouch for a camera, or None
+    # the lens's own K (cameras.json distortion_K: the distortion acts on its pixels), None where
+    # the file has none or it is no intrinsic matrix
+    distortion_K: list[np.ndarray | None] = field(default_factory=list)
 
     @property
     def registered(self) -> list[int]:
@@ -68,7 +71,7 @@ def load_result(folder: str | Path) -> Result:
                                   f"(version {FORMAT_VERSION} or later)")
     again = "give a folder written by stereoseed reconstruct, or run it again"
     try:
-        names, sizes, Ps, lens, flags = _cameras(cams_path)
+        names, sizes, Ps, lens, flags, lens_K = _cameras(cams_path)
     except _Bad as e:
         raise StereoseedError(f"{cams_path}: {e}; {again}") from None
     try:
@@ -85,11 +88,12 @@ def load_result(folder: str | Path) -> Result:
         tracks = _without_images(tracks, [P is not None for P in Ps])
         for w in warnings:
             log.info("%s", w)  # the exports hand them on with their own
-    return Result(folder, names, sizes, Ps, tracks, lens, warnings, flags)
+    return Result(folder, names, sizes, Ps, tracks, lens, warnings, flags, lens_K)
 
 
-def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndarray | None], list, list]:
-    """(names, sizes, P or None, lens or None, flag or None) per image of cameras.json; the flag:
+def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndarray | None], list, list, list]:
+    """(names, sizes, P or None, lens or None, flag or None, the lens's K or None) per image of
+    cameras.json; the flag:
     the flag_reason of a camera marked ``"reliable": false`` (results written before the field
     existed: None)."""
     try:
@@ -99,7 +103,7 @@ def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndar
     images = data.get("images") if isinstance(data, dict) else None
     if not isinstance(images, list) or not images:
         raise _Bad('no "images" list')
-    names, sizes, Ps, lens, flags = [], [], [], [], []
+    names, sizes, Ps, lens, flags, lens_K = [], [], [], [], [], []
     for n, im in enumerate(images):
         where = f"image {n}"
         if not isinstance(im, dict) or not isinstance(im.get("name"), str) or not im["name"]:
@@ -121,7 +125,18 @@ def _cameras(path: Path) -> tuple[list[str], list[tuple[int, int]], list[np.ndar
         sizes.append((w, h))
         Ps.append(P)
         flags.append(str(im.get("flag_reason") or "flagged") if im.get("reliable") is False else None)
-    return names, sizes, Ps, lens, flags
+        lens_K.append(_intrinsic_matrix(im.get("distortion_K")))
+    return names, sizes, Ps, lens, flags, lens_K
+
+
+def _intrinsic_matrix(value: Any) -> np.ndarray | None:
+    """``value`` as a (3, 3) intrinsic matrix (finite, positive focal lengths, last row 0 0 1), else None."""
+    try:
+        K = np.array(value, np.float64).reshape(3, 3)
+    except (ValueError, TypeError):
+        return None
+    good = np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
+    return K if good else None
 
 
 def _numbers(value: Any, shape: tuple[int, ...] | None, what: str) -> np.ndarray:
