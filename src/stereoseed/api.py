@@ -75,19 +75,11 @@ class Result(reader.Result):
 
 def _read_dense(path: Path):
     from stereoseed.dense.densify import DenseCloud
-    from stereoseed.io.ply import read_ply_vertices
+    from stereoseed.io.ply import read_dense_ply
 
-    v = read_ply_vertices(path)
-    names = set(v.dtype.names or ())
-
-    def columns(*keys: str, dtype=np.float64, default: float = 0.0) -> np.ndarray:
-        if not set(keys) <= names:
-            return np.full((len(v), len(keys)), default, dtype)
-        return np.stack([v[k] for k in keys], axis=1).astype(dtype)
-
-    support = v["support"].astype(np.int64) if "support" in names else np.ones(len(v), np.int64)
-    return DenseCloud(columns("x", "y", "z"), columns("red", "green", "blue", dtype=np.uint8, default=200),
-                      columns("nx", "ny", "nz"), support)
+    points, colors, normals, support = read_dense_ply(path)
+    return DenseCloud(points, colors, np.zeros_like(points) if normals is None else normals,
+                      np.ones(len(points), np.int64) if support is None else support)
 
 
 def load_result(folder: PathLike) -> Result:

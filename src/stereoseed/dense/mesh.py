@@ -28,7 +28,7 @@ import numpy as np
 from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_json
-from stereoseed.io.ply import read_ply_vertices, write_ply
+from stereoseed.io.ply import read_dense_ply, write_ply
 
 __all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
 
@@ -213,18 +213,8 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> Path:
 def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """Points, normals, colours of the folder's dense.ply, and where the normals come from: the
     file's, or estimated and turned towards the cameras of cameras.json that frame each point."""
-    dense = folder / "dense.ply"
-    vertex = read_ply_vertices(dense)
-    names = set(vertex.dtype.names or ())
-    if not {"x", "y", "z"} <= names:
-        raise StereoseedError(f"{dense}: has no x, y, z; run stereoseed reconstruct --dense --out {folder} again")
-    points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(np.float64)
-    if {"red", "green", "blue"} <= names:
-        colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
-    else:
-        colors = np.full((len(points), 3), 200, np.uint8)
-    if {"nx", "ny", "nz"} <= names:
-        normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
+    points, colors, normals, _ = read_dense_ply(folder / "dense.ply")
+    if normals is not None:
         length = np.linalg.norm(normals, axis=1)
         if np.all(np.isfinite(length)) and np.all(np.abs(length - 1.0) < 1e-3):
             return points, normals, colors, "dense.ply"

@@ -78,7 +78,22 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Points (N, 3) float64 and colours (N, 3) uint8 (200 grey where the file has none) of any
     PLY (:func:`read_ply_vertices`); refuses a vertex element without x, y, z."""
+    return _points_and_colours(read_ply_vertices(path), path)
+
+
+def read_dense_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A dense.ply: points and colours as :func:`read_ply`, normals (N, 3) float64 and support
+    (N,) int64, each None where the file has none."""
     vertex = read_ply_vertices(path)
+    pts, cols = _points_and_colours(vertex, path)
+    names = set(vertex.dtype.names or ())
+    normals = (np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
+               if {"nx", "ny", "nz"} <= names else None)
+    support = vertex["support"].astype(np.int64) if "support" in names else None
+    return pts, cols, normals, support
+
+
+def _points_and_colours(vertex: np.ndarray, path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     names = vertex.dtype.names or ()
     if not {"x", "y", "z"} <= set(names):
         raise StereoseedError(f"{path}: the vertex element has no x, y, z properties ({', '.join(names)})")
