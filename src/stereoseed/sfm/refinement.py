@@ -6,7 +6,7 @@ points; :func:`drop_outliers` removes the observations the adjusted model cannot
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -109,7 +109,9 @@ def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
     return recon.filter_observations(err > threshold)
 
 
-def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], int]:
+def global_adjust(recon: Reconstruction, cfg: Config,
+                  adjust_everything: Callable[[Reconstruction, Config, int], dict[str, Any] | None] | None = None
+                  ) -> tuple[dict[str, Any], int]:
     """Bundle-adjust every registered view (the pair fixed), drop the outliers, and again while
     the last round removed more than ``BundleConfig.negligible_drop`` of the observations (at
     most ``global_rounds``): the wrong observations left by drift hold the first solution away
@@ -117,11 +119,14 @@ def global_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], i
     ``BundleConfig.subset_above`` track-length² blocks) adjusts its cameras on the points of
     :func:`select_tracks` and then every other point with the cameras fixed. Returns (the last
     round's BA report with "rounds", "removed_per_round" and the first round's starting RMS
-    added, observations removed)."""
+    added, observations removed). adjust_everything(recon, cfg, round): one round's BA (its
+    report with "observations", None when there is nothing to adjust); a rig walk's holds the rig
+    (:func:`stereoseed.sfm.rig.global_rig_adjust`)."""
+    adjust_everything = adjust_everything or (lambda r, c, _: _adjust_everything(r, c))
     removed_per_round: list[int] = []
     rms_first = None
     while True:
-        ba = _adjust_everything(recon, cfg)
+        ba = adjust_everything(recon, cfg, len(removed_per_round))
         if ba is None:  # nothing registered past the pair: no BA, so nothing to judge by
             return ba_report(None), 0
         removed = drop_outliers(recon, cfg)

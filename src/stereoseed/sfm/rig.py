@@ -36,7 +36,7 @@ from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.sfm.modes import AccurateMode
 from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_matrix, predict_pose, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.refinement import drop_outliers
+from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
                                               _rival, chained_points)
 
@@ -277,17 +277,7 @@ class RigMode(AccurateMode):
 
 
 def global_rig_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], int]:
-    """Every station adjusted with the rig held, then the observations it cannot explain dropped,
-    again while a round drops more than ``BundleConfig.negligible_drop`` of them (at most
-    ``global_rounds``), as :func:`stereoseed.sfm.refinement.global_adjust` does. -> (the last
-    round's report with "rounds" and "removed_per_round", observations removed)."""
+    """:func:`stereoseed.sfm.refinement.global_adjust`'s rounds with every station adjusted with
+    the rig held (the rig refined in the first round with ``PipelineConfig.refine_rig``)."""
     stations = sorted({station_of(v) for v in recon.registered_views})
-    removed, report = [], None
-    for i in range(cfg.bundle.global_rounds):
-        report = rig_adjust(recon, stations, cfg, refine=cfg.pipeline.refine_rig and i == 0)
-        n = len(recon.obs_view)
-        removed.append(drop_outliers(recon, cfg))
-        if not n or removed[-1] <= cfg.bundle.negligible_drop * n:
-            break
-    final = {"skipped": True} if report is None else dict(report, rounds=len(removed), removed_per_round=removed)
-    return final, int(sum(removed))
+    return global_adjust(recon, cfg, lambda r, c, i: rig_adjust(r, stations, c, refine=c.pipeline.refine_rig and i == 0))
