@@ -11,7 +11,6 @@ first camera): a walk of a building and a walk of a statuette are judged alike.
 from __future__ import annotations
 
 import json
-import os
 import sys
 import tempfile
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from stereoseed.config import Config
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
@@ -36,7 +36,7 @@ SETS = {
 
 
 def data_dir() -> Path:
-    return Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
 
 
 def _walk(folder: Path, par: str, step: int) -> list[str]:

@@ -7,13 +7,13 @@ shot and from all of them (--rig), the flat board (`stereoseed intrinsics`).
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.calibration.config import CalibrationConfig
 from stereoseed.calibration.detection import detect_target
 from stereoseed.calibration.intrinsics import plane_coordinates, shared_face_boards
@@ -24,8 +24,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def _data() -> Path:
-    env = os.environ.get("STEREOSEED_DATA")
-    return Path(env).expanduser() if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
 
 
 def _k(K: np.ndarray) -> dict:

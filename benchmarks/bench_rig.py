@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.geometry.camera import Camera
+from stereoseed.estimators.rig_resection import Rig
 from stereoseed.geometry.projection import camera_center
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic.rig import RigConfig, render_rig
@@ -43,9 +43,8 @@ def _relative_pose_error(recon, rig) -> float:
         left, right = recon.views[2 * s], recon.views[2 * s + 1]
         if not (left.registered and right.registered):
             continue
-        (Rl, tl), (Rr, tr) = (Camera(v.P).krt[1:] for v in (left, right))
-        R_rl = Rr @ Rl.T
-        worst = max(worst, float(np.abs(R_rl - rig.R_rl).max()), float(np.abs(tr - R_rl @ tl - rig.t_rl).max()))
+        station = Rig.from_projections(left.P, right.P)
+        worst = max(worst, float(np.abs(station.R_rl - rig.R_rl).max()), float(np.abs(station.t_rl - rig.t_rl).max()))
     return worst
 
 

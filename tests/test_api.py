@@ -16,6 +16,8 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import read_calibration
 from stereoseed.synthetic.scene import write_scene
 
+from geometry_helpers import look_at_camera
+
 N_IMAGES = 5
 
 
@@ -131,14 +133,6 @@ def test_calibrate_from_typed_points_gives_the_true_cameras_and_a_calib_json(rin
         from_files.write_target(tmp_path / "t.json")
 
 
-def _look_at(centre, at):
-    z = (at - centre) / np.linalg.norm(at - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
 def test_calibrate_from_photos_of_the_synthetic_target(tmp_path):
     from stereoseed.calibration.printing import make_target
     from stereoseed.synthetic.target import load_target, render_target
@@ -149,7 +143,7 @@ def test_calibrate_from_photos_of_the_synthetic_target(tmp_path):
     at = np.array([-120.0, -120.0, -150.0])  # the 3-face target's middle, mm, in its own frame
     truth, photos = [], []
     for c, centre in enumerate((np.array([700.0, 500.0, 450.0]), np.array([500.0, 700.0, 420.0]))):
-        R, t = _look_at(centre, at)
+        _, R, t, _ = look_at_camera(centre, at)
         truth.append((K, R, t))
         photos.append(tmp_path / f"pair{c}.png")
         cv2.imwrite(str(photos[-1]), render_target(pages, K, R, t))

@@ -227,12 +227,9 @@ def test_another_mode_over_a_resolved_config_takes_that_modes_defaults():
 
 @pytest.fixture(scope="module")
 def ring_files(box_scene, tmp_path_factory):
-    from stereoseed.synthetic.scene import write_scene
+    from scene_helpers import scene_on_disk
 
-    scene = box_scene.prefix(4)
-    paths = write_scene(scene, tmp_path_factory.mktemp("ring"))
-    calib = paths["images_txt"].parent / "calib.json"
-    calib.write_text(json.dumps({"cameras": [{"P": P.tolist()} for P in scene.P[:2]]}))
+    paths, calib = scene_on_disk(box_scene.prefix(4), tmp_path_factory.mktemp("ring"))
     return paths["images_txt"], calib
 
 

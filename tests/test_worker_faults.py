@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from process_helpers import alive_in_group, wait_until
+from process_helpers import alive_in_group, children, wait_until
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
 from stereoseed.cluster import executor_for
@@ -52,19 +52,6 @@ def ring(tmp_path_factory, small_box_scene):
     return paths["images_txt"], calib
 
 
-def _children(pid: int) -> set[int]:
-    """Live (not zombie) child processes of pid, from /proc."""
-    found = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid and fields[0] != "Z":
-            found.add(int(stat.parent.name))
-    return found
-
-
 # --- a local pool's worker killed -------------------------------------------------------------
 def _dies_once(job: tuple) -> int:
     """k * k; but the first time it is run with ``dies``, its worker SIGKILLs itself (once: a
@@ -86,7 +73,7 @@ def _always_dies(k: int) -> int:
 
 
 def test_a_job_whose_worker_is_killed_is_run_again_and_the_results_are_right(tmp_path, caplog):
-    before = _children(os.getpid())
+    before = children(os.getpid())
     jobs = [(k, k in (2, 5), str(tmp_path / f"died{k}")) for k in range(8)]
     t = time.monotonic()
     with caplog.at_level("WARNING", logger="stereoseed"), executor_for(None, 2) as pool:
@@ -100,13 +87,13 @@ def test_a_job_whose_worker_is_killed_is_run_again_and_the_results_are_right(tmp
     assert all(d.startswith("a worker process died (killed by signal 9 (SIGKILL): out of memory?); running the ")
                for d in deaths)
     assert took < 15, f"{took:.1f} s"  # measured 0.4 s
-    assert wait_until(lambda: _children(os.getpid()) <= before, 5.0), "a worker outlived its pool"
+    assert wait_until(lambda: children(os.getpid()) <= before, 5.0), "a worker outlived its pool"
 
 
 def test_a_job_that_kills_its_worker_again_fails_with_one_line_and_the_others_go_on():
     """Every job is in the pool when the first death breaks it, and in the fresh pool when the
     second does: only the job whose worker died both times fails, the others run to the end."""
-    before = _children(os.getpid())
+    before = children(os.getpid())
     t = time.monotonic()
     with executor_for(None, 2) as pool:
         futures = [pool.submit(_always_dies, k) for k in range(6)]
@@ -121,7 +108,7 @@ def test_a_job_that_kills_its_worker_again_fails_with_one_line_and_the_others_go
                               "job 3 (_always_dies), for the second time; ")
     assert "fewer worker processes" in message
     assert took < 15, f"{took:.1f} s"  # measured 1.4 s
-    assert wait_until(lambda: _children(os.getpid()) <= before, 5.0), "a worker outlived its pool"
+    assert wait_until(lambda: children(os.getpid()) <= before, 5.0), "a worker outlived its pool"
 
 
 def test_a_pool_that_cannot_be_started_again_fails_its_jobs_with_one_line(tmp_path, monkeypatch):
@@ -220,7 +207,7 @@ def _first_worker(proc: subprocess.Popen) -> int | None:
     still has the command's line 50 ms after it was first seen."""
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline:
-        forked = [pid for pid in _children(proc.pid) if _cmdline(pid) == _cmdline(proc.pid)]
+        forked = [pid for pid in children(proc.pid) if _cmdline(pid) == _cmdline(proc.pid)]
         if forked:
             time.sleep(0.05)
             workers = [pid for pid in forked if _cmdline(pid) == _cmdline(proc.pid)]

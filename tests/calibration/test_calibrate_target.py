@@ -12,16 +12,10 @@ from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 from stereoseed.synthetic.target import load_target, render_target
 from stereoseed.calibration.printing import make_target
 
+from geometry_helpers import look_at_camera
+
 LENS = (-0.12, 0.03, 0.001, -0.0005)
 TARGET_AT = np.array([0.0, 0.0, 420.0])  # mm: the target's corner at the box's height
-
-
-def _look_at(centre, at):
-    z = (at - centre) / np.linalg.norm(at - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +30,8 @@ def photos(tmp_path_factory):
     for cam in (0, 1):
         K, R = scene.K[cam], scene.R[cam]
         t = scene.t[cam] * 1000.0 + R @ TARGET_AT
-        views = [(R, t)] + [_look_at(np.array([750 * np.cos(a), 750 * np.sin(a), 450.0]),
-                                     np.array([-140.0 + dx, -140.0 - dx, -170.0]))
+        views = [(R, t)] + [look_at_camera(np.array([750 * np.cos(a), 750 * np.sin(a), 450.0]),
+                                           np.array([-140.0 + dx, -140.0 - dx, -170.0]))[1:3]
                             for a, dx in ((np.radians(20 + 40 * cam), 130.0), (np.radians(40 + 40 * cam), -130.0))]
         files[cam] = []
         for k, (Rv, tv) in enumerate(views):
