@@ -8,7 +8,7 @@ import pytest
 from geometry_helpers import box_points, look_at_camera
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.lens import project_distorted
-from stereoseed.calibration.lens_calibration import calibrate_lens, read_lenses, read_opencv_intrinsics
+from stereoseed.calibration.lens_calibration import calibrate_lens, read_lenses, read_opencv_camera
 
 LENS = np.array([-0.12, 0.03, 0.001, -0.0005, 0.0])
 SIZE = (640, 480)
@@ -152,9 +152,9 @@ def test_calib_json_and_opencv_files_give_the_lens(tmp_path):
     fs.write("camera_matrix", K)
     fs.write("distortion_coefficients", LENS.reshape(1, 5))
     fs.release()
-    K2, d2 = read_opencv_intrinsics(tmp_path / "cam.yaml")
+    K2, d2, _ = read_opencv_camera(tmp_path / "cam.yaml")
     np.testing.assert_allclose(K2, K)
     np.testing.assert_allclose(d2, LENS)
     (tmp_path / "bad.yaml").write_text("%YAML:1.0\nfoo: 1\n")
     with pytest.raises(StereoseedError, match="camera_matrix"):
-        read_opencv_intrinsics(tmp_path / "bad.yaml")
+        read_opencv_camera(tmp_path / "bad.yaml")

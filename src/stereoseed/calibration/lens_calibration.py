@@ -26,7 +26,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.files import atomic_path
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
 
-__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_intrinsics", "read_opencv_camera",
+__all__ = ["LensCalibration", "Lens", "calibrate_lens", "read_lenses", "read_opencv_camera",
            "write_opencv_camera"]
 
 # a view whose pattern points reproject worse than this is reported: pixels typed or detected with
@@ -254,12 +254,6 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
                               f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
     size = (int(width), int(height)) if width > 0 and height > 0 else None
     return K, lens_coefficients(d[:5]), size
-
-
-def read_opencv_intrinsics(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(K (3, 3), distortion (5,)) from an OpenCV calibration file (:func:`read_opencv_camera`)."""
-    K, d, _ = read_opencv_camera(path)
-    return K, d
 
 
 def write_opencv_camera(path: str | Path, K: np.ndarray, distortion: np.ndarray, size: tuple[int, int],

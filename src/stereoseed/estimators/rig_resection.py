@@ -75,6 +75,8 @@ class Rig:
         R = self.R_rl
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
             raise StereoseedError("rig: R_rl is not a rotation (orthonormal, determinant +1); check the calibration")
+        # the RANSAC's and the BA's inner loops index the two Ks by side: stacked once
+        object.__setattr__(self, "_Ks", _read_only(np.stack([self.K_left, self.K_right])))
 
     @classmethod
     def from_projections(cls, P_left: np.ndarray, P_right: np.ndarray) -> Rig:
@@ -92,8 +94,8 @@ class Rig:
 
     @property
     def Ks(self) -> np.ndarray:
-        """(2, 3, 3): K_left, K_right, indexed by side."""
-        return np.stack([self.K_left, self.K_right])
+        """(2, 3, 3): K_left, K_right, indexed by side (read-only)."""
+        return self._Ks
 
     def right_pose(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The right camera's (R, t) at the station whose left camera is (R (3, 3), t (3,))."""

@@ -149,11 +149,12 @@ class RigRegistrar:
                                        f"reconstructed points", matches, n_pairs, kind=FailureKind.NO_CAMERA)
         mp = cfg.motion_prior
         counts = np.zeros(len(poses), np.int64)
+        cameras = [rig.projections(*pose) for pose in poses]  # each pose's (P_left, P_right)
         for sd, c in cands.items():
-            counts += explained_points(c.features, [rig.projections(*pose)[sd] for pose in poses],
+            counts += explained_points(c.features, [P[sd] for P in cameras],
                                        recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
         best = int(np.argmax(counts))
-        rival = _rival(recon, previous[-1], recent[0], [rig.projections(*pose)[0] for pose in poses], counts, best, cfg)
+        rival = _rival(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
         # the winner refitted on every pair of both images it explains, from all sets
         X, x, side = (np.concatenate(a) for a in zip(*pairs))
         err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)

@@ -220,8 +220,9 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
         data.append({"type": "scatter3d", "mode": "lines", "name": f"cameras: {group}", "x": rounded[0],
                      "y": rounded[1], "z": rounded[2], "text": texts, "line": {"color": colours[group], "width": 3},
                      "hovertemplate": "%{text}<extra></extra>"})
+    centres = np.array([camera_center(P) for _, _, P, _ in cams]).reshape(-1, 3)
     if rig:
-        centre_of = {i: camera_center(P) for i, _, P, _ in cams}
+        centre_of = {i: c for (i, _, _, _), c in zip(cams, centres)}
         xyz = [[], [], []]
         for i in sorted(centre_of):
             if i % 2 == 0 and i + 1 in centre_of:
@@ -231,7 +232,6 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
             data.append({"type": "scatter3d", "mode": "lines", "name": "stereo rig (each station)", "x": xyz[0],
                          "y": xyz[1], "z": xyz[2], "line": {"color": "#ffd700", "width": 6}, "hoverinfo": "none"})
     if cams:
-        centres = np.array([camera_center(P) for _, _, P, _ in cams])
         data.append({"type": "scatter3d", "mode": "markers", "name": "camera centres", "showlegend": False,
                      "x": _rounded(centres[:, 0], size), "y": _rounded(centres[:, 1], size),
                      "z": _rounded(centres[:, 2], size), "text": [f"{i}: {n}" for i, n, _, _ in cams],
