@@ -14,7 +14,6 @@ its faces. Each kept vertex takes the mean colour of its nearest cloud points.
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -27,7 +26,6 @@ import numpy as np
 
 from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import write_json
 from stereoseed.io.ply import read_dense_ply, write_ply
 
 __all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
@@ -286,19 +284,9 @@ def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lo
     folder has one: a staging folder gets its manifest when it is committed)."""
     from contextlib import nullcontext
 
-    from stereoseed.output.result_set import MANIFEST, ResultSet
+    from stereoseed.output.result_set import ResultSet, add_to_manifest
 
     with ResultSet(folder) if lock else nullcontext():
         write_mesh(target, mesh)
-        manifest = folder / MANIFEST
-        if not manifest.is_file():
-            return
-        try:
-            data = json.loads(manifest.read_text(encoding="utf-8"))
-            files = data["files"]
-        except (OSError, ValueError, KeyError, TypeError):
-            log.warning("%s: unreadable; the mesh is not listed in it", manifest)
-            return
-        if isinstance(files, list) and relative not in files:
-            data["files"] = sorted([*files, relative])
-            write_json(manifest, data)
+        if not add_to_manifest(folder, relative):
+            log.warning("%s: its manifest is unreadable; the mesh is not listed in it", folder)

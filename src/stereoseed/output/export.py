@@ -17,7 +17,6 @@ nearest zero-skew camera is written and a warning says by how much.
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import struct
@@ -32,6 +31,7 @@ from stereoseed.geometry.models import quaternion_from_rotation
 from stereoseed.io.colmap import COLMAP_MODELS
 from stereoseed.io.files import atomic_path, name_trouble, write_json, write_text
 from stereoseed.output.reader import Result
+from stereoseed.output.result_set import read_manifest
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST", "claim_folder",
            "record_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
@@ -49,11 +49,7 @@ EXPORT_MANIFEST = ".stereoseed-export.json"  # the files the exports wrote into 
 
 
 def _written_before(folder: Path) -> set[str]:
-    try:
-        files = json.loads((folder / EXPORT_MANIFEST).read_text(encoding="utf-8"))["files"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return set()
-    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
+    return read_manifest(folder / EXPORT_MANIFEST) or set()
 
 
 def claim_folder(folder: Path, force: bool) -> None:

@@ -148,11 +148,7 @@ class ResultSet:
     # ------------------------------------------------------------------ the folders
     def _listed(self) -> set[str] | None:
         """The files the previous result set's manifest lists, None without a manifest."""
-        try:
-            files = json.loads((self.path / MANIFEST).read_text())["files"]
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-        return {f for f in files if isinstance(f, str)} if isinstance(files, list) else None
+        return read_manifest(self.path / MANIFEST)
 
     def check(self) -> None:
         """Refuse, before any work: an output path that is a file, a folder holding files
@@ -243,6 +239,34 @@ class ResultSet:
         stereoseed made is removed."""
         if self._ours():
             shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def read_manifest(path: Path) -> set[str] | None:
+    """The files a manifest (ours: a result set's, an export's) lists; None when there is none
+    or it is not one."""
+    try:
+        files = json.loads(path.read_text(encoding="utf-8"))["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else None
+
+
+def add_to_manifest(folder: Path, relative: str) -> bool:
+    """List the file ``relative`` in ``folder``'s result-set manifest (when the folder has one: a
+    staging folder gets its manifest when it is committed), its other keys kept. False when the
+    manifest cannot be read (the file is then not listed). The caller holds the folder's lock."""
+    manifest = folder / MANIFEST
+    if not manifest.is_file():
+        return True
+    try:
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+        files = data["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    if isinstance(files, list) and relative not in files:
+        data["files"] = sorted([*files, relative])
+        write_json(manifest, data)
+    return True
 
 
 def _remove(path: Path) -> None:
