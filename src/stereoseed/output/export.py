@@ -35,7 +35,7 @@ from stereoseed.output.result_set import read_manifest
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST", "claim_folder",
            "record_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
-           "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px"]
+           "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px", "skew_warning"]
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +126,17 @@ def moved_px(K: np.ndarray, size: tuple[int, int], drop_skew: bool = True, one_f
     return float(np.max(np.linalg.norm(moved, axis=1)))
 
 
+def skew_warning(name: str, K: np.ndarray, size: tuple[int, int], written: str) -> str | None:
+    """Why the zero-skew camera written for ``K`` (3, 3) of an image of ``size`` is an
+    approximation (its pixels move by more than ``MAX_APPROXIMATION_PX``), or None. written: what
+    has no skew ("COLMAP model", "PINHOLE camera")."""
+    moved = moved_px(K, size)
+    if moved <= MAX_APPROXIMATION_PX:
+        return None
+    return (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no {written} has; the "
+            f"nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
+
+
 def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distortion: np.ndarray | None = None
                   ) -> tuple[str, list[float], np.ndarray, np.ndarray, str | None]:
     """COLMAP's view of camera P (3, 4) (ours) of an image of ``size`` (width, height): (model,
@@ -133,11 +144,7 @@ def colmap_camera(P: np.ndarray, size: tuple[int, int], name: str = "", distorti
     SIMPLE_PINHOLE when fx = fy, else PINHOLE; a skewed camera loses its skew, with a warning
     when that moves a pixel by more than ``MAX_APPROXIMATION_PX``."""
     K, R, t = Camera(P).krt
-    warning = None
-    moved = moved_px(K, size)
-    if moved > MAX_APPROXIMATION_PX:
-        warning = (f"{name}: the camera has skew {K[0, 1] / K[0, 0]:+.2e} (relative to f), which no COLMAP model "
-                   f"has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
+    warning = skew_warning(name, K, size, "COLMAP model")
     cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5
     if distortion is not None and np.any(distortion != 0):
         k1, k2, p1, p2, k3 = distortion

@@ -53,14 +53,13 @@ from stereoseed.io.files import (
 from stereoseed.io.ply import write_ply
 from stereoseed.io.sequence import header_size
 from stereoseed.output.export import (
-    MAX_APPROXIMATION_PX,
     point_ids,
     check_names,
     claim_folder,
     flagged_images,
     flagged_warnings,
     logged,
-    moved_px,
+    skew_warning,
     record_written,
     tracks_by_point,
     write_colmap_binary,
@@ -254,10 +253,7 @@ def pinhole_images(result: Result, cfg: HandoffConfig = HandoffConfig()) -> tupl
                 K, size, note = undistorted_frame(K_P, K_L, d, result.sizes[i], cfg, result.names[i])
             else:
                 K, size = _no_skew(K_P), result.sizes[i]
-                moved = moved_px(K_P, size)
-                note = None if moved <= MAX_APPROXIMATION_PX else (
-                    f"{result.names[i]}: the camera has skew {K_P[0, 1] / K_P[0, 0]:+.2e} (relative to f), which no "
-                    f"PINHOLE camera has; the nearest zero-skew camera is written (pixels move by up to {moved:.2f} px)")
+                note = skew_warning(result.names[i], K_P, size, "PINHOLE camera")
             groups.append((key, K, size))
             if note:
                 warnings.append(note)
