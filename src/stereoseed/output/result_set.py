@@ -24,7 +24,7 @@ try:  # POSIX; elsewhere runs on one folder are not kept apart
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-__all__ = ["MANIFEST", "STAGING_MARKER", "ResultSet"]
+__all__ = ["MANIFEST", "STAGING_MARKER", "ResultSet", "result_name", "staging_folder"]
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ class ResultSet:
         self.path = Path(os.path.realpath(path))
         if not self.path.name:
             raise StereoseedError(f"{self.shown}: is the root folder; give a folder for the results")
-        self.staging = self.path.parent / f".{self.path.name}.partial"
+        self.staging = staging_folder(self.path)
         self.lock_path = self.path.parent / f".{self.path.name}.lock"
         self._lock_fd: int | None = None
 
@@ -239,6 +239,22 @@ class ResultSet:
         stereoseed made is removed."""
         if self._ours():
             shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def staging_folder(path: Path) -> Path:
+    """Where the result set of ``path`` is written before it is swapped in: ``.NAME.partial`` beside it."""
+    return path.parent / f".{path.name}.partial"
+
+
+def result_name(folder: str | Path) -> str:
+    """The result folder's name: ``folder``'s, or for a staging folder (:func:`staging_folder`,
+    holding stereoseed's marker) the NAME it becomes."""
+    folder = Path(folder).resolve()
+    name = folder.name
+    if name.startswith(".") and name.endswith(".partial") and len(name) > len("..partial") \
+            and (folder / STAGING_MARKER).is_file():
+        return name[1:-len(".partial")]
+    return name
 
 
 def read_manifest(path: Path) -> set[str] | None:

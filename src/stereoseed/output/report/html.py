@@ -37,9 +37,9 @@ from stereoseed.io.atomic import jsonable, write_text
 from stereoseed.output.report.figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
                              _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
 from stereoseed.output.report.measure import MEASURE_SCRIPT, unit_label
-from stereoseed.output.result_set import STAGING_MARKER
+from stereoseed.output.result_set import result_name
 
-__all__ = ["write_report_html", "render_report_html", "result_name"]
+__all__ = ["write_report_html", "render_report_html"]
 
 log = logging.getLogger(__name__)
 MAX_MATCH_IMAGE_WIDTH = 1280  # px
@@ -341,21 +341,10 @@ def _plotly_js() -> str:
     return get_plotlyjs()
 
 
-def result_name(folder: str | Path) -> str:
-    """The result folder's name: ``folder``'s, or for a staging folder (``.NAME.partial`` holding
-    stereoseed's marker, :class:`~stereoseed.output.result_set.ResultSet`) the NAME it becomes."""
-    folder = Path(folder).resolve()
-    name = folder.name
-    if name.startswith(".") and name.endswith(".partial") and len(name) > len("..partial") \
-            and (folder / STAGING_MARKER).is_file():
-        return name[1:-len(".partial")]
-    return name
-
-
 def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, dense: Any = None,
                       source: Any = None, mesh: Any = None) -> Path:
     """Write ``out_dir/report.html``, one self-contained file (no network), atomically (a
-    temporary file in out_dir replaces it), titled by the result folder's name (:func:`result_name`).
+    temporary file in out_dir replaces it), titled by the result folder's name (:func:`stereoseed.output.result_set.result_name`).
     Returns its path.
 
     recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
