@@ -25,7 +25,9 @@ def test_castle_cameras_a_window_period_off_are_flagged():
     assert all("repeated structure" in flagged[n]["flag"] for n in ("0008.jpg", "0016.jpg"))
     # every camera more than 1 % of the distance off is flagged; the unflagged median within 0.2 %
     assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
-    assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] >= 14
+    # 17 of the 19 placed and unflagged (the pair's two and 15 estimated): 0018's rival camera,
+    # 1.2 m over, is told apart by the propagated matches' epipolar geometry
+    assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] >= 15
 
 
 def test_fountain_is_placed_to_a_tenth_of_a_percent():
@@ -41,7 +43,10 @@ def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
     assert r["registered"] == 12 and r["unflagged"]["count"] >= 8
     assert r["unflagged"]["median"] < 0.002 and r["unflagged"]["worst"] < 0.005
     third = _run("dinoRing1-24/3")
-    assert third["unflagged"]["count"] >= 5 and third["unflagged"]["median"] < 0.002
+    # every 3rd view: 0022, registered on quasi-dense matches 8 mm off, keeps 22 observations of
+    # points two other cameras see and is flagged weak
+    assert third["unflagged"]["count"] >= 4 and third["unflagged"]["median"] < 0.002
+    assert third["unflagged"]["worst"] < 0.005
 
 
 def test_dino_sparse_ring_and_temple_keep_their_millimetre():

@@ -60,6 +60,30 @@ def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
     assert np.sum(recon2.obs_view == bad) > 0
 
 
+def _weakly_tied_run(view: int, keep: int):
+    """A finished ring run whose ``view`` keeps only ``keep`` observations of points two other
+    cameras see (its other observations are of points only one other camera sees)."""
+    recon, Ps, source = _ring_run()
+    finish(recon, Config(), source)
+    observers = np.bincount(recon.obs_point, minlength=len(recon.points))
+    mine = np.flatnonzero(recon.obs_view == view)
+    tied = mine[observers[recon.obs_point[mine]] >= 3]
+    assert len(tied) > 2 * keep
+    recon.remove_observations(np.isin(np.arange(len(recon.obs_view)), tied[keep:]))
+    return recon
+
+
+def test_a_camera_too_few_points_tie_to_the_others_is_flagged_weak():
+    recon = _weakly_tied_run(7, 20)
+    out = assess(recon, Config())
+    name = recon.views[7].name
+    assert list(out["flagged"]) == [name] and out["flagged"][name].startswith("weak: only 20 of its observations")
+    assert "fewer than 24" in out["flagged"][name]  # the chain the motion prior trusts: 2 x 12 inliers
+    # the limit is the config's
+    recon = _weakly_tied_run(7, 20)
+    assert assess(recon, Config().replace(trust={"min_tied_observations": 20}))["flagged"] == {}
+
+
 def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     recon, Ps, source = _ring_run(5)
     recent = np.flatnonzero(recon.alive)

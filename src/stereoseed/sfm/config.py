@@ -326,11 +326,19 @@ class TrustConfig:
     # A camera whose 1-sigma position (its worst axis) exceeds max_position_sigma x its median
     # depth is not determined well enough to build on.
     max_position_sigma: float = 0.01
+    # After the final BA, a camera must be tied to the model by at least this many observations
+    # of points two other cameras also see (each pins it as a 3D-2D pair does; a two-view point
+    # only moves with it); fewer and the BA cannot check where its registration put it (a view
+    # registered on quasi-dense matches keeps only its sparse observations). None: the chain the
+    # motion prior trusts, MotionPriorConfig.trusted_chain_factor x ResectionConfig.min_inliers.
+    min_tied_observations: int | None = None
     # Keep flagged cameras' observations in the model and their images in the dense stage.
     keep_flagged: bool = False
 
     def __post_init__(self) -> None:
         in_range(self, "ambiguity_ratio", 0.0, 1.0)
         positive(self, "ambiguity_shift", "residual_factor", "max_position_sigma")
+        if self.min_tied_observations is not None:
+            whole(self, "min_tied_observations")
         if self.residual_floor_px < 0:
             raise ValueError(f"TrustConfig.residual_floor_px must be >= 0, got {self.residual_floor_px}")

@@ -6,7 +6,9 @@ knows then (the field's answer to "a clean report on a wrong result"):
   pair as the gauge);
 * its consistency: a camera whose observations reproject much worse than the other cameras'
   after the final BA is contradicted by them (a camera placed one period over on a repeated
-  pattern keeps residuals the model cannot explain away).
+  pattern keeps residuals the model cannot explain away);
+* its ties: a camera seeing too few points that other cameras also see is held where its
+  registration put it, unchecked by the final BA.
 
 A camera that fails either is *flagged*: it stays registered (its P is written) but ``reliable``
 is False with the reason, and, unless ``TrustConfig.keep_flagged``, its observations leave the
@@ -24,9 +26,10 @@ from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertain
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.rig import station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
-__all__ = ["camera_uncertainties", "contradicted_cameras", "assess"]
+__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit", "assess"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +75,32 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
             for v in views if v in rms and rms[v] > limit}
 
 
+def tied_observation_limit(cfg: Config) -> int:
+    """Observations of multi-view points a camera needs for the final BA to check it."""
+    tc = cfg.trust
+    if tc.min_tied_observations is not None:
+        return tc.min_tied_observations
+    return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
+
+
+def weakly_tied_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
+    """{view: reason} of the registered views after the pair with fewer than
+    :func:`tied_observation_limit` observations of live points that two other cameras also see.
+    A rig's station counts its two images' observations together (the rig holds them)."""
+    live = recon.alive[recon.obs_point]
+    observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
+    tied = live & (observers[recon.obs_point] >= 3)
+    group = station_of if recon.rig is not None else (lambda v: v)
+    per_view = np.bincount(recon.obs_view[tied], minlength=len(recon.views))
+    per_group: dict[int, int] = {}
+    for v in recon.registered_views:
+        per_group[group(v)] = per_group.get(group(v), 0) + int(per_view[v])
+    need = tied_observation_limit(cfg)
+    return {v: (f"weak: only {per_group[group(v)]} of its observations are of points two other cameras also "
+                f"see; the final BA cannot check its place with fewer than {need}")
+            for v in recon.registered_views if v not in CALIBRATED and per_group[group(v)] < need}
+
+
 def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
     if not u.determined:
         return f"uncertain: {u.reason}"
@@ -90,18 +119,21 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
     cfg = cfg.resolve()
     contradicted = contradicted_cameras(recon, cfg)
+    weak = weakly_tied_cameras(recon, cfg)
     uncertainties = camera_uncertainties(recon, cfg)
-    cameras, flagged = {}, {}
+    reasons = {}
     for v in recon.registered_views:
         view = recon.views[v]
         u = uncertainties.get(v)
         view.uncertainty = u
         # a flag from the registration (an ambiguous choice) stays; else the final evidence decides
-        reason = (view.registration_flag or contradicted.get(v)
-                  or (None if u is None else _uncertain(recon, v, u, cfg)))
-        if v in CALIBRATED:
-            reason = None
-        view.flag_reason = reason
+        reasons[v] = None if v in CALIBRATED else (view.registration_flag or contradicted.get(v) or weak.get(v)
+                                                   or (None if u is None else _uncertain(recon, v, u, cfg)))
+    cameras, flagged = {}, {}
+    for v in recon.registered_views:
+        view = recon.views[v]
+        u = view.uncertainty
+        reason = view.flag_reason = reasons[v]
         cameras[view.name] = {"reliable": view.reliable, "flag_reason": reason,
                               "uncertainty": None if u is None else u.summary()}
         if reason:
