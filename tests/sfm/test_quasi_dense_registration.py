@@ -1,16 +1,19 @@
 """Quasi-dense registration of weakly textured views (stereoseed.sfm.registration.quasi_dense)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from stereoseed.sfm import mapper
 from stereoseed.config import Config
 from stereoseed.experiments.evaluation import camera_errors
+from stereoseed.geometry.camera import Camera
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
 from stereoseed.sfm.registration.base import FoundBy
-from stereoseed.sfm.registration.quasi_dense import grid_best, reconsider, weak_chain_limit
+from stereoseed.sfm.registration.quasi_dense import grid_best, judge_ambiguity, reconsider, weak_chain_limit
 from stereoseed.sfm.registration.base import RegistrationFailure, register_view
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 
@@ -61,6 +64,31 @@ def test_reconsider_changes_nothing(faint_scene):
         assert (a[0] is None and b[0] is None) or np.array_equal(a[0], b[0])
         assert a[1] is b[1] and np.array_equal(a[2], b[2])
     assert not isinstance(found, RegistrationFailure)
+
+
+def _moved(P: np.ndarray, along_x: float) -> np.ndarray:
+    """Camera P (3, 4) with its centre moved ``along_x`` along its own x axis (the walk's way)."""
+    cam = Camera(P)
+    return cam.K @ np.hstack([cam.R, -(cam.R @ (cam.centre + along_x * cam.R[0]))[:, None]])
+
+
+def test_an_ambiguous_choice_is_lifted_only_when_the_propagated_matches_tell_the_rivals_apart(faint_scene):
+    scene = faint_scene
+    cfg = Config().resolve()
+    recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], cfg)
+    found = register_view(recon, 2, cfg)
+    assert not isinstance(found, RegistrationFailure)
+    flag = "ambiguous: repeated structure (as if a rival explained nearly as much)"
+    # a rival one 'period' (5 cm, 3.5 % of the 1.4 m distance) along the walk: the matches
+    # propagated over the whole overlap lie far from its epipolar lines, the flag goes
+    period = dataclasses.replace(found, rivals=(_moved(found.P, 0.05),), notes={"flag": flag})
+    judged = judge_ambiguity(recon, 1, period, cfg)
+    assert "flag" not in judged.notes and "ambiguity_resolved" in judged.notes
+    assert np.array_equal(judged.P, found.P)  # the choice itself never changes
+    # a rival 0.1 mm away agrees with them as well as the winner: the flag stays, with the evidence
+    twin = dataclasses.replace(found, rivals=(_moved(found.P, 1e-4),), notes={"flag": flag})
+    judged = judge_ambiguity(recon, 1, twin, cfg)
+    assert judged.notes["flag"] == flag and judged.notes["ambiguity"].startswith("unresolved: the propagated")
 
 
 def test_dino_weak_views_registered_by_quasi_dense(dino_dir):

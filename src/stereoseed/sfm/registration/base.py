@@ -99,6 +99,8 @@ class Registration:
     # (:class:`stereoseed.sfm.registration.quasi_dense.QuasiDenseMatches`); the report of the attempt
     quasi_dense: Any = None
     notes: dict[str, Any] = field(default_factory=dict)
+    # an ambiguous choice (notes["flag"]): the rival cameras (3, 4) that explain nearly as much
+    rivals: tuple[np.ndarray, ...] = ()
 
     @property
     def P(self) -> np.ndarray:
@@ -175,26 +177,39 @@ class _Resected:
     found_by: FoundBy
     hypothesis: Hypothesis | None = None
     flag: str | None = None
+    rivals: tuple[np.ndarray, ...] = ()  # the cameras (3, 4) that make it ambiguous
 
 
-def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
-           best: int, cfg: Config) -> str | None:
-    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous, or None: another camera
-    explains at least ``TrustConfig.ambiguity_ratio`` of its recent points (``counts``) while
-    its centre stands farther than ``ambiguity_shift`` x the recent points' depth from it."""
+def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
+            best: int, cfg: Config) -> list[tuple[int, float, float]]:
+    """The cameras that make the winner ``best`` of competing cameras (3, 4) ambiguous, as
+    (index, distance from the winner, the recent points' depth): each explains at least
+    ``TrustConfig.ambiguity_ratio`` of its recent points (``counts``) while its centre stands
+    farther than ``ambiguity_shift`` x that depth from it."""
     tc = cfg.trust
     if counts[best] == 0:
-        return None
+        return []
     depth = float(np.median(depths(recon.views[prev].P, recon.points[recent]))) if len(recent) else np.inf
     centre = camera_center(cameras[best])
+    found = []
     for j, P in enumerate(cameras):
         if j == best or counts[j] < tc.ambiguity_ratio * counts[best]:
             continue
         apart = float(np.linalg.norm(camera_center(P) - centre))
         if apart > tc.ambiguity_shift * depth:
-            return (f"the best camera explains {counts[best]} recent points, another {apart:.3g} away "
-                    f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]}")
-    return None
+            found.append((j, apart, depth))
+    return found
+
+
+def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
+           best: int, cfg: Config) -> str | None:
+    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous (:func:`_rivals`), or None."""
+    rivals = _rivals(recon, prev, recent, cameras, counts, best, cfg)
+    if not rivals:
+        return None
+    j, apart, depth = rivals[0]
+    return (f"the best camera explains {counts[best]} recent points, another {apart:.3g} away "
+            f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]}")
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -333,7 +348,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
         return RegistrationFailure(found.reason, n_matches, n_chained, seconds, cand, kind=found.kind)
     notes = {"flag": found.flag} if found.flag else {}
     return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
-                        seconds, notes=notes)
+                        seconds, notes=notes, rivals=found.rivals)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
@@ -359,7 +374,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
                                   or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
             return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
-    chosen, explained, rival = None, 0, None
+    chosen, explained, rival, rivals = None, 0, None, ()
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
@@ -378,14 +393,16 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         best = int(np.argmax(counts))  # ties: the first (the epipolar chain's, the nearest search's)
         if chosen is None or (counts[best] > 0 and counts[best] >= mp.wider_search_margin * explained):
             chosen, explained = cameras[best], counts[best]
-            rival = _rival(recon, prev, recent[0], [c[0][0].P for c in cameras], counts, best, cfg)
+            Ps = [c[0][0].P for c in cameras]
+            rival = _rival(recon, prev, recent[0], Ps, counts, best, cfg)
+            rivals = tuple(Ps[j] for j, _, _ in _rivals(recon, prev, recent[0], Ps, counts, best, cfg))
             # the winner first, then the cameras explaining nearly as much
     if chosen is not None:
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
         # a repeated pattern: another camera, a period away, explains nearly as much. The best
         # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
         flag = f"ambiguous: repeated structure ({rival})" if rival is not None else None
-        return _Resected(*chosen[0], found_by, chosen[1], flag)
+        return _Resected(*chosen[0], found_by, chosen[1], flag, rivals if flag else ())
     if error:
         return _Failed(error, FailureKind.NO_CAMERA)
     return _Failed(f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
