@@ -34,7 +34,7 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.estimators.rig_resection import Rig
 from stereoseed.io.sequence import ImageSequence
-from stereoseed.io.video import read_keyframes
+from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.report.html import write_report_html
 from stereoseed.output.result_set import ResultSet
 from stereoseed.output.results import write_result
@@ -294,7 +294,8 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     if rig_right is None:
         entries, names = _sequence_entries(sources, video, keyframes_to)
     else:
-        entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right))
+        entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right),
+                                      video, keyframes_to)
     if len(entries) < 2:
         raise StereoseedError(f"{' '.join(map(str, sources))}: {len(entries)} image(s); the calibrated pair needs two")
     rig = rig_right is not None
@@ -331,16 +332,24 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     return images, names, P_pair
 
 
-def _rig_entries(left: list, right: list) -> tuple[list, list[str]]:
+def _rig_entries(left: list, right: list, video: VideoConfig = VideoConfig(),
+                 keyframes_to: str | Path | None = None) -> tuple[list, list[str]]:
     """The paths of a rig's two image sources interleaved (left, right, left, ...) and their
-    names; names the two sides share get their folder's name in front (cam0_0001.png)."""
+    names; names the two sides share get their folder's name in front (cam0_0001.png). Two
+    videos (one per side, filmed together) stand for their keyframes, chosen on the left one,
+    their first frames the first station (:func:`stereoseed.io.video.read_rig_keyframes`)."""
+    is_video = [len(side) == 1 and Path(side[0]).suffix.lower() in VIDEO_EXTENSIONS for side in (left, right)]
+    if all(is_video):
+        lefts, rights = read_rig_keyframes(left[0], right[0], video, keyframes_to)
+        return ([k.entry for pair in zip(lefts, rights) for k in pair],
+                [k.name for pair in zip(lefts, rights) for k in pair])
     sides = []
     for sources in (left, right):
         paths: list[Path] = []
         for source in map(Path, sources):
             if source.suffix.lower() in VIDEO_EXTENSIONS:
-                raise StereoseedError(f"{source}: --rig takes two folders or lists of images (a video's keyframes "
-                                      f"are not chosen in step with another video's); extract the frames first")
+                raise StereoseedError(f"{source}: --rig takes two folders or lists of images, or two videos (one for "
+                                      f"each camera), not a video beside images")
             paths.extend([source] if source.is_file() and source.suffix.lower() in IMAGE_EXTENSIONS
                          else list_images(source))
         for path in paths:

@@ -211,3 +211,21 @@ def test_points_seen_from_one_camera_are_skipped():
                          problem.model, problem.reference_K)
     for a, b in zip(camera_uncertainty(problem, 0.5)[2:], camera_uncertainty(more, 0.5)[2:]):
         np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-9, atol=1e-15)
+
+
+def test_cameras_moved_together_share_their_group_s_covariance():
+    problem = _scene(np.random.default_rng(5), model="fixed", noise=0.3)
+    n = len(problem.Ps)
+    alone = camera_uncertainty(problem)
+    eye = np.repeat(np.eye(6)[None], n, axis=0)
+    own = camera_uncertainty(problem, groups=(np.arange(n), eye))  # one group per camera: no change
+    for a, b in zip(alone[2:], own[2:]):
+        np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-9)
+    # cameras 3 and 4 as one body whose pose increment moves both alike (A = I; their own
+    # residuals then disagree, as a rig's would not, but the algebra is the point): one
+    # covariance for both, tighter than either alone (the pair's evidence adds up)
+    together = camera_uncertainty(problem, groups=(np.array([0, 1, 2, 3, 3]), eye))
+    np.testing.assert_allclose(together[3].covariance, together[4].covariance, rtol=1e-12)
+    for c in (3, 4):
+        assert np.all(np.diag(together[c].covariance) / together[c].sigma_px ** 2
+                      < np.diag(alone[c].covariance) / alone[c].sigma_px ** 2)

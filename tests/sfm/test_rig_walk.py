@@ -13,6 +13,7 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import write_json
 from stereoseed.pipeline import reconstruct
+from stereoseed.sfm.trust import assess
 from stereoseed.synthetic.rig import RigConfig, render_rig
 from stereoseed.synthetic.scene import SceneConfig
 
@@ -54,6 +55,25 @@ def test_the_scale_holds_along_the_walk(rig_scene, rig_run):
     assert abs(est / true - 1) < 0.002
 
 
+def test_each_station_has_one_uncertainty_and_one_flag(rig_scene, rig_run):
+    recon, _ = rig_run
+    s = rig_scene.scene
+    for v in range(2, len(recon.views)):  # the rig held: the right camera is as determined as its left one
+        u = recon.views[v].uncertainty
+        assert u is not None and u.determined, (v, u and u.reason)
+        err = recon.views[v].R @ (camera_center(recon.views[v].P) - camera_center(s.P[v]))
+        assert np.all(np.abs(err) < 5 * u.position_sigma + 1e-6), (v, err, u.position_sigma)
+    # the station's pose carries both: the right camera's sigma follows the left one's
+    left, right = recon.views[4].uncertainty, recon.views[5].uncertainty
+    assert np.linalg.norm(left.position_sigma - right.position_sigma) < 0.2 * np.linalg.norm(left.position_sigma)
+    # what flags one image of a station flags its partner (one rigid body)
+    again, _ = reconstruct(s.images[:6], s.names[:6], s.P[:2], Config(), rig=True)
+    again.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    out = assess(again, Config().replace(trust={"keep_flagged": True}))
+    assert set(out["flagged"]) == {s.names[4], s.names[5]}
+    assert out["flagged"][s.names[5]].endswith(f"(its station's {s.names[4]})")
+
+
 def _write_rig(rig_scene, folder, stations=None):
     s = rig_scene.scene
     n = rig_scene.stations if stations is None else stations
@@ -87,6 +107,52 @@ def test_a_rig_of_unequal_sides_is_refused_in_one_line(rig_scene, tmp_path, caps
     assert main(["reconstruct", "--rig", str(left), "--calib", str(calib), "--out", str(tmp_path / "out2"),
                  "--quiet"]) == 2
     assert "two image sources" in capsys.readouterr().err
+
+
+def _write_rig_videos(folder, frames_right=None):
+    """A rig filmed: 30 stations 3 degrees apart as two MJPG videos (left.avi, right.avi; the
+    right one cut to ``frames_right`` frames) and the first station's calibration."""
+    view = replace(SceneConfig(), width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1,
+                   pose_jitter=False)
+    scene = render_rig(RigConfig(stations=30, step_deg=3.0, noise_sigma=1.0, view=view)).scene
+    folder.mkdir(parents=True, exist_ok=True)
+    for side, name in ((0, "left"), (1, "right")):
+        writer = cv2.VideoWriter(str(folder / f"{name}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (320, 240))
+        for k in range(30 if side == 0 or frames_right is None else frames_right):
+            writer.write(scene.images[2 * k + side])
+        writer.release()
+    write_json(folder / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
+    return folder / "left.avi", folder / "right.avi", folder / "calib.json", scene
+
+
+def test_a_rig_filmed_on_two_videos_is_walked_from_the_same_frames(tmp_path):
+    left, right, calib, scene = _write_rig_videos(tmp_path / "films")
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--rig", str(left), str(right), "--calib", str(calib), "--out", str(out),
+                 "--quiet"]) == 0
+    cams = json.loads((out / "cameras.json").read_text())["images"]
+    frames = [int(c["name"].split("_")[1].split(".")[0]) for c in cams]
+    # the first station is the calibrated first frames; every station's two images one frame
+    assert frames[:2] == [0, 0] and frames[0::2] == frames[1::2] and len(cams) >= 6
+    assert [c["side"] for c in cams] == ["left", "right"] * (len(cams) // 2)
+    assert all(c["registered"] and c["reliable"] for c in cams)
+    for c, frame in zip(cams, frames):  # each against the rendered camera of its frame and side
+        truth = scene.P[2 * frame + (c["side"] == "right")]
+        assert np.linalg.norm(camera_center(np.array(c["P"])) - camera_center(truth)) < 0.006, c["name"]
+    assert sorted(p.name for p in (out / "keyframes").iterdir()) == sorted(c["name"] for c in cams)
+
+
+def test_two_videos_of_unequal_length_or_a_video_beside_images_are_refused(rig_scene, tmp_path, capsys):
+    left, right, calib, _ = _write_rig_videos(tmp_path / "films", frames_right=20)
+    assert main(["reconstruct", "--rig", str(left), str(right), "--calib", str(calib), "--out",
+                 str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "30 frames" in err[0] and "20" in err[0] and "together" in err[0]
+    images, _, _ = _write_rig(rig_scene, tmp_path / "walk", stations=2)
+    assert main(["reconstruct", "--rig", str(left), str(images), "--calib", str(calib), "--out",
+                 str(tmp_path / "out2"), "--quiet"]) == 2
+    assert "two videos" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out2").exists()
 
 
 def test_refine_rig_recovers_a_rig_calibrated_slightly_wrong(rig_scene):

@@ -54,8 +54,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     images, right = args.images, None
     if args.rig:
         if len(args.images) != 2:
-            raise StereoseedError(f"--rig takes two image sources, the left camera's then the right one's (a folder or "
-                                  f"a list file each); got {len(args.images)}")
+            raise StereoseedError(f"--rig takes two image sources, the left camera's then the right one's (a folder, "
+                                  f"a list file or a video each); got {len(args.images)}")
         images, right = args.images
     say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
@@ -176,8 +176,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mesh", action="store_true",
                    help="also mesh the dense cloud into mesh.ply (with --dense; pip install 'stereoseed[mesh]')")
     p.add_argument("--rig", action="store_true",
-                   help="a stereo rig walked with both cameras: IMAGES is the left camera's folder (or list) then the "
-                        "right camera's, image k of each taken together; the calibrated pair is the first station")
+                   help="a stereo rig walked with both cameras: IMAGES is the left camera's folder (or list, or video) "
+                        "then the right camera's, image (frame) k of each taken together; the calibrated pair is the "
+                        "first station")
     _add_run_options(p)
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run into the same --out from its checkpoint (same result as an "

@@ -198,13 +198,34 @@ def _inverse_camera_blocks(S: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
     return blocks, determined, worst, n_weak
 
 
-def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None) -> list[CameraUncertainty | None]:
+def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: np.ndarray, A: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """:func:`_inverse_camera_blocks` for cameras whose parameters are A_c @ (their group's), S
+    the free cameras' reduced system (nC n, nC n): the groups' system T^T S T inverted, mapped
+    back to each camera (a camera is determined when its group is). Also returns the number
+    of groups."""
+    nC = len(free_cams)
+    ids, slot = np.unique(np.asarray(group)[free_cams], return_inverse=True)
+    T = np.zeros((nC * n, len(ids) * n))
+    for i, c in enumerate(free_cams):
+        T[i * n:(i + 1) * n, slot[i] * n:(slot[i] + 1) * n] = A[c]
+    g_blocks, g_determined, g_worst, n_weak = _inverse_camera_blocks(T.T @ S @ T, n)
+    blocks = np.einsum("cij,cjk,clk->cil", A[free_cams], g_blocks[slot], A[free_cams])
+    return blocks, g_determined[slot], g_worst[slot], n_weak, len(ids)
+
+
+def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
+                       groups: tuple[np.ndarray, np.ndarray] | None = None) -> list[CameraUncertainty | None]:
     """The uncertainty of every free camera of ``problem`` at its solution (a converged
     :func:`stereoseed.estimators.bundle.bundle_adjust`'s cameras and points).
 
     sigma_px: the pixel noise (1 sigma, px, per image coordinate); None: estimated from the
     residuals, RSS / (2 n_obs - n_params) over the observations that enter the normal equations
     (meaningful at the solution: at the truth the RSS is not reduced by the fit).
+    groups: cameras moved together by shared parameters (a stereo rig's stations: one pose per
+    station, the rig held): (group (C,) int per camera of ``problem.Ps``, A (C, n, n): the camera's
+    parameter increment = A @ its group's). The normal equations are then those of the groups'
+    parameters (T^T S T) and each camera's covariance A Sigma_group A^T.
     Returns one entry per camera of ``problem.Ps`` (C,): None for a fixed camera, else a
     :class:`CameraUncertainty` (undetermined ones with infinite sigmas and a reason). Free
     cameras are first put in the model's family, as the BA does.
@@ -285,12 +306,16 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None) ->
     for i in range(nC):
         S[i * n:(i + 1) * n, i * n:(i + 1) * n] += U[i]
     t_built = time.perf_counter()
-    blocks, determined, worst, n_weak = _inverse_camera_blocks(S, n)
+    if groups is None:
+        blocks, determined, worst, n_weak = _inverse_camera_blocks(S, n)
+        n_blocks = nC
+    else:
+        blocks, determined, worst, n_weak, n_blocks = _grouped_camera_blocks(S, n, free_cams, *groups)
 
     # The degrees of freedom: residuals minus the rank of J (the cameras' weak directions are
     # parameters the residuals do not see; every point kept has an invertible block).
     n_obs = len(oc_k)
-    n_unknowns = nC * n - n_weak + 3 * len(pts)
+    n_unknowns = n_blocks * n - n_weak + 3 * len(pts)
     dof = 2 * n_obs - n_unknowns
     if sigma_px is not None:
         sigma = float(sigma_px)

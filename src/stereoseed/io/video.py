@@ -23,7 +23,7 @@ from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import _decoder_detail, captured_stderr, write_image
 
-__all__ = ["Keyframe", "read_keyframes", "sharpness"]
+__all__ = ["Keyframe", "read_keyframes", "read_rig_keyframes", "sharpness"]
 
 log = logging.getLogger(__name__)
 
@@ -84,20 +84,53 @@ class _Tracker:
         return float(np.median(motion)), float(self.alive.mean())
 
 
-def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None
-                   ) -> list[Keyframe]:
+def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None,
+                   first: bool = False, name_prefix: str = "") -> list[Keyframe]:
     """The keyframes of the video at ``path``, in order (see the module's docstring). With
     ``save_to`` (a folder), each is written there as a PNG when chosen and only its file is
-    kept: a long walk's keyframes never sit in memory together.
+    kept: a long walk's keyframes never sit in memory together. ``first``: the first frame is a
+    keyframe too (a rig's first station); ``name_prefix``: put before each keyframe's name.
 
     Raises :class:`StereoseedError` when the video cannot be opened or decoded, or gives no
     keyframe (the camera did not move)."""
-    path = Path(path)
+    return _read(Path(path), lambda p, said: _keyframes(p, cfg, save_to, said, first, name_prefix))
+
+
+def read_rig_keyframes(left: str | Path, right: str | Path, cfg: VideoConfig = VideoConfig(),
+                       save_to: str | Path | None = None) -> tuple[list[Keyframe], list[Keyframe]]:
+    """A stereo rig's two videos, filmed together (frame k of each at the same moment): the
+    keyframes chosen on the left video, its first frame included (the calibrated first
+    station), and the right video's frames of the same indices. Raises
+    :class:`StereoseedError` when the two videos differ in length, or as :func:`read_keyframes`."""
+    left, right = Path(left), Path(right)
+    counts = [_announced(p) for p in (left, right)]
+    if min(counts) > 0 and abs(counts[0] - counts[1]) > 1:  # a frame's slack: containers round their count
+        raise StereoseedError(f"{left}: {counts[0]} frames, but {right}: {counts[1]}; a rig's two videos are filmed "
+                              f"together (frame k of each at the same moment): trim them to the same start and length")
+    prefixes = ("left_", "right_") if left.stem == right.stem else ("", "")
+    lefts = read_keyframes(left, cfg, save_to, first=True, name_prefix=prefixes[0])
+    indices = [k.index for k in lefts]
+    rights = _read(right, lambda p, said: _frames_at(p, indices, save_to, said, prefixes[1]))
+    return lefts, rights
+
+
+def _announced(path: Path) -> int:
+    """The frames the container of ``path`` announces (0: unknown, or it cannot be opened)."""
+    capture = _Quiet(path, [])
+    try:
+        return max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)) if capture.isOpened() else 0
+    finally:
+        capture.release()
+
+
+def _read(path: Path, read) -> list[Keyframe]:
+    """``read(path, said)`` -> (keyframes, frames decoded, frames announced), the decoder's words
+    kept off the terminal and added to an error, a damaged video said."""
     if not path.is_file():
         raise StereoseedError(f"{path}: video not found")
     said: list[str] = []  # what FFmpeg and OpenCV wrote while reading (kept off the terminal)
     try:
-        keyframes, frames, announced = _keyframes(path, cfg, save_to, said)
+        keyframes, frames, announced = read(path, said)
     except StereoseedError as e:
         detail = _decoder_detail("".join(said), None)
         raise StereoseedError(f"{e}" + (f" (the decoder said: {detail})" if detail else "")) from None
@@ -141,14 +174,46 @@ class _Quiet:
         self._call(self.capture.release)
 
 
-def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: list[str]
-               ) -> tuple[list[Keyframe], int, int]:
-    """(the keyframes, the number of frames decoded, the number the container announces (0:
-    unknown)); what the decoder said is added to ``said``."""
+def _opened(path: Path, said: list[str]) -> _Quiet:
     capture = _Quiet(path, said)
     if not capture.isOpened():
         raise StereoseedError(f"{path}: OpenCV cannot open this video (codec or container not supported); "
                               f"extract its frames into a folder (e.g. ffmpeg -i {path.name} frames/%04d.png)")
+    return capture
+
+
+def _kept(path: Path, index: int, frame: np.ndarray, save_to: str | Path | None, prefix: str) -> Keyframe:
+    name = f"{prefix}{path.stem}_{index:06d}.png"
+    if save_to is None:
+        return Keyframe(index, name, frame)
+    return Keyframe(index, name, path=write_image(Path(save_to) / name, frame))
+
+
+def _frames_at(path: Path, indices: list[int], save_to: str | Path | None, said: list[str], prefix: str
+               ) -> tuple[list[Keyframe], int, int]:
+    """The frames of ``indices`` (increasing), as :func:`_keyframes` returns its keyframes (the
+    frames after the last are not read, so none are announced)."""
+    capture = _opened(path, said)
+    wanted, kept, index = set(indices), [], -1
+    try:
+        while len(kept) < len(indices):
+            ok, frame = capture.read()
+            if not ok:
+                raise StereoseedError(f"{path}: {index + 1} frames, but its rig partner's keyframe {indices[len(kept)]} "
+                                      f"needs more; a rig's two videos are filmed together (frame k of each)")
+            index += 1
+            if index in wanted:
+                kept.append(_kept(path, index, frame, save_to, prefix))
+    finally:
+        capture.release()
+    return kept, index + 1, 0
+
+
+def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: list[str], first: bool = False,
+               prefix: str = "") -> tuple[list[Keyframe], int, int]:
+    """(the keyframes, the number of frames decoded, the number the container announces (0:
+    unknown)); what the decoder said is added to ``said``."""
+    capture = _opened(path, said)
     keyframes: list[Keyframe] = []
     announced = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
     try:
@@ -164,12 +229,10 @@ def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: l
 
         def keep_sharpest(candidates: list[tuple[float, int, np.ndarray]]) -> None:
             _, best_index, best = max(candidates, key=lambda c: c[0])
-            name = f"{path.stem}_{best_index:06d}.png"
-            if save_to is None:
-                keyframes.append(Keyframe(best_index, name, best))
-            else:
-                keyframes.append(Keyframe(best_index, name, path=write_image(Path(save_to) / name, best)))
+            keyframes.append(_kept(path, best_index, best, save_to, prefix))
 
+        if first:
+            keyframes.append(_kept(path, 0, frame, save_to, prefix))
         tracker = _Tracker(small_gray(frame), cfg)
         candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
         index = 0
@@ -192,7 +255,7 @@ def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: l
             keep_sharpest(candidates)
     finally:
         capture.release()
-    if not keyframes:
+    if len(keyframes) <= first:
         raise StereoseedError(f"{path}: {index + 1} frames but no keyframe: the camera did not move by "
                               f"{100 * cfg.keyframe_motion:.0f} % of the image width")
     return keyframes, index + 1, announced

@@ -26,7 +26,7 @@ from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertain
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.rig import station_of
+from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
 __all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit", "assess"]
@@ -36,14 +36,27 @@ log = logging.getLogger(__name__)
 
 def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
     """{view: its uncertainty} for every registered view after the pair, from the normal
-    equations of all registered views (the pair fixed) and every live point."""
+    equations of all registered views (the pair fixed) and every live point; a rig walk's with
+    one pose per station (the rig held, as its bundle adjustment holds it)."""
     # the model the final BA used (the accurate mode holds the calibrated intrinsics when no image zoomed)
     built = bundle_problem(recon, mode_of(cfg, recon).adjustment_config(recon, cfg), recon.registered_views)
     if built is None:
         return {}
     problem, cams, _ = built
-    found = camera_uncertainty(problem)
+    found = camera_uncertainty(problem, groups=None if recon.rig is None else _stations(recon, cams))
     return {int(v): u for v, u in zip(cams, found) if u is not None}
+
+
+def _stations(recon: Reconstruction, cams: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A rig walk's cameras ``cams`` (C,) grouped by station for :func:`camera_uncertainty`: one
+    pose per station, the left camera's; the right camera's rotation increment about its own
+    axes is R_rl w and its translation's R_rl dt (R_r = R_rl R_l, t_r = R_rl t_l + t_rl), the
+    rig's intrinsics held (the "fixed" model)."""
+    R_rl = recon.rig.R_rl
+    right = np.zeros((6, 6))
+    right[:3, :3] = right[3:, 3:] = R_rl
+    A = np.stack([right if side_of(int(v)) else np.eye(6) for v in cams])
+    return np.array([station_of(int(v)) for v in cams]), A
 
 
 def _median_depth(recon: Reconstruction, view: int) -> float:
@@ -129,6 +142,11 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         # a flag from the registration (an ambiguous choice) stays; else the final evidence decides
         reasons[v] = None if v in CALIBRATED else (view.registration_flag or contradicted.get(v) or weak.get(v)
                                                    or (None if u is None else _uncertain(recon, v, u, cfg)))
+    if recon.rig is not None:  # a station is one rigid body: what places one of its images wrongly, places both
+        for v in recon.registered_views:
+            partner = v + 1 - 2 * side_of(v)
+            if reasons[v] is None and reasons.get(partner):
+                reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
     cameras, flagged = {}, {}
     for v in recon.registered_views:
         view = recon.views[v]
