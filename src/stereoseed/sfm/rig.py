@@ -18,6 +18,7 @@ The scale is the rig's baseline at every station: it cannot drift along the walk
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -38,7 +39,8 @@ from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
-                                              _rival, chained_points)
+                                              _rival, _rivals, chained_points)
+from stereoseed.sfm.registration.quasi_dense import judge_ambiguity
 
 __all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
 
@@ -154,7 +156,8 @@ class RigRegistrar:
             counts += explained_points(c.features, [P[sd] for P in cameras],
                                        recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
         best = int(np.argmax(counts))
-        rival = _rival(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
+        lefts = [P[0] for P in cameras]
+        rival = _rival(recon, previous[-1], recent[0], lefts, counts, best, cfg)
         # the winner refitted on every pair of both images it explains, from all sets
         X, x, side = (np.concatenate(a) for a in zip(*pairs))
         err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)
@@ -166,6 +169,12 @@ class RigRegistrar:
         reg = _registration(cand, res.projections()[side_of(k)], (res, matches, n_pairs), t0)
         if rival is not None:
             reg.notes["flag"] = f"ambiguous: repeated structure ({rival})"
+            # judged as a single camera's choice is, on this image and the previous station's of its side
+            rivals = _rivals(recon, previous[-1], recent[0], lefts, counts, best, cfg)
+            reg = dataclasses.replace(reg, rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
+            if cfg.quasi_dense.enabled:
+                same_side = next((v for v in previous if side_of(v) == side_of(k)), previous[-1])
+                reg = judge_ambiguity(recon, same_side, reg, cfg, source)
         return reg
 
 
