@@ -5,7 +5,7 @@ Per scene: every image registered or not, the mean camera-centre error of the ri
 images after the first station (the images both runs place), each station's relative pose against
 the calibrated rig, the scale over the walk (the first and last stations' distance against the
 truth) and the time per station against the time per single-camera insertion (whole runs, after
-a warm-up). The calibrated pair is the true first station, as the other synthetic benchmarks take
+a warm-up, the fastest of three each). The calibrated pair is the true first station, as the other synthetic benchmarks take
 the true pair.
 
     python benchmarks/bench_rig.py      # prints the JSON
@@ -48,17 +48,24 @@ def _relative_pose_error(recon, rig) -> float:
     return worst
 
 
-def run_scene(config: RigConfig) -> dict:
+def _timed(runs: int, *args, **kwargs) -> tuple[tuple, float]:
+    """(the reconstruction, its fastest time of ``runs``): on a shared machine one run's time
+    moves by 10-20 %, so a ratio of two single runs moved from 1.6 to 2.0."""
+    best = np.inf
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = reconstruct(*args, **kwargs)
+        best = min(best, time.perf_counter() - t)
+    return out, best
+
+
+def run_scene(config: RigConfig, runs: int = 3) -> dict:
     scene = render_rig(config)
     s = scene.scene
     walk = scene.single_camera_walk()
     reconstruct(s.images[:4], s.names[:4], s.P[:2], Config(), rig=True)  # warm-up: compile, caches
-    t = time.perf_counter()
-    recon, report = reconstruct(s.images, s.names, s.P[:2], Config(), rig=True)
-    rig_s = time.perf_counter() - t
-    t = time.perf_counter()
-    single, single_report = reconstruct(walk.images, walk.names, walk.P[:2], Config())
-    single_s = time.perf_counter() - t
+    (recon, report), rig_s = _timed(runs, s.images, s.names, s.P[:2], Config(), rig=True)
+    (single, single_report), single_s = _timed(runs, walk.images, walk.names, walk.P[:2], Config())
     rig_err, single_err = _errors(recon, s.P), _errors(single, walk.P)
     right = [e for e in rig_err[3::2]]  # the right images after the first station: the single walk's images
     both = [(a, b) for a, b in zip(right, single_err[2:]) if a is not None and b is not None]

@@ -507,7 +507,8 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
     lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
     it stays, with the evidence in the notes. The choice itself never changes here."""
-    qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, None)
+    # only the grid's matches are read (the robust F and the agreement): only they are refined
+    qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
     if qd.F is None:
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": "no robust F on the propagated matches"})
     floor = robust_f_agreement(qd)
