@@ -123,9 +123,15 @@ def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Feature
     zncc_all = desc @ features.desc.T
     zncc_all[:, ~features.valid] = -np.inf
     out = []
+    deepest = min(max(mp.pairings_per_point), zncc_all.shape[1])
     for radius_fraction in mp.radius_fractions:
         zncc = np.where(d > radius_fraction * width, -np.inf, zncc_all)
-        ranked = np.argsort(-zncc, axis=1)
+        # each point's best pairings, best first: the top few partitioned out, then sorted (a
+        # full sort of every row cost most of the search)
+        top = np.argpartition(-zncc, deepest - 1, axis=1)[:, :deepest] if deepest < zncc.shape[1] else \
+            np.broadcast_to(np.arange(zncc.shape[1]), zncc.shape)
+        ranked = np.take_along_axis(top, np.argsort(-np.take_along_axis(zncc, top, axis=1), axis=1, kind="stable"),
+                                    axis=1)
         hypotheses = []
         for depth in mp.pairings_per_point:
             rows = np.repeat(np.arange(len(pids)), min(depth, ranked.shape[1]))
