@@ -119,7 +119,10 @@ def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Feature
         return none
     pred = project(P_pred, recon.points[pids])
     width = features.image_shape[1]
-    d = np.linalg.norm(pred[:, None, :] - features.points[None, :, :], axis=2)
+    # the distances as norm(axis=2) computes them, without the (N, M, 2) array
+    dx = pred[:, 0, None] - features.points[None, :, 0]
+    dy = pred[:, 1, None] - features.points[None, :, 1]
+    d = np.sqrt(dx * dx + dy * dy)
     zncc_all = desc @ features.desc.T
     zncc_all[:, ~features.valid] = -np.inf
     out = []
