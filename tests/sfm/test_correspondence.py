@@ -98,3 +98,27 @@ def test_tracking_runs_beside_the_speculative_match(box_scene, monkeypatch):
     assert events == ["tracked", "match"]  # tracking did not wait for the held match
     xy_direct, ok_direct = HarrisZncc(Config()).track(1, 0, f1, idx, f0, predicted, 2.0)
     assert ok.sum() > 50 and np.array_equal(ok, ok_direct) and np.array_equal(xy, xy_direct)
+
+
+def test_a_rig_s_next_station_match_is_computed_ahead(box_scene, monkeypatch):
+    from stereoseed.sfm.modes import AccurateMode
+    from stereoseed.sfm.rig import RigMode
+
+    # the rig's views interleave the stations: a right image (odd) is matched next with the next
+    # station's right image; a left one's interest points still grow, so none is computed for it
+    assert [RigMode().next_match(k) for k in (2, 3, 4, 5)] == [None, 5, None, 7]
+    assert AccurateMode().next_match(3) == 4
+    monkeypatch.setattr(threads, "_chunks", 2)
+    images = box_scene.images
+    width = images[0].shape[1]
+    source = _Counting(Config())
+    with Prefetching(source, lambda i: images[i], len(images), first=1) as prefetching:
+        f1 = prefetching.features(1, images[1])
+        prefetching.expect_match(1, f1, width, 3)
+        f2 = prefetching.features(2, images[2])
+        f3 = prefetching.features(3, images[3])
+        got = prefetching.match(1, 3, f1, f3, None, width)
+        other = prefetching.match(1, 2, f1, f2, None, width)  # not the speculated pair: asked directly
+    assert source.match_threads == ["stereoseed-matching_0", "MainThread"]
+    assert _same(got, HarrisZncc(Config()).match(1, 3, f1, f3, None, width))
+    assert _same(other, HarrisZncc(Config()).match(1, 2, f1, f2, None, width))

@@ -29,10 +29,10 @@ class CorrespondenceSource(Protocol):
     """What the mapper asks of a correspondence source. ``refine`` and ``track`` are optional
     (without them matched points keep their detected positions and nothing is tracked);
     ``turns_images`` says whether matching an image turned by 180 degrees can find more
-    (a rotation-sensitive matcher such as ZNCC); ``expect_match(a, fa, image_width)``, optional,
+    (a rotation-sensitive matcher such as ZNCC); ``expect_match(a, fa, image_width, b)``, optional,
     hears that view a's interest points are final (:class:`Prefetching` then matches them with
-    the next image's ahead of time, while ``track`` may be called: tracking must not change
-    what matching reads or writes)."""
+    image b's, the next by default, ahead of time, while ``track`` may be called: tracking must
+    not change what matching reads or writes)."""
 
     def features(self, index: int, image: np.ndarray) -> Features:
         """Interest points of image ``index``."""
@@ -128,10 +128,11 @@ _BESIDE_MATCHING = ("track",)
 
 @dataclass(frozen=True)
 class _Speculation:
-    """A match of view a (interest points ``fa``) with the next image, computed ahead: the
-    future gives (the next image's interest points, the matches)."""
+    """A match of view a (interest points ``fa``) with a later image b, computed ahead: the
+    future gives (b's interest points, the matches)."""
 
     a: int
+    b: int
     fa: Features
     image_width: int
     future: Future
@@ -140,7 +141,7 @@ class _Speculation:
         """Whether it is this call's: the same views, the very same feature sets and width, and
         no error (a failed speculation is not reported: the direct call fails the same way if it
         was this one)."""
-        return ((self.a, self.a + 1, self.image_width) == (a, b, image_width) and self.fa is fa
+        return ((self.a, self.b, self.image_width) == (a, b, image_width) and self.fa is fa
                 and self.future.exception() is None and self.future.result()[0] is fb)
 
 
@@ -149,9 +150,10 @@ class Prefetching:
     (``image_of(index)`` gives the image of view ``index``):
 
     * the interest points of the next images (they depend on their image alone);
-    * the matches of a view with the next image, once the mapper says the view's interest
-      points are final (:meth:`expect_match`): the next insertion starts with exactly that
-      call (robust F, no camera yet), so it runs while the mapper adjusts the view just placed.
+    * the matches of a view with the next image (a rig's: the next station's image of its side),
+      once the mapper says the view's interest points are final (:meth:`expect_match`): the
+      next insertion starts with exactly that call (robust F, no camera yet), so it runs while
+      the mapper adjusts the view just placed.
 
     OpenCV and the Numba kernels release the GIL, so on two cores this work overlaps the
     geometry. Results are those of the wrapped source, bit for bit: a speculative match is
@@ -206,19 +208,20 @@ class Prefetching:
                 return features
         return self.source.features(index, image)
 
-    def expect_match(self, a: int, fa: Features, image_width: int) -> None:
-        """View a's interest points ``fa`` are final: match them with the next image's (as
-        :meth:`match` with no F will be asked to) in the background."""
+    def expect_match(self, a: int, fa: Features, image_width: int, b: int | None = None) -> None:
+        """View a's interest points ``fa`` are final: match them with image b's (default the
+        next, a + 1) in the background, as :meth:`match` with no F will be asked to."""
         self._settle()
-        future = self._futures.get(a + 1)
+        b = a + 1 if b is None else b
+        future = self._futures.get(b)
         if future is None or not may_overlap():  # the last image, or nothing to overlap with
             return
 
         def speculate() -> tuple[Features, Matches]:
             fb = future.result()[1]
-            return fb, self.source.match(a, a + 1, fa, fb, None, image_width)
+            return fb, self.source.match(a, b, fa, fb, None, image_width)
 
-        self._speculation = _Speculation(a, fa, image_width, self._matcher.submit(speculate))
+        self._speculation = _Speculation(a, b, fa, image_width, self._matcher.submit(speculate))
 
     def _settle(self) -> _Speculation | None:
         """Wait for the speculative match (the source then is this thread's again); it is

@@ -219,10 +219,11 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
             ids = np.concatenate([ids, more])
             report["three_view_points"] = int(len(more))
     expect_match = optional(source, "expect_match")
+    partner = mode.next_match(k)
 
     def features_final() -> None:  # k's interest points are final: the next insertion's matching may start
-        if expect_match is not None:
-            expect_match(k, view.features, view.image_size[0])
+        if expect_match is not None and partner is not None:
+            expect_match(k, view.features, view.image_size[0], partner)
 
     report.update(mode.grow_tracks(recon, source, k, chain_points, cfg, features_final))
     timing["triangulation"] = time.perf_counter() - t

@@ -51,6 +51,11 @@ class Mode(Protocol):
 
     def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config: ...
 
+    def next_match(self, k: int) -> int | None:
+        """The view whose match with view k (robust F, no camera yet) the next insertion asks
+        for first, to be computed ahead; None: none."""
+        ...
+
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]: ...
 
 
@@ -93,6 +98,10 @@ class PaperMode:
     def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
         """The paper's BA adjusts the run's camera model."""
         return cfg
+
+    def next_match(self, k: int) -> int | None:
+        """The next image: the next insertion matches it with k."""
+        return k + 1
 
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """One global BA when asked (``ba="final"``)."""
@@ -142,6 +151,8 @@ class AccurateMode:
         camera resected 3 mm off was 17 mm off after its BA, the next 17 -> 67 mm); the next
         resection's no-zoom hypothesis starts from the drifted focal length and keeps it."""
         return cfg.replace(pipeline={"camera_model": CameraModel.FIXED}) if holds_intrinsics(recon, cfg) else cfg
+
+    next_match = PaperMode.next_match
 
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """Loop closure, then one global BA unless closing the loop ran one. When no image's

@@ -123,10 +123,13 @@ class RigRegistrar:
         pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (X, x, side) per set
         matches = 0
         chained_sets = []
-        for sd, c in cands.items():  # each image with the previous station's image of its side
+        found = {}
+        for sd in sorted(cands, reverse=True):  # the right image first: its match was computed ahead (next_match)
             p = next((v for v in previous if side_of(v) == sd), previous[-1])
             vp = recon.views[p]
-            m = source.match(p, c.index, vp.features, c.features, None, vp.image_size[0])
+            found[sd] = p, source.match(p, cands[sd].index, vp.features, cands[sd].features, None, vp.image_size[0])
+        for sd, c in cands.items():  # each image with the previous station's image of its side
+            p, m = found[sd]
             pid, chained = chained_points(recon, p, m)
             matches += len(m)
             chained_sets.append((recon.points[pid[chained]], c.features.points[m.idx2[chained]],
@@ -272,6 +275,11 @@ class RigMode(AccurateMode):
     def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
         """The rig's calibrated intrinsics: the "fixed" model (what the cameras' uncertainty uses)."""
         return cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
+
+    def next_match(self, k: int) -> int | None:
+        """A right image: the next station's right one (:class:`RigRegistrar` asks for that match
+        first). A left image's interest points still grow when its right one is tracked back."""
+        return k + 2 if side_of(k) == 1 else None
 
     def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
         """The loop closed as the accurate mode closes it (the last stations' images matched
