@@ -12,6 +12,8 @@ from stereoseed.estimators.rig_resection import Rig
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import write_json
+from stereoseed.dense.densify import densify
+from stereoseed.experiments.evaluation import surface_distance
 from stereoseed.pipeline import reconstruct
 from stereoseed.sfm.trust import assess
 from stereoseed.synthetic.rig import RigConfig, render_rig
@@ -72,6 +74,18 @@ def test_each_station_has_one_uncertainty_and_one_flag(rig_scene, rig_run):
     out = assess(again, Config().replace(trust={"keep_flagged": True}))
     assert set(out["flagged"]) == {s.names[4], s.names[5]}
     assert out["flagged"][s.names[5]].endswith(f"(its station's {s.names[4]})")
+
+
+def test_dense_takes_each_station_s_own_pair_first_then_across_stations(rig_scene, rig_run):
+    recon, _ = rig_run
+    names = rig_scene.scene.names
+    cloud, report = densify(recon, Config())
+    n = rig_scene.stations
+    own = [[names[2 * s], names[2 * s + 1]] for s in range(n)]
+    across = [[names[2 * s], names[2 * s + 2]] for s in range(n - 1)]
+    assert [p["pair"] for p in report["pairs"]] == own + across
+    d = surface_distance(cloud.points)
+    assert len(cloud) > 100_000 and np.median(d) < 0.002 and np.mean(d < 0.01) > 0.95  # metres (1.6 mm at 320 px)
 
 
 def _write_rig(rig_scene, folder, stations=None):

@@ -29,12 +29,13 @@ from stereoseed.matching.config import PropagationConfig
 from stereoseed.io.ply import write_ply
 from stereoseed.matching.propagation.core import propagate
 from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.threads import map_chunks, split_rows
 from stereoseed.estimators.triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DenseCloud", "densify_pair", "fuse", "estimate_normals", "nearest_neighbours", "densify"]
+__all__ = ["DenseCloud", "densify_pair", "fuse", "estimate_normals", "nearest_neighbours", "densify", "dense_pairs"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -456,9 +457,25 @@ def dense_views(recon: Reconstruction, cfg: Config) -> list[int]:
     return [v for v in recon.registered_views if recon.views[v].reliable or cfg.trust.keep_flagged]
 
 
-def _pair_jobs(recon: Reconstruction, cfg: Config) -> Iterator[tuple]:
-    reg = dense_views(recon, cfg)
-    for a, b in zip(reg[:-1], reg[1:]):
+def dense_pairs(recon: Reconstruction, cfg: Config) -> list[tuple[int, int]]:
+    """The image pairs the dense stage propagates, in the order their clouds are fused: each
+    consecutive pair of :func:`dense_views`; a rig walk's stations' own pairs first (a known
+    baseline, the calibrated rig), then across consecutive stations (their left images, or
+    whichever images they have)."""
+    views = dense_views(recon, cfg)
+    if recon.rig is None:
+        return list(zip(views[:-1], views[1:]))
+    kept = set(views)
+    own = [(v, v + 1) for v in views if side_of(v) == 0 and v + 1 in kept]
+    first_of = {}  # station -> its left image, else its right one
+    for v in views:
+        first_of.setdefault(station_of(v), v)
+    stations = sorted(first_of)
+    return own + [(first_of[a], first_of[b]) for a, b in zip(stations[:-1], stations[1:])]
+
+
+def _pair_jobs(recon: Reconstruction, pairs: list[tuple[int, int]], cfg: Config) -> Iterator[tuple]:
+    for a, b in pairs:
         seeds = recon.shared_pixels(a, b)
         yield (recon.views[a].image, recon.views[b].image, recon.views[a].P, recon.views[b].P, seeds,
                cfg.propagation, cfg.dense)
@@ -482,16 +499,15 @@ class DenseCloud:
 def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None,
             pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None
             ) -> tuple[DenseCloud, dict[str, Any]]:
-    """Quasi-dense stage over every consecutive registered pair; writes ``dense.ply`` in
-    out_dir when given. Returns the cloud and the report (per pair counts and times, fused count).
+    """Quasi-dense stage over every consecutive registered pair (:func:`dense_pairs`); writes
+    ``dense.ply`` in out_dir when given. Returns the cloud and the report (per pair counts and times, fused count).
 
     pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
     cluster); default a local pool of ``cfg.dense.pool_size()`` processes. The cloud is the same
     wherever the jobs run. progress(done, total, message): called as each pair's cloud comes in
     (total: the pairs) and once more when the fusion starts."""
     t0 = time.perf_counter()
-    reg = dense_views(recon, cfg)
-    pairs = list(zip(reg[:-1], reg[1:]))
+    pairs = dense_pairs(recon, cfg)
     clouds, cols, per_pair = [], [], []
 
     def collect(pair: tuple[int, int], res: dict[str, Any]) -> None:
@@ -501,7 +517,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
 
     local = executor_for(None, min(cfg.dense.pool_size(), len(pairs))) if pool is None else nullcontext(pool)
     with local as jobs:
-        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, cfg)))):
+        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, pairs, cfg)))):
             collect(pair, done.result())
             if progress:
                 progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
