@@ -52,12 +52,13 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
 def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(started):
     from stereoseed.sfm.mapper import registrars
     from stereoseed.sfm.registration.base import SparseRegistrar
+    from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
     from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar
 
     recon, Ps, cfg, source = started
     cfg = cfg.resolve()
     order = registrars(cfg)
-    assert [type(r) for r in order] == [SparseRegistrar, QuasiDenseRegistrar]
+    assert [type(r) for r in order] == [SparseRegistrar, AmbiguityJudge, QuasiDenseRegistrar]
     before = state(recon)
     found = None
     for registrar in order:
@@ -66,8 +67,9 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # the resection's camera carries its model: the run's, or "fixed" where the previous zoom was kept
     assert found.camera.model == found.resection.info["model"] in (cfg.pipeline.camera_model, "fixed")
-    with pytest.raises(ValueError, match="cannot come first"):
-        QuasiDenseRegistrar().register(recon, source, 4, None, cfg)
+    for later in (AmbiguityJudge(), QuasiDenseRegistrar()):
+        with pytest.raises(ValueError, match="cannot come first"):
+            later.register(recon, source, 4, None, cfg)
 
 
 def test_a_failure_says_its_kind():

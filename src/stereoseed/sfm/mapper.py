@@ -28,6 +28,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.modes import Mode, holds_intrinsics, mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
 from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
@@ -120,14 +121,14 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
 
 def registrars(cfg: Config, recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
     """The registrars tried for each view, in order: the sparse matches (epipolar chain against the
-    motion prior), then the quasi-dense matches where the sparse outcome is weak (a registrar
-    that does not apply returns the outcome it was given). A rig walk's (``recon.rig``): its
+    motion prior), the judge of an ambiguous choice, then the quasi-dense matches where the
+    sparse outcome is weak (a registrar that does not apply returns the outcome it was given). A rig walk's (``recon.rig``): its
     stations' generalised resection (:class:`stereoseed.sfm.rig.RigRegistrar`)."""
     if recon is not None and recon.rig is not None:
         from stereoseed.sfm.rig import RigRegistrar  # rig.py builds on the modes this module imports
 
         return (RigRegistrar(),)
-    return (SparseRegistrar(), QuasiDenseRegistrar())
+    return (SparseRegistrar(), AmbiguityJudge(), QuasiDenseRegistrar())
 
 
 def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),

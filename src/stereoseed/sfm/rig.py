@@ -40,7 +40,7 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
                                               _rival, _rivals, chained_points)
-from stereoseed.sfm.registration.quasi_dense import judge_ambiguity
+from stereoseed.sfm.registration.ambiguity import judge_ambiguity
 
 __all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
 

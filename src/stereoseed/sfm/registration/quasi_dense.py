@@ -57,7 +57,7 @@ from stereoseed.estimators.resection import ResectionResult
 from stereoseed.geometry.models import CameraModel
 
 __all__ = ["QuasiDenseRegistrar", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
-           "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "judge_ambiguity", "grow_quasi_dense"]
+           "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
 
 log = logging.getLogger(__name__)
 
@@ -462,8 +462,6 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     if not cfg.quasi_dense.enabled or found.candidate is None:
         return found
     prev = recon.registered_before(k, 1)[0]
-    if isinstance(found, Registration) and found.rivals and found.notes.get("flag"):
-        found = judge_ambiguity(recon, prev, found, cfg, source)
     sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
     limit = weak_chain_limit(cfg)
     if sparse_inliers >= limit:
@@ -497,31 +495,6 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
                                                                      seconds=seconds), qd, cfg)
     log.info("%s registered by quasi-dense matches (%s)", cand.name, why_weak)
     return dataclasses.replace(attempt, seconds=seconds, notes=notes)
-
-
-def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: Config,
-                    source: CorrespondenceSource | None = None) -> Registration:
-    """The ambiguous choice ``found`` (``notes["flag"]``, its ``rivals``) judged by more evidence:
-    the matches propagated between the previous view and this one, which cover the whole
-    overlap, the pattern's ends and everything around it included. The flag is lifted when the
-    winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
-    lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
-    it stays, with the evidence in the notes. The choice itself never changes here."""
-    # only the grid's matches are read (the robust F and the agreement): only they are refined
-    qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
-    if qd.F is None:
-        return dataclasses.replace(found, notes={**found.notes, "ambiguity": "no robust F on the propagated matches"})
-    floor = robust_f_agreement(qd)
-    P_prev = recon.views[prev].P
-    winner = epipolar_agreement(P_prev, found.P, qd)
-    rival = min(epipolar_agreement(P_prev, P, qd) for P in found.rivals)
-    evidence = (f"the propagated matches lie {winner:.2f} px from its epipolar lines, {rival:.2f} px from the "
-                f"nearest rival's (the robust F's own {floor:.2f} px)")
-    if winner <= camera_epipolar_limit(floor, cfg) and rival >= cfg.quasi_dense.camera_epipolar_factor * winner:
-        log.info("%s: the repeated structure's ambiguity is resolved: %s", found.candidate.name, evidence)
-        notes = {key: value for key, value in found.notes.items() if key != "flag"}
-        return dataclasses.replace(found, notes={**notes, "ambiguity_resolved": evidence})
-    return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: {evidence}"})
 
 
 def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,

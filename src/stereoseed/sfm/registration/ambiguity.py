@@ -1,0 +1,63 @@
+"""An ambiguous registration (a repeated pattern: a rival camera a period away explains nearly as
+much, :func:`stereoseed.sfm.registration.base._rivals`) judged by more evidence than the points
+that chose it: the matches propagated between the previous view and this one, which cover the
+whole overlap, the pattern's ends and everything around it included (Lhuillier & Quan's
+propagation, as the quasi-dense registration runs it). Only the flag is judged, never the
+choice: choosing by these matches changed later insertions (docs/mapper.md, "Trust")."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from stereoseed.config import Config
+from stereoseed.sfm.correspondence import CorrespondenceSource
+from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.registration.base import Registration, RegistrationFailure
+from stereoseed.sfm.registration.quasi_dense import (_propagated_to_candidate, camera_epipolar_limit,
+                                                     epipolar_agreement, robust_f_agreement)
+
+__all__ = ["AmbiguityJudge", "judge_ambiguity"]
+
+log = logging.getLogger(__name__)
+
+
+class AmbiguityJudge:
+    """The sparse registrar's ambiguous choice judged (:func:`judge_ambiguity`); any other
+    outcome passed on as it is."""
+
+    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
+                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+        if found is None:
+            raise ValueError("the ambiguity judge judges a sparse attempt; it cannot come first")
+        cfg = cfg.resolve()
+        if not (isinstance(found, Registration) and found.rivals and found.notes.get("flag")
+                and cfg.quasi_dense.enabled):
+            return found
+        return judge_ambiguity(recon, recon.registered_before(k, 1)[0], found, cfg, source)
+
+
+def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: Config,
+                    source: CorrespondenceSource | None = None) -> Registration:
+    """The ambiguous choice ``found`` (``notes["flag"]``, its ``rivals``) judged by more evidence:
+    the matches propagated between the previous view and this one, which cover the whole
+    overlap, the pattern's ends and everything around it included. The flag is lifted when the
+    winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
+    lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
+    it stays, with the evidence in the notes. The choice itself never changes here."""
+    # only the grid's matches are read (the robust F and the agreement): only they are refined
+    qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
+    if qd.F is None:
+        return dataclasses.replace(found, notes={**found.notes, "ambiguity": "no robust F on the propagated matches"})
+    floor = robust_f_agreement(qd)
+    P_prev = recon.views[prev].P
+    winner = epipolar_agreement(P_prev, found.P, qd)
+    rival = min(epipolar_agreement(P_prev, P, qd) for P in found.rivals)
+    evidence = (f"the propagated matches lie {winner:.2f} px from its epipolar lines, {rival:.2f} px from the "
+                f"nearest rival's (the robust F's own {floor:.2f} px)")
+    if winner <= camera_epipolar_limit(floor, cfg) and rival >= cfg.quasi_dense.camera_epipolar_factor * winner:
+        log.info("%s: the repeated structure's ambiguity is resolved: %s", found.candidate.name, evidence)
+        notes = {key: value for key, value in found.notes.items() if key != "flag"}
+        return dataclasses.replace(found, notes={**notes, "ambiguity_resolved": evidence})
+    return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: {evidence}"})
