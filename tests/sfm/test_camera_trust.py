@@ -126,3 +126,14 @@ def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, t
     assert "# flagged by stereoseed (not vouched for, see cameras.json): img_004.png" in \
         (tmp_path / "colmap" / "images.txt").read_text()
     assert "img_004.png: flagged by the run" in capsys.readouterr().err
+
+
+def test_the_last_line_names_each_flag_by_its_kind():
+    from stereoseed.sfm.trust import flag_kind
+
+    assert flag_kind("ambiguous: repeated structure (the best camera explains 24 ...)") == "ambiguous: repeated structure"
+    assert flag_kind("weak: only 22 of its observations are of points two other cameras also see") == "weak"
+    assert flag_kind("uncertain: its residuals ask for a 10.2 % zoom (1 sigma)") == "uncertain"
+    assert flag_kind("contradicted by the other cameras: its 80 observations reproject at 3 px") == \
+        "contradicted by the other cameras"
+    assert flag_kind("something new (details)") == "something new"

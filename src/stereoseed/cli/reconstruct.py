@@ -47,6 +47,7 @@ def _pool(args: argparse.Namespace, workers: int):
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from stereoseed.pipeline import reconstruct_to_folder  # its report: the folder is not read back
+    from stereoseed.sfm.trust import flag_kind
 
     cfg = _config(args)
     if args.scheduler and not args.dense:
@@ -81,7 +82,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     if "dense" in report:
         say(f"quasi-dense: {report['dense']['points']} points" + (f" ({report['dense']['note']})"
                                                                      if report["dense"].get("note") else ""))
-    flags = f", {len(flagged)} flagged: " + ", ".join(f"{n} {r.split(' (')[0]}" for n, r in flagged.items()) \
+    flags = f", {len(flagged)} flagged: " + ", ".join(f"{n} {flag_kind(r)}" for n, r in flagged.items()) \
         if flagged else ", 0 flagged"
     say(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped{flags}), "
           f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")

@@ -29,7 +29,8 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
-__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit", "assess"]
+__all__ = ["FLAG_KINDS", "camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit",
+           "flag_kind", "assess"]
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,15 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
     return {v: (f"contradicted by the other cameras: its {int(observations[v])} observations "
                 f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
             for v in views if v in rms and rms[v] > limit}
+
+
+# the kinds of flag, as each reason starts (the rest says why, with the figures)
+FLAG_KINDS = ("ambiguous: repeated structure", "contradicted by the other cameras", "weak", "uncertain")
+
+
+def flag_kind(reason: str) -> str:
+    """The kind of a flag's ``reason`` (one of :data:`FLAG_KINDS`; else the reason up to its details)."""
+    return next((kind for kind in FLAG_KINDS if reason.startswith(kind)), reason.split(" (")[0])
 
 
 def tied_observation_limit(cfg: Config) -> int:
