@@ -191,6 +191,7 @@ def saved(tmp_path) -> _Saved:
                           point_of_feature=np.full(n, -1, np.int64), image=images[i], rotated_180=i == 1,
                           camera_model="focal" if i == 1 else None, zoomed=i == 1))
     recon = Reconstruction(views)
+    recon.views[1].registration_flag = "ambiguous: repeated structure (as a run would say)"
     ids = recon.add_points(rng.standard_normal((5, 3)) + [0.0, 0.0, 5.0], rng.integers(0, 256, (5, 3)))
     recon.add_observations(0, np.arange(5), ids)
     recon.add_observations(1, np.arange(1, 6), ids)
@@ -214,8 +215,8 @@ def test_a_checkpoint_gives_back_the_model_and_reports_with_spilled_descriptors_
     for name in ("points", "colors", "alive", "obs_view", "obs_feature", "obs_point", "obs_linked"):
         np.testing.assert_array_equal(getattr(recon, name), getattr(saved.recon, name))
     for a, b in zip(recon.views, saved.recon.views):
-        assert (a.name, a.status, a.rotated_180, a.camera_model, a.zoomed) == \
-            (b.name, b.status, b.rotated_180, b.camera_model, b.zoomed)
+        assert (a.name, a.status, a.rotated_180, a.camera_model, a.zoomed, a.registration_flag) == \
+            (b.name, b.status, b.rotated_180, b.camera_model, b.zoomed, b.registration_flag)
         assert (a.P is None and b.P is None) or np.array_equal(a.P, b.P)
         for field in ("points", "desc", "valid", "response"):
             np.testing.assert_array_equal(getattr(a.features, field), getattr(b.features, field))
@@ -313,7 +314,8 @@ def _out_of_range(a, value=999):
     (_flag(0, "desc_file", "desc_gone.npy"), KEY, "cannot be read"),
     (_flag(0, "name", "z.png"), KEY, "description of 'a.png' is malformed"),
     (_flag(1, "zoomed", "yes"), KEY, "description of 'b.png' is malformed"),
-    (lambda arrays, meta: meta.update(version=2), KEY, "another version"),
+    (_flag(1, "registration_flag", 3), KEY, "description of 'b.png' is malformed"),
+    (lambda arrays, meta: meta.update(version=3), KEY, "another version"),
     (lambda arrays, meta: meta.update(per_image=meta["per_image"][:1]), KEY, "reports are not of these images"),
 ])
 def test_an_altered_or_malformed_checkpoint_is_refused(saved, caplog, change, key, why):
@@ -366,3 +368,16 @@ def test_a_planted_pickle_beside_the_output_is_never_run(ring_on_disk, tmp_path,
     assert not marker.exists()
     assert "resumed_images" not in report and report["registered"] == report["images"]
     assert "starting again" in caplog.text
+
+
+def test_a_resumed_run_keeps_the_flags_its_registrations_raised(plain_box_scene, tmp_path):
+    from stereoseed.config import Config
+    from stereoseed.pipeline import reconstruct
+
+    s = plain_box_scene.prefix(6)
+    ck = tmp_path / "ck.npz"
+    _, first = reconstruct(s.images, s.names, s.P[:2], Config(), checkpoint=ck)
+    _, resumed = reconstruct(s.images, s.names, s.P[:2], Config(), checkpoint=ck, resume=True)
+    flagged = first["final"]["trust"]["flagged"]
+    assert any(r.startswith("ambiguous") for r in flagged.values())  # the squares: chosen on a margin
+    assert resumed["final"]["trust"]["flagged"] == flagged

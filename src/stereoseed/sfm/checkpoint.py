@@ -47,12 +47,13 @@ from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction
 __all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
-VERSION = 3  # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied
+VERSION = 4  # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied; 4: registration flags
 SPILL_SUFFIX = ".spill"  # the spill folder: the checkpoint's name with this added
 _META, _MAC = "meta", "mac"
 _OBSERVATIONS = ("obs_view", "obs_feature", "obs_point", "obs_linked")  # Checkpoint.observations' order
 _VIEW_FLAGS = {"name": str, "status": str, "rotated_180": bool, "camera_model": (str, type(None)),
-               "zoomed": bool, "registered": bool, "features": bool, "desc_file": (str, type(None))}
+               "zoomed": bool, "registered": bool, "features": bool, "desc_file": (str, type(None)),
+               "registration_flag": (str, type(None))}
 _FLOAT = "float"  # an expected dtype: float32 or float64, native byte order
 
 
@@ -114,7 +115,10 @@ def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str,
         P, features, point_of_feature, _, status, rotated, model, zoomed = s[:8]
         flags = {"name": view.name, "status": str(status), "rotated_180": bool(rotated),
                  "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
-                 "registered": P is not None, "features": features is not None, "desc_file": None}
+                 "registered": P is not None, "features": features is not None, "desc_file": None,
+                 # why the run cannot vouch for the camera (an ambiguous choice, a zoom it cannot
+                 # measure): judged once, at registration, so a resumed run must not lose it
+                 "registration_flag": view.registration_flag}
         if P is not None:
             arrays[f"view{i}.P"] = np.array(P, np.float64)
         arrays[f"view{i}.point_of_feature"] = np.array(point_of_feature)
@@ -424,6 +428,8 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         recon = Reconstruction(views)
         # the views check what only they know (a camera model's name, a camera's P)
         recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
+        for view, flags in zip(recon.views, meta["views"]):
+            view.registration_flag = view.flag_reason = flags["registration_flag"]
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
