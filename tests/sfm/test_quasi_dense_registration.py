@@ -90,6 +90,10 @@ def test_an_ambiguous_choice_is_lifted_only_when_the_propagated_matches_tell_the
     twin = dataclasses.replace(found, rivals=(_moved(found.P, 1e-4),), notes={"flag": flag})
     judged = judge_ambiguity(recon, 1, twin, cfg)
     assert judged.notes["flag"] == flag and judged.notes["ambiguity"].startswith("unresolved: the propagated")
+    # the matches say how the two cameras stand to each other: a flagged previous view lifts nothing
+    recon.views[1].registration_flag = "ambiguous: repeated structure (the previous one)"
+    judged = judge_ambiguity(recon, 1, period, cfg)
+    assert judged.notes["flag"] == flag and "is flagged itself" in judged.notes["ambiguity"]
 
 
 def test_dino_weak_views_registered_by_quasi_dense(dino_dir):

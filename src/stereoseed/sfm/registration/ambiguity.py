@@ -45,7 +45,12 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     overlap, the pattern's ends and everything around it included. The flag is lifted when the
     winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
     lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
-    it stays, with the evidence in the notes. The choice itself never changes here."""
+    it stays, with the evidence in the notes. The choice itself never changes here. The matches
+    only say how the two cameras stand to each other: a previous view that is flagged itself (a
+    walk that carries an offset keeps it between consecutive views) cannot lift a flag."""
+    if recon.views[prev].registration_flag:
+        return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: the previous view, "
+                                                 f"{recon.views[prev].name}, is flagged itself"})
     # only the grid's matches are read (the robust F and the agreement): only they are refined
     qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
     if qd.F is None:
