@@ -137,3 +137,18 @@ def test_the_last_line_names_each_flag_by_its_kind():
     assert flag_kind("contradicted by the other cameras: its 80 observations reproject at 3 px") == \
         "contradicted by the other cameras"
     assert flag_kind("something new (details)") == "something new"
+
+
+def test_a_photo_taken_twice_from_one_spot_keeps_its_uncertainty(temple_dir):
+    # templeSparseRing's 0001 and 0011 share one camera (two shots from one spot, estimated 0.02 mm
+    # apart): the points only they see have no parallax and once made the normal equations
+    # singular for both (flagged "uncertain" though 0.2-0.5 mm sigma each alone)
+    from stereoseed.pipeline import load_sequence, reconstruct
+
+    images, names, P = load_sequence(str(temple_dir / "ring_order.txt"), str(temple_dir / "templeSR_par.txt"))
+    recon, report = reconstruct(images[:10], names[:10], P, Config())
+    twice = [recon.views[names.index(n)] for n in ("templeSR0001.png", "templeSR0011.png")]
+    for view in twice:
+        u = view.uncertainty
+        assert view.reliable and u.determined and 0 < np.max(u.position_sigma) < 0.002, (view.name, u.reason)
+    assert report["final"]["trust"]["flagged"] == {}
