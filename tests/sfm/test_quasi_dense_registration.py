@@ -9,6 +9,7 @@ import pytest
 from stereoseed.sfm import mapper
 from stereoseed.config import Config
 from stereoseed.experiments.evaluation import camera_errors
+from stereoseed.estimators.rig_resection import Rig
 from stereoseed.geometry.camera import Camera
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
@@ -94,6 +95,14 @@ def test_an_ambiguous_choice_is_lifted_only_when_the_propagated_matches_tell_the
     recon.views[1].registration_flag = "ambiguous: repeated structure (the previous one)"
     judged = judge_ambiguity(recon, 1, period, cfg)
     assert judged.notes["flag"] == flag and "is flagged itself" in judged.notes["ambiguity"]
+    # on a rig, either image of the previous station: its flag sits on the image it was resected from
+    recon.views[1].registration_flag = None
+    recon.views[0].registration_flag = "ambiguous: repeated structure (the station's left image)"
+    recon.rig = Rig.from_projections(recon.views[0].P, recon.views[1].P)
+    judged = judge_ambiguity(recon, 1, period, cfg)
+    assert judged.notes["flag"] == flag and f"{recon.views[0].name}, is flagged itself" in judged.notes["ambiguity"]
+    no_rivals = dataclasses.replace(period, rivals=())
+    assert judge_ambiguity(recon, 1, no_rivals, cfg) is no_rivals  # nothing to judge: as it is
 
 
 def test_dino_weak_views_registered_by_quasi_dense(dino_dir):

@@ -47,12 +47,21 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
     it stays, with the evidence in the notes. The choice itself never changes here. The matches
     only say how the two cameras stand to each other: a previous view that is flagged itself (a
-    walk that carries an offset keeps it between consecutive views) cannot lift a flag."""
-    if recon.views[prev].registration_flag:
+    walk that carries an offset keeps it between consecutive views; on a rig, either image of
+    its station) cannot lift a flag. Without rivals, ``found`` is returned as it is."""
+    if not found.rivals:
+        return found
+    # a rig's station is one body: its flag sits on the image it was resected from (views 2s, 2s+1)
+    station = (prev, prev ^ 1) if recon.rig is not None and (prev ^ 1) < len(recon.views) else (prev,)
+    flagged = next((recon.views[v].name for v in station if recon.views[v].registration_flag), None)
+    if flagged is not None:
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: the previous view, "
-                                                 f"{recon.views[prev].name}, is flagged itself"})
-    # only the grid's matches are read (the robust F and the agreement): only they are refined
-    qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
+                                                 f"{flagged}, is flagged itself"})
+    try:
+        # only the grid's matches are read (the robust F and the agreement): only they are refined
+        qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
+    except np.linalg.LinAlgError as e:  # a degenerate configuration: no evidence, the flag stays
+        return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: numerical failure ({e})"})
     if qd.F is None:
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": "no robust F on the propagated matches"})
     floor = robust_f_agreement(qd)
