@@ -54,7 +54,8 @@ WEAK_SHARE = 1e-6
 # digits, and on two nearly coincident cameras (a photo taken twice from one spot:
 # templeSparseRing's 0001 and 0011, 0.02 mm apart as estimated) the points only they see made
 # the reduced system singular along their joint rotation (at 1e-12; each alone: 0.2-0.5 mm).
-# sqrt(machine epsilon): half the digits kept. Such a point carries nothing on the cameras.
+# sqrt(machine epsilon): half the digits kept. Its depth is roundoff; what it says of the
+# cameras' rotations is given up, which only makes their sigmas larger (conservative).
 POINT_RCOND = 1e-8
 
 _INTRINSIC_NAMES = {CameraModel.FREE: ("fx", "fy", "skew", "cx", "cy"), CameraModel.ZERO_SKEW: ("f", "cx", "cy"),

@@ -101,13 +101,16 @@ def read_rig_keyframes(left: str | Path, right: str | Path, cfg: VideoConfig = V
     """A stereo rig's two videos, filmed together (frame k of each at the same moment): the
     keyframes chosen on the left video, its first frame included (the calibrated first
     station), and the right video's frames of the same indices. Raises
-    :class:`StereoseedError` when the two videos differ in length, or as :func:`read_keyframes`."""
+    :class:`StereoseedError` when their containers announce lengths more than a frame apart
+    (containers round their count; a length one does not announce is not compared), when the
+    right video ends before a keyframe of the left one, or as :func:`read_keyframes`."""
     left, right = Path(left), Path(right)
     counts = [_announced(p) for p in (left, right)]
     if min(counts) > 0 and abs(counts[0] - counts[1]) > 1:  # a frame's slack: containers round their count
         raise StereoseedError(f"{left}: {counts[0]} frames, but {right}: {counts[1]}; a rig's two videos are filmed "
                               f"together (frame k of each at the same moment): trim them to the same start and length")
-    prefixes = ("left_", "right_") if left.stem == right.stem else ("", "")
+    # alike names would be one file on a case-insensitive file system (Walk.mp4, walk.mp4)
+    prefixes = ("left_", "right_") if left.stem.casefold() == right.stem.casefold() else ("", "")
     lefts = read_keyframes(left, cfg, save_to, first=True, name_prefix=prefixes[0])
     indices = [k.index for k in lefts]
     rights = _read(right, lambda p, said: _frames_at(p, indices, save_to, said, prefixes[1]))
@@ -177,6 +180,7 @@ class _Quiet:
 def _opened(path: Path, said: list[str]) -> _Quiet:
     capture = _Quiet(path, said)
     if not capture.isOpened():
+        capture.release()
         raise StereoseedError(f"{path}: OpenCV cannot open this video (codec or container not supported); "
                               f"extract its frames into a folder (e.g. ffmpeg -i {path.name} frames/%04d.png)")
     return capture
