@@ -201,3 +201,19 @@ def test_report_html_draws_the_rig_of_each_station(rig_scene, tmp_path):
     save_outputs(recon, report, tmp_path, Config())
     page = (tmp_path / "report.html").read_text()
     assert "stereo rig (each station)" in page
+
+
+def test_rig_videos_named_alike_get_their_side_in_front(tmp_path):
+    import shutil
+
+    from stereoseed.io.video import read_rig_keyframes
+
+    left, right, _, _ = _write_rig_videos(tmp_path / "films")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    # one file on a case-insensitive file system
+    shutil.copy(left, tmp_path / "a" / "Walk.avi")
+    shutil.copy(right, tmp_path / "b" / "walk.avi")
+    lefts, rights = read_rig_keyframes(tmp_path / "a" / "Walk.avi", tmp_path / "b" / "walk.avi")
+    assert all(k.name.startswith("left_Walk_") for k in lefts) and all(k.name.startswith("right_walk_") for k in rights)
+    assert [k.index for k in lefts] == [k.index for k in rights] and lefts[0].index == 0
