@@ -84,6 +84,25 @@ def test_a_camera_too_few_points_tie_to_the_others_is_flagged_weak():
     assert assess(recon, Config().replace(trust={"min_tied_observations": 20}))["flagged"] == {}
 
 
+def test_ties_through_a_flagged_camera_hold_nothing():
+    recon, Ps, source = _ring_run()
+    finish(recon, Config(), source)
+    # view 7 keeps 30 points, each seen by views 5, 6 and 7 alone, and nothing else tied
+    def seen(view):
+        return set(recon.obs_point[recon.obs_view == view].tolist())
+    kept = sorted(seen(7) & seen(6) & seen(5))[:30]
+    assert len(kept) == 30
+    elsewhere = np.isin(recon.obs_point, kept) & ~np.isin(recon.obs_view, [5, 6, 7])
+    other_of_7 = (recon.obs_view == 7) & ~np.isin(recon.obs_point, kept)
+    recon.remove_observations(elsewhere | other_of_7)
+    assert assess(recon, Config().replace(trust={"keep_flagged": True}))["flagged"] == {}
+    # once view 6 is flagged its observations tie nothing: view 7 is left weak
+    recon.views[6].registration_flag = "ambiguous: repeated structure (as if)"
+    flagged = assess(recon, Config())["flagged"]
+    assert set(flagged) == {recon.views[6].name, recon.views[7].name}
+    assert flagged[recon.views[7].name].startswith("weak: only 0 of its observations")
+
+
 def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     recon, Ps, source = _ring_run(5)
     recent = np.flatnonzero(recon.alive)

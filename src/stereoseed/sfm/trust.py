@@ -106,11 +106,15 @@ def tied_observation_limit(cfg: Config) -> int:
     return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
 
 
-def weakly_tied_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
+def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int] | None = None) -> dict[int, str]:
     """{view: reason} of the registered views after the pair with fewer than
     :func:`tied_observation_limit` observations of live points that two other cameras also see.
-    A rig's station counts its two images' observations together (the rig holds them)."""
+    A rig's station counts its two images' observations together (the rig holds them).
+    vouched: the views the run vouches for (default all): only their observations tie, and only
+    they are judged (a flagged camera's observations leave the model; it vouches for nothing)."""
     live = recon.alive[recon.obs_point]
+    if vouched is not None:
+        live &= np.isin(recon.obs_view, sorted(vouched))
     observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
     tied = live & (observers[recon.obs_point] >= 3)
     group = station_of if recon.rig is not None else (lambda v: v)
@@ -121,7 +125,8 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
     need = tied_observation_limit(cfg)
     return {v: (f"weak: only {per_group[group(v)]} of its observations are of points two other cameras also "
                 f"see; the final BA cannot check its place with fewer than {need}")
-            for v in recon.registered_views if v not in CALIBRATED and per_group[group(v)] < need}
+            for v in recon.registered_views
+            if v not in CALIBRATED and (vouched is None or v in vouched) and per_group[group(v)] < need}
 
 
 def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
@@ -135,6 +140,16 @@ def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Conf
     return None
 
 
+def _flag_stations(recon: Reconstruction, reasons: dict[int, str | None]) -> None:
+    """A rig's station is one rigid body: what places one of its images wrongly places both."""
+    if recon.rig is None:
+        return
+    for v in recon.registered_views:
+        partner = v + 1 - 2 * side_of(v)
+        if reasons[v] is None and reasons.get(partner):
+            reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
+
+
 def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     """Judge every registered camera after the pair: set each view's ``uncertainty``,
     ``reliable`` and ``flag_reason``; without ``keep_flagged``, remove the flagged views'
@@ -142,7 +157,6 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
     cfg = cfg.resolve()
     contradicted = contradicted_cameras(recon, cfg)
-    weak = weakly_tied_cameras(recon, cfg)
     uncertainties = camera_uncertainties(recon, cfg)
     reasons = {}
     for v in recon.registered_views:
@@ -150,13 +164,13 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
         u = uncertainties.get(v)
         view.uncertainty = u
         # a flag from the registration (an ambiguous choice) stays; else the final evidence decides
-        reasons[v] = None if v in CALIBRATED else (view.registration_flag or contradicted.get(v) or weak.get(v)
+        reasons[v] = None if v in CALIBRATED else (view.registration_flag or contradicted.get(v)
                                                    or (None if u is None else _uncertain(recon, v, u, cfg)))
-    if recon.rig is not None:  # a station is one rigid body: what places one of its images wrongly, places both
-        for v in recon.registered_views:
-            partner = v + 1 - 2 * side_of(v)
-            if reasons[v] is None and reasons.get(partner):
-                reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
+    _flag_stations(recon, reasons)
+    # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
+    while weak := weakly_tied_cameras(recon, cfg, {v for v, reason in reasons.items() if reason is None}):
+        reasons.update(weak)
+        _flag_stations(recon, reasons)
     cameras, flagged = {}, {}
     for v in recon.registered_views:
         view = recon.views[v]
