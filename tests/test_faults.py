@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from process_helpers import wait_until
+from cli_helpers import one_line_error, run
 from scene_helpers import scene_on_disk
 from stereoseed import pipeline
 from stereoseed.cli import main
@@ -34,16 +35,6 @@ def seq(tmp_path_factory, small_box_scene):
     """A 5-image ring of 320x240 images on disk: (write_scene's paths, calib.json)."""
     folder = tmp_path_factory.mktemp("faults_seq")
     return scene_on_disk(small_box_scene.prefix(5), folder, images=folder / "images")
-
-
-def run(capsys, *args) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def one_line_error(err: str) -> bool:
-    return err.startswith("stereoseed: error: ") and err.count("\n") == 1 and "Traceback" not in err
 
 
 def listing(seq, folder: Path, count: int) -> Path:

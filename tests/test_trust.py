@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from process_helpers import alive_in_group, wait_until
+from cli_helpers import cli_command, one_line_error, run
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
 from stereoseed.output.result_set import MANIFEST
@@ -36,16 +37,6 @@ def small_seq(tmp_path_factory, small_box_scene):
     """A 5-image ring of 320x240 images on disk, as ``seq``: for the tests that run whole
     commands again and again (what they check does not depend on the image size)."""
     return _on_disk(small_box_scene.prefix(5), tmp_path_factory.mktemp("small_seq"))
-
-
-def run(capsys, *args):
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def one_line_error(err):
-    return err.startswith("stereoseed: error: ") and err.count("\n") == 1 and "Traceback" not in err
 
 
 def reconstruct_args(paths, calib, out, *more):
@@ -196,10 +187,6 @@ def test_an_output_that_cannot_be_written_is_refused_first(seq, tmp_path, capsys
 
 
 # --- interrupted runs -----------------------------------------------------------------------
-def _cli(*args) -> list[str]:
-    return [sys.executable, "-m", "stereoseed.cli", *[str(a) for a in args]]
-
-
 def _cameras(out: Path) -> np.ndarray:
     images = json.loads((out / "cameras.json").read_text())["images"]
     return np.array([im["P"] for im in images])
@@ -211,15 +198,15 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(sma
     reference = tmp_path / "reference"
     # a first run compiles what Numba has not cached yet; the runs compared must all be warm (the
     # fastmath alignment kernel differs by ~1e-6 between a fresh compile and its cached code)
-    subprocess.run(_cli(*reconstruct_args(paths, calib, reference, "--dense")), check=True, capture_output=True)
+    subprocess.run(cli_command(*reconstruct_args(paths, calib, reference, "--dense")), check=True, capture_output=True)
     t = time.perf_counter()
-    subprocess.run(_cli(*reconstruct_args(paths, calib, reference, "--dense")), check=True, capture_output=True)
+    subprocess.run(cli_command(*reconstruct_args(paths, calib, reference, "--dense")), check=True, capture_output=True)
     full_time = time.perf_counter() - t
     expected = _cameras(reference)
     rng = np.random.default_rng(0)
     out = tmp_path / "o"
     for attempt, fraction in enumerate(rng.uniform(0.3, 0.95, 3)):
-        proc = subprocess.Popen(_cli(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
+        proc = subprocess.Popen(cli_command(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(fraction * full_time)
         os.killpg(proc.pid, signal.SIGKILL) if attempt == 0 else proc.send_signal(signal.SIGKILL)
@@ -235,7 +222,7 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(sma
     # a kill of the parent alone once every image is placed (the checkpoint says so), so in the
     # dense stage, whose workers must follow it; then --resume: only the dense stage and the
     # writing are left to do
-    proc = subprocess.Popen(_cli(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
+    proc = subprocess.Popen(cli_command(*reconstruct_args(paths, calib, out, "--dense")), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     checkpoint = tmp_path / ".o.partial" / ".checkpoint.npz"
     wait_until(lambda: proc.poll() is not None or _images_done(checkpoint) == len(paths["images"]), 60.0)
@@ -245,7 +232,7 @@ def test_killed_runs_leave_a_whole_result_set_and_resume_to_the_same_cameras(sma
     proc.wait()
     assert wait_until(lambda: not alive_in_group(proc.pid), 5.0), "a dense worker outlived its parent"
     t = time.perf_counter()
-    done = subprocess.run(_cli(*reconstruct_args(paths, calib, out, "--dense", "--resume")), capture_output=True,
+    done = subprocess.run(cli_command(*reconstruct_args(paths, calib, out, "--dense", "--resume")), capture_output=True,
                           text=True)
     resumed_time = time.perf_counter() - t
     assert done.returncode == 0, done.stderr

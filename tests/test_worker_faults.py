@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from process_helpers import alive_in_group, children, wait_until
+from cli_helpers import cli_command
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
 from stereoseed.cluster import executor_for
@@ -196,10 +197,6 @@ def test_a_worker_killed_while_sending_its_result_does_not_hang_the_run(tmp_path
 
 
 # --- the command's dense stage ----------------------------------------------------------------
-def _cli(*args) -> list[str]:
-    return [sys.executable, "-m", "stereoseed.cli", *[str(a) for a in args]]
-
-
 def _first_worker(proc: subprocess.Popen) -> int | None:
     """A pool worker of the command once its dense stage has started one, None if the command
     ended first. The workers are forked (their command line is the command's); multiprocessing's
@@ -228,7 +225,7 @@ def test_reconstruct_dense_survives_a_killed_worker_with_the_same_cloud(ring, tm
     """The OOM killer's pick, as a user saw it: one dense worker SIGKILLed mid-stage. The lost
     pairs are redone and the cloud is the one of an undisturbed run."""
     images, calib = ring
-    proc = subprocess.Popen(_cli("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "killed"),
+    proc = subprocess.Popen(cli_command("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "killed"),
                             start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         worker = _first_worker(proc)
@@ -245,7 +242,7 @@ def test_reconstruct_dense_survives_a_killed_worker_with_the_same_cloud(ring, tm
     assert wait_until(lambda: not alive_in_group(proc.pid), 5.0), "a dense worker outlived the command"
     # the reference afterwards: both runs use the kernels Numba cached (a fresh compile of the
     # fastmath alignment kernel differs in the last digits)
-    subprocess.run(_cli("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "whole", "--quiet"),
+    subprocess.run(cli_command("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "whole", "--quiet"),
                    check=True, capture_output=True, timeout=60)
     killed, whole = (read_ply_vertices(tmp_path / name / "dense.ply") for name in ("killed", "whole"))
     assert len(killed) > 100_000  # measured 220,196
@@ -257,7 +254,7 @@ def test_sigterm_ends_the_dense_stage_within_seconds_while_a_worker_does_not_ans
     user's kill or a batch system's: the command says it was interrupted and ends, leaving no
     worker behind, instead of waiting for a result that will not come."""
     images, calib = ring
-    proc = subprocess.Popen(_cli("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "o",
+    proc = subprocess.Popen(cli_command("reconstruct", images, "--calib", calib, "--dense", "--out", tmp_path / "o",
                                  "--quiet"),
                             start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from cli_helpers import one_line_error
 from scene_helpers import scene_on_disk
 from stereoseed.cli import main
 from stereoseed.errors import StereoseedError
@@ -37,10 +38,6 @@ def copy(result, tmp_path) -> Path:
 def export(capsys, folder, out, *more) -> tuple[int, str]:
     code = main(["export", str(folder), "--out", str(out), *map(str, more)])
     return code, capsys.readouterr().err
-
-
-def one_line_error(err: str) -> bool:
-    return err.startswith("stereoseed: error: ") and err.count("\n") == 1 and "Traceback" not in err
 
 
 def edit_cameras(folder: Path, edit) -> None:
