@@ -99,28 +99,6 @@ class RigScene:
     def stations(self) -> int:
         return self.scene.n_images // 2
 
-    @property
-    def corners(self) -> np.ndarray:
-        """The box's 228 square corners (228, 3), in :func:`stereoseed.synthetic.scene.box_corners`' order."""
-        return self.scene.corners
-
-    @property
-    def left_images(self) -> list:
-        return self.scene.images[0::2]
-
-    @property
-    def right_images(self) -> list:
-        return self.scene.images[1::2]
-
-    @property
-    def P_left(self) -> list:
-        """The left camera's true P (3, 4) at each station."""
-        return self.scene.P[0::2]
-
-    @property
-    def P_right(self) -> list:
-        return self.scene.P[1::2]
-
     def images(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Station k's (left, right) images."""
         return self.scene.images[2 * k], self.scene.images[2 * k + 1]
