@@ -126,12 +126,9 @@ class Config:
         import tomllib
 
         path = Path(path)
+        raw = _file_bytes(path, "a TOML configuration file (docs/config.md)")
         try:
-            data = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: not found; give a TOML configuration file (docs/config.md)") from None
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot be read ({e.strerror or e})") from None
+            data = tomllib.loads(raw.decode("utf-8"))
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not UTF-8 text; give a TOML configuration file (docs/config.md)") from None
         except tomllib.TOMLDecodeError as e:
@@ -145,12 +142,9 @@ class Config:
         path = Path(path)
         if path.suffix.lower() != ".json":
             return cls.from_toml(path)
+        raw = _file_bytes(path, "a run's report.json or a TOML configuration file")
         try:
-            data = json.loads(path.read_bytes().decode("utf-8"))
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: not found; give a run's report.json or a TOML configuration file") from None
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot be read ({e.strerror or e})") from None
+            data = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, ValueError, RecursionError):
             raise ConfigError(f"{path}: not readable JSON; give a run's report.json or a TOML configuration "
                               f"file") from None
@@ -190,6 +184,16 @@ NONE = "none"  # how a configuration file says None (TOML has no null): "the mod
 class ConfigError(StereoseedError, ValueError):
     """A configuration file or dict that cannot be taken: one line naming the file, the section
     and the key (a :class:`ValueError` too, as a field a dataclass refuses)."""
+
+
+def _file_bytes(path: Path, what: str) -> bytes:
+    """The bytes of a configuration file, or a ConfigError naming it and asking for ``what``."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: not found; give {what}") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot be read ({e.strerror or e})") from None
 
 
 def _from_dict(data: Mapping[str, Any], where: str) -> Config:
