@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 from numba import njit
@@ -23,7 +24,7 @@ from stereoseed.estimators.config import BundleConfig
 from stereoseed.estimators.robust import huber_cost_of_norms
 from stereoseed.threads import current_chunks, map_chunks
 
-__all__ = ["BundleProblem", "BundleResult", "bundle_adjust", "observation_errors"]
+__all__ = ["BundleProblem", "BundleResult", "bundle_adjust", "observation_errors", "damped_step", "pairs_by_point"]
 
 # Threads forming the reduced camera system: the cores this process may use (threads.py), at
 # most 4 (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a
@@ -313,6 +314,31 @@ def _observation_errors(Ps, X, oc, op, xy, out):
         out[o] = np.sqrt(ru * ru + rv * rv)
 
 
+def pairs_by_point(points: np.ndarray, cameras: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (point, camera) pairs of W's rows (points (K,), cameras (K,)) grouped by point, then by
+    camera within a point, as the reduced camera system's kernel adds them: (order (K,), starts:
+    each point's first position in order, and K at the end)."""
+    order = np.lexsort((cameras, points))
+    grouped = points[order]
+    starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, np.int64)
+    return order, starts
+
+
+def damped_step(trial: Callable[[float], tuple[Any, float]], cost: float, lam: float
+                ) -> tuple[Any, float, float, float]:
+    """One Levenberg-Marquardt iteration's damping: ``trial(lam)`` (the state a step damped by lam
+    reaches, its cost) with lam raised tenfold until the cost falls (lam then lowered to 0.3x, at
+    least 1e-9) or lam passes 1e8. Returns (the new state, or None when no step lowered the
+    cost; its cost; the next lam; the relative improvement, 0 without one)."""
+    while True:
+        state, new_cost = trial(lam)
+        if np.isfinite(new_cost) and new_cost < cost:
+            return state, new_cost, max(lam * 0.3, 1e-9), (cost - new_cost) / max(cost, 1e-300)
+        lam *= 10.0
+        if lam > 1e8:
+            return None, cost, lam, 0.0
+
+
 def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig()) -> BundleResult:
     """Minimise the robust reprojection error over the free cameras and free points.
 
@@ -373,9 +399,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     both_row[both_idx_all] = np.arange(len(both_idx_all))
     both_point, both_camera = slot_p[both_idx_all], slot_c[both_idx_all]
     # grouped by point, then by camera within a point: the pairs that make the reduced system
-    pair_order = np.lexsort((both_camera, both_point))
-    grouped = both_point[pair_order]
-    point_starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, int)
+    pair_order, point_starts = pairs_by_point(both_point, both_camera)
     thread_rows = _thread_rows(pair_order, point_starts, both_camera, nC)
 
     lam = 1e-3
@@ -387,7 +411,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
                                             nC, nP, len(both_idx_all))
 
         Wt = np.swapaxes(Wb, 1, 2).copy()  # rows of W^T: contiguous for the reduced system's kernel
-        while True:
+        def trial(lam: float, U=U, gc=gc, V=V, gp=gp, Wb=Wb, Wt=Wt) -> tuple[tuple, float]:
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, Wb, lam, both_point, both_camera)
             if nC:
                 S2 = damped_camera_system(pair_order, point_starts, both_camera, Wt, Y, U, lam, thread_rows)
@@ -395,7 +419,6 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             else:
                 dc = np.zeros((0, n))
             dp = _back_substitute(Vinv, gp, Wb, dc, both_point, both_camera)
-
             new_params = params + dc
             Ps_new = Ps.copy()
             if nC:
@@ -403,16 +426,12 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
             X_new = X.copy()
             X_new[free_pt_idx] += dp
             with np.errstate(all="ignore"):  # a trial step may put a point at infinity: refused below
-                new_cost = huber_cost_of_norms(observation_errors(Ps_new, X_new, oc, op, xy), delta)
-            if np.isfinite(new_cost) and new_cost < cost:
-                improvement = (cost - new_cost) / max(cost, 1e-300)
-                params, Ps, X, cost = new_params, Ps_new, X_new, new_cost
-                lam = max(lam * 0.3, 1e-9)
-                break
-            lam *= 10.0
-            if lam > 1e8:
-                improvement = 0.0
-                break
+                return (new_params, Ps_new, X_new), huber_cost_of_norms(observation_errors(Ps_new, X_new, oc, op, xy),
+                                                                        delta)
+
+        step, cost, lam, improvement = damped_step(trial, cost, lam)
+        if step is not None:
+            params, Ps, X = step
         if improvement < 1e-6:
             break
 

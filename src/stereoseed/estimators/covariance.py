@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereoseed.estimators.bundle import (BundleProblem, _eliminate_points, _normal_equations,
-                                          _reduced_camera_matrix, _thread_rows, observation_errors)
+                                          _reduced_camera_matrix, _thread_rows, observation_errors, pairs_by_point)
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.models import CameraModel
 
@@ -303,9 +303,7 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
     both_point, both_camera = pt_slot[op_k[both_idx]], cam_slot[oc_k[both_idx]]
     Vinv, Y, _ = _eliminate_points(V, gp, gc, W, 0.0, both_point, both_camera)
     # grouped by point, then camera: the layout _reduced_camera_matrix's kernel adds pairs in
-    order = np.lexsort((both_camera, both_point))
-    grouped = both_point[order]
-    starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, np.int64)
+    order, starts = pairs_by_point(both_point, both_camera)
     S = _reduced_camera_matrix(order, starts, both_camera, np.swapaxes(W, 1, 2).copy(), Y, nC,
                                _thread_rows(order, starts, both_camera, nC))
     for i in range(nC):

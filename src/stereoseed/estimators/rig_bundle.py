@@ -32,6 +32,8 @@ from stereoseed.estimators.bundle import (
     _back_substitute,
     _eliminate_points,
     damped_camera_system,
+    damped_step,
+    pairs_by_point,
     _solve_symmetric,
     _thread_rows,
     observation_errors,
@@ -282,9 +284,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
     virt_cam = np.concatenate([obs_cam[by_station], np.full(len(by_rig), rig_slot, np.int64)])
     both = obs_pt[virt_obs] >= 0  # the virtual observations of free points: the rows of W
     w_obs, w_cam, w_pt = virt_obs[both], virt_cam[both], obs_pt[virt_obs[both]]
-    pair_order = np.lexsort((w_cam, w_pt))
-    grouped = w_pt[pair_order]
-    starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1], True]) if len(grouped) else np.zeros(1, np.int64)
+    pair_order, starts = pairs_by_point(w_pt, w_cam)
     rows = _thread_rows(pair_order, starts, w_cam, n_cams) if n_cams else None
     cross = np.flatnonzero((obs_cam >= 0) & (side == 1)) if refine_rig else np.zeros(0, np.int64)
     point_obs = np.flatnonzero(obs_pt >= 0)
@@ -310,7 +310,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
         W = np.ascontiguousarray(_gram(w[w_obs], J_virt[both], J_pt[w_obs]))  # (rows, 6, 3)
         U_cross = _sum_blocks(obs_cam[cross], _gram(w[cross], J_st[cross], J_rig[cross]), n_cams)
         Wt = np.swapaxes(W, 1, 2).copy()
-        while True:
+        def trial(lam: float, U=U, gc=gc, V=V, gp=gp, W=W, Wt=Wt, U_cross=U_cross) -> tuple[tuple | None, float]:
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
             if n_cams:
                 S = damped_camera_system(pair_order, starts, w_cam, Wt, Y, U, lam, rows)
@@ -323,17 +323,14 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
             else:
                 dc = np.zeros((0, _N))
             dp = _back_substitute(Vinv, gp, W, dc, w_pt, w_cam)
-            trial = _step(rig, R, t, X, dc, dp, free_idx, pt_idx, rig_slot) if np.all(np.isfinite(dc)) else None
-            new_cost = cost_of(*trial) if trial is not None else np.inf
-            if np.isfinite(new_cost) and new_cost < cost:
-                improvement = (cost - new_cost) / max(cost, 1e-300)
-                (rig, R, t, X), cost = trial, new_cost
-                lam = max(lam * 0.3, 1e-9)
-                break
-            lam *= 10.0
-            if lam > 1e8:
-                improvement = 0.0
-                break
+            if not np.all(np.isfinite(dc)):
+                return None, np.inf
+            moved = _step(rig, R, t, X, dc, dp, free_idx, pt_idx, rig_slot)
+            return moved, cost_of(*moved)
+
+        moved, cost, lam, improvement = damped_step(trial, cost, lam)
+        if moved is not None:
+            rig, R, t, X = moved
         if improvement < config.min_improvement:
             break
     return RigBundleResult(R, t, X, rig, rms_before, rms(rig, R, t, X), iterations, time.perf_counter() - t0)
