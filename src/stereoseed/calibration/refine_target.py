@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from stereoseed.estimators.robust import huber_cost_of_norms
+from stereoseed.estimators.robust import huber_cost_of_norms, huber_weights
 
 log = logging.getLogger(__name__)
 
@@ -180,7 +180,7 @@ def _weights(r: np.ndarray, sigma: np.ndarray, delta: float) -> np.ndarray:
     """IRLS weights per residual: 1 / sigma^2 times Huber's on each corner's 2D error in sigmas,
     repeated for u and v."""
     e = np.hypot(r[0::2], r[1::2]) / sigma
-    w = np.where(e <= delta, 1.0, delta / np.maximum(e, 1e-300)) / (sigma * sigma)
+    w = huber_weights(e, delta) / (sigma * sigma)
     return np.repeat(w, 2)
 
 

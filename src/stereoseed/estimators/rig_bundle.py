@@ -40,7 +40,7 @@ from stereoseed.estimators.bundle import (
 )
 from stereoseed.estimators.config import BundleConfig
 from stereoseed.estimators.rig_resection import Rig
-from stereoseed.estimators.robust import huber_cost_of_norms
+from stereoseed.estimators.robust import huber_cost_of_norms, huber_weights
 from stereoseed.geometry.models import rotation_from_vector, rotations_from_vectors
 from stereoseed.validation import positive, whole
 
@@ -299,7 +299,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
     for iterations in range(1, config.max_iterations + 1):
         r, J_st, J_rig, J_pt = _jacobians(rig, R, t, X, st, side, pt, xy)
         norm = np.linalg.norm(r, axis=1)
-        w = np.ones(len(r)) if not np.isfinite(delta) else np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
+        w = huber_weights(norm, delta)
         J_virt = np.concatenate([J_st[by_station], J_rig[by_rig]])  # (virtual, 2, 6)
         w_virt = w[virt_obs]
         U = _sum_blocks(virt_cam, _gram(w_virt, J_virt, J_virt), n_cams)

@@ -31,7 +31,9 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
+from stereoseed.estimators.bundle import damped_step
 from stereoseed.estimators.config import BundleConfig, ResectionConfig
+from stereoseed.estimators.robust import huber_cost, huber_weights
 from stereoseed.geometry.camera import _read_only
 from stereoseed.geometry.models import rotation_from_vector
 from stereoseed.geometry.projection import compose_projection, decompose_projection
@@ -246,41 +248,31 @@ def _residuals_jacobian(rig: Rig, R: np.ndarray, t: np.ndarray, X: np.ndarray, x
     return r, J
 
 
-def _robust_cost(r: np.ndarray, delta: float) -> float:
-    norm = np.linalg.norm(r, axis=1)
-    if not np.isfinite(delta):
-        return float(np.sum(norm ** 2))
-    return float(np.sum(np.where(norm <= delta, norm ** 2, 2 * delta * norm - delta ** 2)))
-
-
 def _refine(rig: Rig, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray, side: np.ndarray,
             delta: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on the (Huber, ``delta`` px on each pair's 2D error; inf: least
     squares) reprojection error of the pairs of both cameras over the station's 6 pose parameters."""
     lam = 1e-3
     r, J = _residuals_jacobian(rig, R, t, X, x, side)
-    cost = _robust_cost(r, delta)
+    cost = huber_cost(r, delta)
     for _ in range(iterations):
-        norm = np.linalg.norm(r, axis=1)
-        w = np.ones(len(r)) if not np.isfinite(delta) else np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
+        w = huber_weights(np.linalg.norm(r, axis=1), delta)
         H = np.einsum("nai,n,naj->ij", J, w, J)
         g = np.einsum("nai,n,na->i", J, w, r)
-        improved = False
-        while lam <= 1e8:
+
+        def trial(lam: float, H=H, g=g) -> tuple[tuple, float]:
             step = np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), -g)
             R_new = rotation_from_vector(step[:3]) @ R
             t_new = t + step[3:]
             r_new, J_new = _residuals_jacobian(rig, R_new, t_new, X, x, side)
             with np.errstate(invalid="ignore"):
-                new_cost = _robust_cost(r_new, delta)
-            if np.isfinite(new_cost) and new_cost < cost:
-                gain = (cost - new_cost) / max(cost, 1e-300)
-                R, t, r, J, cost = R_new, t_new, r_new, J_new, new_cost
-                lam = max(lam * 0.3, 1e-9)
-                improved = True
-                break
-            lam *= 10.0
-        if not improved or gain < 1e-14:
+                return (R_new, t_new, r_new, J_new), huber_cost(r_new, delta)
+
+        state, cost, lam, gain = damped_step(trial, cost, lam)
+        if state is None:
+            break
+        R, t, r, J = state
+        if gain < 1e-14:
             break
     return R, t
 

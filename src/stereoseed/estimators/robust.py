@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["huber_cost", "huber_cost_of_norms"]
+__all__ = ["huber_cost", "huber_cost_of_norms", "huber_weights"]
 
 
 def huber_cost(r: np.ndarray, delta: float) -> float:
@@ -20,3 +20,11 @@ def huber_cost_of_norms(norm: np.ndarray, delta: float) -> float:
     if not np.isfinite(delta):
         return float(np.sum(norm * norm))
     return float(np.sum(np.where(norm <= delta, norm ** 2, 2 * delta * norm - delta ** 2)))
+
+
+def huber_weights(norm: np.ndarray, delta: float) -> np.ndarray:
+    """The iteratively reweighted least-squares weights (O,) of the Huber cost at residual norms
+    (O,): 1 up to ``delta``, delta / norm beyond; all 1 for delta=inf (least squares)."""
+    if not np.isfinite(delta):
+        return np.ones(len(norm))
+    return np.where(norm <= delta, 1.0, delta / np.maximum(norm, 1e-300))
