@@ -25,7 +25,7 @@ import numpy as np
 
 from stereoseed.estimators.calibration import CalibrationResult, calibrate_camera
 from stereoseed.estimators.rig_resection import Rig
-from stereoseed.geometry.projection import camera_center, compose_projection
+from stereoseed.geometry.projection import compose_projection
 from stereoseed.synthetic import scene as box
 from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, box_corners, render_views
 from stereoseed.validation import positive, whole
@@ -106,15 +106,6 @@ class RigScene:
     def projections(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Station k's true (P_left, P_right)."""
         return self.scene.P[2 * k], self.scene.P[2 * k + 1]
-
-    def pose(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Station k's pose: the left camera's (R, t), ``cam_from_world``."""
-        return self.scene.R[2 * k], self.scene.t[2 * k]
-
-    @property
-    def centres(self) -> np.ndarray:
-        """(stations, 2, 3): the left and right camera centres of each station."""
-        return np.array([[camera_center(P) for P in self.projections(k)] for k in range(self.stations)])
 
     def calibration(self) -> tuple[CalibrationResult, CalibrationResult]:
         """The first station's pair as a calibration gives it: each camera calibrated (DLT + LM)
