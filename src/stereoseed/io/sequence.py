@@ -54,6 +54,7 @@ class ImageSequence(Sequence):
         self._withheld: dict[int, tuple[int, int] | None] = {}  # index -> its header's size if withheld
         self._skip_from = len(self._entries)  # images from here on that cannot be decoded are skipped
         self._unreadable: dict[int, str] = {}  # index -> why it cannot be decoded
+        self._unreadable_sizes: dict[int, tuple[int, int]] = {}  # index -> its blank's size, its header read once
 
     def withhold_other_sizes(self, size: tuple[int, int], first: int = 0) -> None:
         """From image ``first`` on, an image file whose header gives another size than ``size``
@@ -64,6 +65,7 @@ class ImageSequence(Sequence):
         self._expected = (int(size[0]), int(size[1]))
         self._checked_from = first
         self._withheld.clear()
+        self._unreadable_sizes.clear()  # their fallback is the expected size
 
     def skip_unreadable(self, first: int = 0) -> None:
         """From image ``first`` on, an image file that cannot be decoded (damaged, truncated, not
@@ -100,7 +102,9 @@ class ImageSequence(Sequence):
         return self._withheld[i]
 
     def _unreadable_size(self, i: int) -> tuple[int, int]:
-        return header_size(self._entries[i]) or self._expected or (0, 0)
+        if i not in self._unreadable_sizes:
+            self._unreadable_sizes[i] = header_size(self._entries[i]) or self._expected or (0, 0)
+        return self._unreadable_sizes[i]
 
     def __len__(self) -> int:
         return len(self._entries)
