@@ -25,6 +25,7 @@ from stereoseed.cli import main
 from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.output.result_set import MANIFEST, STAGING_MARKER, ResultSet
+from stereoseed.sfm.registration.base import FailureKind
 
 TIMEOUT_S = 120  # any subprocess: a hang fails the test instead of the suite
 ONE_WORKER = Config().replace(dense={"workers": 1})  # the dense stage in this process: no pool to start
@@ -381,7 +382,7 @@ def test_an_unreadable_image_is_skipped_with_its_reason_and_the_run_goes_on(seq,
     assert f"skipped: {bad}: not a readable image (OpenCV cannot decode it: {says}" in stdout, stdout
     report = json.loads((out / "report.json").read_text())
     row = report["per_image"][3]
-    assert row["image"] == "img_003.png" and row["status"] == "failed" and row["failure"] == pipeline.UNREADABLE
+    assert row["image"] == "img_003.png" and row["status"] == "failed" and row["failure"] == FailureKind.UNREADABLE
     assert row["reason"].startswith(f"{bad}: not a readable image")
     assert [r["status"] for r in report["per_image"][2:]] == ["registered", "failed", "registered"]
     cameras = json.loads((out / "cameras.json").read_text())["images"]

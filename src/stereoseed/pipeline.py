@@ -52,7 +52,6 @@ Progress = Callable[[int, int, str], None]
 AfterInsertion = Callable[[Reconstruction, list[dict[str, Any]]], None]
 
 CHECKPOINT = ".checkpoint.npz"  # in the staging folder, kept after an interruption for resume
-UNREADABLE = FailureKind.UNREADABLE  # the report's "failure" of an image file that cannot be decoded
 
 
 def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
@@ -210,7 +209,7 @@ def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> 
         return None
     recon.views[k].status = f"failed: {reason}"
     log.info("%s", reason)
-    return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": UNREADABLE}
+    return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,

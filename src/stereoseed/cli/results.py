@@ -9,7 +9,7 @@ from stereoseed.errors import StereoseedError
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from stereoseed.output.export import write_bundler, write_colmap, write_nvm
+    from stereoseed.output.export import colmap_files, write_bundler, write_colmap, write_nvm
     from stereoseed.output.reader import load_result
 
     if args.undistort and args.format != "colmap":
@@ -24,7 +24,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         return _handoff(result, out, args)
     if args.format == "colmap":
         warnings_ = write_colmap(result, out, binary=args.binary, force=args.force)
-        written = [out / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+        written = [out / name for name in colmap_files(args.binary)]
     elif args.format == "nvm":
         warnings_ = write_nvm(result, out / "model.nvm", force=args.force)
         written = [out / "model.nvm"]
@@ -40,6 +40,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 def _handoff(result, out: Path, args: argparse.Namespace) -> int:
     """The hand-offs with images: COLMAP's undistorted workspace, nerfstudio's folder."""
+    from stereoseed.output.export import colmap_files
     from stereoseed.output.handoff import (
         NERFSTUDIO_PLY,
         write_colmap_undistorted,
@@ -51,7 +52,7 @@ def _handoff(result, out: Path, args: argparse.Namespace) -> int:
         files = [out / "transforms.json", out / NERFSTUDIO_PLY]
     else:
         done = write_colmap_undistorted(result, out, args.images, binary=args.binary, force=args.force)
-        files = [out / "sparse" / "0" / f"{n}.{'bin' if args.binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+        files = [out / "sparse" / "0" / name for name in colmap_files(args.binary)]
     for w in done.warnings:
         warn(w)
     how = "undistorted" if done.undistorted else "copied (no lens)"

@@ -35,7 +35,8 @@ from stereoseed.output.result_set import read_manifest
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST", "claim_folder",
            "record_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
-           "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px", "skew_warning"]
+           "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px", "skew_warning",
+           "colmap_files"]
 
 log = logging.getLogger(__name__)
 
@@ -215,6 +216,11 @@ def tracks_by_point(result: Result, image_id: np.ndarray | None = None) -> list[
     return np.split(np.stack([image_id[image], keypoint], axis=1), starts[1:-1])
 
 
+def colmap_files(binary: bool) -> list[str]:
+    """The three files of a COLMAP model, binary (.bin) or text (.txt)."""
+    return [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+
+
 def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, force: bool = False) -> list[str]:
     """COLMAP's sparse model (cameras, images with every 2D point, points3D with colour, error
     and track) in out_dir, as .txt or .bin files. Returns the warnings (also logged): the
@@ -231,7 +237,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
         write_colmap_binary(out, cameras, images, tr, tracks)
     else:
         write_colmap_text(out, cameras, images, tr, tracks, tuple(result.names[i] for i in flagged_images(result)))
-    record_written(out, [f"{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")])
+    record_written(out, colmap_files(binary))
     return logged(result.warnings + warnings + flagged_warnings(result))
 
 

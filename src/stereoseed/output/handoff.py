@@ -53,6 +53,7 @@ from stereoseed.io.files import (
 from stereoseed.io.ply import write_ply
 from stereoseed.io.sequence import header_size
 from stereoseed.output.export import (
+    colmap_files,
     point_ids,
     check_names,
     claim_folder,
@@ -349,7 +350,7 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
     out = Path(out_dir)
     fmt = "COLMAP's binary model" if binary else "COLMAP's text model"
     images, warnings, photos = _prepare(result, out, fmt, image_sources, force, cfg, any_space=not binary)
-    sparse = [f"sparse/0/{n}.{'bin' if binary else 'txt'}" for n in ("cameras", "images", "points3D")]
+    sparse = [f"sparse/0/{name}" for name in colmap_files(binary)]
     record_written(out, [f"images/{result.names[im.index]}" for im in images] + sparse)
     written = _write_images(result, images, photos, out / "images")
     cameras: dict[int, tuple] = {}
