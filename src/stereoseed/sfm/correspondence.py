@@ -201,7 +201,10 @@ class Prefetching:
 
     def features(self, index: int, image: np.ndarray) -> Features:
         self._submit_up_to(index + self._ahead)
-        future = self._futures.pop(index, None)
+        for done in [i for i in self._futures if i < index]:  # the walk has moved past them
+            del self._futures[done]
+        # kept until the walk moves on: a rig's right image is asked for again at its own insertion
+        future = self._futures.get(index)
         if future is not None:
             fetched, features = future.result()
             if fetched is image or np.array_equal(fetched, image):  # not a turned copy
