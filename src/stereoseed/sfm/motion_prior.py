@@ -23,7 +23,8 @@ from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction
 
-__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis"]
+__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis",
+           "trusted_chain_inliers"]
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,13 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
     _, R_before, t_before = Camera(P_before).krt
     K, R_last, t_last = Camera(P_last).krt
     return K @ predict_pose(pose_matrix(R_before, t_before), pose_matrix(R_last, t_last), steps)[:3]
+
+
+def trusted_chain_inliers(cfg: Config) -> int:
+    """Resection inliers an epipolar chain needs to be trusted without the motion prior
+    (``MotionPriorConfig.trusted_chain_factor`` x ``ResectionConfig.min_inliers``, rounded up):
+    fewer, and the quasi-dense attempt runs; fewer ties after the final BA, and a camera is weak."""
+    return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
 
 
 def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.ndarray, np.ndarray]:

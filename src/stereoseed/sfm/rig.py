@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from stereoseed.arrays import unique
 from stereoseed.config import Config
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.estimators.rig_bundle import RigBundleProblem, rig_bundle_adjust
@@ -39,7 +40,7 @@ from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
-                                              _rival, _rivals, chained_points)
+                                              _rivals, ambiguity_flag, chained_points)
 from stereoseed.sfm.registration.ambiguity import judge_ambiguity
 
 __all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
@@ -123,13 +124,13 @@ class RigRegistrar:
         pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (X, x, side) per set
         matches = 0
         chained_sets = []
-        found = {}
+        matched = {}  # side -> (the previous station's image of that side, their matches)
         for sd in sorted(cands, reverse=True):  # the right image first: its match was computed ahead (next_match)
             p = next((v for v in previous if side_of(v) == sd), previous[-1])
             vp = recon.views[p]
-            found[sd] = p, source.match(p, cands[sd].index, vp.features, cands[sd].features, None, vp.image_size[0])
+            matched[sd] = p, source.match(p, cands[sd].index, vp.features, cands[sd].features, None, vp.image_size[0])
         for sd, c in cands.items():  # each image with the previous station's image of its side
-            p, m = found[sd]
+            p, m = matched[sd]
             pid, chained = chained_points(recon, p, m)
             matches += len(m)
             chained_sets.append((recon.points[pid[chained]], c.features.points[m.idx2[chained]],
@@ -138,9 +139,10 @@ class RigRegistrar:
         predicted = _predicted_station(recon, rig, s)
         trusted = cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers * len(cands)
         if predicted is not None and len(pairs[0][0]) < trusted:  # a strong chain needs no prediction
+            P_predicted = rig.projections(*predicted)
             for sd, c in cands.items():
-                for found in hypotheses_near(recon, rig.projections(*predicted)[sd], c.features, cfg, recent):
-                    pairs += [(h.points3d, h.points2d, np.full(len(h), sd)) for h in found]
+                for hyps in hypotheses_near(recon, P_predicted[sd], c.features, cfg, recent):
+                    pairs += [(h.points3d, h.points2d, np.full(len(h), sd)) for h in hyps]
         # a pose per set: the robust-F set from both images at once, each predicted set by P3P in its image
         poses = []
         if len(pairs[0][0]) >= cfg.registration.min_chained_points:
@@ -159,8 +161,7 @@ class RigRegistrar:
             counts += explained_points(c.features, [P[sd] for P in cameras],
                                        recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
         best = int(np.argmax(counts))
-        lefts = [P[0] for P in cameras]
-        rival = _rival(recon, previous[-1], recent[0], lefts, counts, best, cfg)
+        rivals = _rivals(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
         # the winner refitted on every pair of both images it explains, from all sets
         X, x, side = (np.concatenate(a) for a in zip(*pairs))
         err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)
@@ -170,14 +171,12 @@ class RigRegistrar:
             return RegistrationFailure(f"{view.name}: station {s}: {res.reason}", matches, n_pairs,
                                        kind=FailureKind.NO_CAMERA)
         reg = _registration(cand, res.projections()[side_of(k)], (res, matches, n_pairs), t0)
-        if rival is not None:
-            reg.notes["flag"] = f"ambiguous: repeated structure ({rival})"
+        if rivals:
+            reg.notes["flag"] = ambiguity_flag(rivals, counts, best)
             # judged as a single camera's choice is, on this image and the previous station's of its side
-            rivals = _rivals(recon, previous[-1], recent[0], lefts, counts, best, cfg)
             reg = dataclasses.replace(reg, rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
             if cfg.quasi_dense.enabled:
-                same_side = next((v for v in previous if side_of(v) == side_of(k)), previous[-1])
-                reg = judge_ambiguity(recon, same_side, reg, cfg, source)
+                reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, cfg, source)
         return reg
 
 
@@ -226,12 +225,12 @@ def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config, ref
     registered = np.zeros(len(recon.views), bool)
     registered[recon.registered_views] = True
     in_free = np.isin(recon.obs_view // 2, free_stations) & registered[recon.obs_view]
-    points = np.unique(recon.obs_point[in_free & recon.alive[recon.obs_point]])
+    points = unique(recon.obs_point[in_free & recon.alive[recon.obs_point]])
     if not len(points):
         return None
     involved = np.isin(recon.obs_point, points) & registered[recon.obs_view]
     obs_view = recon.obs_view[involved]
-    stations = np.unique(obs_view // 2)
+    stations = unique(obs_view // 2)
     poses = [_station_pose(recon, rig, int(s)) for s in stations]
     problem = RigBundleProblem(
         rig=rig, R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]),

@@ -25,6 +25,7 @@ from stereoseed.config import Config
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.modes import mode_of
+from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
@@ -103,18 +104,16 @@ def tied_observation_limit(cfg: Config) -> int:
     tc = cfg.trust
     if tc.min_tied_observations is not None:
         return tc.min_tied_observations
-    return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
+    return trusted_chain_inliers(cfg)
 
 
-def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int] | None = None) -> dict[int, str]:
+def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, str]:
     """{view: reason} of the registered views after the pair with fewer than
     :func:`tied_observation_limit` observations of live points that two other cameras also see.
     A rig's station counts its two images' observations together (the rig holds them).
-    vouched: the views the run vouches for (default all): only their observations tie, and only
-    they are judged (a flagged camera's observations leave the model; it vouches for nothing)."""
-    live = recon.alive[recon.obs_point]
-    if vouched is not None:
-        live &= np.isin(recon.obs_view, sorted(vouched))
+    vouched: the views the run vouches for: only their observations tie, and only they are
+    judged (a flagged camera's observations leave the model; it vouches for nothing)."""
+    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
     observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
     tied = live & (observers[recon.obs_point] >= 3)
     group = station_of if recon.rig is not None else (lambda v: v)
@@ -126,7 +125,7 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int] | 
     return {v: (f"weak: only {per_group[group(v)]} of its observations are of points two other cameras also "
                 f"see; the final BA cannot check its place with fewer than {need}")
             for v in recon.registered_views
-            if v not in CALIBRATED and (vouched is None or v in vouched) and per_group[group(v)] < need}
+            if v not in CALIBRATED and v in vouched and per_group[group(v)] < need}
 
 
 def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
@@ -168,9 +167,9 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
                                                    or (None if u is None else _uncertain(recon, v, u, cfg)))
     _flag_stations(recon, reasons)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
+    # (a station's two images are judged together: both or neither)
     while weak := weakly_tied_cameras(recon, cfg, {v for v, reason in reasons.items() if reason is None}):
         reasons.update(weak)
-        _flag_stations(recon, reasons)
     cameras, flagged = {}, {}
     for v in recon.registered_views:
         view = recon.views[v]

@@ -201,15 +201,25 @@ def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[
     return found
 
 
-def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
-           best: int, cfg: Config) -> str | None:
-    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous (:func:`_rivals`), or None."""
-    rivals = _rivals(recon, prev, recent, cameras, counts, best, cfg)
+def _why_ambiguous(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
+    """What the first of :func:`_rivals` explains against the winner ``best``, or None without one."""
     if not rivals:
         return None
     j, apart, depth = rivals[0]
     return (f"the best camera explains {counts[best]} recent points, another {apart:.3g} away "
             f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]}")
+
+
+def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
+    """The flag of a choice :func:`_rivals` makes ambiguous, or None."""
+    why = _why_ambiguous(rivals, counts, best)
+    return None if why is None else f"ambiguous: repeated structure ({why})"
+
+
+def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
+           best: int, cfg: Config) -> str | None:
+    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous (:func:`_rivals`), or None."""
+    return _why_ambiguous(_rivals(recon, prev, recent, cameras, counts, best, cfg), counts, best)
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -374,7 +384,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
                                   or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
             return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
-    chosen, explained, rival, rivals = None, 0, None, ()
+    chosen, explained, flag, rivals = None, 0, None, ()
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
@@ -393,16 +403,14 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         best = int(np.argmax(counts))  # ties: the first (the epipolar chain's, the nearest search's)
         if chosen is None or (counts[best] > 0 and counts[best] >= mp.wider_search_margin * explained):
             chosen, explained = cameras[best], counts[best]
+            # a repeated pattern: another camera, a period away, explains nearly as much. The best
+            # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
             Ps = [c[0][0].P for c in cameras]
-            rival = _rival(recon, prev, recent[0], Ps, counts, best, cfg)
-            rivals = tuple(Ps[j] for j, _, _ in _rivals(recon, prev, recent[0], Ps, counts, best, cfg))
-            # the winner first, then the cameras explaining nearly as much
+            ambiguous = _rivals(recon, prev, recent[0], Ps, counts, best, cfg)
+            flag, rivals = ambiguity_flag(ambiguous, counts, best), tuple(Ps[j] for j, _, _ in ambiguous)
     if chosen is not None:
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
-        # a repeated pattern: another camera, a period away, explains nearly as much. The best
-        # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
-        flag = f"ambiguous: repeated structure ({rival})" if rival is not None else None
-        return _Resected(*chosen[0], found_by, chosen[1], flag, rivals if flag else ())
+        return _Resected(*chosen[0], found_by, chosen[1], flag, rivals)
     if error:
         return _Failed(error, FailureKind.NO_CAMERA)
     return _Failed(f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "

@@ -40,6 +40,7 @@ import numpy as np
 
 from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
 from stereoseed.config import Config
+from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.features.harris import Features, describe
 from stereoseed.matching.alignment import PairCache, filter_localization
 from stereoseed.matching.containers import Matches
@@ -117,7 +118,7 @@ def weak_chain_limit(cfg: Config) -> int:
     qc = cfg.quasi_dense
     if qc.weak_chain_inliers is not None:
         return qc.weak_chain_inliers
-    return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
+    return trusted_chain_inliers(cfg)
 
 
 def _grey_u8(image: np.ndarray) -> np.ndarray:
@@ -461,12 +462,12 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     cfg = cfg.resolve()
     if not cfg.quasi_dense.enabled or found.candidate is None:
         return found
-    prev = recon.registered_before(k, 1)[0]
     sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
     limit = weak_chain_limit(cfg)
     if sparse_inliers >= limit:
         return found
     cand = found.candidate
+    prev = recon.registered_before(k, 1)[0]
     why_weak = (f"{sparse_inliers} sparse resection inliers < {limit}" if isinstance(found, Registration)
                 else found.reason)
     try:
