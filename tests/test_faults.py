@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from process_helpers import wait_until
-from cli_helpers import one_line_error, run
+from cli_helpers import cli_command, one_line_error, run
 from scene_helpers import scene_on_disk
 from stereoseed import pipeline
 from stereoseed.cli import main
@@ -164,8 +164,7 @@ def test_a_second_run_on_a_locked_folder_is_refused_at_once_and_touches_nothing(
 def test_a_mistyped_run_during_a_real_run_leaves_it_to_finish(seq, tmp_path, capsys):
     out = tmp_path / "o"
     lock = tmp_path / ".o.lock"
-    cmd = [sys.executable, "-m", "stereoseed.cli", "reconstruct", str(seq[0]["images_txt"]), "--calib", str(seq[1]),
-           "--out", str(out), "--dense", "--quiet"]
+    cmd = cli_command("reconstruct", seq[0]["images_txt"], "--calib", seq[1], "--out", out, "--dense", "--quiet")
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert wait_until(lambda: first.poll() is not None or (lock.exists() and str(first.pid) in lock.read_text()),

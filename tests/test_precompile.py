@@ -14,6 +14,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+from cli_helpers import cli_command
 from process_helpers import alive_in_group, wait_until
 
 import stereoseed
@@ -111,13 +112,8 @@ def test_the_notice_is_said_once_even_under_quiet_and_only_when_kernels_are_miss
 def test_a_first_run_on_an_empty_cache_says_so_first_and_leaves_no_helper_behind(tmp_path):
     """As after a fresh install: the notice comes before any work (here the run is then refused)
     and the helpers compiling the kernels end with the command."""
-    code = """
-        import sys
-        from stereoseed.cli import run
-        sys.argv = ["stereoseed", "reconstruct", "no_images", "--calib", "calib.json", "--out", "out", "--quiet"]
-        run()
-    """
-    proc = subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=tmp_path, stderr=subprocess.PIPE,
+    command = cli_command("reconstruct", "no_images", "--calib", "calib.json", "--out", "out", "--quiet")
+    proc = subprocess.Popen(command, cwd=tmp_path, stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")},
                             start_new_session=True)
     _, err = proc.communicate(timeout=60)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-from dataclasses import replace
 import sys
 from pathlib import Path
 
@@ -304,9 +303,7 @@ def test_reconstruct_mesh_writes_the_mesh_with_the_run(tmp_path, small_box_scene
 
     from stereoseed.cli import main
 
-    scene = replace(small_box_scene, images=small_box_scene.images[:4], names=small_box_scene.names[:4],
-                    P=small_box_scene.P[:4])
-    paths, calib = scene_on_disk(scene, tmp_path / "walk")
+    paths, calib = scene_on_disk(small_box_scene.prefix(4), tmp_path / "walk")
     out = tmp_path / "out"
     assert main(["reconstruct", str(paths["images_txt"]), "--calib", str(calib), "--out", str(out), "--dense",
                  "--mesh", "--quiet"]) == 0
