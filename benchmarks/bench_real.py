@@ -66,6 +66,13 @@ def run_set(name: str, cfg: Config = Config()) -> dict:
         t = time.perf_counter()
         recon, report = reconstruct(images, names, P_pair, cfg)
         seconds = time.perf_counter() - t
+    return set_figures(recon, report, truth, seconds)
+
+
+def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) -> dict:
+    """A reconstructed set's figures (:func:`run_set`'s): ``truth`` the published cameras by
+    image name; ``seconds`` the reconstruction's time, when it was timed."""
+    names = [v.name for v in recon.views]
     pts, _ = recon.live_points()
     distance = float(np.median(depths(truth[names[0]], pts))) if len(pts) else float("nan")
     per_image, placed, trusted = [], [], []
