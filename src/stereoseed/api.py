@@ -140,7 +140,6 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     first station). mesh: with ``out`` and ``dense``, the dense cloud meshed into ``mesh.ply``
     (the mesh extra). Raises :class:`StereoseedError` (one line) for input it cannot use."""
     from stereoseed import pipeline
-    from stereoseed.calibration.lens_calibration import read_lenses
 
     cfg = Config() if cfg is None else cfg
     if not isinstance(cfg, Config):
@@ -154,14 +153,15 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
             pipeline.reconstruct_to_folder(images, calib_path, out, cfg, dense=dense, resume=resume, progress=progress,
                                            pool=pool, dense_progress=dense_progress, rig_right=rig_right, mesh=mesh)
             return load_result(out)
-        sequence, names, P_pair = pipeline.load_sequence(images, calib_path, cfg.video, rig_right=rig_right)
+        sequence, names, P_pair, lenses = pipeline.load_sequence_and_lenses(images, calib_path, cfg.video,
+                                                                            rig_right=rig_right)
         recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress, rig=rig_right is not None)
         cloud = None
         if dense:
             from stereoseed.dense.densify import densify
 
             cloud, report["dense"] = densify(recon, cfg, None, pool, dense_progress)
-        return _in_memory(recon, report, cfg, read_lenses(calib_path), cloud)
+        return _in_memory(recon, report, cfg, lenses, cloud)
 
 
 @contextmanager

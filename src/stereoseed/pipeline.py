@@ -42,7 +42,7 @@ from stereoseed.output.results import write_result
 if TYPE_CHECKING:  # a type only: the executors' module is not needed to run
     from stereoseed.cluster import JobPool
 
-__all__ = ["reconstruct", "as_finished", "load_sequence", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
+__all__ = ["reconstruct", "as_finished", "load_sequence", "load_sequence_and_lenses", "save_outputs", "reconstruct_to_folder", "CHECKPOINT"]
 
 log = logging.getLogger(__name__)
 
@@ -272,7 +272,18 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
                   keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None
                   ) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
-    (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras).
+    (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras); as
+    :func:`load_sequence_and_lenses`, without the lenses."""
+    return load_sequence_and_lenses(images_source, calib_path, video, keyframes_to, rig_right)[:3]
+
+
+def load_sequence_and_lenses(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
+                             keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None
+                             ) -> tuple[ImageSequence, list[str], list[np.ndarray], list]:
+    """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
+    (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras, the
+    calibration's two lenses (:func:`stereoseed.calibration.lens_calibration.read_lenses`), read
+    once for the undistortion and the outputs).
 
     ``images_source``: a folder (its images in name order), a list file, or several of these and
     image files in order; a video (given directly or listed) stands for its keyframes
@@ -328,7 +339,7 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
         images.withhold_other_sizes(images[1].shape[1::-1], first=2)
     elif images[0].shape != images[1].shape:  # the registrar compares each image with its own side's
         log.info("rig: left images %s, right images %s", images[0].shape[1::-1], images[1].shape[1::-1])
-    return images, names, P_pair
+    return images, names, P_pair, lenses
 
 
 def _rig_entries(left: list, right: list, video: VideoConfig = VideoConfig(),
@@ -453,8 +464,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         staging = results.open(keep=(CHECKPOINT, CHECKPOINT + SPILL_SUFFIX) if resume else ())
         try:
             # a video's keyframes are kept with the result, which names them
-            images, names, P_pair = load_sequence(images_source, calib_path, cfg.video, staging / "keyframes",
-                                                  rig_right=rig_right)
+            images, names, P_pair, lenses = load_sequence_and_lenses(images_source, calib_path, cfg.video,
+                                                                     staging / "keyframes", rig_right=rig_right)
             _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
             unit = read_calibration_unit(calib_path)
         except BaseException:
@@ -481,7 +492,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                 write_mesh(staging / "mesh.ply", surface)
                 stages["mesh"] = time.perf_counter() - t0 - sum(stages.values())
             report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
-            save_outputs(recon, report, staging, cfg, read_lenses(calib_path), cloud, mesh=surface)
+            save_outputs(recon, report, staging, cfg, lenses, cloud, mesh=surface)
             results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
         except KeyboardInterrupt:
             raise  # the staging folder keeps the checkpoint: resume continues
