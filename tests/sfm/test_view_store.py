@@ -57,3 +57,12 @@ def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch, sma
         assert (a.P is None) == (b.P is None)
         if a.P is not None:
             np.testing.assert_array_equal(a.P, b.P)
+
+
+def test_a_rollback_restores_the_registration_flag():
+    # an insertion that fails after its commit is rolled back: the flag its registration raised goes too
+    view = View("v.png", image=np.zeros((6, 8, 3), np.uint8))
+    before = view._state()
+    view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
+    view._restore(before)
+    assert view.registration_flag is None and view.flag_reason is None

@@ -112,13 +112,13 @@ def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str,
     arrays.update((name, a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
     views = []
     for i, (view, s) in enumerate(zip(recon.views, state.views)):
-        P, features, point_of_feature, _, status, rotated, model, zoomed = s[:8]
+        P, features, point_of_feature, _, status, rotated, model, zoomed, _, registration_flag = s
         flags = {"name": view.name, "status": str(status), "rotated_180": bool(rotated),
                  "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
                  "registered": P is not None, "features": features is not None, "desc_file": None,
                  # why the run cannot vouch for the camera (an ambiguous choice, a zoom it cannot
                  # measure): judged once, at registration, so a resumed run must not lose it
-                 "registration_flag": view.registration_flag}
+                 "registration_flag": registration_flag}
         if P is not None:
             arrays[f"view{i}.P"] = np.array(P, np.float64)
         arrays[f"view{i}.point_of_feature"] = np.array(point_of_feature)
@@ -350,7 +350,7 @@ def _model_points(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
 def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in: Path, n_points: int
                  ) -> list[tuple]:
     """Each view's (P, Features or None, point_of_feature, status, rotated_180, camera_model,
-    zoomed), every array checked (links to points below ``n_points``)."""
+    zoomed, registration flag), every array checked (links to points below ``n_points``)."""
     if any(flags["desc_file"] is not None for flags in meta["views"]):
         _check_owner(os.stat(spilled_in), spilled_in)
     states = []
@@ -375,7 +375,7 @@ def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in
         pof = _take(arrays, f"view{i}.point_of_feature", np.int64, (None if features is None else len(features),))
         _in_range(pof, -1, n_points, f"view{i}.point_of_feature")
         states.append((P, features, pof, flags["status"], flags["rotated_180"], flags["camera_model"],
-                       flags["zoomed"]))
+                       flags["zoomed"], flags["registration_flag"]))
     return states
 
 
@@ -420,16 +420,15 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         observations = _observations(arrays, states, len(points))
         views, restored = [], []
         lazy = isinstance(images, ImageSequence)
-        for i, (name, (P, features, pof, status, rotated, camera_model, zoomed)) in enumerate(zip(names, states)):
+        for i, (name, (P, features, pof, status, rotated, camera_model, zoomed, flag)) in enumerate(zip(names, states)):
             view = view_of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
             views.append(view)
-            restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None))
+            restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None,
+                             flag))
         recon = Reconstruction(views)
         # the views check what only they know (a camera model's name, a camera's P)
         recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
-        for view, flags in zip(recon.views, meta["views"]):
-            view.registration_flag = view.flag_reason = flags["registration_flag"]
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None

@@ -219,13 +219,14 @@ class View:
 
     def _state(self) -> tuple:
         """(P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed,
-        grey image released)."""
+        grey image released, registration flag)."""
         return (self.P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
-                self.camera_model, self.zoomed, self._gray_released)
+                self.camera_model, self.zoomed, self._gray_released, self.registration_flag)
 
     def _restore(self, state: tuple) -> None:
         P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180, self.camera_model, \
-            self.zoomed, self._gray_released = state
+            self.zoomed, self._gray_released, self.registration_flag = state
+        self.flag_reason = self.registration_flag  # the final judgement (trust.assess) comes after the last insertion
         self._camera = None  # the restored P follows the restored camera_model, not the current camera's model
         self.P = P
 
