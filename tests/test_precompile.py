@@ -96,11 +96,11 @@ def test_the_notice_is_said_once_even_under_quiet_and_only_when_kernels_are_miss
     monkeypatch.setattr(precompile, "start_compiling", lambda names: started.append(list(names)) or True)
     monkeypatch.setattr("stereoseed.threads.CORES", 2)
     monkeypatch.setattr(precompile, "missing_kernels", lambda run: [])
-    _progress.say_if_compiling(quiet=True, run="sparse")
+    _progress.say_if_compiling(run="sparse")
     assert capsys.readouterr().err == "" and not started  # a warm cache: nothing said, nothing started
     monkeypatch.setattr(precompile, "missing_kernels", lambda run: ["align", "refine_camera", "mirror_upper"])
-    _progress.say_if_compiling(quiet=True, run="sparse")
-    _progress.say_if_compiling(quiet=False, run="sparse")  # batch asks again: said once
+    _progress.say_if_compiling(run="sparse")
+    _progress.say_if_compiling(run="sparse")  # batch asks again: said once
     err = capsys.readouterr().err.splitlines()
     assert started == [["align", "refine_camera", "mirror_upper"]] * 2
     # (7.7 + 5.9 + 0.1) s of compiling in 2 processes, no less than the longest kernel: about 8 s

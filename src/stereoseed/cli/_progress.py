@@ -51,12 +51,12 @@ def compiling_notice(seconds: float, cores: int, kernels: int) -> str:
             f"(longer while other programs use them); `stereoseed precompile` does it ahead")
 
 
-def say_if_compiling(quiet: bool, run: str = "dense") -> None:
+def say_if_compiling(run: str = "dense") -> None:
     """Before a run whose kernels (:data:`stereoseed.precompile.RUNS` ``[run]``: "sparse",
     "dense", "demo-sparse" or "demo") are not all in Numba's cache (a first run on this installation): start
     compiling them in helper processes beside the run, and say so once on stderr with about how
     long it takes, also under ``--quiet``: the run is that much slower, which is not progress
-    but something to know. ``quiet`` is taken for the callers that pass it; it silences nothing."""
+    but something to know."""
     global _said
     from stereoseed import precompile
     from stereoseed.threads import CORES

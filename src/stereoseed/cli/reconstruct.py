@@ -58,7 +58,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             raise StereoseedError(f"--rig takes two image sources, the left camera's then the right one's (a folder, "
                                   f"a list file or a video each); got {len(args.images)}")
         images, right = args.images
-    say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
+    say_if_compiling("dense" if args.dense else "sparse")
     with (_pool(args, cfg.dense.pool_size()) as pool, Bar("image", args.quiet) as progress,
           Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct_to_folder(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
@@ -93,7 +93,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     sequences = read_sequence_list(args.sequences, args.out_root, allow_outside=args.allow_outside)
-    say_if_compiling(args.quiet, "dense" if args.dense else "sparse")
+    say_if_compiling("dense" if args.dense else "sparse")
     with _pool(args, cfg.dense.pool_size()) as pool, Bar("sequence", args.quiet) as progress:
         outcomes = run_batch(sequences, cfg, dense=args.dense, pool=pool, progress=progress)
     for o in outcomes:
@@ -119,7 +119,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from stereoseed.config import Config
 
     cfg = Config.from_file(args.config) if args.config else None
-    say_if_compiling(quiet=False, run="demo-sparse" if args.sparse else "demo")
+    say_if_compiling(run="demo-sparse" if args.sparse else "demo")
     return run_demo(Path(args.out), n_images=args.images, noise=args.noise, dense=not args.sparse, say=say, cfg=cfg)
 
 def _cmd_config(args: argparse.Namespace) -> int:
