@@ -41,6 +41,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.lens import distort_pixels, undistort_pixels
 from stereoseed.geometry.models import quaternion_from_rotation
+from stereoseed.geometry.projection import to_homogeneous
 from stereoseed.io.files import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -132,13 +133,13 @@ def handed_off(result: Result) -> tuple[list[int], list[str]]:
     left out unless the run kept its observations."""
     observed = np.zeros(len(result.names), bool)
     observed[result.tracks["obs_image"]] = True
-    flagged = set(flagged_images(result))
+    flagged = flagged_images(result)
     left_out = [i for i in flagged if not observed[i]]
     warnings = [f"{result.names[i]}: flagged by the run ({result.flags[i]}); left out of the hand-off (a trainer "
                 f"fits every image it gets; reconstruct --keep-flagged keeps such a camera's observations and "
                 f"hands it off)" for i in left_out]
     kept = [i for i in result.registered if i not in left_out]
-    kept_flagged = [w for i, w in zip(flagged_images(result), flagged_warnings(result)) if i in kept]
+    kept_flagged = [w for i, w in zip(flagged, flagged_warnings(result)) if i in kept]
     return kept, warnings + kept_flagged
 
 
@@ -148,7 +149,7 @@ def _no_skew(K: np.ndarray) -> np.ndarray:
 
 def _to_rays(pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) -> homogeneous rays (N, 3) through K^-1."""
-    return np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(K).T
+    return to_homogeneous(pixels) @ np.linalg.inv(K).T
 
 
 def _source_pixels(q: np.ndarray, K: np.ndarray, K_P: np.ndarray, K_L: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -269,7 +270,7 @@ def _pinhole_keypoints(result: Result, image: PinholeImage) -> np.ndarray:
     xy = result.keypoints(image.index)
     if image.lens is None:
         return xy
-    p = np.column_stack([xy, np.ones(len(xy))]) @ image.to_pinhole.T
+    p = to_homogeneous(xy) @ image.to_pinhole.T
     return p[:, :2] / p[:, 2:]
 
 
