@@ -195,14 +195,18 @@ def _is_our_mesh(path: Path) -> bool:
             and b"property float density" in header)
 
 
+def _refuse_foreign(path: Path) -> None:
+    """Refuse to write over anything at ``path`` but a mesh stereoseed wrote."""
+    if (path.exists() or path.is_symlink()) and not _is_our_mesh(path):
+        raise StereoseedError(f"{path}: exists and is not a mesh stereoseed wrote; give another --out or move it away")
+
+
 def write_mesh(path: str | os.PathLike, mesh: Mesh) -> Path:
     """The mesh as a binary PLY (x y z, colour, normal, density per vertex; triangles),
     atomically. An existing file is replaced only when it is a mesh stereoseed wrote; anything
     else there (the user's file, another result file, a folder) is refused, untouched."""
     path = Path(path)
-    if (path.exists() or path.is_symlink()) and not _is_our_mesh(path):
-        raise StereoseedError(f"{path}: exists and is not a mesh stereoseed wrote; give another --out or move it "
-                              f"away")
+    _refuse_foreign(path)
     properties = {"nx": mesh.normals[:, 0].astype(np.float32), "ny": mesh.normals[:, 1].astype(np.float32),
                   "nz": mesh.normals[:, 2].astype(np.float32), "density": mesh.density.astype(np.float32)}
     return write_ply(path, mesh.vertices, mesh.colors, properties, faces=mesh.faces)
@@ -256,8 +260,7 @@ def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = N
         raise StereoseedError(f"{target}: is the cloud being meshed; give another --out")
     if target.is_dir():
         raise StereoseedError(f"{target}: is a folder; give a file name for the mesh (e.g. {target / MESH_NAME})")
-    if (target.exists() or target.is_symlink()) and not _is_our_mesh(target):  # refused before the meshing
-        raise StereoseedError(f"{target}: exists and is not a mesh stereoseed wrote; give another --out or move it away")
+    _refuse_foreign(target)  # before the meshing, not after it
     t0 = time.perf_counter()
     points, normals, colors, source = _read_cloud(folder, cfg)
     mesh, summary = poisson_mesh(points, normals, colors, cfg)
