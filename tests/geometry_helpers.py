@@ -2,7 +2,7 @@
 import cv2
 import numpy as np
 
-from stereoseed.geometry.projection import compose_projection
+from stereoseed.geometry.projection import compose_projection, decompose_projection
 
 
 def look_at_camera(center, target=(0.0, 0.0, 0.2), f=800.0, skew=0.0, aspect=1.0, pp=(320.0, 240.0)):
@@ -42,3 +42,19 @@ def band_noise(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
         layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
         img += weight * layer / layer.std()
     return (img - img.min()) / (img.max() - img.min())
+
+
+def relative_pose(P_left, P_right):
+    """(R_rl, t_rl) of the right camera in the left one's frame, by decomposing both: the
+    reference Rig.from_projections is tested against."""
+    _, R_l, t_l = decompose_projection(P_left)
+    _, R_r, t_r = decompose_projection(P_right)
+    R_rl = R_r @ R_l.T
+    return R_rl, t_r - R_rl @ t_l
+
+
+def make_rig(baseline=0.12, toe_in_deg=5.0, focal_ratio=1.03):
+    """The renderer's rig (640 x 480, 800 px) with these settings."""
+    from stereoseed.synthetic.rig import RigConfig, rig_of
+
+    return rig_of(RigConfig(baseline=baseline, toe_in_deg=toe_in_deg, focal_ratio=focal_ratio))

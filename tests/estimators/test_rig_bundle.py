@@ -1,9 +1,8 @@
 """The rig's bundle adjustment: stations of a held rig, against known walks and scipy as oracle."""
 import numpy as np
 import pytest
-from geometry_helpers import box_points, ring_camera
+from geometry_helpers import box_points, make_rig, relative_pose, ring_camera
 from scipy.optimize import least_squares
-from test_rig_resection import make_rig, relative_pose
 
 from stereoseed.estimators.rig_bundle import (
     RigBundleConfig,

@@ -1,7 +1,7 @@
 """The generalised resection of a stereo rig's station, against stations of known pose."""
 import numpy as np
 import pytest
-from geometry_helpers import box_points, ring_camera
+from geometry_helpers import box_points, make_rig, relative_pose, ring_camera
 
 from stereoseed.errors import StereoseedError
 from stereoseed.estimators.resection import resect
@@ -11,15 +11,6 @@ from stereoseed.geometry.projection import decompose_projection, project
 
 SIZE = (640, 480)
 CHI2_6_9999 = 27.86  # the 99.99 % quantile of chi-square with 6 degrees of freedom
-
-
-def make_rig(baseline=0.12, toe_in_deg=5.0, focal_ratio=1.03):
-    a = np.radians(toe_in_deg)
-    R_rl = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-    K_left = np.array([[800.0, 0.0, 323.0], [0.0, 800.0, 237.0], [0.0, 0.0, 1.0]])
-    f = 800.0 * focal_ratio
-    K_right = np.array([[f, 0.0, 319.5], [0.0, f, 239.5], [0.0, 0.0, 1.0]])
-    return Rig(K_left, K_right, R_rl, -R_rl @ np.array([baseline, 0.0, 0.0]))
 
 
 def station_pairs(rig, angle, rng, n_left, n_right, noise=0.0, outliers=0.0):
@@ -54,13 +45,6 @@ def pose_chi2(rig, R, t, R_est, t_est, X, side, sigma):
     J = np.stack([(pixels(e * 1e-7) - pixels(-e * 1e-7)) / 2e-7 for e in np.eye(6)], axis=1)
     delta = np.concatenate([rotation_vector(R_est @ R.T), t_est - t])
     return float(delta @ (J.T @ J) @ delta) / sigma ** 2
-
-
-def relative_pose(P_left, P_right):
-    _, R_l, t_l = decompose_projection(P_left)
-    _, R_r, t_r = decompose_projection(P_right)
-    R_rl = R_r @ R_l.T
-    return R_rl, t_r - R_rl @ t_l
 
 
 def test_exact_pairs_give_the_station_pose():

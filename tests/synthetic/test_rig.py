@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from geometry_helpers import relative_pose
 from test_synthetic import _dark_square_centroid, _grey
 
 from stereoseed.features.image import to_gray
@@ -30,13 +31,6 @@ TINY = replace(SceneConfig(), supersample=1).scaled(0.125)
 @pytest.fixture(scope="module")
 def plain_rig():
     return render_rig(RigConfig(stations=4, textured=False, view=SMALL))
-
-
-def relative_pose(P_left, P_right):
-    _, R_l, t_l = decompose_projection(P_left)
-    _, R_r, t_r = decompose_projection(P_right)
-    R_rl = R_r @ R_l.T
-    return R_rl, t_r - R_rl @ t_l
 
 
 @pytest.mark.parametrize("step, stations", [(30.0, 12), (45.0, 8)])
