@@ -35,10 +35,6 @@ SETS = {
 }
 
 
-def data_dir() -> Path:
-    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
-
-
 def _walk(folder: Path, par: str, step: int) -> list[str]:
     """The walk's images: ring_order.txt where the set has one, else the calibration file's
     images in name order; every ``step``-th."""
@@ -54,7 +50,7 @@ def run_set(name: str, cfg: Config = Config()) -> dict:
     """One real set: per image its status, how it was placed, its flag (when the run gives one)
     and its camera-centre error; the summary over the placed images."""
     folder, par, step = SETS[name]
-    seq = data_dir() / folder
+    seq = shared_data_dir() / folder  # $STEREOSEED_DATA, else ../shared/data
     if not seq.is_dir():
         return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
     walk = _walk(seq, par, step)

@@ -23,10 +23,6 @@ from stereoseed.calibration.target import load_target
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
-def _data() -> Path:
-    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
-
-
 def _k(K: np.ndarray) -> dict:
     return {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
 
@@ -177,7 +173,7 @@ def flat(folder: Path) -> dict:
 
 
 def run() -> dict:
-    data = _data()
+    data = shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
     out: dict = {}
     for name, bench in (("charucoCube", cube), ("charucoFlat", flat)):
         folder = data / name

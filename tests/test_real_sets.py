@@ -5,13 +5,15 @@ from pathlib import Path
 
 import pytest
 
+from stereoseed.experiments.paper import shared_data_dir
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_real  # noqa: E402
 
 
 def _run(name):
     folder = bench_real.SETS[name][0]
-    if not (bench_real.data_dir() / folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
+    if not (shared_data_dir() / folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
         pytest.skip(f"../shared/data/{folder} not found; set STEREOSEED_DATA to the folder holding it")
     return bench_real.run_set(name)
 
