@@ -15,3 +15,14 @@ def scene_on_disk(scene: SyntheticScene, folder: Path, images: Path | None = Non
     calib = Path(folder) / "calib.json"
     write_json(calib, {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
     return paths, calib
+
+
+def write_video(path: Path, images: list) -> Path:
+    """The images (H, W, 3) uint8 as an MJPG video at 25 frames a second."""
+    import cv2
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, images[0].shape[1::-1])
+    for image in images:
+        writer.write(image)
+    writer.release()
+    return path

@@ -145,17 +145,13 @@ def test_an_image_of_another_size_is_skipped_by_its_header_never_decoded(tmp_pat
 # --- 9. a video cut short ------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def walk_video(tmp_path_factory):
+    from scene_helpers import write_video
     from stereoseed.synthetic.scene import SceneConfig, render_scene
 
     frames = render_scene(SceneConfig(n_images=40, step_deg=2.0, azimuth0_deg=50.0, focal_px=400, focal0_px=400,
                                       principal_offset0_px=(0.0, 0.0), focal_jitter=0.0, pose_jitter=False,
                                       width=320, height=240, supersample=1, seed=4))
-    path = tmp_path_factory.mktemp("video") / "walk.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, (320, 240))
-    for image in frames.images:
-        writer.write(image)
-    writer.release()
-    return path
+    return write_video(tmp_path_factory.mktemp("video") / "walk.avi", frames.images)
 
 
 def test_a_video_cut_short_says_so_and_keeps_the_decoder_off_the_terminal(walk_video, tmp_path, caplog, capfd,

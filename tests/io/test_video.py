@@ -1,6 +1,5 @@
 """Keyframes of a filmed walk (stereoseed.io.video): a synthetic walk at 2 degrees a frame,
 written as an MJPG video, becomes keyframes that the mapper places after a calibrated pair."""
-import cv2
 import numpy as np
 import pytest
 
@@ -10,15 +9,9 @@ from stereoseed.experiments.evaluation import camera_errors
 from stereoseed.pipeline import reconstruct
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 from stereoseed.io.video import read_keyframes
+from scene_helpers import write_video
 
 SMALL = dict(width=320, height=240, supersample=1, seed=4)
-
-
-def _write_video(path, images):
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, images[0].shape[1::-1])
-    for image in images:
-        writer.write(image)
-    writer.release()
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +22,7 @@ def walk(tmp_path_factory):
     frames = render_scene(SceneConfig(n_images=90, step_deg=2.0, azimuth0_deg=50.0, focal_px=400, focal0_px=400,
                                       principal_offset0_px=(0.0, 0.0), focal_jitter=0.0, pose_jitter=False, **SMALL))
     path = tmp_path_factory.mktemp("video") / "walk.avi"
-    _write_video(path, frames.images)
+    write_video(path, frames.images)
     return pair, frames, path
 
 
@@ -94,7 +87,7 @@ def test_the_keyframes_are_placed_after_the_calibrated_pair(walk):
 def test_a_still_camera_or_a_broken_file_is_refused(tmp_path, walk):
     _, frames, _ = walk
     still = tmp_path / "still.avi"
-    _write_video(still, [frames.images[0]] * 20)
+    write_video(still, [frames.images[0]] * 20)
     with pytest.raises(StereoseedError, match="no keyframe"):
         read_keyframes(still)
     broken = tmp_path / "broken.mp4"

@@ -5,6 +5,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from scene_helpers import write_video
 
 from stereoseed.cli import main
 from stereoseed.config import Config
@@ -123,24 +124,22 @@ def test_a_rig_of_unequal_sides_is_refused_in_one_line(rig_scene, tmp_path, caps
     assert "two image sources" in capsys.readouterr().err
 
 
-def _write_rig_videos(folder, frames_right=None):
-    """A rig filmed: 30 stations 3 degrees apart as two MJPG videos (left.avi, right.avi; the
-    right one cut to ``frames_right`` frames) and the first station's calibration."""
+@pytest.fixture(scope="module")
+def rig_films(tmp_path_factory):
+    """A rig filmed: 30 stations 3 degrees apart as two MJPG videos (left.avi, right.avi) and
+    the first station's calibration: (left, right, calib.json, the rendered scene)."""
     view = replace(SceneConfig(), width=320, height=240, focal_px=400.0, focal0_px=390.0, supersample=1,
                    pose_jitter=False)
     scene = render_rig(RigConfig(stations=30, step_deg=3.0, noise_sigma=1.0, view=view)).scene
-    folder.mkdir(parents=True, exist_ok=True)
-    for side, name in ((0, "left"), (1, "right")):
-        writer = cv2.VideoWriter(str(folder / f"{name}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (320, 240))
-        for k in range(30 if side == 0 or frames_right is None else frames_right):
-            writer.write(scene.images[2 * k + side])
-        writer.release()
+    folder = tmp_path_factory.mktemp("films")
+    write_video(folder / "left.avi", scene.images[0::2])
+    write_video(folder / "right.avi", scene.images[1::2])
     write_json(folder / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
     return folder / "left.avi", folder / "right.avi", folder / "calib.json", scene
 
 
-def test_a_rig_filmed_on_two_videos_is_walked_from_the_same_frames(tmp_path):
-    left, right, calib, scene = _write_rig_videos(tmp_path / "films")
+def test_a_rig_filmed_on_two_videos_is_walked_from_the_same_frames(rig_films, tmp_path):
+    left, right, calib, scene = rig_films
     out = tmp_path / "out"
     assert main(["reconstruct", "--rig", str(left), str(right), "--calib", str(calib), "--out", str(out),
                  "--quiet"]) == 0
@@ -156,8 +155,9 @@ def test_a_rig_filmed_on_two_videos_is_walked_from_the_same_frames(tmp_path):
     assert sorted(p.name for p in (out / "keyframes").iterdir()) == sorted(c["name"] for c in cams)
 
 
-def test_two_videos_of_unequal_length_or_a_video_beside_images_are_refused(rig_scene, tmp_path, capsys):
-    left, right, calib, _ = _write_rig_videos(tmp_path / "films", frames_right=20)
+def test_two_videos_of_unequal_length_or_a_video_beside_images_are_refused(rig_scene, rig_films, tmp_path, capsys):
+    left, _, calib, scene = rig_films
+    right = write_video(tmp_path / "right.avi", scene.images[1::2][:20])  # the right one cut to 20 frames
     assert main(["reconstruct", "--rig", str(left), str(right), "--calib", str(calib), "--out",
                  str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -203,12 +203,12 @@ def test_report_html_draws_the_rig_of_each_station(rig_scene, tmp_path):
     assert "stereo rig (each station)" in page
 
 
-def test_rig_videos_named_alike_get_their_side_in_front(tmp_path):
+def test_rig_videos_named_alike_get_their_side_in_front(rig_films, tmp_path):
     import shutil
 
     from stereoseed.io.video import read_rig_keyframes
 
-    left, right, _, _ = _write_rig_videos(tmp_path / "films")
+    left, right, _, _ = rig_films
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     # one file on a case-insensitive file system
