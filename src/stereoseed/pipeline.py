@@ -29,10 +29,9 @@ from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image
                                  read_calibration_unit)
 from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
-from stereoseed.sfm.mapper import finish, initialise, insert_view
+from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import FailureKind
-from stereoseed.estimators.rig_resection import Rig
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.report.html import write_report_html
@@ -77,7 +76,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolve()
-    key = inputs_key(images, names, P_pair, cfg) + ("+rig" if rig else "") if checkpoint is not None else ""
+    key = inputs_key(images, names, P_pair, cfg, rig) if checkpoint is not None else ""
     # a world frame far from the cameras (UTM-sized coordinates) is moved next to them for the
     # run and put back at the end: float64 keeps ~16 digits, and 1e7 m of offset leaves a BA
     # centimetres of resolution
@@ -100,7 +99,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             Prefetching(source, _prefetched_image(images), n, first=first_prefetched) as prefetching:
         if state is not None:
             recon, per_image = state
-            recon.rig = Rig.from_projections(*P_pair[:2]) if rig else None
+            recon.rig = pair_rig(P_pair, rig)
             for i in working_set(recon, cfg):  # the next insertions read their grey images
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)

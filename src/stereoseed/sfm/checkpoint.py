@@ -73,9 +73,10 @@ def spill_folder(checkpoint: str | Path) -> Path:
     return checkpoint.with_name(checkpoint.name + SPILL_SUFFIX)
 
 
-def inputs_key(images: Sequence[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config) -> str:
+def inputs_key(images: Sequence[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config,
+               rig: bool = False) -> str:
     """A digest of everything that decides a run's result (an :class:`ImageSequence` by its
-    files, not decoded)."""
+    files, not decoded; a rig walk's marked "+rig")."""
     h = hashlib.sha256()
     for name in names:
         h.update(name.encode("utf-8"))
@@ -88,7 +89,7 @@ def inputs_key(images: Sequence[np.ndarray], names: list[str], P_pair: list[np.n
     for P in P_pair:
         h.update(np.asarray(P, np.float64).tobytes())
     h.update(json.dumps(cfg.to_dict(), sort_keys=True).encode())
-    return h.hexdigest()
+    return h.hexdigest() + ("+rig" if rig else "")
 
 
 # ---------------------------------------------------------------------------------- writing

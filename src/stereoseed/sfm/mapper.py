@@ -60,6 +60,11 @@ def _match_known(recon: Reconstruction, source: CorrespondenceSource, a: int, b:
                         va.image_size[0])
 
 
+def pair_rig(P_pair: list[np.ndarray], rig: bool) -> Rig | None:
+    """The rig a walk with both cameras holds (its first station, the calibrated pair), else None."""
+    return Rig.from_projections(*P_pair[:2]) if rig else None
+
+
 def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
                source: CorrespondenceSource | None = None, rig: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
     """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
@@ -72,8 +77,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
     cfg = cfg.resolve()
-    recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)],
-                           Rig.from_projections(*P_pair[:2]) if rig else None)
+    recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)], pair_rig(P_pair, rig))
     source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]
