@@ -15,6 +15,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -24,41 +25,55 @@ from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
 
-# name -> (folder, calibration file, every k-th image of the walk)
+class Walk(NamedTuple):
+    """A walk through a set: its folder, its calibration file, every ``step``-th image from the
+    ``start``-th of the walking order (reversed first when ``reverse``)."""
+
+    folder: str
+    par: str
+    step: int = 1
+    start: int = 0
+    reverse: bool = False
+
+
 SETS = {
-    "strechaFountainP11": ("strechaFountainP11", "strechaFountainP11_par.txt", 1),
-    "strechaCastleP19": ("strechaCastleP19", "strechaCastleP19_par.txt", 1),
-    "dinoRing1-24/2": ("dinoRing1-24", "dinoRing1-24_par.txt", 2),
-    "dinoRing1-24/3": ("dinoRing1-24", "dinoRing1-24_par.txt", 3),
-    "dinoSparseRing": ("dinoSparseRing", "dinoSR_par.txt", 1),
-    "templeSparseRing": ("templeSparseRing", "templeSR_par.txt", 1),
+    "strechaFountainP11": Walk("strechaFountainP11", "strechaFountainP11_par.txt"),
+    "strechaCastleP19": Walk("strechaCastleP19", "strechaCastleP19_par.txt"),
+    "dinoRing1-24/2": Walk("dinoRing1-24", "dinoRing1-24_par.txt", 2),
+    "dinoRing1-24/3": Walk("dinoRing1-24", "dinoRing1-24_par.txt", 3),
+    "dinoSparseRing": Walk("dinoSparseRing", "dinoSR_par.txt"),
+    "templeSparseRing": Walk("templeSparseRing", "templeSR_par.txt"),
 }
 
 
-def _walk(folder: Path, par: str, step: int) -> list[str]:
+def _walk(folder: Path, walk: Walk) -> list[str]:
     """The walk's images: ring_order.txt where the set has one, else the calibration file's
-    images in name order; every ``step``-th."""
+    images in name order; reversed if asked, then every ``step``-th from ``start``."""
     order = folder / "ring_order.txt"
     if order.is_file():
         names = [n.strip() for n in order.read_text().splitlines() if n.strip()]
     else:
-        names = sorted(read_middlebury_par(folder / par))
-    return names[::step]
+        names = sorted(read_middlebury_par(folder / walk.par))
+    return (names[::-1] if walk.reverse else names)[walk.start::walk.step]
 
 
 def run_set(name: str, cfg: Config = Config()) -> dict:
-    """One real set: per image its status, how it was placed, its flag (when the run gives one)
+    """One real set (:data:`SETS`): :func:`run_walk`."""
+    return run_walk(SETS[name], cfg)
+
+
+def run_walk(walk: Walk, cfg: Config = Config()) -> dict:
+    """One walk: per image its status, how it was placed, its flag (when the run gives one)
     and its camera-centre error; the summary over the placed images."""
-    folder, par, step = SETS[name]
-    seq = shared_data_dir() / folder  # $STEREOSEED_DATA, else ../shared/data
+    seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
     if not seq.is_dir():
         return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
-    walk = _walk(seq, par, step)
+    names = _walk(seq, walk)
     with tempfile.TemporaryDirectory() as tmp:
         listing = Path(tmp) / "walk.txt"
-        listing.write_text("".join(f"{seq / n}\n" for n in walk))
-        images, names, P_pair = load_sequence(str(listing), str(seq / par))
-        truth = read_middlebury_par(seq / par)
+        listing.write_text("".join(f"{seq / n}\n" for n in names))
+        images, names, P_pair = load_sequence(str(listing), str(seq / walk.par))
+        truth = read_middlebury_par(seq / walk.par)
         t = time.perf_counter()
         recon, report = reconstruct(images, names, P_pair, cfg)
         seconds = time.perf_counter() - t

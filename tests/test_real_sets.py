@@ -11,11 +11,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_real  # noqa: E402
 
 
-def _run(name):
-    folder = bench_real.SETS[name][0]
-    if not (shared_data_dir() / folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
-        pytest.skip(f"../shared/data/{folder} not found; set STEREOSEED_DATA to the folder holding it")
-    return bench_real.run_set(name)
+def _run(name, walk=None):
+    walk = walk or bench_real.SETS[name]
+    if not (shared_data_dir() / walk.folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
+        pytest.skip(f"../shared/data/{walk.folder} not found; set STEREOSEED_DATA to the folder holding it")
+    return bench_real.run_walk(walk)
 
 
 def test_castle_cameras_a_window_period_off_are_flagged():

@@ -125,6 +125,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         for k in range(len(per_image), n):
             rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
             per_image.append(rep)
+            _mark_failed(per_image, rep.get("withdrawn", {}), FailureKind.WITHDRAWN)
             release_old_views(recon, cfg, spill)
             saver.save(recon, per_image)
             if progress:
@@ -211,15 +212,21 @@ def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> 
     return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
 
 
+def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str], kind: FailureKind | None = None) -> None:
+    """The reports of the images named in ``reasons`` ({name: reason}), placed once and since
+    taken out of the model, say so."""
+    for r in per_image:
+        if r.get("image") in reasons:
+            r.update(status="failed", reason=reasons[r["image"]], **({"failure": kind} if kind else {}))
+
+
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
               source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """The finishing step (:func:`stereoseed.sfm.mapper.finish`) on ``recon`` after the views of
     ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
     not keep is reported as failed, with the reason)."""
     final = finish(recon, cfg, source)
-    for r in per_image:
-        if r.get("image") in final.get("dropped", {}):
-            r.update(status="failed", reason=final["dropped"][r["image"]])
+    _mark_failed(per_image, final.get("dropped", {}))
     pc = cfg.pipeline
     return {
         "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,

@@ -78,3 +78,85 @@ def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box
     assert list(dropped) == [scene.names[3]] and "5 observations" in dropped[scene.names[3]]
     assert recon.views[3].P is None and recon.views[3].status.startswith("failed")
     assert all(recon.views[k].P is not None for k in (0, 1, 2, 4))
+
+
+
+def _cannot_follow(monkeypatch, k, after):
+    """View k cannot be placed while any of the views ``after`` is registered (as a view placed
+    on the wrong copy of a repeated pattern leaves the next nothing to chain to)."""
+    import stereoseed.sfm.mapper as mapper
+    from stereoseed.sfm.registration.base import RegistrationFailure
+
+    registered = mapper._registered
+
+    def refusing(recon, source, i, cfg):
+        if i == k and any(recon.views[v].registered for v in after):
+            return RegistrationFailure(f"{recon.views[i].name}: nothing to chain to")
+        return registered(recon, source, i, cfg)
+
+    monkeypatch.setattr(mapper, "_registered", refusing)
+
+
+def _walked_to(k, cfg):
+    images, names, Ps, source = ring(7)
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for i in range(2, k + 1):
+        assert insert_view(recon, i, cfg, source)["status"] == "registered"
+    return recon, names, Ps, source
+
+
+@pytest.mark.parametrize("flagged", [True, False])
+def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged):
+    from stereoseed.geometry.projection import camera_center
+
+    cfg = Config()
+    recon, names, Ps, source = _walked_to(4, cfg)
+    if flagged:
+        recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    _cannot_follow(monkeypatch, 5, after=(4,))
+    before = state(recon)
+    report = insert_view(recon, 5, cfg, source)
+    if not flagged:  # nothing speaks against view 4: view 5 fails, the model as it was
+        assert report["status"] == "failed" and "withdrawn" not in report
+        assert_same_state(before, state(recon))
+        return
+    assert report["status"] == "registered" and list(report["withdrawn"]) == [names[4]]
+    assert "flagged when placed (ambiguous: repeated structure" in report["withdrawn"][names[4]]
+    assert not recon.views[4].registered and recon.views[4].status.startswith("failed: ")
+    assert recon.views[4].registration_flag is None and not np.any(recon.obs_view == 4)
+    assert np.linalg.norm(camera_center(recon.views[5].P) - camera_center(Ps[5])) < 0.002
+
+
+def test_a_flagged_view_stays_when_the_next_fails_without_it_too(monkeypatch):
+    cfg = Config()
+    recon, names, Ps, source = _walked_to(4, cfg)
+    recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    _cannot_follow(monkeypatch, 5, after=(3, 4))
+    before = state(recon)
+    report = insert_view(recon, 5, cfg, source)
+    assert report["status"] == "failed" and "without_flagged_previous" in report
+    assert_same_state(before, state(recon))
+    assert recon.views[4].registered and recon.views[4].registration_flag
+
+
+def test_the_report_of_a_withdrawn_view_says_it_failed(monkeypatch):
+    # the run's report: the withdrawn view's entry turns failed, with the reason and its kind
+    import stereoseed.pipeline as pipeline
+    from stereoseed.sfm.registration.base import FailureKind
+
+    images, names, Ps, source = ring(7)
+    real_insert = pipeline.insert_view
+
+    def flagging_insert(recon, k, cfg, src):
+        rep = real_insert(recon, k, cfg, src)
+        if k == 4:
+            recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+        return rep
+
+    monkeypatch.setattr(pipeline, "insert_view", flagging_insert)
+    _cannot_follow(monkeypatch, 5, after=(4,))
+    recon, report = pipeline.reconstruct(images, names, Ps[:2], Config(), source=source)
+    entry = report["per_image"][4]
+    assert entry["status"] == "failed" and entry["failure"] == FailureKind.WITHDRAWN
+    assert entry["reason"].startswith(f"{names[4]}: withdrawn")
+    assert report["per_image"][5]["status"] == "registered" and report["registered"] == 6

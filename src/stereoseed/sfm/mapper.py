@@ -15,6 +15,7 @@ was; so does a numerical failure after the commit (the insertion is rolled back)
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from typing import Any
@@ -141,24 +142,73 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     source: the correspondences :func:`initialise` was given (default :class:`HarrisZncc`).
 
     Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
-    view leaves ``recon`` as it was (only the view's status records why)."""
+    view leaves ``recon`` as it was (only the view's status records why). "withdrawn" ({name:
+    reason}, when present): an earlier view flagged when placed and withdrawn so that k could
+    be placed (:func:`_without_flagged_previous`); its own report is now out of date."""
     cfg = cfg.resolve()
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
-    found = None
-    for registrar in registrars(cfg, recon):
-        found = registrar.register(recon, source, k, found, cfg)
+    found = _registered(recon, source, k, cfg)
+    state, withdrawn = None, {}
     if isinstance(found, RegistrationFailure):
-        return _failed(view, found.reason, found)
-    state = recon.checkpoint()
+        retried = _without_flagged_previous(recon, source, k, found, cfg)
+        if isinstance(retried, RegistrationFailure):
+            return _failed(view, retried.reason, retried)
+        found, state, withdrawn = retried
+    state = state or recon.checkpoint()
     try:
-        return _commit_and_grow(recon, source, k, found, cfg)
+        report = _commit_and_grow(recon, source, k, found, cfg)
     except np.linalg.LinAlgError as e:
         recon.restore(state)
         return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
     except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
         recon.restore(state)
         raise
+    if withdrawn:
+        report["withdrawn"] = withdrawn
+    return report
+
+
+def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
+                cfg: Config) -> Registration | RegistrationFailure:
+    """View k's camera from the registrars (:func:`registrars`), the model unchanged."""
+    found = None
+    for registrar in registrars(cfg, recon):
+        found = registrar.register(recon, source, k, found, cfg)
+    return found
+
+
+def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
+                              cfg: Config) -> tuple[Registration, Any, dict[str, str]] | RegistrationFailure:
+    """View k could not be placed after a view flagged at its registration (a choice between
+    copies of a repeated pattern, a zoom it could not measure): that failure is evidence against
+    the flagged camera, whose points are what k was chained to. k is tried again with that view
+    withdrawn (its camera and observations leave the model), after the view before it. When k is
+    placed so, the flagged view stays withdrawn: returns (k's registration, the model as it was
+    before, {withdrawn view's name: reason}); otherwise the model is put back and the failure
+    returned, with what the second try said. A walk that went on from a wrong copy of a pattern
+    (the castle walked backwards: 2.2 m off, flagged) otherwise lost every later image. Not for
+    a rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
+    before = recon.registered_before(k, 2)
+    if recon.rig is not None or len(before) < 2 or before[0] < 2:  # nearest first; the pair stays
+        return failure
+    p = before[0]
+    flag = recon.views[p].registration_flag
+    if not flag:
+        return failure
+    state = recon.checkpoint()
+    recon.deregister(p)
+    found = _registered(recon, source, k, cfg)
+    if isinstance(found, RegistrationFailure):
+        recon.restore(state)
+        return dataclasses.replace(failure, notes={**failure.notes, "without_flagged_previous": found.reason})
+    name, view = recon.views[p].name, recon.views[p]
+    reason = (f"{name}: withdrawn: flagged when placed ({flag}), and the next image, {recon.views[k].name}, "
+              f"was placed only without it")
+    view.registration_flag = view.flag_reason = None
+    view.status = f"failed: {reason}"
+    log.info("%s", reason)
+    return found, state, {name: reason}
 
 
 def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:

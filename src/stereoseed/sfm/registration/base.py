@@ -43,6 +43,8 @@ class FailureKind(StrEnum):
     NUMERICAL = "numerical failure"  # a degenerate configuration the checks did not foresee
     DISAGREES = "disagrees with the propagated matches"  # a weak camera the quasi-dense matches refute
     UNREADABLE = "unreadable image"  # the image file cannot be decoded (the run skips it)
+    # flagged when placed, then withdrawn: the next image could be placed only without it
+    WITHDRAWN = "withdrawn after the next image"
 
 
 class FoundBy(StrEnum):
@@ -361,6 +363,18 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
                         seconds, notes=notes, rivals=found.rivals)
 
 
+def _trusted_chain(inliers: np.ndarray, cfg: Config) -> bool:
+    """Whether the epipolar chain's camera, with ``inliers`` (N,) bool over its 3D-2D pairs, is
+    taken without consulting the motion prior: enough inliers (``trusted_chain_factor`` x a
+    resection's), and too few outliers to hold a rival that explains nearly as much
+    (``TrustConfig.ambiguity_ratio`` of the inliers): a robust F fitted to a repeated pattern
+    matched one period over splits the chain between the copies (the castle walked backwards:
+    24 of 43 pairs agreed on a camera 4.7 m off)."""
+    n_in = int(inliers.sum())
+    return (n_in >= cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers
+            and len(inliers) - n_in < cfg.trust.ambiguity_ratio * n_in)
+
+
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
             cfg: Config) -> _Resected | _Failed:
     """The camera of ``cand`` from its chained 3D-2D correspondences (points3d (N, 3),
@@ -380,8 +394,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         if isinstance(chain, str):
             chain, error = None, chain
         prior_exists = bool(recon.registered_before(prev, 1))
-        if chain is not None and (not prior_exists
-                                  or chain[0].inliers.sum() >= mp.trusted_chain_factor * cfg.resection.min_inliers):
+        if chain is not None and (not prior_exists or _trusted_chain(chain[0].inliers, cfg)):
             return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
     chosen, explained, flag, rivals = None, 0, None, ()
