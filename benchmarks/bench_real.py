@@ -91,6 +91,8 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
         entry = {"image": v.name, "status": r.get("status")}
         if r.get("registered_by"):
             entry["registered_by"] = str(r["registered_by"])
+        if r.get("status") == "failed":
+            entry["reason"] = r.get("reason")
         reliable = getattr(v, "reliable", True)
         if not reliable:
             entry["flag"] = getattr(v, "flag_reason", "flagged")

@@ -86,3 +86,18 @@ def test_a_failure_says_its_kind():
     # an image of another size than the moving camera's
     recon.views[4]._size = (100, 80)
     assert register_view(recon, 4, cfg.resolve(), source).kind is FailureKind.IMAGE_SIZE
+
+
+def test_a_chain_split_between_copies_of_a_pattern_is_not_trusted():
+    # trusted: at least 2 x 12 inliers and fewer outliers than 0.6 x the inliers (no rival that
+    # explains nearly as much can hide among them)
+    from stereoseed.sfm.registration.base import _trusted_chain
+
+    def chain(inliers, pairs):
+        return np.arange(pairs) < inliers
+
+    cfg = Config()
+    assert _trusted_chain(chain(176, 179), cfg)
+    assert not _trusted_chain(chain(24, 43), cfg)  # the castle walked backwards: 0007, 4.7 m off
+    assert not _trusted_chain(chain(20, 20), cfg)  # too few, however consistent
+    assert _trusted_chain(chain(30, 47), cfg) and not _trusted_chain(chain(30, 48), cfg)
