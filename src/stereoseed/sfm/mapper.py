@@ -121,7 +121,9 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
         raise StereoseedError(
             f"{v0.name}, {v1.name}: the calibration does not fit these images: only {100 * consistent:.0f} % of "
             f"their {len(m)} matches lie on its epipolar lines (a fitting one: ~100 %); are the two cameras "
-            f"swapped, the images in the wrong order, or the calibration another pair's?")
+            f"swapped, the images in the wrong order, or the calibration another pair's? (Or do the two "
+            f"images show little but a repeated pattern, matched one period over? Then photograph the pair "
+            f"with more of the scene in view.)")
 
 
 def registrars(cfg: Config, recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
