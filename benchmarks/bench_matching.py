@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from stereoseed.geometry.projection import (
 )
 from stereoseed.config import FeatureConfig, MatchingConfig
 from stereoseed.features.harris import extract_features
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import match_pair
@@ -123,8 +123,7 @@ def run() -> dict:
         "pair_robust_F_s": best_time(robust_pair),
         "note": "best of 7 after a warm-up; 640x480, textured box, noise 2 grey levels",
     }
-    default_data = Path(__file__).resolve().parents[2] / "shared" / "data"
-    data = Path(os.environ.get("STEREOSEED_DATA", default_data))
+    data = shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
     return {
         "timing": timing,
         "textured_sigma0": scene_figures(textured0, cfg),

@@ -3,7 +3,6 @@ total time, and bundle-adjustment time per insertion as the sequence grows."""
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -12,6 +11,7 @@ import numpy as np
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.experiments.evaluation import (TrueCorrespondences, camera_errors, corners_from_exact_pixels,
                                   reconstruct_corners, rms_3d)
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.pipeline import load_sequence, reconstruct
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 
@@ -131,7 +131,7 @@ def _middlebury(folder: str, par: str, data_dir: Path | None, paths: bool = Fals
     """Both modes on a Middlebury sparse ring: figures against the par file's cameras; with
     ``paths``, which path registered each image (sparse chain, motion prior, quasi-dense) and
     the time of each insertion."""
-    data_dir = data_dir or Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    data_dir = data_dir or shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
     seq = data_dir / folder
     if not seq.is_dir():
         return {"skipped": f"{seq} not found"}

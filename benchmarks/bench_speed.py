@@ -25,6 +25,7 @@ import numpy as np
 
 from stereoseed.estimators.calibration import calibrate_camera
 from stereoseed.experiments.evaluation import camera_errors
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.io.files import list_images, read_middlebury_par, write_json
 from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 
@@ -33,7 +34,7 @@ BIN = Path(sys.executable).parent
 
 
 def _data_dir() -> Path:
-    return Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
 
 
 # Runs a command and reports its wall seconds and peak RSS on stderr's last line. The command is

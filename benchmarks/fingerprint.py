@@ -9,13 +9,12 @@ templeSparseRing, and keeps every camera, every live point and the per-image rep
 from __future__ import annotations
 
 import json
-import os
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from stereoseed.config import Config, PipelineConfig
+from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 
 COUNTS = ("status", "matches", "chained_points", "resection_inliers", "resection_model", "new_points",
@@ -32,7 +31,7 @@ def _runs():
         for mode in ("paper", "accurate"):
             yield f"{name}/{mode}", reconstruct(scene.images, scene.names, scene.P[:2],
                                                 Config(pipeline=PipelineConfig(mode=mode)))
-    data = Path(os.environ.get("STEREOSEED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    data = shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
     seq = data / "templeSparseRing"
     if seq.is_dir():
         images, names, P_pair = load_sequence(str(seq / "ring_order.txt"), str(seq / "templeSR_par.txt"))
