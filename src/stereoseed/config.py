@@ -39,6 +39,12 @@ __all__ = ["Config", "ResolvedConfig", "ConfigError", "NONE", "FeatureConfig", "
            "TrackingConfig", "LoopClosureConfig", "PipelineConfig", "RegistrationConfig", "OutlierConfig",
            "PairCheckConfig", "ExportConfig", "TrustConfig"]
 
+# The fields a mode fills where they hold None, as (section, field, its ModeDefaults attribute):
+# what Config.resolve fills in and Config.with_mode gives back to the new mode.
+MODE_FIELDS = (("pipeline", "camera_model", "camera_model"), ("pipeline", "window", "window"),
+               ("pipeline", "ba", "ba"), ("outliers", "factor", "outlier_factor"),
+               ("motion_prior", "explain_px", "explain_px"))
+
 
 @dataclass(frozen=True)
 class Config:
@@ -71,15 +77,13 @@ class Config:
     def resolve(self) -> "ResolvedConfig":
         """The configuration a run uses: the mode-dependent defaults (None) filled in, once (a
         :class:`ResolvedConfig` resolves to itself)."""
-        pipeline = self.pipeline.resolved()
-        defaults = pipeline.defaults
-        prior, outliers = self.motion_prior, self.outliers
-        if prior.explain_px is None:
-            prior = dataclasses.replace(prior, explain_px=defaults.explain_px)
-        if outliers.factor is None:
-            outliers = dataclasses.replace(outliers, factor=defaults.outlier_factor)
         sections = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return ResolvedConfig(**{**sections, "pipeline": pipeline, "motion_prior": prior, "outliers": outliers})
+        sections["pipeline"] = self.pipeline.resolved()  # its own fields, with their types
+        defaults = sections["pipeline"].defaults
+        for section, name, default in MODE_FIELDS:
+            if getattr(sections[section], name) is None:
+                sections[section] = dataclasses.replace(sections[section], **{name: getattr(defaults, default)})
+        return ResolvedConfig(**sections)
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved configuration as a JSON-able dict (what report.json records)."""
@@ -98,17 +102,12 @@ class Config:
         resolved configuration, or report.json, records it) takes the new mode's instead; a field
         set to anything else keeps its value."""
         old = self.pipeline.defaults
-        pipeline, outliers, prior = self.pipeline, self.outliers, self.motion_prior
-        updates = {"pipeline": dataclasses.replace(
-            pipeline, mode=mode,
-            camera_model=None if pipeline.camera_model == old.camera_model else pipeline.camera_model,
-            window=None if pipeline.window == old.window else pipeline.window,
-            ba=None if pipeline.ba == old.ba else pipeline.ba)}
-        if outliers.factor == old.outlier_factor:
-            updates["outliers"] = dataclasses.replace(outliers, factor=None)
-        if prior.explain_px == old.explain_px:
-            updates["motion_prior"] = dataclasses.replace(prior, explain_px=None)
-        return Config(**{**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)}, **updates})
+        sections = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        sections["pipeline"] = dataclasses.replace(self.pipeline, mode=mode)
+        for section, name, default in MODE_FIELDS:
+            if getattr(sections[section], name) == getattr(old, default):
+                sections[section] = dataclasses.replace(sections[section], **{name: None})
+        return Config(**sections)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = "config") -> "Config":
