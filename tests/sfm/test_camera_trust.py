@@ -148,7 +148,7 @@ def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, t
 
 
 def test_the_last_line_names_each_flag_by_its_kind():
-    from stereoseed.sfm.trust import flag_kind
+    from stereoseed.sfm.flags import flag_kind
 
     assert flag_kind("ambiguous: repeated structure (the best camera explains 24 ...)") == "ambiguous: repeated structure"
     assert flag_kind("weak: only 22 of its observations are of points two other cameras also see") == "weak"

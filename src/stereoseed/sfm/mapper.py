@@ -27,6 +27,7 @@ from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
+from stereoseed.sfm.flags import FlagKind
 from stereoseed.sfm.modes import Mode, holds_intrinsics, mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
@@ -358,7 +359,7 @@ def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: 
     out = {"bic_for_the_zoom": float(evidence), "zoom": float(zoom), "focal_sigma": float(sigma), "kept": kept}
     if asked and not measured:
         view.registration_flag = view.flag_reason = (
-            f"uncertain: its residuals ask for a {100 * zoom:.1f} % zoom that this view measures only to "
+            f"{FlagKind.UNCERTAIN}: its residuals ask for a {100 * zoom:.1f} % zoom that this view measures only to "
             f"{100 * sigma:.1f} % (1 sigma; a zoom and a step along the optical axis look alike here)")
         out["flag"] = view.flag_reason
     return runs[kept][0], out

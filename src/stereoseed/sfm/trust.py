@@ -24,14 +24,14 @@ import numpy as np
 from stereoseed.config import Config
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
+from stereoseed.sfm.flags import FlagKind
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
-__all__ = ["FLAG_KINDS", "camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit",
-           "flag_kind", "assess"]
+__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit", "assess"]
 
 log = logging.getLogger(__name__)
 
@@ -85,18 +85,9 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
     typical = float(np.median(list(rms.values())))
     limit = max(tc.residual_factor * typical, tc.residual_floor_px)
     observations = np.bincount(recon.obs_view, minlength=n_views)
-    return {v: (f"contradicted by the other cameras: its {int(observations[v])} observations "
+    return {v: (f"{FlagKind.CONTRADICTED}: its {int(observations[v])} observations "
                 f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
             for v in views if v in rms and rms[v] > limit}
-
-
-# the kinds of flag, as each reason starts (the rest says why, with the figures)
-FLAG_KINDS = ("ambiguous: repeated structure", "contradicted by the other cameras", "weak", "uncertain")
-
-
-def flag_kind(reason: str) -> str:
-    """The kind of a flag's ``reason`` (one of :data:`FLAG_KINDS`; else the reason up to its details)."""
-    return next((kind for kind in FLAG_KINDS if reason.startswith(kind)), reason.split(" (")[0])
 
 
 def tied_observation_limit(cfg: Config) -> int:
@@ -122,7 +113,7 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     for v in recon.registered_views:
         per_group[group(v)] = per_group.get(group(v), 0) + int(per_view[v])
     need = tied_observation_limit(cfg)
-    return {v: (f"weak: only {per_group[group(v)]} of its observations are of points two other cameras also "
+    return {v: (f"{FlagKind.WEAK}: only {per_group[group(v)]} of its observations are of points two other cameras also "
                 f"see; the final BA cannot check its place with fewer than {need}")
             for v in recon.registered_views
             if v not in CALIBRATED and v in vouched and per_group[group(v)] < need}
@@ -130,11 +121,11 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
 
 def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
     if not u.determined:
-        return f"uncertain: {u.reason}"
+        return f"{FlagKind.UNCERTAIN}: {u.reason}"
     depth = _median_depth(recon, view)
     worst = float(np.max(u.position_sigma))
     if np.isfinite(depth) and worst > cfg.trust.max_position_sigma * depth:
-        return (f"uncertain: 1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to the scene, "
+        return (f"{FlagKind.UNCERTAIN}: 1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to the scene, "
                 f"limit {100 * cfg.trust.max_position_sigma:.1f} %)")
     return None
 

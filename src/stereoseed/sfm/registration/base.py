@@ -23,6 +23,7 @@ from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
+from stereoseed.sfm.flags import FlagKind
 from stereoseed.sfm.motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
 from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
@@ -215,7 +216,7 @@ def _why_ambiguous(rivals: list[tuple[int, float, float]], counts: np.ndarray, b
 def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
     """The flag of a choice :func:`_rivals` makes ambiguous, or None."""
     why = _why_ambiguous(rivals, counts, best)
-    return None if why is None else f"ambiguous: repeated structure ({why})"
+    return None if why is None else f"{FlagKind.AMBIGUOUS} ({why})"
 
 
 def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
