@@ -1,7 +1,7 @@
-"""`make bench` section `walks`: walks through the real sets that no setting was chosen on (other
-starts, other steps, backwards), with the figures of section `real` (benchmarks/bench_real.py).
-A change is judged on these together with the sets themselves: a threshold set on one walk shows
-here first.
+"""`make bench` section `walks`: other walks through the real sets than section `real`'s (other
+starts, other steps, backwards), with its figures (benchmarks/bench_real.py). No default was
+chosen on them (the castle backwards showed the failures stop 43 fixed); a change is judged on
+these together with the sets themselves: a threshold set on one walk shows here first.
 
     python benchmarks/bench_walks.py [WALK ...]      # prints the JSON; WALK e.g. "strechaCastleP19 backwards"
 """

@@ -70,8 +70,8 @@ def centre_errors(recon, Ps):
 
 def state(recon):
     """Everything an insertion may change, as comparable arrays."""
-    views = [(v.P, v.features, v.point_of_feature.copy(), v.image, v.rotated_180, v.camera_model, v.zoomed)
-             for v in recon.views]
+    views = [(v.P, v.features, v.point_of_feature.copy(), v.image, v.rotated_180, v.camera_model, v.zoomed,
+              v.registration_flag) for v in recon.views]
     return (recon.points.copy(), recon.colors.copy(), recon.alive.copy(), recon.obs_view.copy(),
             recon.obs_feature.copy(), recon.obs_point.copy(), recon.obs_linked.copy(), views)
 

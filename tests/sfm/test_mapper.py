@@ -105,6 +105,23 @@ def _walked_to(k, cfg):
     return recon, names, Ps, source
 
 
+def _flagged_when_placed(monkeypatch, k):
+    """View k's registration says it is ambiguous (as a choice between copies of a pattern)."""
+    import dataclasses
+
+    import stereoseed.sfm.mapper as mapper
+
+    registered = mapper._registered
+
+    def flagging(recon, source, i, cfg):
+        found = registered(recon, source, i, cfg)
+        if i == k and not isinstance(found, mapper.RegistrationFailure):
+            found = dataclasses.replace(found, notes={**found.notes, "flag": "ambiguous: repeated structure (as if)"})
+        return found
+
+    monkeypatch.setattr(mapper, "_registered", flagging)
+
+
 @pytest.mark.parametrize("flagged", [True, False])
 def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged):
     from stereoseed.geometry.projection import camera_center
@@ -160,3 +177,36 @@ def test_the_report_of_a_withdrawn_view_says_it_failed(monkeypatch):
     assert entry["status"] == "failed" and entry["failure"] == FailureKind.WITHDRAWN
     assert entry["reason"].startswith(f"{names[4]}: withdrawn")
     assert report["per_image"][5]["status"] == "registered" and report["registered"] == 6
+
+
+def test_a_withdrawal_puts_back_the_model_from_before_the_flagged_view(monkeypatch):
+    # the flagged view's points, the adjustments and the outlier removals of its insertion go
+    # with it: every point left from then on was made by the next image's insertion
+    cfg = Config()
+    recon, names, Ps, source = _walked_to(4, cfg)
+    n_before = len(recon.points)
+    _flagged_when_placed(monkeypatch, 5)
+    assert insert_view(recon, 5, cfg, source)["status"] == "registered" and recon.views[5].registration_flag
+    assert len(recon.points) > n_before  # view 5 made points of its own
+    _cannot_follow(monkeypatch, 6, after=(5,))
+    report = insert_view(recon, 6, cfg, source)
+    assert report["status"] == "registered" and list(report["withdrawn"]) == [names[5]]
+    assert len(recon.points) == n_before + report["new_points"]  # no row of view 5's points left
+    later = np.flatnonzero(recon.alive[n_before:]) + n_before
+    assert len(later) and all(6 in recon.obs_view[recon.obs_point == p] for p in later)
+    assert not np.any(recon.obs_view == 5) and recon.views[5].features is None
+
+
+def test_an_error_after_a_withdrawal_puts_the_flagged_view_back(monkeypatch):
+    import stereoseed.sfm.mapper as mapper
+
+    cfg = Config()
+    recon, names, Ps, source = _walked_to(4, cfg)
+    recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    _cannot_follow(monkeypatch, 5, after=(4,))
+    before, status = state(recon), recon.views[4].status
+    monkeypatch.setattr(mapper, "_commit_and_grow", _raising(np.linalg.LinAlgError("Singular matrix")))
+    report = insert_view(recon, 5, cfg, source)
+    assert report["status"] == "failed" and f"placed only without {names[4]}" in report["reason"]
+    assert_same_state(before, state(recon))
+    assert recon.views[4].status == status and recon.views[4].registration_flag

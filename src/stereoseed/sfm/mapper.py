@@ -11,13 +11,16 @@ default :class:`~stereoseed.sfm.correspondence.HarrisZncc`) is where its corresp
 changes nothing) and commits the camera at one point only; then the mode's strategy
 (:mod:`stereoseed.sfm.modes`) adds points, grows tracks and adjusts. An image that cannot be
 placed is reported (``"status": "failed"`` with the reason) and leaves the reconstruction as it
-was; so does a numerical failure after the commit (the insertion is rolled back).
+was; so does a numerical failure after the commit (the insertion is rolled back). One that cannot
+be placed after a view flagged at its registration is tried again without that view; placed so,
+it withdraws it (its report's "withdrawn"): a successful insertion may take an earlier view out.
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 import time
+import weakref
 from typing import Any
 
 import numpy as np
@@ -146,30 +149,43 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
 
     Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
     view leaves ``recon`` as it was (only the view's status records why). "withdrawn" ({name:
-    reason}, when present): an earlier view flagged when placed and withdrawn so that k could
-    be placed (:func:`_without_flagged_previous`); its own report is now out of date."""
+    reason}, when present): k was placed only once the view before it, flagged when placed,
+    was taken out of the model (:func:`_without_flagged_previous`); that view's own report is
+    out of date (it failed)."""
     cfg = cfg.resolve()
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
     found = _registered(recon, source, k, cfg)
-    state, withdrawn = None, {}
+    state, withdrawn = recon.checkpoint(), {}
     if isinstance(found, RegistrationFailure):
         retried = _without_flagged_previous(recon, source, k, found, cfg)
         if isinstance(retried, RegistrationFailure):
             return _failed(view, retried.reason, retried)
-        found, state, withdrawn = retried
-    state = state or recon.checkpoint()
+        found, withdrawn, state_without = retried
     try:
         report = _commit_and_grow(recon, source, k, found, cfg)
     except np.linalg.LinAlgError as e:
         recon.restore(state)
-        return _failed(view, f"{view.name}: numerical failure ({e}); skipped", found)
+        why = f"; placed only without {', '.join(withdrawn)}, which stays" if withdrawn else ""
+        return _failed(view, f"{view.name}: numerical failure ({e}){why}; skipped", found)
     except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
         recon.restore(state)
         raise
+    # the model before this insertion, while the view is flagged: what its withdrawal restores
+    _before_flagged[recon] = (k, state_without if withdrawn else state) if view.registration_flag else None
+    for reason in withdrawn.values():
+        log.info("%s", reason)
     if withdrawn:
         report["withdrawn"] = withdrawn
     return report
+
+
+# per reconstruction: (the last view, when it was flagged at its registration, the model just
+# before its insertion); a resumed run starts without it
+_before_flagged: "weakref.WeakKeyDictionary[Reconstruction, tuple[int, Any] | None]" = weakref.WeakKeyDictionary()
+
+# the failures an image may owe to the view it was chained to (not its size, not roundoff)
+_CHAIN_FAILURES = (FailureKind.TOO_FEW_MATCHES, FailureKind.NO_CAMERA, FailureKind.DISAGREES)
 
 
 def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
@@ -182,36 +198,43 @@ def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
 
 
 def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
-                              cfg: Config) -> tuple[Registration, Any, dict[str, str]] | RegistrationFailure:
+                              cfg: Config) -> tuple[Registration, dict[str, str], Any] | RegistrationFailure:
     """View k could not be placed after a view flagged at its registration (a choice between
     copies of a repeated pattern, a zoom it could not measure): that failure is evidence against
     the flagged camera, whose points are what k was chained to. k is tried again with that view
-    withdrawn (its camera and observations leave the model), after the view before it. When k is
-    placed so, the flagged view stays withdrawn: returns (k's registration, the model as it was
-    before, {withdrawn view's name: reason}); otherwise the model is put back and the failure
-    returned, with what the second try said. A walk that went on from a wrong copy of a pattern
-    (the castle walked backwards: 2.2 m off, flagged) otherwise lost every later image. Not for
-    a rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
-    before = recon.registered_before(k, 2)
-    if recon.rig is not None or len(before) < 2 or before[0] < 2:  # nearest first; the pair stays
-        return failure
+    withdrawn, after the view before it. The withdrawal puts the model back as it was before
+    the flagged view's insertion (its points, the adjustments and outlier removals it caused),
+    where the run kept that state (not after a resume: then only its camera and observations
+    leave). When k is placed so, the flagged view stays out: returns (k's registration,
+    {withdrawn view's name: reason}, the model without it: a checkpoint); otherwise the model is put back and the failure returned,
+    with what the second try said. A walk that went on from a wrong copy of a pattern (the
+    castle walked backwards: 2.2 m off, flagged) otherwise lost every later image. Not for a
+    rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
+    before = recon.registered_before(k, 1)
+    if recon.rig is not None or failure.kind not in _CHAIN_FAILURES or not before or before[0] < 2:
+        return failure  # (views 0 and 1: the calibrated pair, never withdrawn)
     p = before[0]
-    flag = recon.views[p].registration_flag
+    view = recon.views[p]
+    flag = view.registration_flag
     if not flag:
         return failure
     state = recon.checkpoint()
-    recon.deregister(p)
+    kept = _before_flagged.get(recon)
+    if kept is not None and kept[0] == p:
+        recon.restore(kept[1])  # p pending again, as before its insertion
+    else:
+        recon.deregister(p)
+    view.features, view.point_of_feature = None, np.zeros(0, np.int64)  # as a view never placed
+    view.registration_flag = view.flag_reason = None
     found = _registered(recon, source, k, cfg)
     if isinstance(found, RegistrationFailure):
         recon.restore(state)
         return dataclasses.replace(failure, notes={**failure.notes, "without_flagged_previous": found.reason})
-    name, view = recon.views[p].name, recon.views[p]
-    reason = (f"{name}: withdrawn: flagged when placed ({flag}), and the next image, {recon.views[k].name}, "
+    reason = (f"{view.name}: withdrawn: flagged when placed ({flag}), and the next image, {recon.views[k].name}, "
               f"was placed only without it")
-    view.registration_flag = view.flag_reason = None
     view.status = f"failed: {reason}"
-    log.info("%s", reason)
-    return found, state, {name: reason}
+    _before_flagged[recon] = None
+    return found, {view.name: reason}, recon.checkpoint()
 
 
 def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:

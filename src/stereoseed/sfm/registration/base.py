@@ -24,7 +24,8 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
 from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.motion_prior import Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points
+from stereoseed.sfm.motion_prior import (Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points,
+                                        trusted_chain_inliers)
 from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
@@ -372,8 +373,7 @@ def _trusted_chain(inliers: np.ndarray, cfg: Config) -> bool:
     matched one period over splits the chain between the copies (the castle walked backwards:
     24 of 43 pairs agreed on a camera 4.7 m off)."""
     n_in = int(inliers.sum())
-    return (n_in >= cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers
-            and len(inliers) - n_in < cfg.trust.ambiguity_ratio * n_in)
+    return n_in >= trusted_chain_inliers(cfg) and len(inliers) - n_in < cfg.trust.ambiguity_ratio * n_in
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
