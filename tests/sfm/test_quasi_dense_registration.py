@@ -15,7 +15,8 @@ from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
 from stereoseed.sfm.registration.base import FoundBy
 from stereoseed.sfm.registration.ambiguity import judge_ambiguity
-from stereoseed.sfm.registration.quasi_dense import grid_best, reconsider, weak_chain_limit
+from stereoseed.sfm.registration.quasi_dense import grid_best, weak_chain_limit
+from stereoseed.sfm.registration.reconsider import reconsider
 from stereoseed.sfm.registration.base import RegistrationFailure, register_view
 from stereoseed.synthetic.scene import SceneConfig, render_scene
 

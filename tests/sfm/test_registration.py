@@ -53,7 +53,7 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     from stereoseed.sfm.mapper import registrars
     from stereoseed.sfm.registration.base import SparseRegistrar
     from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
-    from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar
+    from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
 
     recon, Ps, cfg, source = started
     cfg = cfg.resolve()
@@ -101,3 +101,24 @@ def test_a_chain_split_between_copies_of_a_pattern_is_not_trusted():
     assert not _trusted_chain(chain(24, 43), cfg)  # the castle walked backwards: 0007, 4.7 m off
     assert not _trusted_chain(chain(20, 20), cfg)  # too few, however consistent
     assert _trusted_chain(chain(30, 47), cfg) and not _trusted_chain(chain(30, 48), cfg)
+
+
+@pytest.mark.parametrize("previous_flagged", [False, True])
+def test_a_motion_prior_camera_across_a_view_not_placed_needs_confirmation(previous_flagged):
+    # view 4 sees nothing, view 5 has no robust F with view 3 (as on a repeated pattern): the
+    # motion prior extrapolates over the missing view. Its camera stands only where the matches
+    # propagated from view 3 confirm it, and they cannot when view 3 is flagged itself (they say
+    # how the two stand to each other); these images propagate nothing, so it is refused
+    images, names, Ps, source = ring(8, blind=(4,), no_epipolar=(5,))
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in (2, 3, 4):
+        insert_view(recon, k, cfg, source)
+    if previous_flagged:
+        recon.views[3].registration_flag = "ambiguous: repeated structure (as if)"
+    report = insert_view(recon, 5, cfg, source)
+    assert report["status"] == "failed" and "predicted across 1 view not placed" in report["reason"]
+    why = "from v3.png, flagged itself (ambiguous: repeated structure)" if previous_flagged else \
+        "without propagated matches with v3.png to confirm it"
+    assert why in report["reason"], report["reason"]
+    assert insert_view(recon, 6, cfg, source)["status"] == "registered"  # the chain goes on

@@ -34,7 +34,8 @@ from stereoseed.sfm.flags import FlagKind
 from stereoseed.sfm.modes import Mode, holds_intrinsics, mode_of
 from stereoseed.sfm.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
-from stereoseed.sfm.registration.quasi_dense import QuasiDenseRegistrar, grow_quasi_dense
+from stereoseed.sfm.registration.quasi_dense import grow_quasi_dense
+from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
                                              consistent_chain)

@@ -24,7 +24,8 @@ weak (fewer resection inliers than ``QuasiDenseConfig.weak_chain_inliers``), a s
    tracks extended into I_k and the grid matches triangulated as new points, observed at new
    (non-matching) interest points of both views.
 
-Estimate, validate, commit: :func:`reconsider` changes nothing; only :func:`grow_quasi_dense`
+Estimate, validate, commit: :func:`register_quasi_dense` (tried by
+:func:`stereoseed.sfm.registration.reconsider.reconsider`) changes nothing; only :func:`grow_quasi_dense`
 (called by the mapper after the commit, inside the insertion's checkpoint) changes the model.
 """
 from __future__ import annotations
@@ -52,13 +53,13 @@ from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate
 from stereoseed.sfm.correspondence import CorrespondenceSource, optional
-from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure, Resector,
+from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, Resector,
                                              consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["QuasiDenseRegistrar", "QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair",
-           "dense_chain", "epipolar_agreement", "robust_f_agreement", "reconsider", "grow_quasi_dense"]
+__all__ = ["QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair", "register_quasi_dense",
+           "dense_chain", "epipolar_agreement", "robust_f_agreement", "camera_epipolar_limit", "grow_quasi_dense"]
 
 log = logging.getLogger(__name__)
 
@@ -441,80 +442,6 @@ def _propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
     return qd
-
-
-class QuasiDenseRegistrar:
-    """Matches propagated from seeds between the last registered view and this one, tried when the
-    sparse outcome is weak or failed (:func:`reconsider`)."""
-
-    def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
-        if found is None:
-            raise ValueError("the quasi-dense registrar reconsiders a sparse attempt; it cannot come first")
-        return reconsider(recon, k, found, cfg, source)
-
-
-def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
-               cfg: Config, source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
-    """The sparse attempt ``found`` for view k, or the quasi-dense one when the sparse chain is
-    weak (fewer resection inliers than :func:`weak_chain_limit`, or none) and the quasi-dense
-    camera rests on more inliers. Changes nothing in ``recon``; the choice is in ``notes``."""
-    cfg = cfg.resolve()
-    if not cfg.quasi_dense.enabled or found.candidate is None:
-        return found
-    sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
-    limit = weak_chain_limit(cfg)
-    if sparse_inliers >= limit:
-        return found
-    cand = found.candidate
-    prev = recon.registered_before(k, 1)[0]
-    why_weak = (f"{sparse_inliers} sparse resection inliers < {limit}" if isinstance(found, Registration)
-                else found.reason)
-    try:
-        attempt, qd = register_quasi_dense(recon, prev, cand, cfg, source)
-    except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
-        attempt, qd = f"{cand.name}: numerical failure of the quasi-dense registration ({e})", None
-    notes = {"sparse_weak": why_weak}
-    if isinstance(attempt, str):
-        log.info("quasi-dense registration of %s failed: %s", cand.name, attempt)
-        notes["quasi_dense_failed"] = attempt
-        if isinstance(found, Registration):
-            return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes}), qd, cfg)
-        return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {attempt}", notes=notes)
-    seconds = {**found.seconds, **{f"quasi_dense_{s}": v for s, v in attempt.seconds.items()}}
-    if attempt.resection.inliers.sum() < limit:  # no better founded than the weak chain it replaces
-        notes["quasi_dense_failed"] = (f"{cand.name}: only {int(attempt.resection.inliers.sum())} quasi-dense "
-                                       f"resection inliers (need {limit})")
-        if isinstance(found, Registration):
-            return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
-                                                                         seconds=seconds), qd, cfg)
-        return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {notes['quasi_dense_failed']}",
-                                   notes=notes, seconds=seconds)
-    if sparse_inliers >= attempt.resection.inliers.sum():
-        notes["quasi_dense_inliers"] = int(attempt.resection.inliers.sum())
-        return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
-                                                                     seconds=seconds), qd, cfg)
-    log.info("%s registered by quasi-dense matches (%s)", cand.name, why_weak)
-    return dataclasses.replace(attempt, seconds=seconds, notes=notes)
-
-
-def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,
-                         cfg: Config) -> Registration | RegistrationFailure:
-    """The weak sparse camera ``found`` kept after the quasi-dense attempt, refused when it
-    disagrees with the propagated matches' epipolar geometry as a quasi-dense camera would be
-    (``QuasiDenseConfig.camera_epipolar_factor``); unchanged when there is no robust F."""
-    if qd is None or qd.F is None:
-        return found
-    floor = robust_f_agreement(qd)
-    agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
-    if agrees <= camera_epipolar_limit(floor, cfg):
-        return found
-    reason = (f"{found.candidate.name}: the weak {found.found_by} camera ({int(found.resection.inliers.sum())} "
-              f"inliers) disagrees with the propagated matches (their median distance to its epipolar lines "
-              f"{agrees:.2f} px, to the robust F's {floor:.2f} px)")
-    log.info("%s", reason)
-    return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                               notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.DISAGREES)
 
 
 def _grid_features(view_features: Features, xy: np.ndarray, patch_size: int) -> Features:
