@@ -171,3 +171,42 @@ def test_a_photo_taken_twice_from_one_spot_keeps_its_uncertainty(temple_dir):
         u = view.uncertainty
         assert view.reliable and u.determined and 0 < np.max(u.position_sigma) < 0.002, (view.name, u.reason)
     assert report["final"]["trust"]["flagged"] == {}
+
+
+def test_a_camera_between_two_cameras():
+    from stereoseed.sfm.hindsight import between
+
+    K, _, _, P_a = ring_camera(30.0, height=0.7)
+    _, _, _, P_b = ring_camera(50.0, height=0.7)
+    _, _, _, P_mid = ring_camera(40.0, height=0.7)  # both look at one point: the middle one does too
+    P = between(P_a, P_b, K, 0.5)
+    # its centre halfway along the chord, its rotation the middle camera's (the same turn about
+    # the vertical on both sides)
+    assert np.allclose(camera_center(P), (camera_center(P_a) + camera_center(P_b)) / 2, atol=1e-12)
+    assert np.allclose(np.linalg.solve(K, P[:, :3]), np.linalg.solve(K, P_mid[:, :3]), atol=1e-9)
+    assert np.allclose(between(P_a, P_b, K, 0.0), P_a) and np.allclose(between(P_a, P_b, K, 1.0), P_b)
+
+
+@pytest.mark.parametrize("placed_by", ["motion prior", "epipolar chain"])
+def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(placed_by):
+    # view 4, moved 10 cm along the ring after the final BA as if placed on another copy of a
+    # pattern: the camera predicted between views 3 and 5 explains clearly more of their points.
+    # A camera its own two-view geometry placed (the epipolar chain) is not judged again
+    from stereoseed.sfm.hindsight import contradicted_by_neighbours
+
+    images, names, Ps, source = ring(7)
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in range(2, 7):
+        insert_view(recon, k, cfg, source)
+    finish(recon, cfg, source)
+    recon.views[4].found_by = placed_by
+    assert contradicted_by_neighbours(recon, cfg, {2, 3, 4, 5}) == {}  # sound cameras: nothing to say
+    _, _, _, P_wrong = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    recon.views[4].P = P_wrong
+    found = contradicted_by_neighbours(recon, cfg, {2, 3, 4, 5})
+    if placed_by == "epipolar chain":
+        assert found == {}
+        return
+    assert list(found) == [4] and found[4].startswith("contradicted by the other cameras: a camera")
+    assert "found between v3.png and v5.png" in found[4]

@@ -256,6 +256,7 @@ def _commit(view: View, reg: Registration) -> None:
     view.camera_model = CameraModel.FOCAL if reg.free_camera_refused else None
     view.camera = reg.resection.camera
     view.registration_flag = view.flag_reason = reg.notes.get("flag")
+    view.found_by = reg.found_by
     view.zoomed = reg.zoomed
 
 

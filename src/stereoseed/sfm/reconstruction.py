@@ -80,6 +80,9 @@ class View:
         # can vouch for it, why not, and its 1-sigma uncertainty from the final BA
         self.registration_flag: str | None = None
         self.flag_reason: str | None = None
+        # what placed its camera (registration.base.FoundBy), set when it is committed; None after
+        # a resume (the checkpoint does not keep it: the judgement in hindsight then looks at all)
+        self.found_by: str | None = None
         self.uncertainty: Any = None
 
     @property

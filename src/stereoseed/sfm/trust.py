@@ -6,7 +6,8 @@ knows then (the field's answer to "a clean report on a wrong result"):
   pair as the gauge);
 * its consistency: a camera whose observations reproject much worse than the other cameras'
   after the final BA is contradicted by them (a camera placed one period over on a repeated
-  pattern keeps residuals the model cannot explain away);
+  pattern keeps residuals the model cannot explain away), and so is a predicted camera that a
+  camera found between its neighbours outdoes (:mod:`stereoseed.sfm.hindsight`);
 * its ties: a camera seeing too few points that other cameras also see is held where its
   registration put it, unchecked by the final BA.
 
@@ -25,6 +26,7 @@ from stereoseed.config import Config
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
 from stereoseed.sfm.flags import FlagKind
+from stereoseed.sfm.hindsight import contradicted_by_neighbours
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.sfm.reconstruction import Reconstruction
@@ -147,6 +149,9 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
     cfg = cfg.resolve()
     contradicted = contradicted_cameras(recon, cfg)
+    unflagged = {v for v in recon.registered_views if v not in CALIBRATED and not recon.views[v].registration_flag
+                 and v not in contradicted}
+    contradicted.update(contradicted_by_neighbours(recon, cfg, unflagged))
     uncertainties = camera_uncertainties(recon, cfg)
     reasons = {}
     for v in recon.registered_views:
