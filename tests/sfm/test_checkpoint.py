@@ -377,7 +377,10 @@ def test_a_resumed_run_keeps_the_flags_its_registrations_raised(plain_box_scene,
     s = plain_box_scene.prefix(6)
     ck = tmp_path / "ck.npz"
     _, first = reconstruct(s.images, s.names, s.P[:2], Config(), checkpoint=ck)
-    _, resumed = reconstruct(s.images, s.names, s.P[:2], Config(), checkpoint=ck, resume=True)
+    recon, resumed = reconstruct(s.images, s.names, s.P[:2], Config(), checkpoint=ck, resume=True)
     flagged = first["final"]["trust"]["flagged"]
     assert any(r.startswith("ambiguous") for r in flagged.values())  # the squares: chosen on a margin
     assert resumed["final"]["trust"]["flagged"] == flagged
+    # what placed each camera, which the judgement in hindsight reads, as the reports said
+    placed_by = [r.get("registered_by") for r in first["per_image"][2:]]
+    assert [v.found_by for v in recon.views[2:]] == placed_by and "motion prior" in placed_by

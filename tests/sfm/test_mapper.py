@@ -210,3 +210,9 @@ def test_an_error_after_a_withdrawal_puts_the_flagged_view_back(monkeypatch):
     assert report["status"] == "failed" and f"placed only without {names[4]}" in report["reason"]
     assert_same_state(before, state(recon))
     assert recon.views[4].status == status and recon.views[4].registration_flag
+
+
+def test_the_view_knows_what_placed_it():
+    cfg = Config()
+    recon, names, Ps, source = _walked_to(3, cfg)
+    assert [recon.views[k].found_by for k in (2, 3)] == ["epipolar chain", "epipolar chain"]

@@ -58,26 +58,34 @@ def _neighbours_points(recon: Reconstruction, a: int, b: int) -> tuple[np.ndarra
     return pids, desc
 
 
-def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, judged: set[int]) -> dict[int, str]:
-    """{view: reason} of the views of ``judged`` (registered, between two registered views) whose
-    camera a rival predicted from their neighbours contradicts (the module's rule). A camera the
-    epipolar chain placed is not judged again: its own two-view geometry placed it, where the
-    others were predicted (a split chain competes with the motion prior at registration). Not
-    on a rig walk (a station's two images are one body; their neighbours are each other)."""
+def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, judged: set[int],
+                               doubted: set[int] = frozenset()) -> dict[int, str]:
+    """{view: reason} of the views of ``judged`` whose camera a rival predicted from their
+    neighbours contradicts (the module's rule). The neighbours: the nearest registered views on
+    either side that were not flagged at their registration nor are in ``doubted`` (a wrong
+    neighbour would predict wrong). A camera the epipolar chain placed is not judged again: its
+    own two-view geometry placed it, where the others were predicted (a split chain competes
+    with the motion prior at registration). Not on a rig walk (a station's two images are one
+    body; their neighbours are each other)."""
     cfg = cfg.resolve()
     mp, tc = cfg.motion_prior, cfg.trust
-    reg = recon.registered_views
     if recon.rig is not None:
         return {}
+    sound = [v for v in recon.registered_views if not recon.views[v].registration_flag and v not in doubted]
     out = {}
-    for a, k, b in zip(reg, reg[1:], reg[2:]):
-        if k not in judged or recon.views[k].found_by == FoundBy.EPIPOLAR_CHAIN:
-            continue
+    for k in sorted(judged):
         view = recon.views[k]
-        pids, desc = _neighbours_points(recon, a, b)
-        if len(pids) < cfg.resection.min_points or view.features is None:
+        a = max((v for v in sound if v < k), default=None)
+        b = min((v for v in sound if v > k), default=None)
+        if (a is None or b is None or view.found_by == FoundBy.EPIPOLAR_CHAIN or view.features is None
+                or view.image_size is None):
             continue
-        cand = Candidate(k, view.name, view.image, view.features, view.rotated_180)
+        pids, desc = _neighbours_points(recon, a, b)
+        if len(pids) < cfg.resection.min_points:
+            continue
+        # the resection reads only the image's size: no pixels read again
+        size_only = np.broadcast_to(np.zeros((), np.uint8), view.image_size[::-1])
+        cand = Candidate(k, view.name, size_only, view.features, view.rotated_180)
         resect = Resector(recon, a, cand, cfg)
         cameras = [view.P]
         for hypotheses in hypotheses_near(recon, between(recon.views[a].P, recon.views[b].P, view.K, (k - a) / (b - a)),
@@ -91,7 +99,9 @@ def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, judged: set[i
         depth = float(np.median(depths(view.P, recon.points[pids])))
         centre = camera_center(view.P)
         rivals = [(int(n), float(np.linalg.norm(camera_center(P) - centre))) for n, P in zip(counts[1:], cameras[1:])]
-        rivals = [(n, d) for n, d in rivals if n >= mp.wider_search_margin * counts[0] and d > tc.ambiguity_shift * depth]
+        # clearly more, and at least a resection's worth (a count of 0 against 0 says nothing)
+        rivals = [(n, d) for n, d in rivals if n >= max(mp.wider_search_margin * counts[0], cfg.resection.min_inliers)
+                  and d > tc.ambiguity_shift * depth]
         if rivals:
             n, d = max(rivals)
             out[k] = (f"{FlagKind.CONTRADICTED}: a camera {d:.3g} away ({100 * d / depth:.1f} % of the scene's depth), "

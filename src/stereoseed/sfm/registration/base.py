@@ -47,6 +47,8 @@ class FailureKind(StrEnum):
     UNREADABLE = "unreadable image"  # the image file cannot be decoded (the run skips it)
     # flagged when placed, then withdrawn: the next image could be placed only without it
     WITHDRAWN = "withdrawn after the next image"
+    # the motion prior's camera predicted across views not placed, which nothing confirms
+    UNCONFIRMED = "predicted across views not placed, unconfirmed"
 
 
 class FoundBy(StrEnum):

@@ -37,14 +37,23 @@ class QuasiDenseRegistrar:
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
                cfg: Config, source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
     """The sparse attempt ``found`` for view k, or the quasi-dense one when the sparse chain is
-    weak (fewer resection inliers than :func:`weak_chain_limit`, or none) and the quasi-dense
-    camera rests on more inliers. Changes nothing in ``recon``; the choice is in ``notes``."""
+    weak (fewer resection inliers than :func:`weak_chain_limit`, or none, or the motion prior's
+    camera predicted across views not placed) and the quasi-dense camera rests on more inliers.
+    A camera placed across views not placed from a view flagged at its registration is refused
+    (:func:`_unconfirmed`): the matches with that view only say how the two stand.
+    Changes nothing in ``recon``; the choice is in ``notes``. With the quasi-dense registration
+    off (``QuasiDenseConfig.enabled``) nothing is reconsidered, across a gap neither."""
     cfg = cfg.resolve()
     if not cfg.quasi_dense.enabled or found.candidate is None:
         return found
     sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
     limit = weak_chain_limit(cfg)
     prev = recon.registered_before(k, 1)[0]
+    vp = recon.views[prev]
+    if isinstance(found, Registration) and k - prev > 1 and vp.registration_flag:
+        # placed across views not placed from a doubtful camera: any camera found here (this one,
+        # the quasi-dense one) only says how it stands to that one
+        return _unconfirmed(found, k, prev, f"from {vp.name}, flagged itself ({flag_kind(vp.registration_flag)})")
     if sparse_inliers >= limit and not _predicted_across_a_gap(found, k, prev):
         return found
     cand = found.candidate
@@ -93,27 +102,27 @@ def _views(n: int) -> str:
     return f"{n} view{'' if n == 1 else 's'} not placed"
 
 
+def _unconfirmed(found: Registration, k: int, prev: int, why: str) -> RegistrationFailure:
+    """The refusal of ``found``, placed across views not placed since ``prev``, that nothing
+    confirms (``why``): ``FailureKind.UNCONFIRMED``, no evidence against the previous view (the
+    mapper withdraws none for it)."""
+    reason = f"{found.candidate.name}: the {found.found_by} camera, placed across {_views(k - prev - 1)}, {why}"
+    log.info("%s", reason)
+    return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
+                               notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.UNCONFIRMED)
+
+
 def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,
                          cfg: Config) -> Registration | RegistrationFailure:
     """The weak sparse camera ``found`` kept after the quasi-dense attempt, refused when it
     disagrees with the propagated matches' epipolar geometry as a quasi-dense camera would be
-    (``QuasiDenseConfig.camera_epipolar_factor``); unchanged when there is no robust F, unless
-    it is the motion prior's across a gap (:func:`_predicted_across_a_gap`), which then has
-    nothing to stand on."""
-    k, vp = found.candidate.index, recon.views[prev]
-    unconfirmed = None
-    if _predicted_across_a_gap(found, k, prev):
-        # the matches only say how the two cameras stand to each other (as for the ambiguity judge)
-        if vp.registration_flag:
-            unconfirmed = f"from {vp.name}, flagged itself ({flag_kind(vp.registration_flag)})"
-        elif qd is None or qd.F is None:
-            unconfirmed = f"without propagated matches with {vp.name} to confirm it"
-    if unconfirmed is not None:
-        reason = f"{found.candidate.name}: the motion prior's camera, predicted across {_views(k - prev - 1)}, {unconfirmed}"
-        log.info("%s", reason)
-        return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                                   notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.DISAGREES)
+    (``QuasiDenseConfig.camera_epipolar_factor``); unchanged when there is no robust F. The
+    motion prior's camera across a gap (:func:`_predicted_across_a_gap`) is refused without a
+    robust F (:func:`_unconfirmed`)."""
+    k = found.candidate.index
     if qd is None or qd.F is None:
+        if _predicted_across_a_gap(found, k, prev):
+            return _unconfirmed(found, k, prev, f"without propagated matches with {recon.views[prev].name} to confirm it")
         return found
     floor = robust_f_agreement(qd)
     agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
