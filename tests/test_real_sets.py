@@ -85,3 +85,9 @@ def test_a_camera_its_neighbours_place_elsewhere_is_flagged():
     assert entry["0016.jpg"].get("flag", "").startswith("contradicted by the other cameras: a camera")
     assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
     assert r["unflagged"]["count"] >= 5
+    # without that judgement, nothing said so (TrustConfig.judge_between_neighbours)
+    from stereoseed.config import Config
+
+    off = bench_real.run_walk(bench_walks.WALKS["strechaCastleP19 from 0010"],
+                              Config().replace(trust={"judge_between_neighbours": False}))
+    assert "flag" not in {e["image"]: e for e in off["per_image"]}["0016.jpg"]

@@ -332,6 +332,10 @@ class TrustConfig:
     # registered on quasi-dense matches keeps only its sparse observations). None: the chain the
     # motion prior trusts, MotionPriorConfig.trusted_chain_factor x ResectionConfig.min_inliers.
     min_tied_observations: int | None = None
+    # After the final BA, judge each camera the motion prior or the quasi-dense matches placed
+    # again between its neighbours (stereoseed.sfm.hindsight): 0.1-0.25 s a camera judged; off
+    # on a long weakly textured walk where that time matters more than the check.
+    judge_between_neighbours: bool = True
     # Keep flagged cameras' observations in the model and their images in the dense stage.
     keep_flagged: bool = False
 
