@@ -157,12 +157,14 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
     found = _registered(recon, source, k, cfg)
-    state, withdrawn = recon.checkpoint(), {}
+    withdrawn = {}
     if isinstance(found, RegistrationFailure):
         retried = _without_flagged_previous(recon, source, k, found, cfg)
         if isinstance(retried, RegistrationFailure):
             return _failed(view, retried.reason, retried)
-        found, withdrawn, state_without = retried
+        found, withdrawn, state, state_without = retried
+    else:
+        state = state_without = recon.checkpoint()  # the model before this insertion
     try:
         report = _commit_and_grow(recon, source, k, found, cfg)
     except np.linalg.LinAlgError as e:
@@ -173,7 +175,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
         recon.restore(state)
         raise
     # the model before this insertion, while the view is flagged: what its withdrawal restores
-    _before_flagged[recon] = (k, state_without if withdrawn else state) if view.registration_flag else None
+    _before_flagged[recon] = (k, state_without) if view.registration_flag else None
     for reason in withdrawn.values():
         log.info("%s", reason)
     if withdrawn:
@@ -199,18 +201,18 @@ def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
 
 
 def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
-                              cfg: Config) -> tuple[Registration, dict[str, str], Any] | RegistrationFailure:
-    """View k could not be placed after a view flagged at its registration (a choice between
-    copies of a repeated pattern, a zoom it could not measure): that failure is evidence against
-    the flagged camera, whose points are what k was chained to. k is tried again with that view
-    withdrawn, after the view before it. The withdrawal puts the model back as it was before
-    the flagged view's insertion (its points, the adjustments and outlier removals it caused),
-    where the run kept that state (not after a resume: then only its camera and observations
-    leave). When k is placed so, the flagged view stays out: returns (k's registration,
-    {withdrawn view's name: reason}, the model without it: a checkpoint); otherwise the model is put back and the failure returned,
-    with what the second try said. A walk that went on from a wrong copy of a pattern (the
-    castle walked backwards: 2.2 m off, flagged) otherwise lost every later image. Not for a
-    rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
+                              cfg: Config) -> tuple[Registration, dict[str, str], Any, Any] | RegistrationFailure:
+    """View k could not be placed after a view flagged at its registration (a choice between copies
+    of a repeated pattern, a zoom it could not measure): that failure is evidence against the
+    flagged camera, whose points are what k was chained to. k is tried again with that view
+    withdrawn, after the view before it. The withdrawal puts the model back as it was before the
+    flagged view's insertion (its points, the adjustments and outlier removals it caused), where the
+    run kept that state (not after a resume: then only its camera and observations leave). When k is
+    placed so, the flagged view stays out: returns (k's registration, {withdrawn view's name:
+    reason}, the model as it was, the model without it: checkpoints); otherwise the model is put
+    back and the failure returned, with what the second try said. A walk that went on from a wrong
+    copy of a pattern (the castle walked backwards: 2.2 m off, flagged) otherwise lost every later
+    image. Not for a rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
     before = recon.registered_before(k, 1)
     if recon.rig is not None or failure.kind not in _CHAIN_FAILURES or not before or before[0] < 2:
         return failure  # (views 0 and 1: the calibrated pair, never withdrawn)
@@ -235,7 +237,7 @@ def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSourc
               f"was placed only without it")
     view.status = f"failed: {reason}"
     _before_flagged[recon] = None
-    return found, {view.name: reason}, recon.checkpoint()
+    return found, {view.name: reason}, state, recon.checkpoint()
 
 
 def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
