@@ -102,8 +102,6 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             recon.rig = pair_rig(P_pair, rig)
             for i in working_set(recon, cfg):  # the next insertions read their grey images
                 recon.views[i].restore_gray()
-            for view, r in zip(recon.views, per_image):  # what placed each camera, as the reports say
-                view.found_by = r.get("registered_by")
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
             recon, init = initialise(images, names, P_pair, cfg, prefetching, rig=rig)

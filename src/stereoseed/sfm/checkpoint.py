@@ -433,4 +433,6 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
+    for view, r in zip(recon.views, meta["per_image"]):  # what placed each camera, as its report says
+        view.found_by = r.get("registered_by")
     return recon, meta["per_image"]

@@ -80,8 +80,8 @@ class View:
         # can vouch for it, why not, and its 1-sigma uncertainty from the final BA
         self.registration_flag: str | None = None
         self.flag_reason: str | None = None
-        # what placed its camera (registration.base.FoundBy), set when it is committed (a resumed
-        # run takes it from the saved reports)
+        # what placed its camera (registration.base.FoundBy), set when it is committed (a
+        # checkpoint gives it back from the saved reports)
         self.found_by: str | None = None
         self.uncertainty: Any = None
 
