@@ -125,7 +125,8 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
         for k in range(len(per_image), n):
             rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
             per_image.append(rep)
-            _withdrawn(per_image, rep.get("withdrawn", {}))
+            if "withdrawn" in rep:
+                _mark_failed(per_image, rep["withdrawn"], withdrawn=True)
             release_old_views(recon, cfg, spill)
             saver.save(recon, per_image)
             if progress:
@@ -212,23 +213,21 @@ def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> 
     return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
 
 
-def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
-    """The reports of the images named in ``reasons`` ({name: reason}), placed and then dropped
-    by the finishing step, say so."""
-    for r in per_image:
-        if r.get("image") in reasons:
-            r.update(status="failed", reason=reasons[r["image"]])
-
-
-def _withdrawn(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
-    """The reports of the images named in ``reasons`` ({name: reason}), withdrawn after the next
-    image (:func:`stereoseed.sfm.mapper.insert_view`): failed, with what their registration had
-    said under "withdrawn_registration" (no figure of theirs is read as the model's)."""
+def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str], withdrawn: bool = False) -> None:
+    """The reports of the images named in ``reasons`` ({name: reason}), placed once and since
+    taken out of the model (dropped by the finishing step; ``withdrawn`` after the next image,
+    :func:`stereoseed.sfm.mapper.insert_view`), say they failed, and why. A withdrawn one keeps
+    what its registration said under "withdrawn_registration" (no figure of it is read as the
+    model's)."""
     for i, r in enumerate(per_image):
-        if r.get("image") in reasons:
+        if r.get("image") not in reasons:
+            continue
+        if withdrawn:
             placed = {key: value for key, value in r.items() if key not in ("image", "status")}
             per_image[i] = {"image": r["image"], "status": "failed", "reason": reasons[r["image"]],
                             "failure": FailureKind.WITHDRAWN, "withdrawn_registration": placed}
+        else:
+            r.update(status="failed", reason=reasons[r["image"]])
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
