@@ -68,25 +68,27 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
         attempt, qd = f"{cand.name}: numerical failure of the quasi-dense registration ({e})", None
     notes = {"sparse_weak": why_weak}
-    if isinstance(attempt, str):
-        log.info("quasi-dense registration of %s failed: %s", cand.name, attempt)
-        notes["quasi_dense_failed"] = attempt
-        if isinstance(found, Registration):
-            return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes}), qd, cfg)
-        return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {attempt}", notes=notes)
-    seconds = {**found.seconds, **{f"quasi_dense_{s}": v for s, v in attempt.seconds.items()}}
-    if attempt.resection.inliers.sum() < limit:  # no better founded than the weak chain it replaces
-        notes["quasi_dense_failed"] = (f"{cand.name}: only {int(attempt.resection.inliers.sum())} quasi-dense "
-                                       f"resection inliers (need {limit})")
+
+    def sparse_kept(seconds: dict[str, float]) -> Registration | RegistrationFailure:
+        """The sparse outcome, with the attempt's notes: a camera checked, a failure extended."""
         if isinstance(found, Registration):
             return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
                                                                          seconds=seconds), qd, cfg)
         return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {notes['quasi_dense_failed']}",
                                    notes=notes, seconds=seconds)
-    if sparse_inliers >= attempt.resection.inliers.sum():
+
+    if isinstance(attempt, str):
+        log.info("quasi-dense registration of %s failed: %s", cand.name, attempt)
+        notes["quasi_dense_failed"] = attempt
+        return sparse_kept(found.seconds)
+    seconds = {**found.seconds, **{f"quasi_dense_{s}": v for s, v in attempt.seconds.items()}}
+    if attempt.resection.inliers.sum() < limit:  # no better founded than the weak chain it replaces
+        notes["quasi_dense_failed"] = (f"{cand.name}: only {int(attempt.resection.inliers.sum())} quasi-dense "
+                                       f"resection inliers (need {limit})")
+        return sparse_kept(seconds)
+    if sparse_inliers >= attempt.resection.inliers.sum():  # found is a Registration here
         notes["quasi_dense_inliers"] = int(attempt.resection.inliers.sum())
-        return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
-                                                                     seconds=seconds), qd, cfg)
+        return sparse_kept(seconds)
     log.info("%s registered by quasi-dense matches (%s)", cand.name, why_weak)
     return dataclasses.replace(attempt, seconds=seconds, notes=notes)
 
@@ -106,10 +108,15 @@ def _unconfirmed(found: Registration, k: int, prev: int, why: str) -> Registrati
     """The refusal of ``found``, placed across views not placed since ``prev``, that nothing
     confirms (``why``): ``FailureKind.UNCONFIRMED``, no evidence against the previous view (the
     mapper withdraws none for it)."""
-    reason = f"{found.candidate.name}: the {found.found_by} camera, placed across {_views(k - prev - 1)}, {why}"
+    return _refused(found, f"{found.candidate.name}: the {found.found_by} camera, placed across "
+                           f"{_views(k - prev - 1)}, {why}", FailureKind.UNCONFIRMED)
+
+
+def _refused(found: Registration, reason: str, kind: FailureKind) -> RegistrationFailure:
+    """The sparse camera ``found`` refused for ``reason`` (also its notes' "sparse_refused")."""
     log.info("%s", reason)
     return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                               notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.UNCONFIRMED)
+                               notes={**found.notes, "sparse_refused": reason}, kind=kind)
 
 
 def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,
@@ -128,9 +135,7 @@ def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, 
     agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
     if agrees <= camera_epipolar_limit(floor, cfg):
         return found
-    reason = (f"{found.candidate.name}: the weak {found.found_by} camera ({int(found.resection.inliers.sum())} "
-              f"inliers) disagrees with the propagated matches (their median distance to its epipolar lines "
-              f"{agrees:.2f} px, to the robust F's {floor:.2f} px)")
-    log.info("%s", reason)
-    return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                               notes={**found.notes, "sparse_refused": reason}, kind=FailureKind.DISAGREES)
+    return _refused(found, f"{found.candidate.name}: the weak {found.found_by} camera "
+                           f"({int(found.resection.inliers.sum())} inliers) disagrees with the propagated matches "
+                           f"(their median distance to its epipolar lines {agrees:.2f} px, to the robust F's "
+                           f"{floor:.2f} px)", FailureKind.DISAGREES)
