@@ -8,7 +8,7 @@ from ring_helpers import ring
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import finish, initialise, insert_view
-from stereoseed.sfm.registration.base import _rival
+from stereoseed.sfm.registration.base import _rivals, ambiguity_flag
 from stereoseed.sfm.trust import assess
 
 
@@ -110,10 +110,13 @@ def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     near = Ps[4]
     shifted = ring_camera(30.0 + 4 * 20.0 + 6.0, height=0.7)[3]  # ~15 cm along the ring: a period over
     close = ring_camera(30.0 + 4 * 20.0 + 0.1, height=0.7)[3]  # 2.4 mm: the same camera
-    why = _rival(recon, 3, recent, [near, shifted], np.array([100, 80]), 0, cfg)
+    def flag(cameras, counts):  # the winner: the first
+        return ambiguity_flag(_rivals(recon, 3, recent, cameras, counts, 0, cfg), counts, 0)
+
+    why = flag([near, shifted], np.array([100, 80]))
     assert why is not None and "explains 80" in why
-    assert _rival(recon, 3, recent, [near, shifted], np.array([100, 40]), 0, cfg) is None  # clearly worse
-    assert _rival(recon, 3, recent, [near, close], np.array([100, 99]), 0, cfg) is None  # the same place
+    assert flag([near, shifted], np.array([100, 40])) is None  # clearly worse
+    assert flag([near, close], np.array([100, 99])) is None  # the same place
 
 
 def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, tmp_path, capsys, monkeypatch):

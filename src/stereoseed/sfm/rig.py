@@ -175,8 +175,7 @@ class RigRegistrar:
             reg.notes["flag"] = ambiguity_flag(rivals, counts, best)
             # judged as a single camera's choice is, on this image and the previous station's of its side
             reg = dataclasses.replace(reg, rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
-            if cfg.quasi_dense.enabled:
-                reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, cfg, source)
+            reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, cfg, source)
         return reg
 
 

@@ -31,9 +31,7 @@ class AmbiguityJudge:
                  found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
         if found is None:
             raise ValueError("the ambiguity judge judges a sparse attempt; it cannot come first")
-        cfg = cfg.resolve()
-        if not (isinstance(found, Registration) and found.rivals and found.notes.get("flag")
-                and cfg.quasi_dense.enabled):
+        if not (isinstance(found, Registration) and found.rivals):  # rivals: the choice is flagged
             return found
         return judge_ambiguity(recon, recon.registered_before(k, 1)[0], found, cfg, source)
 
@@ -48,8 +46,10 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     it stays, with the evidence in the notes. The choice itself never changes here. The matches
     only say how the two cameras stand to each other: a previous view that is flagged itself (a
     walk that carries an offset keeps it between consecutive views; on a rig, either image of
-    its station) cannot lift a flag. Without rivals, ``found`` is returned as it is."""
-    if not found.rivals:
+    its station) cannot lift a flag. Without rivals, or with the propagation off
+    (``QuasiDenseConfig.enabled``), ``found`` is returned as it is."""
+    cfg = cfg.resolve()
+    if not found.rivals or not cfg.quasi_dense.enabled:
         return found
     # a rig's station is one body: its flag sits on the image it was resected from (views 2s, 2s+1)
     station = (prev, prev ^ 1) if recon.rig is not None and (prev ^ 1) < len(recon.views) else (prev,)

@@ -207,25 +207,14 @@ def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[
     return found
 
 
-def _why_ambiguous(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
-    """What the first of :func:`_rivals` explains against the winner ``best``, or None without one."""
+def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
+    """The flag of a choice :func:`_rivals` makes ambiguous (what the first rival explains
+    against the winner ``best``), or None without one."""
     if not rivals:
         return None
     j, apart, depth = rivals[0]
-    return (f"the best camera explains {counts[best]} recent points, another {apart:.3g} away "
-            f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]}")
-
-
-def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
-    """The flag of a choice :func:`_rivals` makes ambiguous, or None."""
-    why = _why_ambiguous(rivals, counts, best)
-    return None if why is None else f"{FlagKind.AMBIGUOUS} ({why})"
-
-
-def _rival(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
-           best: int, cfg: Config) -> str | None:
-    """Why the winner ``best`` of competing cameras (3, 4) is ambiguous (:func:`_rivals`), or None."""
-    return _why_ambiguous(_rivals(recon, prev, recent, cameras, counts, best, cfg), counts, best)
+    return (f"{FlagKind.AMBIGUOUS} (the best camera explains {counts[best]} recent points, another {apart:.3g} away "
+            f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]})")
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
