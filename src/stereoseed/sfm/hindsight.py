@@ -23,8 +23,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.motion_prior import explained_points, hypotheses_near
+from stereoseed.sfm.motion_prior import described_points, explained_points, hypotheses_near
 from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.sfm.refinement import CALIBRATED
 from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector
 
 __all__ = ["contradicted_by_neighbours", "between"]
@@ -45,25 +46,11 @@ def between(P_a: np.ndarray, P_b: np.ndarray, K: np.ndarray, t: float) -> np.nda
     return K @ np.hstack([R, -(R @ C)[:, None]])
 
 
-def _neighbours_points(recon: Reconstruction, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """The live points views a and b observe, each described by its patch in one of them:
-    (point ids (N,), descriptors (N, D) float32)."""
-    sel = np.flatnonzero(np.isin(recon.obs_view, [a, b]) & recon.alive[recon.obs_point])
-    pids, first = np.unique(recon.obs_point[sel], return_index=True)
-    obs = sel[first]
-    desc = np.zeros((len(obs), recon.views[a].features.desc.shape[1]), np.float32)
-    for v in (a, b):
-        here = recon.obs_view[obs] == v
-        desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]
-    return pids, desc
-
-
-def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, judged: set[int],
-                               doubted: set[int] = frozenset()) -> dict[int, str]:
-    """{view: reason} of the views of ``judged`` whose camera a rival predicted from their
-    neighbours contradicts (the module's rule). The neighbours: the nearest registered views on
-    either side that were not flagged at their registration nor are in ``doubted`` (a wrong
-    neighbour would predict wrong). A camera the epipolar chain placed is not judged again: its
+def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, str]:
+    """{view: reason} of the registered views after the pair, not flagged at their registration
+    nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
+    module's rule). The neighbours: the nearest such views on either side (a wrong neighbour
+    would predict wrong). A camera the epipolar chain placed is not judged again: its
     own two-view geometry placed it, where the others were predicted (a split chain competes
     with the motion prior at registration). Not on a rig walk (a station's two images are one
     body; their neighbours are each other)."""
@@ -73,14 +60,16 @@ def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, judged: set[i
         return {}
     sound = [v for v in recon.registered_views if not recon.views[v].registration_flag and v not in doubted]
     out = {}
-    for k in sorted(judged):
+    for k in (v for v in sound if v not in CALIBRATED):
         view = recon.views[k]
         a = max((v for v in sound if v < k), default=None)
         b = min((v for v in sound if v > k), default=None)
         if (a is None or b is None or view.found_by == FoundBy.EPIPOLAR_CHAIN or view.features is None
                 or view.image_size is None):
             continue
-        pids, desc = _neighbours_points(recon, a, b)
+        # their points, each described by its patch at its first observation in a or b
+        pids, desc = described_points(recon, np.flatnonzero(np.isin(recon.obs_view, [a, b])
+                                                             & recon.alive[recon.obs_point]), a)
         if len(pids) < cfg.resection.min_points:
             continue
         # the resection reads only the image's size: no pixels read again

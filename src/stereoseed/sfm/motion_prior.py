@@ -23,7 +23,7 @@ from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction
 
-__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis",
+__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "described_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis",
            "trusted_chain_inliers"]
 
 
@@ -79,10 +79,15 @@ def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.nd
     by its patch in the latest of them: (point ids (N,), descriptors (N, D) float32)."""
     recent = [prev] + recon.registered_before(prev, n_views - 1)
     sel = np.isin(recon.obs_view, recent) & recon.alive[recon.obs_point]
-    order = np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")]
-    pids, first = np.unique(recon.obs_point[order], return_index=True)
-    obs = order[first]
-    desc = np.zeros((len(obs), recon.views[prev].features.desc.shape[1]), np.float32)
+    return described_points(recon, np.flatnonzero(sel)[np.argsort(-recon.obs_view[sel], kind="stable")], prev)
+
+
+def described_points(recon: Reconstruction, rows: np.ndarray, view: int) -> tuple[np.ndarray, np.ndarray]:
+    """The points of the observations ``rows`` (R,), each described by its patch at the first of
+    its rows: (point ids (N,), descriptors (N, D) float32, D that of ``view``'s)."""
+    pids, first = np.unique(recon.obs_point[rows], return_index=True)
+    obs = rows[first]
+    desc = np.zeros((len(obs), recon.views[view].features.desc.shape[1]), np.float32)
     for v in unique(recon.obs_view[obs]):
         here = recon.obs_view[obs] == v
         desc[here] = recon.views[v].features.desc[recon.obs_feature[obs[here]]]

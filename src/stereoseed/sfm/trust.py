@@ -149,10 +149,8 @@ def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
     {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
     cfg = cfg.resolve()
     contradicted = contradicted_cameras(recon, cfg)
-    unflagged = {v for v in recon.registered_views if v not in CALIBRATED and not recon.views[v].registration_flag
-                 and v not in contradicted}
     if cfg.trust.judge_between_neighbours:
-        contradicted.update(contradicted_by_neighbours(recon, cfg, unflagged, doubted=set(contradicted)))
+        contradicted.update(contradicted_by_neighbours(recon, cfg, doubted=set(contradicted)))
     uncertainties = camera_uncertainties(recon, cfg)
     reasons = {}
     for v in recon.registered_views:
