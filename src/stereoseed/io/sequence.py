@@ -51,10 +51,9 @@ class ImageSequence(Sequence):
         self.reads = 0  # images decoded so far (how well the cache serves the run)
         self._expected: tuple[int, int] | None = None  # (width, height) of the images from _checked_from on
         self._checked_from = len(self._entries)
-        self._withheld: dict[int, tuple[int, int] | None] = {}  # index -> its header's size if withheld
+        self._headers: dict[int, tuple[int, int] | None] = {}  # index -> the size its file's header gives, read once
         self._skip_from = len(self._entries)  # images from here on that cannot be decoded are skipped
         self._unreadable: dict[int, str] = {}  # index -> why it cannot be decoded
-        self._unreadable_sizes: dict[int, tuple[int, int]] = {}  # index -> its blank's size, its header read once
 
     def withhold_other_sizes(self, size: tuple[int, int], first: int = 0) -> None:
         """From image ``first`` on, an image file whose header gives another size than ``size``
@@ -64,8 +63,6 @@ class ImageSequence(Sequence):
         read here (:func:`header_size`) are decoded as usual."""
         self._expected = (int(size[0]), int(size[1]))
         self._checked_from = first
-        self._withheld.clear()
-        self._unreadable_sizes.clear()  # their fallback is the expected size
 
     def skip_unreadable(self, first: int = 0) -> None:
         """From image ``first`` on, an image file that cannot be decoded (damaged, truncated, not
@@ -96,15 +93,16 @@ class ImageSequence(Sequence):
     def _withheld_size(self, i: int) -> tuple[int, int] | None:
         if self._expected is None or i < self._checked_from or isinstance(self._entries[i], np.ndarray):
             return None
-        if i not in self._withheld:
-            size = header_size(self._entries[i])
-            self._withheld[i] = None if size is None or self._expected in (size, size[::-1]) else size
-        return self._withheld[i]
+        size = self._header(i)
+        return None if size is None or self._expected in (size, size[::-1]) else size
 
     def _unreadable_size(self, i: int) -> tuple[int, int]:
-        if i not in self._unreadable_sizes:
-            self._unreadable_sizes[i] = header_size(self._entries[i]) or self._expected or (0, 0)
-        return self._unreadable_sizes[i]
+        return self._header(i) or self._expected or (0, 0)
+
+    def _header(self, i: int) -> tuple[int, int] | None:
+        if i not in self._headers:
+            self._headers[i] = header_size(self._entries[i])
+        return self._headers[i]
 
     def __len__(self) -> int:
         return len(self._entries)
