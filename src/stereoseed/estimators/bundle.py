@@ -411,7 +411,7 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
                                             nC, nP, len(both_idx_all))
 
         Wt = np.swapaxes(Wb, 1, 2).copy()  # rows of W^T: contiguous for the reduced system's kernel
-        def trial(lam: float, U=U, gc=gc, V=V, gp=gp, Wb=Wb, Wt=Wt) -> tuple[tuple, float]:
+        def trial(lam: float) -> tuple[tuple, float]:  # called at once by damped_step, in this iteration
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, Wb, lam, both_point, both_camera)
             if nC:
                 S2 = damped_camera_system(pair_order, point_starts, both_camera, Wt, Y, U, lam, thread_rows)

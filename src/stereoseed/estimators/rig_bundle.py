@@ -310,7 +310,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
         W = np.ascontiguousarray(_gram(w[w_obs], J_virt[both], J_pt[w_obs]))  # (rows, 6, 3)
         U_cross = _sum_blocks(obs_cam[cross], _gram(w[cross], J_st[cross], J_rig[cross]), n_cams)
         Wt = np.swapaxes(W, 1, 2).copy()
-        def trial(lam: float, U=U, gc=gc, V=V, gp=gp, W=W, Wt=Wt, U_cross=U_cross) -> tuple[tuple | None, float]:
+        def trial(lam: float) -> tuple[tuple | None, float]:  # called at once by damped_step, in this iteration
             Vinv, Y, rhs = _eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
             if n_cams:
                 S = damped_camera_system(pair_order, starts, w_cam, Wt, Y, U, lam, rows)

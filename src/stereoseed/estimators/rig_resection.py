@@ -260,7 +260,7 @@ def _refine(rig: Rig, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray
         H = np.einsum("nai,n,naj->ij", J, w, J)
         g = np.einsum("nai,n,na->i", J, w, r)
 
-        def trial(lam: float, H=H, g=g) -> tuple[tuple, float]:
+        def trial(lam: float) -> tuple[tuple, float]:  # called at once by damped_step, in this iteration
             step = np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), -g)
             R_new = rotation_from_vector(step[:3]) @ R
             t_new = t + step[3:]
