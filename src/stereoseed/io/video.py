@@ -84,16 +84,15 @@ class _Tracker:
         return float(np.median(motion)), float(self.alive.mean())
 
 
-def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None,
-                   first: bool = False, name_prefix: str = "") -> list[Keyframe]:
+def read_keyframes(path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None
+                   ) -> list[Keyframe]:
     """The keyframes of the video at ``path``, in order (see the module's docstring). With
     ``save_to`` (a folder), each is written there as a PNG when chosen and only its file is
-    kept: a long walk's keyframes never sit in memory together. ``first``: the first frame is a
-    keyframe too (a rig's first station); ``name_prefix``: put before each keyframe's name.
+    kept: a long walk's keyframes never sit in memory together.
 
     Raises :class:`StereoseedError` when the video cannot be opened or decoded, or gives no
     keyframe (the camera did not move)."""
-    return _read(Path(path), lambda p, said: _keyframes(p, cfg, save_to, said, first, name_prefix))
+    return _read(Path(path), lambda p, said: _keyframes(p, cfg, save_to, said))
 
 
 def read_rig_keyframes(left: str | Path, right: str | Path, cfg: VideoConfig = VideoConfig(),
@@ -111,7 +110,8 @@ def read_rig_keyframes(left: str | Path, right: str | Path, cfg: VideoConfig = V
                               f"together (frame k of each at the same moment): trim them to the same start and length")
     # alike names would be one file on a case-insensitive file system (Walk.mp4, walk.mp4)
     prefixes = ("left_", "right_") if left.stem.casefold() == right.stem.casefold() else ("", "")
-    lefts = read_keyframes(left, cfg, save_to, first=True, name_prefix=prefixes[0])
+    # the first frame is a keyframe too: the calibrated first station
+    lefts = _read(left, lambda p, said: _keyframes(p, cfg, save_to, said, True, prefixes[0]))
     indices = [k.index for k in lefts]
     rights = _read(right, lambda p, said: _frames_at(p, indices, save_to, said, prefixes[1]))
     return lefts, rights
@@ -121,9 +121,14 @@ def _announced(path: Path) -> int:
     """The frames the container of ``path`` announces (0: unknown, or it cannot be opened)."""
     capture = _Quiet(path, [])
     try:
-        return max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)) if capture.isOpened() else 0
+        return _frame_count(capture) if capture.isOpened() else 0
     finally:
         capture.release()
+
+
+def _frame_count(capture) -> int:
+    """The frames an open capture's container announces (0: unknown)."""
+    return max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
 
 
 def _read(path: Path, read) -> list[Keyframe]:
@@ -219,7 +224,7 @@ def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: l
     unknown)); what the decoder said is added to ``said``."""
     capture = _opened(path, said)
     keyframes: list[Keyframe] = []
-    announced = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
+    announced = _frame_count(capture)
     try:
         ok, frame = capture.read()
         if not ok:
