@@ -88,3 +88,17 @@ def assert_same_state(a, b):
         assert va[4:] == vb[4:]
 
 
+
+
+def walked(n_views, upto=None, cfg=None, **ring_kw):
+    """A ring of ``n_views`` (:func:`ring`, ``ring_kw`` its options), the pair initialised and
+    views 2 to ``upto`` (default: all) inserted, each registered: (recon, names, Ps, source)."""
+    from stereoseed.config import Config
+    from stereoseed.sfm.mapper import initialise, insert_view
+
+    cfg = cfg or Config()
+    images, names, Ps, source = ring(n_views, **ring_kw)
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    for k in range(2, (n_views - 1 if upto is None else upto) + 1):
+        assert insert_view(recon, k, cfg, source)["status"] == "registered"
+    return recon, names, Ps, source

@@ -4,24 +4,16 @@ import numpy as np
 import pytest
 
 from geometry_helpers import ring_camera
-from ring_helpers import ring
+from ring_helpers import walked
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
-from stereoseed.sfm.mapper import finish, initialise, insert_view
+from stereoseed.sfm.mapper import finish
 from stereoseed.sfm.registration.base import _rivals, ambiguity_flag
 from stereoseed.sfm.trust import assess
 
 
-def _ring_run(n=8, cfg=Config()):
-    images, names, Ps, source = ring(n)
-    recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    for k in range(2, n):
-        assert insert_view(recon, k, cfg, source)["status"] == "registered"
-    return recon, Ps, source
-
-
 def test_every_camera_gets_an_uncertainty_that_covers_its_error():
-    recon, Ps, source = _ring_run()
+    recon, _, Ps, source = walked(8)
     final = finish(recon, Config(), source)
     cams = final["trust"]["cameras"]
     assert final["trust"]["flagged"] == {} and all(c["reliable"] for c in cams.values())
@@ -38,7 +30,7 @@ def test_every_camera_gets_an_uncertainty_that_covers_its_error():
 
 
 def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
-    recon, Ps, source = _ring_run()
+    recon, _, Ps, source = walked(8)
     finish(recon, Config(), source)
     bad = 5
     # as if placed one period over: 3 cm along the ring, after the final BA
@@ -52,7 +44,7 @@ def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
     assert seen_before > 0 and not np.any(recon.obs_view == bad)  # no point rests on it any more
     assert all(recon.views[k].reliable for k in recon.registered_views if k != bad)
     # keep_flagged keeps its observations
-    recon2, _, source2 = _ring_run()
+    recon2, _, _, source2 = walked(8)
     finish(recon2, Config(), source2)
     recon2.views[bad].P = K @ np.hstack([R, t[:, None]])
     keep = Config().replace(trust={"keep_flagged": True})
@@ -63,7 +55,7 @@ def test_a_camera_the_others_contradict_is_flagged_and_leaves_the_model():
 def _weakly_tied_run(view: int, keep: int):
     """A finished ring run whose ``view`` keeps only ``keep`` observations of points two other
     cameras see (its other observations are of points only one other camera sees)."""
-    recon, Ps, source = _ring_run()
+    recon, _, Ps, source = walked(8)
     finish(recon, Config(), source)
     observers = np.bincount(recon.obs_point, minlength=len(recon.points))
     mine = np.flatnonzero(recon.obs_view == view)
@@ -75,17 +67,16 @@ def _weakly_tied_run(view: int, keep: int):
 
 def test_a_camera_too_few_points_tie_to_the_others_is_flagged_weak():
     recon = _weakly_tied_run(7, 20)
+    # the limit is the config's (flagging nothing, it leaves the model as it is)
+    assert assess(recon, Config().replace(trust={"min_tied_observations": 20}))["flagged"] == {}
     out = assess(recon, Config())
     name = recon.views[7].name
     assert list(out["flagged"]) == [name] and out["flagged"][name].startswith("weak: only 20 of its observations")
     assert "fewer than 24" in out["flagged"][name]  # the chain the motion prior trusts: 2 x 12 inliers
-    # the limit is the config's
-    recon = _weakly_tied_run(7, 20)
-    assert assess(recon, Config().replace(trust={"min_tied_observations": 20}))["flagged"] == {}
 
 
 def test_ties_through_a_flagged_camera_hold_nothing():
-    recon, Ps, source = _ring_run()
+    recon, _, Ps, source = walked(8)
     finish(recon, Config(), source)
     # view 7 keeps 30 points, each seen by views 5, 6 and 7 alone, and nothing else tied
     def seen(view):
@@ -104,7 +95,7 @@ def test_ties_through_a_flagged_camera_hold_nothing():
 
 
 def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
-    recon, Ps, source = _ring_run(5)
+    recon, _, Ps, source = walked(5)
     recent = np.flatnonzero(recon.alive)
     cfg = Config().resolve()
     near = Ps[4]
@@ -197,11 +188,8 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
     # A camera its own two-view geometry placed (the epipolar chain) is not judged again
     from stereoseed.sfm.hindsight import contradicted_by_neighbours
 
-    images, names, Ps, source = ring(7)
     cfg = Config()
-    recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    for k in range(2, 7):
-        insert_view(recon, k, cfg, source)
+    recon, _, _, source = walked(7, cfg=cfg)
     finish(recon, cfg, source)
     recon.views[4].found_by = placed_by
     assert contradicted_by_neighbours(recon, cfg) == {}  # sound cameras: nothing to say

@@ -3,7 +3,7 @@ way COLMAP tests its incremental mapper: initialise, insert, finish; a failed in
 import numpy as np
 import pytest
 
-from ring_helpers import ring, state, assert_same_state
+from ring_helpers import ring, state, assert_same_state, walked
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.sfm.mapper import finish, initialise, insert_view
 
@@ -97,14 +97,6 @@ def _cannot_follow(monkeypatch, k, after):
     monkeypatch.setattr(mapper, "_registered", refusing)
 
 
-def _walked_to(k, cfg):
-    images, names, Ps, source = ring(7)
-    recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    for i in range(2, k + 1):
-        assert insert_view(recon, i, cfg, source)["status"] == "registered"
-    return recon, names, Ps, source
-
-
 def _flagged_when_placed(monkeypatch, k):
     """View k's registration says it is ambiguous (as a choice between copies of a pattern)."""
     import dataclasses
@@ -127,7 +119,7 @@ def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged
     from stereoseed.geometry.projection import camera_center
 
     cfg = Config()
-    recon, names, Ps, source = _walked_to(4, cfg)
+    recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     if flagged:
         recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
     _cannot_follow(monkeypatch, 5, after=(4,))
@@ -146,7 +138,7 @@ def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged
 
 def test_a_flagged_view_stays_when_the_next_fails_without_it_too(monkeypatch):
     cfg = Config()
-    recon, names, Ps, source = _walked_to(4, cfg)
+    recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
     _cannot_follow(monkeypatch, 5, after=(3, 4))
     before = state(recon)
@@ -162,15 +154,7 @@ def test_the_report_of_a_withdrawn_view_says_it_failed(monkeypatch):
     from stereoseed.sfm.registration.base import FailureKind
 
     images, names, Ps, source = ring(7)
-    real_insert = pipeline.insert_view
-
-    def flagging_insert(recon, k, cfg, src):
-        rep = real_insert(recon, k, cfg, src)
-        if k == 4:
-            recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
-        return rep
-
-    monkeypatch.setattr(pipeline, "insert_view", flagging_insert)
+    _flagged_when_placed(monkeypatch, 4)
     _cannot_follow(monkeypatch, 5, after=(4,))
     recon, report = pipeline.reconstruct(images, names, Ps[:2], Config(), source=source)
     entry = report["per_image"][4]
@@ -183,7 +167,7 @@ def test_a_withdrawal_puts_back_the_model_from_before_the_flagged_view(monkeypat
     # the flagged view's points, the adjustments and the outlier removals of its insertion go
     # with it: every point left from then on was made by the next image's insertion
     cfg = Config()
-    recon, names, Ps, source = _walked_to(4, cfg)
+    recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     n_before = len(recon.points)
     _flagged_when_placed(monkeypatch, 5)
     assert insert_view(recon, 5, cfg, source)["status"] == "registered" and recon.views[5].registration_flag
@@ -201,7 +185,7 @@ def test_an_error_after_a_withdrawal_puts_the_flagged_view_back(monkeypatch):
     import stereoseed.sfm.mapper as mapper
 
     cfg = Config()
-    recon, names, Ps, source = _walked_to(4, cfg)
+    recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
     _cannot_follow(monkeypatch, 5, after=(4,))
     before, status = state(recon), recon.views[4].status
@@ -214,5 +198,5 @@ def test_an_error_after_a_withdrawal_puts_the_flagged_view_back(monkeypatch):
 
 def test_the_view_knows_what_placed_it():
     cfg = Config()
-    recon, names, Ps, source = _walked_to(3, cfg)
+    recon, names, Ps, source = walked(7, upto=3, cfg=cfg)
     assert [recon.views[k].found_by for k in (2, 3)] == ["epipolar chain", "epipolar chain"]
