@@ -33,10 +33,6 @@ STAGES = ("features", "matching", "resection", "triangulation", "bundle")
 BIN = Path(sys.executable).parent
 
 
-def _data_dir() -> Path:
-    return shared_data_dir()  # $STEREOSEED_DATA, else ../shared/data
-
-
 # Runs a command and reports its wall seconds and peak RSS on stderr's last line. The command is
 # the child of this small process, not of the benchmark: a child's peak RSS (ru_maxrss) counts
 # the memory its parent had when it forked (Linux records the old address space's high-water
@@ -83,7 +79,7 @@ def _synthetic(folder: Path, config: SceneConfig) -> dict:
 
 
 def _temple(folder: Path) -> dict | None:
-    seq = _data_dir() / "templeSparseRing"
+    seq = shared_data_dir() / "templeSparseRing"
     if not seq.is_dir():
         return None
     names = [n.strip() for n in (seq / "ring_order.txt").read_text().splitlines() if n.strip()]
@@ -220,7 +216,7 @@ def run(only: tuple[str, ...] = ("box14", "temple", "ring36", "dense")) -> dict:
         if "temple" in only:
             temple = _temple(root / "temple")
             results["temple"] = (sequence("temple", temple, root / "temple_work") if temple
-                                 else {"skipped": f"{_data_dir() / 'templeSparseRing'} not found"})
+                                 else {"skipped": f"{shared_data_dir() / 'templeSparseRing'} not found"})
         if "ring36" in only:
             ring = _synthetic(root / "ring36", SceneConfig(n_images=36, step_deg=10.0, seed=1))
             results["ring36"] = sequence("ring36", ring, root / "ring36_work")

@@ -10,28 +10,27 @@ from __future__ import annotations
 import json
 import sys
 
-from bench_real import Walk, run_walk
+from bench_real import SETS, run_walk
 
-_CASTLE = ("strechaCastleP19", "strechaCastleP19_par.txt")
-_FOUNTAIN = ("strechaFountainP11", "strechaFountainP11_par.txt")
-_DINO = ("dinoRing1-24", "dinoRing1-24_par.txt")
+_CASTLE, _FOUNTAIN = SETS["strechaCastleP19"], SETS["strechaFountainP11"]
+_DINO, _TEMPLE, _DINO_SPARSE = SETS["dinoRing1-24/2"], SETS["templeSparseRing"], SETS["dinoSparseRing"]
 
 WALKS = {
-    "strechaCastleP19 backwards": Walk(*_CASTLE, reverse=True),
-    "strechaCastleP19 every 2nd from 0001": Walk(*_CASTLE, step=2, start=1),
-    "strechaCastleP19 from 0010": Walk(*_CASTLE, start=10),
-    "strechaCastleP19 backwards from 0014": Walk(*_CASTLE, start=4, reverse=True),
-    "strechaFountainP11 backwards": Walk(*_FOUNTAIN, reverse=True),
-    "strechaFountainP11 every 2nd": Walk(*_FOUNTAIN, step=2),
-    "dinoRing1-24 every 2nd from 0002": Walk(*_DINO, step=2, start=1),
-    "dinoRing1-24 every 3rd from 0002": Walk(*_DINO, step=3, start=1),
-    "dinoRing1-24 every 3rd from 0003": Walk(*_DINO, step=3, start=2),
-    "dinoRing1-24 every 4th from 0001": Walk(*_DINO, step=4),
-    "dinoRing1-24 every 4th from 0002": Walk(*_DINO, step=4, start=1),
-    "dinoRing1-24 every 4th from 0003": Walk(*_DINO, step=4, start=2),
-    "templeSparseRing backwards": Walk("templeSparseRing", "templeSR_par.txt", reverse=True),
-    "dinoSparseRing backwards": Walk("dinoSparseRing", "dinoSR_par.txt", reverse=True),
-    "dinoSparseRing backwards from its 13th": Walk("dinoSparseRing", "dinoSR_par.txt", start=3, reverse=True),
+    "strechaCastleP19 backwards": _CASTLE._replace(reverse=True),
+    "strechaCastleP19 every 2nd from 0001": _CASTLE._replace(step=2, start=1),
+    "strechaCastleP19 from 0010": _CASTLE._replace(start=10),
+    "strechaCastleP19 backwards from 0014": _CASTLE._replace(start=4, reverse=True),
+    "strechaFountainP11 backwards": _FOUNTAIN._replace(reverse=True),
+    "strechaFountainP11 every 2nd": _FOUNTAIN._replace(step=2),
+    "dinoRing1-24 every 2nd from 0002": _DINO._replace(step=2, start=1),
+    "dinoRing1-24 every 3rd from 0002": _DINO._replace(step=3, start=1),
+    "dinoRing1-24 every 3rd from 0003": _DINO._replace(step=3, start=2),
+    "dinoRing1-24 every 4th from 0001": _DINO._replace(step=4),
+    "dinoRing1-24 every 4th from 0002": _DINO._replace(step=4, start=1),
+    "dinoRing1-24 every 4th from 0003": _DINO._replace(step=4, start=2),
+    "templeSparseRing backwards": _TEMPLE._replace(reverse=True),
+    "dinoSparseRing backwards": _DINO_SPARSE._replace(reverse=True),
+    "dinoSparseRing backwards from its 13th": _DINO_SPARSE._replace(start=3, reverse=True),
 }
 
 

@@ -12,9 +12,13 @@ def scene_on_disk(scene: SyntheticScene, folder: Path, images: Path | None = Non
     ``folder``) and ``folder``/calib.json holding its true pair. Returns (write_scene's paths,
     the calib.json path)."""
     paths = write_scene(scene, folder if images is None else images)
-    calib = Path(folder) / "calib.json"
-    write_json(calib, {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
-    return paths, calib
+    return paths, write_calib(Path(folder) / "calib.json", scene.P[:2])
+
+
+def write_calib(path: Path, Ps) -> Path:
+    """A calib.json at ``path`` holding the cameras Ps (each (3, 4)), the pair first."""
+    write_json(path, {"cameras": [{"P": P.tolist()} for P in Ps]})
+    return path
 
 
 def write_video(path: Path, images: list) -> Path:

@@ -11,8 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_real  # noqa: E402
 
 
-def _run(name, walk=None):
-    walk = walk or bench_real.SETS[name]
+def _run(walk):
     if not (shared_data_dir() / walk.folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
         pytest.skip(f"../shared/data/{walk.folder} not found; set STEREOSEED_DATA to the folder holding it")
     return bench_real.run_walk(walk)
@@ -20,7 +19,7 @@ def _run(name, walk=None):
 
 def test_castle_cameras_a_window_period_off_are_flagged():
     # the courtyard's repeated windows: 0008 and 0016 matched one period over, metres off
-    r = _run("strechaCastleP19")
+    r = _run(bench_real.SETS["strechaCastleP19"])
     assert r["registered"] == 19
     flagged = {e["image"]: e for e in r["per_image"] if "flag" in e}
     assert {"0008.jpg", "0016.jpg"} <= set(flagged), flagged
@@ -33,7 +32,7 @@ def test_castle_cameras_a_window_period_off_are_flagged():
 
 
 def test_fountain_is_placed_to_a_tenth_of_a_percent():
-    r = _run("strechaFountainP11")
+    r = _run(bench_real.SETS["strechaFountainP11"])
     assert r["registered"] == 11 and r["unflagged"]["count"] == 9
     assert r["unflagged"]["median_pct"] < 0.1 and r["unflagged"]["worst_pct"] < 0.15
 
@@ -41,10 +40,10 @@ def test_fountain_is_placed_to_a_tenth_of_a_percent():
 def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
     # dinoRing1-24 every 2nd view (the lens never zoomed): a 1 % zoom taken on the first insertion
     # drifted the walk by 37 mm; zooms of 4-24 % that the view measures to 1-2 % are not taken
-    r = _run("dinoRing1-24/2")
+    r = _run(bench_real.SETS["dinoRing1-24/2"])
     assert r["registered"] == 12 and r["unflagged"]["count"] >= 8
     assert r["unflagged"]["median"] < 0.002 and r["unflagged"]["worst"] < 0.005
-    third = _run("dinoRing1-24/3")
+    third = _run(bench_real.SETS["dinoRing1-24/3"])
     # every 3rd view: 0022, registered on quasi-dense matches 8 mm off, keeps 22 observations of
     # points two other cameras see and is flagged weak
     assert third["unflagged"]["count"] >= 4 and third["unflagged"]["median"] < 0.002
@@ -52,7 +51,7 @@ def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
 
 
 def test_dino_sparse_ring_and_temple_keep_their_millimetre(temple_run):
-    dino = _run("dinoSparseRing")
+    dino = _run(bench_real.SETS["dinoSparseRing"])
     assert dino["unflagged"]["count"] >= 12 and dino["unflagged"]["worst"] < 0.005
     recon, report, truth = temple_run  # the session's temple walk: the set's own run, as bench_real does it
     temple = bench_real.set_figures(recon, report, {v.name: P for v, P in zip(recon.views, truth)})
@@ -66,7 +65,7 @@ def test_the_castle_walked_backwards_goes_on_past_a_wrong_copy_of_its_windows():
     # its 43 pairs, a camera 4.7 m off: a chain split so is not trusted without the motion prior
     import bench_walks
 
-    r = _run(None, bench_walks.WALKS["strechaCastleP19 backwards"])
+    r = _run(bench_walks.WALKS["strechaCastleP19 backwards"])
     entry = {e["image"]: e for e in r["per_image"]}
     assert entry["0015.jpg"]["status"] == "failed" and "withdrawn" in entry["0015.jpg"]["reason"]
     assert r["placed"]["count"] >= 15
@@ -80,7 +79,7 @@ def test_a_camera_its_neighbours_place_elsewhere_is_flagged():
     # and 0017, the true one, 275
     import bench_walks
 
-    r = _run(None, bench_walks.WALKS["strechaCastleP19 from 0010"])
+    r = _run(bench_walks.WALKS["strechaCastleP19 from 0010"])
     entry = {e["image"]: e for e in r["per_image"]}
     assert entry["0016.jpg"].get("flag", "").startswith("contradicted by the other cameras: a camera")
     assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
