@@ -84,7 +84,8 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
     """A reconstructed set's figures (:func:`run_set`'s): ``truth`` the published cameras by
     image name; ``seconds`` the reconstruction's time, when it was timed."""
     names = [v.name for v in recon.views]
-    pts, _ = recon.live_points()
+    # the points the first camera sees: a walk that turns leaves others behind it (negative depths)
+    pts = recon.points[recon.points_seen_by(0)]
     distance = float(np.median(depths(truth[names[0]], pts))) if len(pts) else float("nan")
     per_image, placed, trusted = [], [], []
     for v, r in zip(recon.views, report["per_image"]):
