@@ -92,6 +92,8 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
         entry = {"image": v.name, "status": r.get("status")}
         if r.get("registered_by"):
             entry["registered_by"] = str(r["registered_by"])
+        if r.get("first_registration"):  # registered again between its neighbours: what placed it first
+            entry["first_registration"] = {key: str(value) for key, value in r["first_registration"].items()}
         if r.get("status") == "failed":
             entry["reason"] = r.get("reason")
         reliable = getattr(v, "reliable", True)

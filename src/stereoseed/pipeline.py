@@ -31,7 +31,7 @@ from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_m
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.registration.base import FailureKind
+from stereoseed.sfm.registration.base import FailureKind, FoundBy
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.report.html import write_report_html
@@ -230,12 +230,23 @@ def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str], withd
             r.update(status="failed", reason=reasons[r["image"]])
 
 
+def _mark_registered_again(per_image: list[dict[str, Any]], found: dict[str, str]) -> None:
+    """The reports of the images named in ``found`` ({name: what was found}), registered again
+    between their neighbours by the finishing step, say so; what placed them first (and its
+    flag) moves under "first_registration"."""
+    for r in per_image:
+        if r.get("image") in found:
+            first = {key: r.pop(key) for key in ("registered_by", "flag") if key in r}
+            r.update(registered_by=FoundBy.HINDSIGHT, registered_again=found[r["image"]], first_registration=first)
+
+
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
               source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """The finishing step (:func:`stereoseed.sfm.mapper.finish`) on ``recon`` after the views of
     ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
     not keep is reported as failed, with the reason)."""
     final = finish(recon, cfg, source)
+    _mark_registered_again(per_image, final.get("registered_again", {}))
     _mark_failed(per_image, final.get("dropped", {}))
     pc = cfg.pipeline
     return {

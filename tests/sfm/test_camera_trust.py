@@ -201,3 +201,61 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
         return
     assert list(found) == [4] and found[4].startswith("contradicted by the other cameras: a camera")
     assert "found between v3.png and v5.png" in found[4]
+
+
+@pytest.mark.parametrize("flagged", [False, True])
+def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagged):
+    # view 4 moved 10 cm along the ring as above: the rival its neighbours find takes its place,
+    # the view keeps only the neighbours' points that rival explains, and the model is adjusted
+    # again. A camera flagged at its registration (chosen on a margin) is tried too, and
+    # registered again it carries the first flag no more
+    from stereoseed.sfm.hindsight import register_again
+    from stereoseed.sfm.registration.base import FoundBy
+
+    cfg = Config()
+    recon, _, Ps, source = walked(7, cfg=cfg)
+    finish(recon, cfg, source)
+    assert register_again(recon, cfg) == ({}, {})  # sound cameras: nothing to do, nothing to say
+    view = recon.views[4]
+    view.found_by = FoundBy.MOTION_PRIOR
+    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    if flagged:
+        view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
+    assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) > 0.09
+    seen = set(recon.obs_point[recon.obs_view == 4])
+    again, contradicted = register_again(recon, cfg)
+    assert list(again) == [4] and "found between v3.png and v5.png" in again[4]
+    assert contradicted is None  # the model moved: the final judgement looks at it afresh
+    assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) < 0.002
+    assert view.found_by == FoundBy.HINDSIGHT and view.registration_flag is None
+    # its observations now: points of its neighbours (its own beside one neighbour went with the wrong camera)
+    now = recon.obs_point[recon.obs_view == 4]
+    assert len(now) >= cfg.resection.min_inliers and np.all(np.isin(now, recon.obs_point[np.isin(recon.obs_view, [3, 5])]))
+    assert not seen <= set(now)
+    out = assess(recon, cfg)
+    assert out["flagged"] == {}
+
+
+def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
+    # the same wrong camera, but the rival keeps fewer of the neighbours' points than a
+    # resection needs: the model is put back as it was, and the camera is only contradicted
+    from stereoseed.sfm import hindsight
+    from stereoseed.sfm.hindsight import register_again
+    from stereoseed.sfm.registration.base import FoundBy
+
+    explaining = hindsight.explaining_matches
+    monkeypatch.setattr(hindsight, "explaining_matches", lambda *a: tuple(x[:5] for x in explaining(*a)))
+
+    cfg = Config()
+    recon, _, _, source = walked(7, cfg=cfg)
+    finish(recon, cfg, source)
+    view = recon.views[4]
+    view.found_by = FoundBy.MOTION_PRIOR
+    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    before = recon.checkpoint()
+    again, contradicted = register_again(recon, cfg)
+    assert again == {} and list(contradicted) == [4] and contradicted[4].startswith("contradicted by the other cameras")
+    after = recon.checkpoint()
+    assert np.array_equal(after.points, before.points) and all(
+        np.array_equal(a, b) for a, b in zip(after.observations, before.observations))
+    assert np.array_equal(view.P, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3])

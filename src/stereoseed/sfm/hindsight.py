@@ -12,10 +12,18 @@ castle walked from its 11th image, 0016 was placed 3.7 m off on the wrong copy o
 (it explains 150 of its neighbours' points; a camera 3.7 m away, the true one, 275). Rivals
 that explain nearly as much are no evidence here: a good camera has them too (2-5 % of the
 depth away, on the castle and the dino).
+
+Such a rival is then tried in the camera's place (:func:`register_again`): the camera's
+observations go, the neighbours' points the rival explains become its observations, and the
+camera refined on them stands when it fits them as a resection's must; else the camera is flagged.
+The cameras flagged at their registration are tried too (the castle's 0008 and 0016, chosen on a
+margin between copies of the windows): the neighbours on both sides are evidence their
+registration did not have.
 """
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -23,12 +31,13 @@ from scipy.spatial.transform import Rotation, Slerp
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.motion_prior import described_points, explained_points, hypotheses_near
+from stereoseed.sfm.modes import mode_of
+from stereoseed.sfm.motion_prior import described_points, explained_points, explaining_matches, hypotheses_near
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.refinement import CALIBRATED
+from stereoseed.sfm.refinement import CALIBRATED, adjust, global_adjust
 from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector
 
-__all__ = ["contradicted_by_neighbours", "between"]
+__all__ = ["contradicted_by_neighbours", "register_again", "between", "Rival"]
 
 log = logging.getLogger(__name__)
 
@@ -46,54 +55,146 @@ def between(P_a: np.ndarray, P_b: np.ndarray, K: np.ndarray, t: float) -> np.nda
     return K @ np.hstack([R, -(R @ C)[:, None]])
 
 
-def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, str]:
-    """{view: reason} of the registered views after the pair, not flagged at their registration
-    nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
-    module's rule). The neighbours: the nearest such views on either side (a wrong neighbour
-    would predict wrong). A camera the epipolar chain placed is not judged again: its
-    own two-view geometry placed it, where the others were predicted (a split chain competes
-    with the motion prior at registration). Not on a rig walk (a station's two images are one
-    body; their neighbours are each other)."""
-    cfg = cfg.resolve()
+@dataclass(frozen=True)
+class Rival:
+    """A camera for view ``view`` found between its neighbours ``a`` and ``b`` that explains
+    ``explains`` of their points (``points`` (K,) ids, described by ``desc`` (K, D)), clearly more
+    than the ``kept`` the run's camera explains; P (3, 4) stands ``distance`` from the run's
+    camera, whose median depth is ``depth``."""
+
+    view: int
+    a: int
+    b: int
+    P: np.ndarray
+    explains: int
+    kept: int
+    distance: float
+    depth: float
+    points: np.ndarray
+    desc: np.ndarray
+
+    def where(self, recon: Reconstruction) -> str:
+        return (f"a camera {self.distance:.3g} away ({100 * self.distance / self.depth:.1f} % of the scene's depth), "
+                f"found between {recon.views[self.a].name} and {recon.views[self.b].name}, explains {self.explains} "
+                f"of their points, this one {self.kept}")
+
+
+def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival | None:
+    """The rival of view k's camera between views a < k < b (the module's rule), or None."""
     mp, tc = cfg.motion_prior, cfg.trust
-    if recon.rig is not None:
-        return {}
-    sound = [v for v in recon.registered_views if not recon.views[v].registration_flag and v not in doubted]
-    out = {}
-    for k in (v for v in sound if v not in CALIBRATED):
+    view = recon.views[k]
+    # their points, each described by its patch at its first observation in a or b
+    pids, desc = described_points(recon, np.flatnonzero(np.isin(recon.obs_view, [a, b])
+                                                         & recon.alive[recon.obs_point]), a)
+    if len(pids) < cfg.resection.min_points:
+        return None
+    # the resection reads only the image's size: no pixels read again
+    size_only = np.broadcast_to(np.zeros((), np.uint8), view.image_size[::-1])
+    cand = Candidate(k, view.name, size_only, view.features, view.rotated_180)
+    resect = Resector(recon, a, cand, cfg)
+    cameras = [view.P]
+    for hypotheses in hypotheses_near(recon, between(recon.views[a].P, recon.views[b].P, view.K, (k - a) / (b - a)),
+                                      view.features, cfg, (pids, desc)):
+        for hyp in hypotheses:
+            if len(hyp) >= cfg.registration.min_chained_points:
+                found = resect(hyp.points3d, hyp.points2d, hyp.scores)
+                if not isinstance(found, str):
+                    cameras.append(found[0].P)
+    counts = explained_points(view.features, cameras, recon.points[pids], desc, mp.explain_px, mp.min_zncc)
+    depth = float(np.median(depths(view.P, recon.points[pids])))
+    centre = camera_center(view.P)
+    rivals = [(int(n), float(np.linalg.norm(camera_center(P) - centre)), i)
+              for i, (n, P) in enumerate(zip(counts[1:], cameras[1:]), start=1)]
+    # clearly more, and at least a resection's worth (a count of 0 against 0 says nothing)
+    rivals = [(n, d, i) for n, d, i in rivals if n >= max(mp.wider_search_margin * counts[0], cfg.resection.min_inliers)
+              and d > tc.ambiguity_shift * depth]
+    if not rivals:
+        return None
+    n, d, i = max(rivals)
+    return Rival(k, a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc)
+
+
+def _judged(recon: Reconstruction, sound: list[int], views: list[int]) -> list[tuple[int, int, int]]:
+    """(k, a, b) for each view k of ``views`` after the pair that is judged again: not placed by
+    the epipolar chain (its own two-view geometry placed it, where the others were predicted; a
+    split chain competes with the motion prior at registration), with ``sound`` neighbours a < k
+    < b, the nearest on either side (a wrong neighbour would predict wrong)."""
+    out = []
+    for k in (v for v in views if v not in CALIBRATED):
         view = recon.views[k]
         a = max((v for v in sound if v < k), default=None)
         b = min((v for v in sound if v > k), default=None)
-        if (a is None or b is None or view.found_by == FoundBy.EPIPOLAR_CHAIN or view.features is None
+        if not (a is None or b is None or view.found_by == FoundBy.EPIPOLAR_CHAIN or view.features is None
                 or view.image_size is None):
-            continue
-        # their points, each described by its patch at its first observation in a or b
-        pids, desc = described_points(recon, np.flatnonzero(np.isin(recon.obs_view, [a, b])
-                                                             & recon.alive[recon.obs_point]), a)
-        if len(pids) < cfg.resection.min_points:
-            continue
-        # the resection reads only the image's size: no pixels read again
-        size_only = np.broadcast_to(np.zeros((), np.uint8), view.image_size[::-1])
-        cand = Candidate(k, view.name, size_only, view.features, view.rotated_180)
-        resect = Resector(recon, a, cand, cfg)
-        cameras = [view.P]
-        for hypotheses in hypotheses_near(recon, between(recon.views[a].P, recon.views[b].P, view.K, (k - a) / (b - a)),
-                                          view.features, cfg, (pids, desc)):
-            for hyp in hypotheses:
-                if len(hyp) >= cfg.registration.min_chained_points:
-                    found = resect(hyp.points3d, hyp.points2d, hyp.scores)
-                    if not isinstance(found, str):
-                        cameras.append(found[0].P)
-        counts = explained_points(view.features, cameras, recon.points[pids], desc, mp.explain_px, mp.min_zncc)
-        depth = float(np.median(depths(view.P, recon.points[pids])))
-        centre = camera_center(view.P)
-        rivals = [(int(n), float(np.linalg.norm(camera_center(P) - centre))) for n, P in zip(counts[1:], cameras[1:])]
-        # clearly more, and at least a resection's worth (a count of 0 against 0 says nothing)
-        rivals = [(n, d) for n, d in rivals if n >= max(mp.wider_search_margin * counts[0], cfg.resection.min_inliers)
-                  and d > tc.ambiguity_shift * depth]
-        if rivals:
-            n, d = max(rivals)
-            out[k] = (f"{FlagKind.CONTRADICTED}: a camera {d:.3g} away ({100 * d / depth:.1f} % of the scene's depth), "
-                      f"found between {recon.views[a].name} and {recon.views[b].name}, explains {n} of their points, "
-                      f"this one {int(counts[0])}")
+            out.append((k, a, b))
     return out
+
+
+def _sound(recon: Reconstruction, doubted: set[int]) -> list[int]:
+    return [v for v in recon.registered_views if not recon.views[v].registration_flag and v not in doubted]
+
+
+def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, str]:
+    """{view: reason} of the registered views after the pair, not flagged at their registration
+    nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
+    module's rule; :func:`_judged` says which views). Not on a rig walk (a station's two images
+    are one body; their neighbours are each other)."""
+    cfg = cfg.resolve()
+    if recon.rig is not None:
+        return {}
+    sound = _sound(recon, doubted)
+    out = {}
+    for k, a, b in _judged(recon, sound, sound):
+        rival = _rival(recon, cfg, k, a, b)
+        if rival is not None:
+            out[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
+    return out
+
+
+def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()
+                   ) -> tuple[dict[int, str], dict[int, str] | None]:
+    """Try each rival a view's neighbours find (:func:`_rival`) in that view's place, flagged
+    views included; keep it when, refined on the neighbours' points it explains, at least
+    ``ResectionConfig.min_inliers`` of them reproject within ``ransac_threshold_px`` and their RMS
+    within ``max_rms_px`` (a resection's own tests); the model is globally adjusted once after.
+    Returns ({view: what was found}, {view: reason} of :func:`contradicted_by_neighbours` when
+    nothing was registered again, else None: the model moved, judge it again). Not on a rig."""
+    cfg = cfg.resolve()
+    if recon.rig is not None:
+        return {}, {}
+    mp, rc = cfg.motion_prior, cfg.resection
+    sound = _sound(recon, doubted)
+    adjustment = mode_of(cfg, recon).adjustment_config(recon, cfg)
+    again, contradicted = {}, {}
+    for k, a, b in _judged(recon, sound, recon.registered_views):
+        rival = _rival(recon, cfg, k, a, b)
+        if rival is None:
+            continue
+        if k in sound:
+            contradicted[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
+        state = recon.checkpoint()
+        view = recon.views[k]
+        recon.remove_observations(recon.obs_view == k)
+        recon.remove_lonely_points()  # the points it alone put beside a neighbour's go with it
+        rows, features = explaining_matches(view.features, rival.P, recon.points[rival.points], rival.desc,
+                                            mp.explain_px, mp.min_zncc)
+        live = recon.alive[rival.points[rows]]
+        view.P = rival.P
+        recon.add_observations(k, features[live], rival.points[rows[live]])
+        adjust(recon, adjustment, free_views=[k], free_points=np.zeros(0, np.int64))
+        err = recon.observation_errors(recon.obs_view == k)
+        fits = int(np.sum(err <= rc.ransac_threshold_px))
+        if fits < rc.min_inliers or not np.sqrt(np.mean(err ** 2)) <= rc.max_rms_px:
+            recon.restore(state)
+            log.info("%s: the camera found between its neighbours fits %d of their points, not registered again",
+                     view.name, fits)
+            continue
+        again[k] = (f"{rival.where(recon)}; registered again on {fits} of them "
+                    f"(first: {view.found_by}{', flagged' if view.registration_flag else ''})")
+        view.registration_flag = view.flag_reason = None
+        view.found_by = FoundBy.HINDSIGHT
+        contradicted.pop(k, None)
+        log.warning("%s: registered again between its neighbours: %s", view.name, again[k])
+    if again:
+        global_adjust(recon, adjustment)
+    return again, (None if again else contradicted)

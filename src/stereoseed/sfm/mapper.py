@@ -2,7 +2,7 @@
 
     recon, report = initialise(images, names, P_pair, cfg, source)   # match I1-I2, triangulate
     for k in 2 .. n-1: insert_view(recon, k, cfg, source)           # register, grow, adjust
-    finish(recon, cfg, source)                                      # loop closure, final BA, trust
+    finish(recon, cfg, source)                                      # loop closure, final BA, hindsight, trust
 
 The reconstruction is data; ``source`` (a :class:`~stereoseed.sfm.correspondence.CorrespondenceSource`,
 default :class:`~stereoseed.sfm.correspondence.HarrisZncc`) is where its correspondences come from.
@@ -39,7 +39,8 @@ from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
 from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
                                              consistent_chain)
-from stereoseed.sfm.trust import assess
+from stereoseed.sfm.hindsight import register_again
+from stereoseed.sfm.trust import assess, contradicted_cameras
 from stereoseed.sfm.view_store import view_of_input
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
@@ -413,16 +414,23 @@ def _window_cost(recon: Reconstruction, sel: np.ndarray, cfg: Config) -> float:
 
 def finish(recon: Reconstruction, cfg: Config = Config(), source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """After the last insertion: the mode's finishing step (accurate: loop closure, a final
-    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``), then each camera
-    judged (:func:`stereoseed.sfm.trust.assess`: its uncertainty, a flag where the run cannot
-    vouch for it)."""
+    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``), a camera that its
+    neighbours place clearly better elsewhere registered again there
+    (:func:`stereoseed.sfm.hindsight.register_again`), then each camera judged
+    (:func:`stereoseed.sfm.trust.assess`: its uncertainty, a flag where the run cannot vouch for it)."""
     t = time.perf_counter()
     cfg = cfg.resolve()
     out = mode_of(cfg, recon).finish(recon, cfg, source or HarrisZncc(cfg))
+    between = None
+    if cfg.trust.judge_between_neighbours:
+        again, between = register_again(recon, cfg, doubted=set(contradicted_cameras(recon, cfg)))
+        if again:
+            out["registered_again"] = {recon.views[v].name: found for v, found in again.items()}
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:
         out["dropped"] = dropped
-    out["trust"] = assess(recon, cfg)
+        between = None  # the model moved: judged again
+    out["trust"] = assess(recon, cfg, between)
     out["seconds"] = time.perf_counter() - t
     return out
 

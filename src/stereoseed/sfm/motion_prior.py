@@ -23,7 +23,7 @@ from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
 from stereoseed.sfm.reconstruction import Reconstruction
 
-__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "described_points", "hypotheses_by_motion_prior", "explained_points", "Hypothesis",
+__all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "described_points", "hypotheses_by_motion_prior", "explained_points", "explaining_matches", "Hypothesis",
            "trusted_chain_inliers"]
 
 
@@ -186,6 +186,23 @@ def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.n
         rest[inl] = False
         rows, cols = rows[rest], cols[rest]
     return hypotheses
+
+
+def explaining_matches(features: Features, P: np.ndarray, points: np.ndarray, desc: np.ndarray,
+                       max_px: float, min_zncc: float) -> tuple[np.ndarray, np.ndarray]:
+    """The matches behind :func:`explained_points` for one camera P (3, 4): (rows of ``points``
+    (K,), the interest points explaining them (K,)), an interest point explaining one point at
+    most (the best matching patch)."""
+    dist, nearest = nearest_within(features.points, project(P, points), max_px)
+    rows = np.flatnonzero(np.isfinite(dist))
+    feats = nearest[rows]
+    zncc = np.einsum("nd,nd->n", desc[rows], features.desc[feats])
+    ok = zncc >= min_zncc
+    rows, feats, zncc = rows[ok], feats[ok], zncc[ok]
+    order = np.argsort(-zncc, kind="stable")
+    _, first = np.unique(feats[order], return_index=True)
+    keep = np.sort(order[first])
+    return rows[keep], feats[keep]
 
 
 def explained_points(features: Features, cameras: list[np.ndarray], points: np.ndarray, desc: np.ndarray,

@@ -142,15 +142,18 @@ def _flag_stations(recon: Reconstruction, reasons: dict[int, str | None]) -> Non
             reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
 
 
-def assess(recon: Reconstruction, cfg: Config) -> dict[str, Any]:
+def assess(recon: Reconstruction, cfg: Config, between_neighbours: dict[int, str] | None = None) -> dict[str, Any]:
     """Judge every registered camera after the pair: set each view's ``uncertainty``,
     ``reliable`` and ``flag_reason``; without ``keep_flagged``, remove the flagged views'
     observations (and the points left with fewer than two). Returns the JSON-able report:
-    {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged"."""
+    {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged".
+    between_neighbours: :func:`contradicted_by_neighbours`'s verdicts on this very model, when
+    they are known already (:func:`stereoseed.sfm.hindsight.register_again` gives them)."""
     cfg = cfg.resolve()
     contradicted = contradicted_cameras(recon, cfg)
     if cfg.trust.judge_between_neighbours:
-        contradicted.update(contradicted_by_neighbours(recon, cfg, doubted=set(contradicted)))
+        contradicted.update(contradicted_by_neighbours(recon, cfg, doubted=set(contradicted))
+                            if between_neighbours is None else between_neighbours)
     uncertainties = camera_uncertainties(recon, cfg)
     reasons = {}
     for v in recon.registered_views:

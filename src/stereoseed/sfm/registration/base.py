@@ -58,6 +58,7 @@ class FoundBy(StrEnum):
     MOTION_PRIOR = "motion prior"  # matches searched where the walk's motion predicts the points
     QUASI_DENSE = "quasi-dense"  # matches propagated from seeds (Lhuillier-Quan), chained
     RIG = "stereo rig"  # both images of a rig's station, their pose resected together (stereoseed.sfm.rig)
+    HINDSIGHT = "between its neighbours"  # found again after the final BA, between the views on both sides (sfm.hindsight)
 
 
 
