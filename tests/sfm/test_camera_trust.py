@@ -259,3 +259,19 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
     assert np.array_equal(after.points, before.points) and all(
         np.array_equal(a, b) for a, b in zip(after.observations, before.observations))
     assert np.array_equal(view.P, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3])
+
+
+def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
+    # the paper's mode is there to reproduce its experiments: it flags, and registers nothing again
+    from stereoseed.sfm.hindsight import register_again
+    from stereoseed.sfm.registration.base import FoundBy
+
+    cfg = Config().replace(pipeline={"mode": "paper"})
+    recon, _, _, source = walked(7, cfg=cfg)
+    finish(recon, cfg, source)
+    view = recon.views[4]
+    view.found_by = FoundBy.MOTION_PRIOR
+    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    P_wrong = view.P.copy()
+    again, contradicted = register_again(recon, cfg)
+    assert again == {} and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)

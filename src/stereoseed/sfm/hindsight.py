@@ -158,20 +158,25 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
     ``ResectionConfig.min_inliers`` of them reproject within ``ransac_threshold_px`` and their RMS
     within ``max_rms_px`` (a resection's own tests); the model is globally adjusted once after.
     Returns ({view: what was found}, {view: reason} of :func:`contradicted_by_neighbours` when
-    nothing was registered again, else None: the model moved, judge it again). Not on a rig."""
+    nothing was registered again, else None: the model moved, judge it again). Not on a rig; the
+    paper's mode, there to reproduce its experiments, only judges."""
     cfg = cfg.resolve()
     if recon.rig is not None:
         return {}, {}
     mp, rc = cfg.motion_prior, cfg.resection
     sound = _sound(recon, doubted)
-    adjustment = mode_of(cfg, recon).adjustment_config(recon, cfg)
+    mode = mode_of(cfg, recon)
+    retry = mode.name != "paper"
+    adjustment = mode.adjustment_config(recon, cfg)
     again, contradicted = {}, {}
-    for k, a, b in _judged(recon, sound, recon.registered_views):
+    for k, a, b in _judged(recon, sound, recon.registered_views if retry else sound):
         rival = _rival(recon, cfg, k, a, b)
         if rival is None:
             continue
         if k in sound:
             contradicted[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
+        if not retry:
+            continue
         state = recon.checkpoint()
         view = recon.views[k]
         recon.remove_observations(recon.obs_view == k)
