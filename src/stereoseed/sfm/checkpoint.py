@@ -113,7 +113,8 @@ def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str,
     arrays.update((name, a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
     views = []
     for i, (view, s) in enumerate(zip(recon.views, state.views)):
-        P, features, point_of_feature, _, status, rotated, model, zoomed, _, registration_flag = s
+        # what placed the camera is in its report (per_image), written beside
+        P, features, point_of_feature, _, status, rotated, model, zoomed, _, registration_flag, _ = s
         flags = {"name": view.name, "status": str(status), "rotated_180": bool(rotated),
                  "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
                  "registered": P is not None, "features": features is not None, "desc_file": None,
@@ -425,14 +426,14 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
             view = view_of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
             views.append(view)
+            # what placed each camera, as its report says
+            found_by = meta["per_image"][i].get("registered_by") if i < len(meta["per_image"]) else None
             restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None,
-                             flag))
+                             flag, found_by))
         recon = Reconstruction(views)
         # the views check what only they know (a camera model's name, a camera's P)
         recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
-    for view, r in zip(recon.views, meta["per_image"]):  # what placed each camera, as its report says
-        view.found_by = r.get("registered_by")
     return recon, meta["per_image"]

@@ -222,13 +222,13 @@ class View:
 
     def _state(self) -> tuple:
         """(P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed,
-        grey image released, registration flag)."""
+        grey image released, registration flag, what placed the camera)."""
         return (self.P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
-                self.camera_model, self.zoomed, self._gray_released, self.registration_flag)
+                self.camera_model, self.zoomed, self._gray_released, self.registration_flag, self.found_by)
 
     def _restore(self, state: tuple) -> None:
         P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180, self.camera_model, \
-            self.zoomed, self._gray_released, self.registration_flag = state
+            self.zoomed, self._gray_released, self.registration_flag, self.found_by = state
         self.flag_reason = self.registration_flag  # the final judgement (trust.assess) comes after the last insertion
         self._camera = None  # the restored P follows the restored camera_model, not the current camera's model
         self.P = P
@@ -410,7 +410,7 @@ class Reconstruction:
         self.remove_observations(self.obs_view == view)
         self.remove_lonely_points()
         v = self.views[view]
-        v.P, v.camera_model, v.zoomed, v.status = None, None, False, "pending"
+        v.P, v.camera_model, v.zoomed, v.status, v.found_by = None, None, False, "pending", None
         v.point_of_feature[:] = -1
 
     def checkpoint(self, copy: bool = True) -> Checkpoint:
