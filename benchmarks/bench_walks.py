@@ -31,6 +31,7 @@ WALKS = {
     "templeSparseRing backwards": _TEMPLE._replace(reverse=True),
     "dinoSparseRing backwards": _DINO_SPARSE._replace(reverse=True),
     "dinoSparseRing backwards from its 13th": _DINO_SPARSE._replace(start=3, reverse=True),
+    "dinoSparseRing backwards from its 12th": _DINO_SPARSE._replace(start=4, reverse=True),
 }
 
 

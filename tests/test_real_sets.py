@@ -76,6 +76,21 @@ def test_the_castle_walked_backwards_goes_on_past_a_wrong_copy_of_its_windows():
     assert r["unflagged"]["median_pct"] < 0.8
 
 
+def test_a_part_of_the_walk_resting_on_a_flagged_camera_is_flagged():
+    # dinoSparseRing walked back from its 12th image: 0013 is flagged at its registration (a zoom
+    # it cannot measure), and the four cameras after it, placed on its matches, share at most 3
+    # points seen by three cameras with the rest once it leaves the model: 15-34 mm off unflagged
+    # before, they are flagged now
+    import bench_walks
+
+    r = _run(bench_walks.WALKS["dinoSparseRing backwards from its 12th"])
+    entry = {e["image"]: e for e in r["per_image"]}
+    for name in ("dinoSR0012.png", "dinoSR0011.png", "dinoSR0010.png", "dinoSR0009.png"):
+        assert "only through flagged cameras" in entry[name].get("flag", ""), entry[name]
+    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert r["unflagged"]["count"] >= 5 and r["unflagged"]["worst"] < 0.005
+
+
 def test_a_camera_its_neighbours_place_elsewhere_is_registered_again():
     # the castle walked from 0010: 0016, placed by the motion prior on the wrong copy of the
     # windows 3.7 m off, explains 150 of its neighbours' points; the camera found between 0015

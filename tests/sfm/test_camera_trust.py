@@ -94,6 +94,38 @@ def test_ties_through_a_flagged_camera_hold_nothing():
     assert flagged[recon.views[7].name].startswith("weak: only 0 of its observations")
 
 
+def test_a_part_of_the_walk_tied_to_the_pair_only_through_a_flagged_camera_is_cut_off():
+    from stereoseed.features.harris import Features
+    from stereoseed.sfm.reconstruction import Reconstruction, View
+    from stereoseed.sfm.trust import cut_off_cameras
+
+    # views 0-3, then 4, then 5-7; 30 points seen by each group of views below: 5-7 are tied to
+    # 0-3 only through points that view 4 also sees (a point two cameras see ties nothing)
+    groups = [(0, 1, 2, 3), (2, 3, 4), (3, 4, 5), (4, 5, 6), (5, 6, 7)]
+    f = Features(np.zeros((200, 2)), np.zeros((200, 1), np.float32), np.ones(200, bool), np.ones(200), (480, 640))
+    recon = Reconstruction([View(f"v{i}", features=f, point_of_feature=np.full(200, -1, np.int64),
+                                 P=ring_camera(20.0 * i)[3]) for i in range(8)])
+    used = np.zeros(8, int)
+    for g in groups:
+        ids = recon.add_points(np.zeros((30, 3)), np.zeros((30, 3)))
+        for v in g:
+            recon.add_observations(v, np.arange(used[v], used[v] + 30), ids)
+            used[v] += 30
+    everyone = set(range(8))
+    assert cut_off_cameras(recon, Config(), everyone) == {}
+    cut = cut_off_cameras(recon, Config(), everyone - {4})
+    assert sorted(cut) == [5, 6, 7]
+    assert cut[5].startswith("weak: tied to the calibrated pair only through flagged cameras: it shares at most 0 ")
+    # a resection's worth of points seen by 2, 3 and 5 ties the part to the pair again; fewer do not
+    for n, tied in ((11, False), (12, True)):
+        ids = recon.add_points(np.zeros((n, 3)), np.zeros((n, 3)))
+        for v in (2, 3, 5):
+            recon.add_observations(v, np.arange(used[v], used[v] + n), ids)
+            used[v] += n
+        assert (cut_off_cameras(recon, Config(), everyone - {4}) == {}) == tied
+        recon.remove_points(ids)
+
+
 def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     recon, _, Ps, source = walked(5)
     recent = np.flatnonzero(recon.alive)

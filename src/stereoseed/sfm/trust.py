@@ -9,7 +9,8 @@ knows then (the field's answer to "a clean report on a wrong result"):
   pattern keeps residuals the model cannot explain away), and so is a predicted camera that a
   camera found between its neighbours outdoes (:mod:`stereoseed.sfm.hindsight`);
 * its ties: a camera seeing too few points that other cameras also see is held where its
-  registration put it, unchecked by the final BA.
+  registration put it, unchecked by the final BA; and a part of the walk tied to the calibrated
+  pair only through a flagged camera floats once that camera leaves the model.
 
 A camera that fails either is *flagged*: it stays registered (its P is written) but ``reliable``
 is False with the reason, and, unless ``TrustConfig.keep_flagged``, its observations leave the
@@ -21,6 +22,7 @@ import logging
 from typing import Any
 
 import numpy as np
+from scipy import sparse
 
 from stereoseed.config import Config
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
@@ -33,7 +35,8 @@ from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
-__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "tied_observation_limit", "assess"]
+__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "cut_off_cameras", "tied_observation_limit",
+           "assess"]
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +124,40 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
             if v not in CALIBRATED and v in vouched and per_group[group(v)] < need}
 
 
+def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, str]:
+    """{view: reason} of the ``vouched`` views after the pair that no chain of vouched views links
+    to the calibrated pair with at least ``ResectionConfig.min_inliers`` shared points (points
+    three vouched cameras see, which carry the pair's frame and scale from camera to camera) at
+    every link: a part of the walk joined to the rest only through a flagged camera floats once
+    that camera's observations leave the model (dinoSparseRing walked back from its 5th image:
+    four cameras after a flagged one, 15-34 mm off, each well tied to the others of its part). A
+    rig's station is one body: its two images are linked."""
+    need = cfg.resection.min_inliers
+    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
+    observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
+    tied = live & (observers[recon.obs_point] >= 3)
+    n = len(recon.views)
+    seen = sparse.csr_matrix((np.ones(int(tied.sum())), (recon.obs_view[tied], recon.obs_point[tied])),
+                             shape=(n, len(recon.points)))
+    seen.data[:] = 1.0  # a view observing a point twice shares it once
+    shared = (seen @ seen.T).toarray()
+    if recon.rig is not None:
+        for v in range(0, n - 1, 2):
+            shared[v, v + 1] = shared[v + 1, v] = need
+    reached, frontier = set(CALIBRATED), list(CALIBRATED)
+    while frontier:
+        u = frontier.pop()
+        for w in np.flatnonzero(shared[u] >= need):
+            if int(w) in vouched and int(w) not in reached:
+                reached.add(int(w))
+                frontier.append(int(w))
+    tied_to_pair = sorted(reached)
+    return {v: (f"{FlagKind.WEAK}: tied to the calibrated pair only through flagged cameras: it shares at most "
+                f"{int(shared[v, tied_to_pair].max())} points seen by three cameras with those tied to the pair "
+                f"(a resection needs {need})")
+            for v in sorted(vouched) if v not in reached}
+
+
 def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
     if not u.determined:
         return f"{FlagKind.UNCERTAIN}: {u.reason}"
@@ -166,7 +203,9 @@ def assess(recon: Reconstruction, cfg: Config, between_neighbours: dict[int, str
     _flag_stations(recon, reasons)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
     # (a station's two images are judged together: both or neither)
-    while weak := weakly_tied_cameras(recon, cfg, {v for v, reason in reasons.items() if reason is None}):
+    # (and a flag may cut a part of the walk off the pair)
+    while weak := (weakly_tied_cameras(recon, cfg, vouched := {v for v, reason in reasons.items() if reason is None})
+                   or cut_off_cameras(recon, cfg, vouched)):
         reasons.update(weak)
     cameras, flagged = {}, {}
     for v in recon.registered_views:
