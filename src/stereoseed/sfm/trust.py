@@ -140,14 +140,15 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
     seen = sparse.csr_matrix((np.ones(int(tied.sum())), (recon.obs_view[tied], recon.obs_point[tied])),
                              shape=(n, len(recon.points)))
     seen.data[:] = 1.0  # a view observing a point twice shares it once
-    shared = (seen @ seen.T).toarray()
+    shared = (seen @ seen.T).tocsr()  # (views, views), sparse: a long walk's views see few others
     if recon.rig is not None:
-        for v in range(0, n - 1, 2):
-            shared[v, v + 1] = shared[v + 1, v] = need
+        station = sparse.csr_matrix((np.full(n - n % 2, float(need)), (np.arange(n - n % 2), np.arange(n - n % 2) ^ 1)),
+                                    shape=(n, n))
+        shared = shared.maximum(station)
     reached, frontier = set(CALIBRATED), list(CALIBRATED)
     while frontier:
-        u = frontier.pop()
-        for w in np.flatnonzero(shared[u] >= need):
+        row = shared.getrow(frontier.pop())
+        for w in row.indices[row.data >= need]:
             if int(w) in vouched and int(w) not in reached:
                 reached.add(int(w))
                 frontier.append(int(w))
