@@ -449,3 +449,18 @@ def test_a_walk_in_reverse_after_the_pair_is_never_confidently_wrong():
     for v, i in zip(recon.views[2:], order[2:]):
         if v.registered and v.reliable:
             assert np.linalg.norm(camera_center(v.P_input) - camera_center(scene.P[i])) < 0.01, v.name
+
+
+def test_a_report_registered_again_keeps_its_first_registration_apart():
+    # nothing of the first registration (how, its figures, its flag) reads as the camera's now
+    from stereoseed.pipeline import _mark_registered_again
+
+    per_image = [{"image": "a.png", "status": "calibrated"},
+                 {"image": "b.png", "status": "registered", "registered_by": "motion prior", "resection_inliers": 31,
+                  "flag": "ambiguous: repeated structure (...)", "new_points": 40}]
+    _mark_registered_again(per_image, {"b.png": "a camera 3.7 away ..."})
+    assert per_image[0] == {"image": "a.png", "status": "calibrated"}
+    assert per_image[1] == {"image": "b.png", "status": "registered", "registered_by": "between its neighbours",
+                            "registered_again": "a camera 3.7 away ...",
+                            "first_registration": {"registered_by": "motion prior", "resection_inliers": 31,
+                                                   "flag": "ambiguous: repeated structure (...)", "new_points": 40}}

@@ -232,12 +232,13 @@ def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str], withd
 
 def _mark_registered_again(per_image: list[dict[str, Any]], found: dict[str, str]) -> None:
     """The reports of the images named in ``found`` ({name: what was found}), registered again
-    between their neighbours by the finishing step, say so; what placed them first (and its
-    flag) moves under "first_registration"."""
-    for r in per_image:
+    between their neighbours by the finishing step, say so; what their first registration said
+    (how, its figures, its flag) moves under "first_registration": none of it is the camera's now."""
+    for i, r in enumerate(per_image):
         if r.get("image") in found:
-            first = {key: r.pop(key) for key in ("registered_by", "flag") if key in r}
-            r.update(registered_by=FoundBy.HINDSIGHT, registered_again=found[r["image"]], first_registration=first)
+            first = {key: value for key, value in r.items() if key not in ("image", "status")}
+            per_image[i] = {"image": r["image"], "status": r["status"], "registered_by": FoundBy.HINDSIGHT,
+                            "registered_again": found[r["image"]], "first_registration": first}
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -35,7 +36,7 @@ from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.motion_prior import described_points, explained_points, explaining_matches, hypotheses_near
 from stereoseed.sfm.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import CALIBRATED, adjust, global_adjust
-from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector
+from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector, _rivals, ambiguity_flag
 
 __all__ = ["contradicted_by_neighbours", "register_again", "between", "Rival"]
 
@@ -60,7 +61,9 @@ class Rival:
     """A camera for view ``view`` found between its neighbours ``a`` and ``b`` that explains
     ``explains`` of their points (``points`` (K,) ids, described by ``desc`` (K, D)), clearly more
     than the ``kept`` the run's camera explains; P (3, 4) stands ``distance`` from the run's
-    camera, whose median depth is ``depth``."""
+    camera, whose median depth is ``depth``. ``margin``: why the rival itself is ambiguous (a
+    camera found there, the run's included, stands a period away and explains nearly as much:
+    :func:`stereoseed.sfm.registration.base.ambiguity_flag`), or None."""
 
     view: int
     a: int
@@ -72,6 +75,7 @@ class Rival:
     depth: float
     points: np.ndarray
     desc: np.ndarray
+    margin: str | None
 
     def where(self, recon: Reconstruction) -> str:
         return (f"a camera {self.distance:.3g} away ({100 * self.distance / self.depth:.1f} % of the scene's depth), "
@@ -111,7 +115,8 @@ def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival 
     if not rivals:
         return None
     n, d, i = max(rivals)
-    return Rival(k, a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc)
+    margin = ambiguity_flag(_rivals(recon, a, pids, cameras, counts, i, cfg), counts, i)
+    return Rival(k, a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc, margin)
 
 
 def _judged(recon: Reconstruction, sound: list[int], views: list[int]) -> list[tuple[int, int, int]]:
@@ -152,21 +157,26 @@ def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[
 
 
 def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()
-                   ) -> tuple[dict[int, str], dict[int, str] | None]:
-    """Try each rival a view's neighbours find (:func:`_rival`) in that view's place, flagged
-    views included; keep it when, refined on the neighbours' points it explains, at least
-    ``ResectionConfig.min_inliers`` of them reproject within ``ransac_threshold_px`` and their RMS
-    within ``max_rms_px`` (a resection's own tests); the model is globally adjusted once after.
+                   ) -> tuple[dict[int, str], dict[int, str] | None, dict[str, Any] | None]:
+    """Put the rival a view's neighbours find (:func:`_rival`) in that view's place, flagged
+    views included, when the rival is no choice on a margin itself (no camera found there, the
+    view's own included, explains ``TrustConfig.ambiguity_ratio`` of its points a period away:
+    the registration's rule). The view's observations go, the neighbours' points the rival
+    explains become its observations, and the camera is refined on them (the points held); a
+    refinement gone astray (fewer than ``ResectionConfig.min_inliers`` of them within
+    ``ransac_threshold_px``, or their RMS over ``max_rms_px``) puts the model back. It claims no
+    zoom. After any, the model is globally adjusted (its outlier rounds included).
     Returns ({view: what was found}, {view: reason} of :func:`contradicted_by_neighbours` when
-    nothing was registered again, else None: the model moved, judge it again). Not on a rig; the
-    paper's mode, there to reproduce its experiments, only judges."""
+    nothing was registered again, else None: the model moved, judge it again; the global BA's
+    report, or None). Not on a rig; the paper's mode (there to reproduce its experiments) and a
+    run without a final global BA (``ba="local"``) only judge."""
     cfg = cfg.resolve()
     if recon.rig is not None:
-        return {}, {}
+        return {}, {}, None
     mp, rc = cfg.motion_prior, cfg.resection
     sound = _sound(recon, doubted)
     mode = mode_of(cfg, recon)
-    retry = mode.name != "paper"
+    retry = mode.name != "paper" and cfg.pipeline.ba != "local"
     adjustment = mode.adjustment_config(recon, cfg)
     again, contradicted = {}, {}
     for k, a, b in _judged(recon, sound, recon.registered_views if retry else sound):
@@ -175,10 +185,13 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
             continue
         if k in sound:
             contradicted[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
+        view = recon.views[k]
         if not retry:
             continue
+        if rival.margin:
+            log.info("%s: the camera found between its neighbours is %s; not registered again", view.name, rival.margin)
+            continue
         state = recon.checkpoint()
-        view = recon.views[k]
         recon.remove_observations(recon.obs_view == k)
         recon.remove_lonely_points()  # the points it alone put beside a neighbour's go with it
         rows, features = explaining_matches(view.features, rival.P, recon.points[rival.points], rival.desc,
@@ -191,15 +204,17 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
         fits = int(np.sum(err <= rc.ransac_threshold_px))
         if fits < rc.min_inliers or not np.sqrt(np.mean(err ** 2)) <= rc.max_rms_px:
             recon.restore(state)
-            log.info("%s: the camera found between its neighbours fits %d of their points, not registered again",
-                     view.name, fits)
+            log.info("%s: refined, the camera found between its neighbours fits %d of their points; not registered "
+                     "again", view.name, fits)
             continue
         again[k] = (f"{rival.where(recon)}; registered again on {fits} of them "
                     f"(first: {view.found_by}{', flagged' if view.registration_flag else ''})")
         view.registration_flag = view.flag_reason = None
         view.found_by = FoundBy.HINDSIGHT
+        view.zoomed = False  # a zoom its first camera claimed is no evidence for this one
         contradicted.pop(k, None)
         log.warning("%s: registered again between its neighbours: %s", view.name, again[k])
-    if again:
-        global_adjust(recon, adjustment)
-    return again, (None if again else contradicted)
+    if not again:
+        return again, contradicted, None
+    ba, _ = global_adjust(recon, mode.adjustment_config(recon, cfg))  # the zooms may have changed
+    return again, None, ba

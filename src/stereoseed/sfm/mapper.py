@@ -423,9 +423,10 @@ def finish(recon: Reconstruction, cfg: Config = Config(), source: Correspondence
     out = mode_of(cfg, recon).finish(recon, cfg, source or HarrisZncc(cfg))
     between = None
     if cfg.trust.judge_between_neighbours:
-        again, between = register_again(recon, cfg, doubted=set(contradicted_cameras(recon, cfg)))
+        again, between, ba = register_again(recon, cfg, doubted=set(contradicted_cameras(recon, cfg)))
         if again:
             out["registered_again"] = {recon.views[v].name: found for v, found in again.items()}
+            out["registered_again_ba"] = ba
     dropped = _drop_undetermined_views(recon, cfg)
     if dropped:
         out["dropped"] = dropped

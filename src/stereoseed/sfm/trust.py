@@ -103,15 +103,20 @@ def tied_observation_limit(cfg: Config) -> int:
     return trusted_chain_inliers(cfg)
 
 
+def _tied(recon: Reconstruction, vouched: set[int]) -> np.ndarray:
+    """(O,) bool: the observations by ``vouched`` views of live points that three of them see."""
+    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
+    observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
+    return live & (observers[recon.obs_point] >= 3)
+
+
 def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, str]:
     """{view: reason} of the registered views after the pair with fewer than
     :func:`tied_observation_limit` observations of live points that two other cameras also see.
     A rig's station counts its two images' observations together (the rig holds them).
     vouched: the views the run vouches for: only their observations tie, and only they are
     judged (a flagged camera's observations leave the model; it vouches for nothing)."""
-    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
-    observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
-    tied = live & (observers[recon.obs_point] >= 3)
+    tied = _tied(recon, vouched)
     group = station_of if recon.rig is not None else (lambda v: v)
     per_view = np.bincount(recon.obs_view[tied], minlength=len(recon.views))
     per_group: dict[int, int] = {}
@@ -129,13 +134,11 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
     to the calibrated pair with at least ``ResectionConfig.min_inliers`` shared points (points
     three vouched cameras see, which carry the pair's frame and scale from camera to camera) at
     every link: a part of the walk joined to the rest only through a flagged camera floats once
-    that camera's observations leave the model (dinoSparseRing walked back from its 5th image:
+    that camera's observations leave the model (dinoSparseRing walked back from its 12th image:
     four cameras after a flagged one, 15-34 mm off, each well tied to the others of its part). A
     rig's station is one body: its two images are linked."""
     need = cfg.resection.min_inliers
-    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
-    observers = np.bincount(recon.obs_point[live], minlength=len(recon.points))
-    tied = live & (observers[recon.obs_point] >= 3)
+    tied = _tied(recon, vouched)
     n = len(recon.views)
     seen = sparse.csr_matrix((np.ones(int(tied.sum())), (recon.obs_view[tied], recon.obs_point[tied])),
                              shape=(n, len(recon.points)))
@@ -153,9 +156,9 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
                 reached.add(int(w))
                 frontier.append(int(w))
     tied_to_pair = sorted(reached)
-    return {v: (f"{FlagKind.WEAK}: tied to the calibrated pair only through flagged cameras: it shares at most "
-                f"{int(shared[v, tied_to_pair].max())} points seen by three cameras with those tied to the pair "
-                f"(a resection needs {need})")
+    return {v: (f"{FlagKind.WEAK}: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
+                f"shares at most {int(shared[v, tied_to_pair].max())} points seen by three of them with those tied "
+                f"to the pair (a link needs {need})")
             for v in sorted(vouched) if v not in reached}
 
 
