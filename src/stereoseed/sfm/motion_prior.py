@@ -188,17 +188,25 @@ def _similarities(pred: np.ndarray, xy: np.ndarray, rows: np.ndarray, cols: np.n
     return hypotheses
 
 
+def _patch_matches(features: Features, projections: np.ndarray, desc: np.ndarray, max_px: float,
+                   min_zncc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``projections`` (M, 2) of points described by ``desc`` (N, D) (row r: point r mod N;
+    M a multiple of N, a block per camera) that an interest point within ``max_px`` explains, its
+    patch matching (ZNCC >= ``min_zncc``): (rows (K,), interest points (K,), ZNCC (K,)). One grid
+    of the interest points for every row; a projection that is not finite finds none."""
+    dist, nearest = nearest_within(features.points, projections, max_px)
+    close = np.flatnonzero(np.isfinite(dist))
+    zncc = np.einsum("nd,nd->n", desc[close % len(desc)], features.desc[nearest[close]])
+    ok = zncc >= min_zncc
+    return close[ok], nearest[close[ok]], zncc[ok]
+
+
 def explaining_matches(features: Features, P: np.ndarray, points: np.ndarray, desc: np.ndarray,
                        max_px: float, min_zncc: float) -> tuple[np.ndarray, np.ndarray]:
     """The matches behind :func:`explained_points` for one camera P (3, 4): (rows of ``points``
     (K,), the interest points explaining them (K,)), an interest point explaining one point at
-    most (the best matching patch)."""
-    dist, nearest = nearest_within(features.points, project(P, points), max_px)
-    rows = np.flatnonzero(np.isfinite(dist))
-    feats = nearest[rows]
-    zncc = np.einsum("nd,nd->n", desc[rows], features.desc[feats])
-    ok = zncc >= min_zncc
-    rows, feats, zncc = rows[ok], feats[ok], zncc[ok]
+    most (the best matching patch; :func:`explained_points` counts every point)."""
+    rows, feats, zncc = _patch_matches(features, project(P, points), desc, max_px, min_zncc)
     order = np.argsort(-zncc, kind="stable")
     _, first = np.unique(feats[order], return_index=True)
     keep = np.sort(order[first])
@@ -216,10 +224,6 @@ def explained_points(features: Features, cameras: list[np.ndarray], points: np.n
     n = len(points)
     if n == 0 or not cameras:
         return np.zeros(len(cameras), np.int64)
-    # every camera's projections in one search (one grid of the interest points; a projection
-    # that is not finite finds none)
-    dist, nearest = nearest_within(features.points, np.concatenate([project(P, points) for P in cameras]), max_px)
-    close = np.flatnonzero(np.isfinite(dist))
-    camera, point = np.divmod(close, n)
-    zncc = np.einsum("nd,nd->n", desc[point], features.desc[nearest[close]])
-    return np.bincount(camera[zncc >= min_zncc], minlength=len(cameras)).astype(np.int64)
+    # every camera's projections in one search
+    rows, _, _ = _patch_matches(features, np.concatenate([project(P, points) for P in cameras]), desc, max_px, min_zncc)
+    return np.bincount(rows // n, minlength=len(cameras)).astype(np.int64)
