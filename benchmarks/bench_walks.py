@@ -20,6 +20,7 @@ WALKS = {
     "strechaCastleP19 every 2nd from 0001": _CASTLE._replace(step=2, start=1),
     "strechaCastleP19 from 0010": _CASTLE._replace(start=10),
     "strechaCastleP19 backwards from 0014": _CASTLE._replace(start=4, reverse=True),
+    "strechaCastleP19 from 0008": _CASTLE._replace(start=8),
     "strechaFountainP11 backwards": _FOUNTAIN._replace(reverse=True),
     "strechaFountainP11 every 2nd": _FOUNTAIN._replace(step=2),
     "dinoRing1-24 every 2nd from 0002": _DINO._replace(step=2, start=1),

@@ -136,6 +136,23 @@ def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged
     assert np.linalg.norm(camera_center(recon.views[5].P) - camera_center(Ps[5])) < 0.002
 
 
+def test_a_view_placed_by_propagated_matches_alone_the_next_cannot_follow_is_withdrawn(monkeypatch):
+    # its registration is weak evidence too (the castle from 0008: 0013, placed by propagated
+    # matches 0.35 m off, left every later image unplaced)
+    from stereoseed.geometry.projection import camera_center
+    from stereoseed.sfm.registration.base import FoundBy
+
+    cfg = Config()
+    recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
+    recon.views[4].found_by = FoundBy.QUASI_DENSE
+    _cannot_follow(monkeypatch, 5, after=(4,))
+    report = insert_view(recon, 5, cfg, source)
+    assert report["status"] == "registered" and list(report["withdrawn"]) == [names[4]]
+    assert "withdrawn: placed by the propagated matches alone, and the next image" in report["withdrawn"][names[4]]
+    assert not recon.views[4].registered and not np.any(recon.obs_view == 4)
+    assert np.linalg.norm(camera_center(recon.views[5].P) - camera_center(Ps[5])) < 0.002
+
+
 def test_a_flagged_view_stays_when_the_next_fails_without_it_too(monkeypatch):
     cfg = Config()
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)

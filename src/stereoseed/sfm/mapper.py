@@ -151,16 +151,16 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
 
     Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
     view leaves ``recon`` as it was (only the view's status records why). "withdrawn" ({name:
-    reason}, when present): k was placed only once the view before it, flagged when placed,
-    was taken out of the model (:func:`_without_flagged_previous`); that view's own report is
-    out of date (it failed)."""
+    reason}, when present): k was placed only once the view before it, doubted when placed
+    (:func:`_doubted_when_placed`), was taken out of the model (:func:`_without_doubted_previous`);
+    that view's own report is out of date (it failed)."""
     cfg = cfg.resolve()
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
     found = _registered(recon, source, k, cfg)
     withdrawn = {}
     if isinstance(found, RegistrationFailure):
-        retried = _without_flagged_previous(recon, source, k, found, cfg)
+        retried = _without_doubted_previous(recon, source, k, found, cfg)
         if isinstance(retried, RegistrationFailure):
             return _failed(view, retried.reason, retried)
         found, withdrawn, state, state_without = retried
@@ -175,8 +175,8 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
         recon.restore(state)
         raise
-    # the model before this insertion, while the view is flagged: what its withdrawal restores
-    _before_flagged[recon] = (k, state_without) if view.registration_flag else None
+    # the model before this insertion, while the view is doubted: what its withdrawal restores
+    _before_doubted[recon] = (k, state_without) if _doubted_when_placed(view) else None
     for reason in withdrawn.values():
         log.info("%s", reason)
     if withdrawn:
@@ -186,7 +186,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
 
 # per reconstruction: (the last view, when it was flagged at its registration, the model just
 # before its insertion); a resumed run starts without it
-_before_flagged: "weakref.WeakKeyDictionary[Reconstruction, tuple[int, Any] | None]" = weakref.WeakKeyDictionary()
+_before_doubted: "weakref.WeakKeyDictionary[Reconstruction, tuple[int, Any] | None]" = weakref.WeakKeyDictionary()
 
 # the failures an image may owe to the view it was chained to (not its size, not roundoff)
 _CHAIN_FAILURES = (FailureKind.TOO_FEW_MATCHES, FailureKind.NO_CAMERA, FailureKind.DISAGREES)
@@ -201,11 +201,22 @@ def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
     return found
 
 
-def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
+def _doubted_when_placed(view: View) -> str | None:
+    """Why ``view``'s registration is weak evidence for its camera, or None: flagged when placed
+    (a choice between copies of a repeated pattern, a zoom it could not measure), or placed by
+    the propagated matches alone (the sparse chain was too weak to place it)."""
+    if view.registration_flag:
+        return f"flagged when placed ({view.registration_flag})"
+    return "placed by the propagated matches alone" if view.found_by == FoundBy.QUASI_DENSE else None
+
+
+def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
                               cfg: Config) -> tuple[Registration, dict[str, str], Any, Any] | RegistrationFailure:
-    """View k could not be placed after a view flagged at its registration (a choice between copies
-    of a repeated pattern, a zoom it could not measure): that failure is evidence against the
-    flagged camera, whose points are what k was chained to. k is tried again with that view
+    """View k could not be placed after a view whose registration is weak evidence
+    (:func:`_doubted_when_placed`: flagged at its registration, or placed by the propagated
+    matches alone): that failure is evidence against that camera, whose points are what k was
+    chained to (the castle from 0008: 0013, placed by propagated matches 0.35 m off, left every
+    later image unplaced). k is tried again with that view
     withdrawn, after the view before it. The withdrawal puts the model back as it was before the
     flagged view's insertion (its points, the adjustments and outlier removals it caused), where the
     run kept that state (not after a resume: then only its camera and observations leave). When k is
@@ -219,11 +230,11 @@ def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSourc
         return failure  # (views 0 and 1: the calibrated pair, never withdrawn)
     p = before[0]
     view = recon.views[p]
-    flag = view.registration_flag
-    if not flag:
+    doubt = _doubted_when_placed(view)
+    if not doubt:
         return failure
     state = recon.checkpoint()
-    kept = _before_flagged.get(recon)
+    kept = _before_doubted.get(recon)
     if kept is not None and kept[0] == p:
         recon.restore(kept[1])  # p pending again, as before its insertion
     else:
@@ -234,10 +245,10 @@ def _without_flagged_previous(recon: Reconstruction, source: CorrespondenceSourc
     if isinstance(found, RegistrationFailure):
         recon.restore(state)
         return dataclasses.replace(failure, notes={**failure.notes, "without_flagged_previous": found.reason})
-    reason = (f"{view.name}: withdrawn: flagged when placed ({flag}), and the next image, {recon.views[k].name}, "
+    reason = (f"{view.name}: withdrawn: {doubt}, and the next image, {recon.views[k].name}, "
               f"was placed only without it")
     view.status = f"failed: {reason}"
-    _before_flagged[recon] = None
+    _before_doubted[recon] = None
     return found, {view.name: reason}, state, recon.checkpoint()
 
 
