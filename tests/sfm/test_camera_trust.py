@@ -236,6 +236,14 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
     assert "found between v3.png and v5.png" in found[4]
 
 
+def _finished_ring_and_a_wrong_4(cfg):
+    """A finished ring of 7 views and a camera for view 4 10 cm along the ring (as if placed on
+    another copy of a pattern): (recon, the true cameras, that P (3, 4))."""
+    recon, _, Ps, source = walked(7, cfg=cfg)
+    finish(recon, cfg, source)
+    return recon, Ps, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3]
+
+
 @pytest.mark.parametrize("flagged", [False, True])
 def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagged):
     # view 4 moved 10 cm along the ring as above: the rival its neighbours find takes its place,
@@ -246,12 +254,10 @@ def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagg
     from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config()
-    recon, _, Ps, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
+    recon, Ps, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     assert register_again(recon, cfg) == ({}, {}, None)  # sound cameras: nothing to do, nothing to say
     view = recon.views[4]
-    view.found_by = FoundBy.MOTION_PRIOR
-    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
     if flagged:
         view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
     assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) > 0.09
@@ -277,12 +283,9 @@ def test_a_rival_chosen_on_a_margin_is_not_registered_again(monkeypatch):
     from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config()
-    recon, _, _, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
+    recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = recon.views[4]
-    view.found_by = FoundBy.MOTION_PRIOR
-    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
-    P_wrong = view.P.copy()
+    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
     monkeypatch.setattr(hindsight, "ambiguity_flag", lambda *a: "ambiguous: repeated structure (as if)")
     again, contradicted, ba = hindsight.register_again(recon, cfg)
     assert again == {} and ba is None and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
@@ -299,11 +302,9 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
     monkeypatch.setattr(hindsight, "explaining_matches", lambda *a: tuple(x[:5] for x in explaining(*a)))
 
     cfg = Config()
-    recon, _, _, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
+    recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = recon.views[4]
-    view.found_by = FoundBy.MOTION_PRIOR
-    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
+    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
     before = recon.checkpoint()
     again, contradicted, ba = register_again(recon, cfg)
     assert again == {} and ba is None
@@ -311,7 +312,7 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
     after = recon.checkpoint()
     assert np.array_equal(after.points, before.points) and all(
         np.array_equal(a, b) for a, b in zip(after.observations, before.observations))
-    assert np.array_equal(view.P, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3])
+    assert np.array_equal(view.P, P_wrong)
     assert view.found_by == FoundBy.MOTION_PRIOR and view.registration_flag is None
 
 
@@ -321,11 +322,8 @@ def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
     from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config().replace(pipeline={"mode": "paper"})
-    recon, _, _, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
+    recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = recon.views[4]
-    view.found_by = FoundBy.MOTION_PRIOR
-    _, _, _, view.P = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
-    P_wrong = view.P.copy()
+    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
     again, contradicted, _ = register_again(recon, cfg)
     assert again == {} and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
