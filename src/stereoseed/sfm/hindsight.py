@@ -13,12 +13,12 @@ castle walked from its 11th image, 0016 was placed 3.7 m off on the wrong copy o
 that explain nearly as much are no evidence here: a good camera has them too (2-5 % of the
 depth away, on the castle and the dino).
 
-Such a rival is then tried in the camera's place (:func:`register_again`): the camera's
-observations go, the neighbours' points the rival explains become its observations, and the
-camera refined on them stands when it fits them as a resection's must; else the camera is flagged.
-The cameras flagged at their registration are tried too (the castle's 0008 and 0016, chosen on a
-margin between copies of the windows): the neighbours on both sides are evidence their
-registration did not have.
+Such a rival, unless it is a choice on a margin itself, then takes the camera's place
+(:func:`register_again`): the camera's observations go, the neighbours' points the rival
+explains become its observations, and the camera is refined on them; else the camera is
+flagged. The cameras flagged at their registration are tried too (the castle's 0008 and 0016,
+chosen on a margin between copies of the windows): the neighbours on both sides are evidence
+their registration did not have.
 """
 from __future__ import annotations
 
