@@ -184,8 +184,8 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     return report
 
 
-# per reconstruction: (the last view, when it was flagged at its registration, the model just
-# before its insertion); a resumed run starts without it
+# per reconstruction: (the last view, when it was doubted when placed, the model just before its
+# insertion); a resumed run starts without it
 _before_doubted: "weakref.WeakKeyDictionary[Reconstruction, tuple[int, Any] | None]" = weakref.WeakKeyDictionary()
 
 # the failures an image may owe to the view it was chained to (not its size, not roundoff)
@@ -216,15 +216,15 @@ def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSourc
     (:func:`_doubted_when_placed`: flagged at its registration, or placed by the propagated
     matches alone): that failure is evidence against that camera, whose points are what k was
     chained to (the castle from 0008: 0013, placed by propagated matches 0.35 m off, left every
-    later image unplaced). k is tried again with that view
-    withdrawn, after the view before it. The withdrawal puts the model back as it was before the
-    flagged view's insertion (its points, the adjustments and outlier removals it caused), where the
-    run kept that state (not after a resume: then only its camera and observations leave). When k is
-    placed so, the flagged view stays out: returns (k's registration, {withdrawn view's name:
-    reason}, the model as it was, the model without it: checkpoints); otherwise the model is put
-    back and the failure returned, with what the second try said. A walk that went on from a wrong
-    copy of a pattern (the castle walked backwards: 2.2 m off, flagged) otherwise lost every later
-    image. Not for a rig walk, whose stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
+    later image unplaced). k is tried again with that view withdrawn, after the view before it.
+    The withdrawal puts the model back as it was before the doubted view's insertion (its points,
+    the adjustments and outlier removals it caused), where the run kept that state (not after a
+    resume: then only its camera and observations leave). When k is placed so, the doubted view
+    stays out: returns (k's registration, {withdrawn view's name: reason}, the model as it was, the
+    model without it: checkpoints); otherwise the model is put back and the failure returned, with
+    what the second try said. A walk that went on from a wrong copy of a pattern (the castle walked
+    backwards: 2.2 m off, flagged) otherwise lost every later image. Not for a rig walk, whose
+    stations are judged as one body (:mod:`stereoseed.sfm.rig`)."""
     before = recon.registered_before(k, 1)
     if recon.rig is not None or failure.kind not in _CHAIN_FAILURES or not before or before[0] < 2:
         return failure  # (views 0 and 1: the calibrated pair, never withdrawn)
