@@ -56,6 +56,11 @@ def side_of(view: int) -> int:
     return view % 2
 
 
+def station_partner(view: int) -> int:
+    """The other image of view ``view``'s station (it may lie past the walk's last image)."""
+    return view ^ 1
+
+
 def _predicted_station(recon: Reconstruction, rig: Rig, s: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Station s's pose as the walk's constant motion predicts it: from the last two placed
     stations (the steps between them counted), or after station 0 alone one rig baseline on from

@@ -32,7 +32,7 @@ from stereoseed.sfm.hindsight import contradicted_by_neighbours
 from stereoseed.sfm.modes import mode_of
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.rig import side_of, station_of
+from stereoseed.sfm.rig import side_of, station_of, station_partner
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
 __all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "cut_off_cameras", "tied_observation_limit",
@@ -144,17 +144,17 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
                              shape=(n, len(recon.points)))
     seen.data[:] = 1.0  # a view observing a point twice shares it once
     shared = (seen @ seen.T).tocsr()  # (views, views), sparse: a long walk's views see few others
-    if recon.rig is not None:
-        station = sparse.csr_matrix((np.full(n - n % 2, float(need)), (np.arange(n - n % 2), np.arange(n - n % 2) ^ 1)),
-                                    shape=(n, n))
-        shared = shared.maximum(station)
     reached, frontier = set(CALIBRATED), list(CALIBRATED)
     while frontier:
-        row = shared.getrow(frontier.pop())
-        for w in row.indices[row.data >= need]:
-            if int(w) in vouched and int(w) not in reached:
-                reached.add(int(w))
-                frontier.append(int(w))
+        u = frontier.pop()
+        row = shared.getrow(u)
+        linked = [int(w) for w in row.indices[row.data >= need]]
+        if recon.rig is not None:
+            linked.append(station_partner(u))
+        for w in linked:
+            if w in vouched and w not in reached:
+                reached.add(w)
+                frontier.append(w)
     tied_to_pair = sorted(reached)
     return {v: (f"{FlagKind.WEAK}: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
                 f"shares at most {int(shared[v, tied_to_pair].max())} points seen by three of them with those tied "
@@ -178,7 +178,7 @@ def _flag_stations(recon: Reconstruction, reasons: dict[int, str | None]) -> Non
     if recon.rig is None:
         return
     for v in recon.registered_views:
-        partner = v + 1 - 2 * side_of(v)
+        partner = station_partner(v)
         if reasons[v] is None and reasons.get(partner):
             reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
 
