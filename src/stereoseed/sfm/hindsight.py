@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -58,14 +58,13 @@ def between(P_a: np.ndarray, P_b: np.ndarray, K: np.ndarray, t: float) -> np.nda
 
 @dataclass(frozen=True)
 class Rival:
-    """A camera for view ``view`` found between its neighbours ``a`` and ``b`` that explains
+    """A camera for a view found between its neighbours ``a`` and ``b`` that explains
     ``explains`` of their points (``points`` (K,) ids, described by ``desc`` (K, D)), clearly more
     than the ``kept`` the run's camera explains; P (3, 4) stands ``distance`` from the run's
     camera, whose median depth is ``depth``. ``margin``: why the rival itself is ambiguous (a
     camera found there, the run's included, stands a period away and explains nearly as much:
     :func:`stereoseed.sfm.registration.base.ambiguity_flag`), or None."""
 
-    view: int
     a: int
     b: int
     P: np.ndarray
@@ -81,6 +80,10 @@ class Rival:
         return (f"a camera {self.distance:.3g} away ({100 * self.distance / self.depth:.1f} % of the scene's depth), "
                 f"found between {recon.views[self.a].name} and {recon.views[self.b].name}, explains {self.explains} "
                 f"of their points, this one {self.kept}")
+
+    def contradiction(self, recon: Reconstruction) -> str:
+        """The flag it puts on the view's camera."""
+        return f"{FlagKind.CONTRADICTED}: {self.where(recon)}"
 
 
 def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival | None:
@@ -116,23 +119,28 @@ def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival 
         return None
     n, d, i = max(rivals)
     margin = ambiguity_flag(_rivals(recon, a, pids, cameras, counts, i, cfg), counts, i)
-    return Rival(k, a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc, margin)
+    return Rival(a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc, margin)
 
 
-def _judged(recon: Reconstruction, sound: list[int], views: list[int]) -> list[tuple[int, int, int]]:
-    """(k, a, b) for each view k of ``views`` after the pair that is judged again: not placed by
-    the epipolar chain (its own two-view geometry placed it, where the others were predicted; a
-    split chain competes with the motion prior at registration), with ``sound`` neighbours a < k
-    < b, the nearest on either side (a wrong neighbour would predict wrong)."""
-    out = []
+def _rivals_between(recon: Reconstruction, cfg: Config, sound: list[int], views: list[int]) -> Iterator[tuple[int, Rival]]:
+    """(k, its rival) for each view k of ``views`` after the pair that is judged again and has a
+    rival (:func:`_rival`): not placed by the epipolar chain (its own two-view geometry placed it,
+    where the others were predicted; a split chain competes with the motion prior at
+    registration), with ``sound`` neighbours a < k < b, the nearest on either side (a wrong
+    neighbour would predict wrong). Which views are judged is decided before the first is: a
+    caller may change the model between them."""
+    judged = []
     for k in (v for v in views if v not in CALIBRATED):
         view = recon.views[k]
         a = max((v for v in sound if v < k), default=None)
         b = min((v for v in sound if v > k), default=None)
         if not (a is None or b is None or view.found_by == FoundBy.EPIPOLAR_CHAIN or view.features is None
                 or view.image_size is None):
-            out.append((k, a, b))
-    return out
+            judged.append((k, a, b))
+    for k, a, b in judged:
+        rival = _rival(recon, cfg, k, a, b)
+        if rival is not None:
+            yield k, rival
 
 
 def _sound(recon: Reconstruction, doubted: set[int]) -> list[int]:
@@ -142,18 +150,13 @@ def _sound(recon: Reconstruction, doubted: set[int]) -> list[int]:
 def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, str]:
     """{view: reason} of the registered views after the pair, not flagged at their registration
     nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
-    module's rule; :func:`_judged` says which views). Not on a rig walk (a station's two images
-    are one body; their neighbours are each other)."""
+    module's rule; :func:`_rivals_between` says which views). Not on a rig walk (a station's two
+    images are one body; their neighbours are each other)."""
     cfg = cfg.resolve()
     if recon.rig is not None:
         return {}
     sound = _sound(recon, doubted)
-    out = {}
-    for k, a, b in _judged(recon, sound, sound):
-        rival = _rival(recon, cfg, k, a, b)
-        if rival is not None:
-            out[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
-    return out
+    return {k: rival.contradiction(recon) for k, rival in _rivals_between(recon, cfg, sound, sound)}
 
 
 def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()
@@ -179,12 +182,9 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
     retry = mode.name != "paper" and cfg.pipeline.ba != "local"
     adjustment = mode.adjustment_config(recon, cfg)
     again, contradicted = {}, {}
-    for k, a, b in _judged(recon, sound, recon.registered_views if retry else sound):
-        rival = _rival(recon, cfg, k, a, b)
-        if rival is None:
-            continue
+    for k, rival in _rivals_between(recon, cfg, sound, recon.registered_views if retry else sound):
         if k in sound:
-            contradicted[k] = f"{FlagKind.CONTRADICTED}: {rival.where(recon)}"
+            contradicted[k] = rival.contradiction(recon)
         view = recon.views[k]
         if not retry:
             continue
