@@ -5,16 +5,28 @@ from pathlib import Path
 
 import pytest
 
-from stereoseed.experiments.paper import shared_data_dir
+from stereoseed.config import Config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_real  # noqa: E402
+import bench_walks  # noqa: E402
 
 
-def _run(walk):
-    if not (shared_data_dir() / walk.folder).is_dir():  # $STEREOSEED_DATA, else ../shared/data
-        pytest.skip(f"../shared/data/{walk.folder} not found; set STEREOSEED_DATA to the folder holding it")
-    return bench_real.run_walk(walk)
+def _run(walk, cfg=Config()):
+    """bench_real's figures of ``walk``; skipped (with bench_real's reason) where its data is absent."""
+    r = bench_real.run_walk(walk, cfg)  # $STEREOSEED_DATA, else ../shared/data
+    if "skipped" in r:
+        pytest.skip(r["skipped"])
+    return r
+
+
+def _by_image(r):
+    return {e["image"]: e for e in r["per_image"]}
+
+
+def _right_or_flagged(r, pct=1.0):
+    """Every camera more than ``pct`` % of the distance off is flagged."""
+    return all(e.get("centre_error_pct", 0) <= pct or "flag" in e for e in r["per_image"])
 
 
 def test_castle_cameras_a_window_period_off_are_registered_again_between_their_neighbours():
@@ -23,12 +35,12 @@ def test_castle_cameras_a_window_period_off_are_registered_again_between_their_n
     # find between them, the true ones, take their places
     r = _run(bench_real.SETS["strechaCastleP19"])
     assert r["registered"] == 19
-    entry = {e["image"]: e for e in r["per_image"]}
+    entry = _by_image(r)
     for name in ("0008.jpg", "0016.jpg"):
         assert entry[name]["registered_by"] == "between its neighbours" and "flag" not in entry[name]
         assert "repeated structure" in entry[name]["first_registration"]["flag"]
     # every camera more than 1 % of the distance off is flagged; the unflagged median within 0.2 %
-    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert _right_or_flagged(r)
     # all 19 placed and unflagged (the pair's two and 17 estimated): 0018's rival camera, 1.2 m
     # over, is told apart by the propagated matches' epipolar geometry
     assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] == 17
@@ -66,13 +78,11 @@ def test_the_castle_walked_backwards_goes_on_past_a_wrong_copy_of_its_windows():
     # flagged) and 0014 cannot follow it: 0015 is withdrawn and the walk goes on from 0016
     # (before: every image after 0015 failed, 3 of 19 placed). 0007 then chains to only 24 of
     # its 43 pairs, a camera 4.7 m off: a chain split so is not trusted without the motion prior
-    import bench_walks
-
     r = _run(bench_walks.WALKS["strechaCastleP19 backwards"])
-    entry = {e["image"]: e for e in r["per_image"]}
+    entry = _by_image(r)
     assert entry["0015.jpg"]["status"] == "failed" and "withdrawn" in entry["0015.jpg"]["reason"]
     assert r["placed"]["count"] >= 15
-    assert all(e.get("centre_error_pct", 0) <= 1.5 or "flag" in e for e in r["per_image"])
+    assert _right_or_flagged(r, 1.5)
     assert r["unflagged"]["median_pct"] < 0.8
 
 
@@ -81,44 +91,35 @@ def test_a_part_of_the_walk_resting_on_a_flagged_camera_is_flagged():
     # it cannot measure), and the four cameras after it, placed on its matches, share at most 2
     # points seen by three cameras with the rest once it leaves the model: 15-34 mm off and
     # unflagged before, they are flagged now
-    import bench_walks
-
     r = _run(bench_walks.WALKS["dinoSparseRing backwards from its 12th"])
-    entry = {e["image"]: e for e in r["per_image"]}
+    entry = _by_image(r)
     for name in ("dinoSR0012.png", "dinoSR0011.png", "dinoSR0010.png", "dinoSR0009.png"):
         assert "no chain of the cameras the run vouches for" in entry[name].get("flag", ""), entry[name]
-    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert _right_or_flagged(r)
     assert r["unflagged"]["count"] >= 5 and r["unflagged"]["worst"] < 0.005
 
 
 def test_a_view_placed_by_propagated_matches_the_next_cannot_follow_is_withdrawn():
     # the castle walked from 0008: 0013, placed by the propagated matches alone 0.35 m off, left
     # every later image unplaced (6 of 11 placed); withdrawn, the walk goes on from 0012
-    import bench_walks
-
     r = _run(bench_walks.WALKS["strechaCastleP19 from 0008"])
-    entry = {e["image"]: e for e in r["per_image"]}
+    entry = _by_image(r)
     assert entry["0013.jpg"]["status"] == "failed" and "placed by the propagated matches alone" in entry["0013.jpg"]["reason"]
     assert r["registered"] >= 10 and r["unflagged"]["count"] >= 8
-    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert _right_or_flagged(r)
 
 
 def test_a_camera_its_neighbours_place_elsewhere_is_registered_again():
     # the castle walked from 0010: 0016, placed by the motion prior on the wrong copy of the
     # windows 3.7 m off, explains 150 of its neighbours' points; the camera found between 0015
     # and 0017, the true one, 275, and takes its place
-    import bench_walks
-
     r = _run(bench_walks.WALKS["strechaCastleP19 from 0010"])
-    entry = {e["image"]: e for e in r["per_image"]}["0016.jpg"]
+    entry = _by_image(r)["0016.jpg"]
     assert entry["registered_by"] == "between its neighbours" and entry["centre_error_pct"] < 1
     assert entry["first_registration"]["registered_by"] == "motion prior"
-    assert all(e.get("centre_error_pct", 0) <= 1 or "flag" in e for e in r["per_image"])
+    assert _right_or_flagged(r)
     assert r["unflagged"]["count"] >= 6
     # without that judgement, nothing said so (TrustConfig.judge_between_neighbours)
-    from stereoseed.config import Config
-
-    off = bench_real.run_walk(bench_walks.WALKS["strechaCastleP19 from 0010"],
-                              Config().replace(trust={"judge_between_neighbours": False}))
-    entry = {e["image"]: e for e in off["per_image"]}["0016.jpg"]
+    off = _run(bench_walks.WALKS["strechaCastleP19 from 0010"], Config().replace(trust={"judge_between_neighbours": False}))
+    entry = _by_image(off)["0016.jpg"]
     assert "flag" not in entry and entry["centre_error_pct"] > 5

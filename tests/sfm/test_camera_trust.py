@@ -214,6 +214,21 @@ def test_a_camera_between_two_cameras():
     assert np.allclose(between(P_a, P_b, K, 0.0), P_a) and np.allclose(between(P_a, P_b, K, 1.0), P_b)
 
 
+def _finished_ring_and_a_wrong_4(cfg):
+    """A finished ring of 7 views and a camera for view 4 10 cm along the ring (as if placed on
+    another copy of a pattern): (recon, the true cameras, that P (3, 4))."""
+    recon, _, Ps, source = walked(7, cfg=cfg)
+    finish(recon, cfg, source)
+    return recon, Ps, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3]
+
+
+def _misplaced_4(recon, P_wrong, found_by="motion prior"):
+    """View 4 given the wrong camera ``P_wrong`` (a copy) as if ``found_by`` had placed it there."""
+    view = recon.views[4]
+    view.found_by, view.P = found_by, P_wrong.copy()
+    return view
+
+
 @pytest.mark.parametrize("placed_by", ["motion prior", "epipolar chain"])
 def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(placed_by):
     # view 4, moved 10 cm along the ring after the final BA as if placed on another copy of a
@@ -222,26 +237,16 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
     from stereoseed.sfm.hindsight import contradicted_by_neighbours
 
     cfg = Config()
-    recon, _, _, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
+    recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     recon.views[4].found_by = placed_by
     assert contradicted_by_neighbours(recon, cfg) == {}  # sound cameras: nothing to say
-    _, _, _, P_wrong = ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))
-    recon.views[4].P = P_wrong
+    _misplaced_4(recon, P_wrong, placed_by)
     found = contradicted_by_neighbours(recon, cfg)
     if placed_by == "epipolar chain":
         assert found == {}
         return
     assert list(found) == [4] and found[4].startswith("contradicted by the other cameras: a camera")
     assert "found between v3.png and v5.png" in found[4]
-
-
-def _finished_ring_and_a_wrong_4(cfg):
-    """A finished ring of 7 views and a camera for view 4 10 cm along the ring (as if placed on
-    another copy of a pattern): (recon, the true cameras, that P (3, 4))."""
-    recon, _, Ps, source = walked(7, cfg=cfg)
-    finish(recon, cfg, source)
-    return recon, Ps, ring_camera(30.0 + 4 * 20.0 + 4.0, height=0.7, target=(0.0, 0.0, 0.2))[3]
 
 
 @pytest.mark.parametrize("flagged", [False, True])
@@ -256,8 +261,7 @@ def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagg
     cfg = Config()
     recon, Ps, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     assert register_again(recon, cfg) == ({}, {}, None)  # sound cameras: nothing to do, nothing to say
-    view = recon.views[4]
-    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
+    view = _misplaced_4(recon, P_wrong)
     view.zoomed = True  # as if its first camera had claimed a zoom: no evidence for the one found again
     if flagged:
         view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
@@ -281,12 +285,10 @@ def test_a_rival_chosen_on_a_margin_is_not_registered_again(monkeypatch):
     # the camera found between the neighbours has a rival of its own a period away (as the
     # registration's rule says): it replaces nothing, and the camera stays contradicted
     from stereoseed.sfm import hindsight
-    from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config()
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    view = recon.views[4]
-    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
+    view = _misplaced_4(recon, P_wrong)
     monkeypatch.setattr(hindsight, "ambiguity_flag", lambda *a: "ambiguous: repeated structure (as if)")
     again, contradicted, ba = hindsight.register_again(recon, cfg)
     assert again == {} and ba is None and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
@@ -304,8 +306,7 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
 
     cfg = Config()
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    view = recon.views[4]
-    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
+    view = _misplaced_4(recon, P_wrong)
     before = recon.checkpoint()
     again, contradicted, ba = register_again(recon, cfg)
     assert again == {} and ba is None
@@ -320,11 +321,9 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
 def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
     # the paper's mode is there to reproduce its experiments: it flags, and registers nothing again
     from stereoseed.sfm.hindsight import register_again
-    from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config().replace(pipeline={"mode": "paper"})
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    view = recon.views[4]
-    view.found_by, view.P = FoundBy.MOTION_PRIOR, P_wrong.copy()
+    view = _misplaced_4(recon, P_wrong)
     again, contradicted, _ = register_again(recon, cfg)
     assert again == {} and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
