@@ -102,11 +102,7 @@ def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival 
     cameras = [view.P]
     for hypotheses in hypotheses_near(recon, between(recon.views[a].P, recon.views[b].P, view.K, (k - a) / (b - a)),
                                       view.features, cfg, (pids, desc)):
-        for hyp in hypotheses:
-            if len(hyp) >= cfg.registration.min_chained_points:
-                found = resect(hyp.points3d, hyp.points2d, hyp.scores)
-                if not isinstance(found, str):
-                    cameras.append(found[0].P)
+        cameras += [res.P for (res, _), _ in resect.each(hypotheses)[0]]
     counts = explained_points(view.features, cameras, recon.points[pids], desc, mp.explain_px, mp.min_zncc)
     depth = float(np.median(depths(view.P, recon.points[pids])))
     centre = camera_center(view.P)
@@ -212,7 +208,6 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
         view.registration_flag = view.flag_reason = None
         view.found_by = FoundBy.HINDSIGHT
         view.zoomed = False  # a zoom its first camera claimed is no evidence for this one
-        contradicted.pop(k, None)
         log.warning("%s: registered again between its neighbours: %s", view.name, again[k])
     if not again:
         return again, contradicted, None

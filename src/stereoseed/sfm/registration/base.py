@@ -293,6 +293,22 @@ class Resector:
             return f"{name}: numerical failure of the resection ({e})"
         return f"{name}: {why}" if why else res
 
+    def each(self, hypotheses: list[Hypothesis]) -> tuple[list[tuple[tuple[ResectionResult, str | None], Hypothesis]],
+                                                        str | None]:
+        """The cameras of the ``hypotheses`` long enough to be resected
+        (``RegistrationConfig.min_chained_points``): ([(what :meth:`__call__` found, its hypothesis)],
+        the last failure's reason or None)."""
+        found, error = [], None
+        for hyp in hypotheses:
+            if len(hyp) < self.cfg.registration.min_chained_points:
+                continue
+            res = self(hyp.points3d, hyp.points2d, hyp.scores)
+            if isinstance(res, str):
+                error = res
+            else:
+                found.append((res, hyp))
+        return found, error
+
     def __call__(self, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray) -> tuple[ResectionResult, str | None] | str:
         """(result, why the 11-DOF camera was refused or None), or the reason of the failure."""
         res = self._attempt(X3, x2, scores, self.model, self.fallback_K)
@@ -394,14 +410,9 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
     for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
-        for hyp in hypotheses:
-            if len(hyp) < cfg.registration.min_chained_points:
-                continue
-            found = resect_with(hyp.points3d, hyp.points2d, hyp.scores)
-            if isinstance(found, str):
-                error = found
-            else:
-                cameras.append((found, hyp))
+        found, failed = resect_with.each(hypotheses)
+        cameras += found
+        error = failed or error
         if not cameras:
             continue
         counts = explained_points(cand.features, [c[0][0].P for c in cameras], recon.points[recent[0]], recent[1],
