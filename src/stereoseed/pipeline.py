@@ -126,7 +126,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
             per_image.append(rep)
             if "withdrawn" in rep:
-                _mark_failed(per_image, rep["withdrawn"], withdrawn=True)
+                _mark_withdrawn(per_image, rep["withdrawn"])
             release_old_views(recon, cfg, spill)
             saver.save(recon, per_image)
             if progress:
@@ -213,32 +213,38 @@ def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> 
     return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
 
 
-def _mark_failed(per_image: list[dict[str, Any]], reasons: dict[str, str], withdrawn: bool = False) -> None:
-    """The reports of the images named in ``reasons`` ({name: reason}), placed once and since
-    taken out of the model (dropped by the finishing step; ``withdrawn`` after the next image,
-    :func:`stereoseed.sfm.mapper.insert_view`), say they failed, and why. A withdrawn one keeps
-    what its registration said under "withdrawn_registration" (no figure of it is read as the
-    model's)."""
+def _superseded(r: dict[str, Any], under: str, **now: Any) -> dict[str, Any]:
+    """Image report ``r`` with what its registration said moved under ``under`` (none of it is
+    the model's now), and ``now`` in its place."""
+    return {"image": r["image"], **now, under: {key: value for key, value in r.items() if key not in ("image", "status")}}
+
+
+def _mark_withdrawn(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
+    """The reports of the images named in ``reasons`` ({name: reason}), withdrawn after the next
+    image (:func:`stereoseed.sfm.mapper.insert_view`), say they failed, and why; what their
+    registration said moves under "withdrawn_registration"."""
     for i, r in enumerate(per_image):
-        if r.get("image") not in reasons:
-            continue
-        if withdrawn:
-            placed = {key: value for key, value in r.items() if key not in ("image", "status")}
-            per_image[i] = {"image": r["image"], "status": "failed", "reason": reasons[r["image"]],
-                            "failure": FailureKind.WITHDRAWN, "withdrawn_registration": placed}
-        else:
+        if r.get("image") in reasons:
+            per_image[i] = _superseded(r, "withdrawn_registration", status="failed", reason=reasons[r["image"]],
+                                       failure=FailureKind.WITHDRAWN)
+
+
+def _mark_dropped(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
+    """The reports of the images named in ``reasons`` ({name: reason}), dropped by the finishing
+    step, say they failed, and why."""
+    for r in per_image:
+        if r.get("image") in reasons:
             r.update(status="failed", reason=reasons[r["image"]])
 
 
 def _mark_registered_again(per_image: list[dict[str, Any]], found: dict[str, str]) -> None:
     """The reports of the images named in ``found`` ({name: what was found}), registered again
     between their neighbours by the finishing step, say so; what their first registration said
-    (how, its figures, its flag) moves under "first_registration": none of it is the camera's now."""
+    (how, its figures, its flag) moves under "first_registration"."""
     for i, r in enumerate(per_image):
         if r.get("image") in found:
-            first = {key: value for key, value in r.items() if key not in ("image", "status")}
-            per_image[i] = {"image": r["image"], "status": r["status"], "registered_by": FoundBy.HINDSIGHT,
-                            "registered_again": found[r["image"]], "first_registration": first}
+            per_image[i] = _superseded(r, "first_registration", status=r["status"], registered_by=FoundBy.HINDSIGHT,
+                                       registered_again=found[r["image"]])
 
 
 def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
@@ -248,7 +254,7 @@ def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Confi
     not keep is reported as failed, with the reason)."""
     final = finish(recon, cfg, source)
     _mark_registered_again(per_image, final.get("registered_again", {}))
-    _mark_failed(per_image, final.get("dropped", {}))
+    _mark_dropped(per_image, final.get("dropped", {}))
     pc = cfg.pipeline
     return {
         "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,
