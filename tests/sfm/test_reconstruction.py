@@ -91,17 +91,18 @@ def test_deregister_and_checkpoint_restore():
     for v in range(3):
         recon.add_observations(v, [0, 1], ids)
     recon.views[2].found_by = "motion prior"
+    recon.views[2].registration_flag = "ambiguous: repeated structure (as if)"
     saved = recon.checkpoint()
     P2 = recon.views[2].P.copy()
     recon.deregister(2)
-    assert recon.views[2].found_by is None
+    assert recon.views[2].found_by is None and recon.views[2].registration_flag is None
     recon.views[2].found_by = "quasi-dense"  # what a later registration would say
     recon.points[:] = 7.0
     assert not recon.views[2].registered and recon.views[2].point_of_feature.max() == -1
     assert recon.track_lengths().tolist() == [2, 2]
     recon.restore(saved)
     np.testing.assert_array_equal(recon.views[2].P, P2)
-    assert recon.views[2].found_by == "motion prior"
+    assert recon.views[2].found_by == "motion prior" and recon.views[2].registration_flag.startswith("ambiguous")
     assert recon.track_lengths().tolist() == [3, 3] and np.all(recon.points == 1.0)
     assert recon.views[2].point_of_feature[:2].tolist() == [0, 1]
     recon.add_points(np.zeros((40, 3)), np.zeros((40, 3)))  # the restored arrays still grow

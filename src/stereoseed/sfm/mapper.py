@@ -240,7 +240,6 @@ def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSourc
     else:
         recon.deregister(p)
     view.features, view.point_of_feature = None, np.zeros(0, np.int64)  # as a view never placed
-    view.registration_flag = view.flag_reason = None
     found = _registered(recon, source, k, cfg)
     if isinstance(found, RegistrationFailure):
         recon.restore(state)

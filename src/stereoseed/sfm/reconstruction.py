@@ -411,6 +411,7 @@ class Reconstruction:
         self.remove_lonely_points()
         v = self.views[view]
         v.P, v.camera_model, v.zoomed, v.status, v.found_by = None, None, False, "pending", None
+        v.registration_flag = v.flag_reason = None  # what its registration said of the camera it no longer has
         v.point_of_feature[:] = -1
 
     def checkpoint(self, copy: bool = True) -> Checkpoint:
