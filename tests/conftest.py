@@ -1,26 +1,17 @@
 """Shared fixtures: the data folder of real sequences and the rendered synthetic box scenes."""
 from __future__ import annotations
 
-import os
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from stereoseed.experiments.paper import noisy_images
+from stereoseed.experiments.paper import noisy_images, shared_data_dir
 from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene
 
 
 # --- SHARED_DATA ------------------------------------------------------------------------------
-def shared_data_dir() -> Path:
-    """Folder holding the real sequences: $STEREOSEED_DATA, else ../shared/data beside the repo."""
-    env = os.environ.get("STEREOSEED_DATA")
-    if env:
-        return Path(env).expanduser().resolve()
-    return Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
 def _sequence_dir(name: str) -> Path:
     path = shared_data_dir() / name
     if not path.is_dir():

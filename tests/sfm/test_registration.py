@@ -3,7 +3,7 @@ that cannot be registered refused with its reason."""
 import numpy as np
 import pytest
 
-from ring_helpers import ring, centre_errors, state, assert_same_state
+from ring_helpers import ring, centre_errors, state, assert_same_state, walked
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import initialise, insert_view
@@ -109,11 +109,9 @@ def test_a_camera_across_a_view_not_placed_needs_confirmation(previous_flagged):
     # motion prior extrapolates over the missing view. Its camera stands only where the matches
     # propagated from view 3 confirm it, and they cannot when view 3 is flagged itself (they say
     # how the two stand to each other); these images propagate nothing, so it is refused
-    images, names, Ps, source = ring(8, blind=(4,), no_epipolar=(5,))
     cfg = Config()
-    recon, _ = initialise(images, names, Ps[:2], cfg, source)
-    for k in (2, 3, 4):
-        insert_view(recon, k, cfg, source)
+    recon, names, Ps, source = walked(8, upto=3, cfg=cfg, blind=(4,), no_epipolar=(5,))
+    insert_view(recon, 4, cfg, source)
     if previous_flagged:
         recon.views[3].registration_flag = "ambiguous: repeated structure (as if)"
     report = insert_view(recon, 5, cfg, source)

@@ -111,7 +111,7 @@ def read_rig_keyframes(left: str | Path, right: str | Path, cfg: VideoConfig = V
     # alike names would be one file on a case-insensitive file system (Walk.mp4, walk.mp4)
     prefixes = ("left_", "right_") if left.stem.casefold() == right.stem.casefold() else ("", "")
     # the first frame is a keyframe too: the calibrated first station
-    lefts = _read(left, lambda p, said: _keyframes(p, cfg, save_to, said, True, prefixes[0]))
+    lefts = _read(left, lambda p, said: _keyframes(p, cfg, save_to, said, first=True, prefix=prefixes[0]))
     indices = [k.index for k in lefts]
     rights = _read(right, lambda p, said: _frames_at(p, indices, save_to, said, prefixes[1]))
     return lefts, rights
