@@ -71,7 +71,7 @@ def centre_errors(recon, Ps):
 def state(recon):
     """Everything an insertion may change, as comparable arrays."""
     views = [(v.P, v.features, v.point_of_feature.copy(), v.image, v.rotated_180, v.camera_model, v.zoomed,
-              v.registration_flag) for v in recon.views]
+              v.placement_flag) for v in recon.views]
     return (recon.points.copy(), recon.colors.copy(), recon.alive.copy(), recon.obs_view.copy(),
             recon.obs_feature.copy(), recon.obs_point.copy(), recon.obs_linked.copy(), views)
 
@@ -88,6 +88,15 @@ def assert_same_state(a, b):
         assert va[4:] == vb[4:]
 
 
+
+
+def as_if_placed_by(recon, k, found_by):
+    """View k's history made to say that ``found_by`` placed it, its camera and links kept: a
+    test playing a registration it did not run (the model has no public way to rewrite what
+    placed a camera, and should not)."""
+    from stereoseed.scene.camera_life import Registered
+
+    recon.views[k]._record(Registered(found_by))
 
 
 def walked(n_views, upto=None, cfg=None, **ring_kw):

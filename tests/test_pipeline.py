@@ -109,7 +109,7 @@ def test_a_final_global_adjustment_removes_the_drift_of_an_open_ring():
 
     def finish_locally(recon, per_image):
         if len(per_image) == scene.n_images:
-            with as_finished(recon, per_image, local_cfg) as (local, local_report):
+            with as_finished(recon, local_cfg) as (local, local_report):
                 assert "final_ba" not in local_report["final"]
                 drifted.extend(_centre_errors(local, scene))
 
@@ -280,7 +280,7 @@ def test_reference_intrinsics_follow_an_image_turned_upside_down():
     # The constrained camera models share the calibrated camera's principal point; in an image
     # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
     from stereoseed.geometry.projection import compose_projection
-    from stereoseed.sfm.reconstruction import View
+    from stereoseed.scene.reconstruction import View
 
     K = np.array([[1500.0, 0.0, 302.3], [0.0, 1498.0, 246.9], [0.0, 0.0, 1.0]])
     upright = View("a.png", image=np.zeros((480, 640, 3), np.uint8))
@@ -306,7 +306,7 @@ def test_corners_from_exact_pixels_with_the_true_cameras_are_exact(box_scene):
 
 
 def test_a_camera_that_jumped_farther_than_the_object_is_refused(box_scene):
-    from stereoseed.sfm.reconstruction import View
+    from stereoseed.scene.reconstruction import View
     from stereoseed.sfm.registration.base import implausible_motion
 
     points = box_scene.corners  # ~1.4 m in front of every camera of the ring
@@ -326,7 +326,7 @@ def test_global_adjust_leaves_a_lone_pair_alone():
     from geometry_helpers import box_points, ring_camera
     from stereoseed.features.harris import Features
     from stereoseed.sfm.refinement import global_adjust
-    from stereoseed.sfm.reconstruction import Reconstruction, View
+    from stereoseed.scene.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(6)
     X = box_points(rng, 100)
@@ -336,9 +336,10 @@ def test_global_adjust_leaves_a_lone_pair_alone():
         x = project(P, X)
         x[:5] += 15.0  # gross errors a BA would expose
         feats = Features(x, np.zeros((len(X), 1), np.float32), np.ones(len(X), bool), np.ones(len(X)), (480, 640))
-        views.append(View(name=f"v{i}", features=feats, P=P, point_of_feature=np.full(len(X), -1, np.int64),
-                          status="calibrated"))
+        views.append(View(name=f"v{i}", features=feats, point_of_feature=np.full(len(X), -1, np.int64)))
     recon = Reconstruction(views)
+    for i in range(2):
+        recon.calibrate(i, ring_camera((0.0, 10.0)[i])[3])
     ids = recon.add_points(X, np.zeros((len(X), 3)))
     for i in range(2):
         recon.add_observations(i, np.arange(len(X)), ids)
@@ -351,7 +352,7 @@ def test_global_adjust_drops_outliers_and_adjusts_again():
     from geometry_helpers import box_points, ring_camera
     from stereoseed.features.harris import Features
     from stereoseed.sfm.refinement import global_adjust
-    from stereoseed.sfm.reconstruction import Reconstruction, View
+    from stereoseed.scene.reconstruction import Reconstruction, View
 
     rng = np.random.default_rng(5)
     X = box_points(rng, 300)
@@ -401,7 +402,7 @@ def test_a_run_as_finished_midway_is_the_run_on_the_images_so_far(box_scene):
 
     def after_insertion(recon, per_image):
         if len(per_image) == 4:
-            with as_finished(recon, per_image, Config()) as (model, report):
+            with as_finished(recon, Config()) as (model, report):
                 seen["state"], seen["report"] = _state(model), report
             assert len(per_image) == 4 and "final" not in per_image[-1]
 
@@ -449,18 +450,3 @@ def test_a_walk_in_reverse_after_the_pair_is_never_confidently_wrong():
     for v, i in zip(recon.views[2:], order[2:]):
         if v.registered and v.reliable:
             assert np.linalg.norm(camera_center(v.P_input) - camera_center(scene.P[i])) < 0.01, v.name
-
-
-def test_a_report_registered_again_keeps_its_first_registration_apart():
-    # nothing of the first registration (how, its figures, its flag) reads as the camera's now
-    from stereoseed.pipeline import _mark_registered_again
-
-    per_image = [{"image": "a.png", "status": "calibrated"},
-                 {"image": "b.png", "status": "registered", "registered_by": "motion prior", "resection_inliers": 31,
-                  "flag": "ambiguous: repeated structure (...)", "new_points": 40}]
-    _mark_registered_again(per_image, {"b.png": "a camera 3.7 away ..."})
-    assert per_image[0] == {"image": "a.png", "status": "calibrated"}
-    assert per_image[1] == {"image": "b.png", "status": "registered", "registered_by": "between its neighbours",
-                            "registered_again": "a camera 3.7 away ...",
-                            "first_registration": {"registered_by": "motion prior", "resection_inliers": 31,
-                                                   "flag": "ambiguous: repeated structure (...)", "new_points": 40}}

@@ -5,7 +5,6 @@ mapper's.
 """
 from __future__ import annotations
 
-import copy
 import errno
 import logging
 import os
@@ -18,8 +17,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from stereoseed.sfm.view_store import release_old_views, working_set
-from stereoseed.sfm.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
+from stereoseed.scene.view_store import release_old_views, working_set
+from stereoseed.scene.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
 from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
@@ -30,8 +29,8 @@ from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image
 from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
-from stereoseed.sfm.reconstruction import Reconstruction
-from stereoseed.sfm.registration.base import FailureKind, FoundBy
+from stereoseed.scene.reconstruction import Reconstruction
+from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.io.sequence import ImageSequence
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.report.html import write_report_html
@@ -62,7 +61,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     skipped; the next one is placed from the last registered images. Returns the
     reconstruction and a JSON-able report (per image, the final step, the resolved config).
 
-    checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.sfm.checkpoint`);
+    checkpoint: a file rewritten after the pair and after each insertion (:mod:`stereoseed.scene.checkpoint`);
     resume: continue from it when it was written for these inputs and settings (the result is
     the uninterrupted run's; the report lists the images that were resumed).
     after_insertion: called after the pair and after each insertion this run performs (not those
@@ -104,9 +103,9 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
-            recon, init = initialise(images, names, P_pair, cfg, prefetching, rig=rig)
-            per_image = [{"image": names[0], "status": "calibrated"}, init]
-            saver.save(recon, per_image)
+            recon, _ = initialise(images, names, P_pair, cfg, prefetching, rig=rig)
+            per_image = recon.reports()
+            saver.save(recon)
             if after_insertion:
                 after_insertion(recon, per_image)
         resumed = [r["image"] for r in per_image] if state is not None else []
@@ -124,16 +123,14 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             spill = Path(spill_holder.name)
         for k in range(len(per_image), n):
             rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
-            per_image.append(rep)
-            if "withdrawn" in rep:
-                _mark_withdrawn(per_image, rep["withdrawn"])
+            per_image = recon.reports()  # a withdrawal changes an earlier view's
             release_old_views(recon, cfg, spill)
-            saver.save(recon, per_image)
+            saver.save(recon)
             if progress:
                 progress(k + 1, n, f"{names[k]}: {rep['status']}")
             if after_insertion:
                 after_insertion(recon, per_image)
-    report = _finished(recon, per_image, cfg, t0, source)
+    report = _finished(recon, cfg, t0, source)
     if offset is not None:
         for v in recon.registered_views:
             recon.views[v].P = recon.views[v].P @ _shift(-offset)
@@ -208,53 +205,18 @@ def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> 
     reason = images.unreadable(k) if isinstance(images, ImageSequence) else None
     if reason is None:
         return None
-    recon.views[k].status = f"failed: {reason}"
     log.info("%s", reason)
-    return {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
+    report = {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
+    recon.fail(k, reason, report)
+    return report
 
 
-def _superseded(r: dict[str, Any], under: str, **now: Any) -> dict[str, Any]:
-    """Image report ``r`` with what its registration said moved under ``under`` (none of it is
-    the model's now), and ``now`` in its place."""
-    return {"image": r["image"], **now, under: {key: value for key, value in r.items() if key not in ("image", "status")}}
-
-
-def _mark_withdrawn(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
-    """The reports of the images named in ``reasons`` ({name: reason}), withdrawn after the next
-    image (:func:`stereoseed.sfm.mapper.insert_view`), say they failed, and why; what their
-    registration said moves under "withdrawn_registration"."""
-    for i, r in enumerate(per_image):
-        if r.get("image") in reasons:
-            per_image[i] = _superseded(r, "withdrawn_registration", status="failed", reason=reasons[r["image"]],
-                                       failure=FailureKind.WITHDRAWN)
-
-
-def _mark_dropped(per_image: list[dict[str, Any]], reasons: dict[str, str]) -> None:
-    """The reports of the images named in ``reasons`` ({name: reason}), dropped by the finishing
-    step, say they failed, and why."""
-    for r in per_image:
-        if r.get("image") in reasons:
-            r.update(status="failed", reason=reasons[r["image"]])
-
-
-def _mark_registered_again(per_image: list[dict[str, Any]], found: dict[str, str]) -> None:
-    """The reports of the images named in ``found`` ({name: what was found}), registered again
-    between their neighbours by the finishing step, say so; what their first registration said
-    (how, its figures, its flag) moves under "first_registration"."""
-    for i, r in enumerate(per_image):
-        if r.get("image") in found:
-            per_image[i] = _superseded(r, "first_registration", status=r["status"], registered_by=FoundBy.HINDSIGHT,
-                                       registered_again=found[r["image"]])
-
-
-def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config, t0: float,
-              source: CorrespondenceSource | None = None) -> dict[str, Any]:
-    """The finishing step (:func:`stereoseed.sfm.mapper.finish`) on ``recon`` after the views of
-    ``per_image``, and the run's report (``per_image`` updated: a view the finishing step could
-    not keep is reported as failed, with the reason)."""
+def _finished(recon: Reconstruction, cfg: Config, t0: float, source: CorrespondenceSource | None = None) -> dict[str, Any]:
+    """The finishing step (:func:`stereoseed.sfm.finishing.finish`) on ``recon``, and the run's
+    report (``per_image`` rendered from the views' histories: a view the finishing step registered
+    again or could not keep says so)."""
     final = finish(recon, cfg, source)
-    _mark_registered_again(per_image, final.get("registered_again", {}))
-    _mark_dropped(per_image, final.get("dropped", {}))
+    per_image = recon.reports()
     pc = cfg.pipeline
     return {
         "mode": pc.mode, "camera_model": pc.camera_model, "window": pc.window, "ba": pc.ba,
@@ -266,17 +228,17 @@ def _finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Confi
 
 
 @contextmanager
-def as_finished(recon: Reconstruction, per_image: list[dict[str, Any]], cfg: Config,
+def as_finished(recon: Reconstruction, cfg: Config,
                 source: CorrespondenceSource | None = None) -> Iterator[tuple[Reconstruction, dict[str, Any]]]:
     """Inside an ``after_insertion`` call: (the model, the report) that :func:`reconstruct`
     would return for the images so far, for the block's duration: the finishing step runs on
     the model itself, which is then put back as it was (points, observations, views; arrays
     read in the block are overwritten: copy what you keep) and the run goes on. The
-    incremental loop never looks ahead, so this is a run on the first ``len(per_image)``
-    images without running them again (the report's "seconds": the finishing step's)."""
+    incremental loop never looks ahead, so this is a run on the images it has reached,
+    without running them again (the report's "seconds": the finishing step's)."""
     state = recon.checkpoint()
     try:
-        yield recon, _finished(recon, copy.deepcopy(per_image), cfg.resolve(), time.perf_counter(), source)
+        yield recon, _finished(recon, cfg.resolve(), time.perf_counter(), source)
     finally:
         recon.restore(state)
 

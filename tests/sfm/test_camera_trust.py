@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 
 from geometry_helpers import ring_camera
-from ring_helpers import walked
+from ring_helpers import as_if_placed_by, walked
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import finish
 from stereoseed.sfm.registration.base import _rivals, ambiguity_flag
-from stereoseed.sfm.trust import assess
+from stereoseed.sfm.finishing import judge_cameras as assess
+from stereoseed.scene.camera_life import Flag
 
 
 def test_every_camera_gets_an_uncertainty_that_covers_its_error():
@@ -88,7 +89,7 @@ def test_ties_through_a_flagged_camera_hold_nothing():
     recon.remove_observations(elsewhere | other_of_7)
     assert assess(recon, Config().replace(trust={"keep_flagged": True}))["flagged"] == {}
     # once view 6 is flagged its observations tie nothing: view 7 is left weak
-    recon.views[6].registration_flag = "ambiguous: repeated structure (as if)"
+    recon.flag(6, Flag.parse("ambiguous: repeated structure (as if)"))
     flagged = assess(recon, Config())["flagged"]
     assert set(flagged) == {recon.views[6].name, recon.views[7].name}
     assert flagged[recon.views[7].name].startswith("weak: only 0 of its observations")
@@ -96,7 +97,7 @@ def test_ties_through_a_flagged_camera_hold_nothing():
 
 def test_a_part_of_the_walk_tied_to_the_pair_only_through_a_flagged_camera_is_cut_off():
     from stereoseed.features.harris import Features
-    from stereoseed.sfm.reconstruction import Reconstruction, View
+    from stereoseed.scene.reconstruction import Reconstruction, View
     from stereoseed.sfm.trust import cut_off_cameras
 
     # views 0-3, then 4, then 5-7; 30 points seen by each group of views below: 5-7 are tied to
@@ -115,7 +116,7 @@ def test_a_part_of_the_walk_tied_to_the_pair_only_through_a_flagged_camera_is_cu
     assert cut_off_cameras(recon, Config(), everyone) == {}
     cut = cut_off_cameras(recon, Config(), everyone - {4})
     assert sorted(cut) == [5, 6, 7]
-    assert cut[5].startswith("weak: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
+    assert cut[5].reason.startswith("weak: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
                              "shares at most 0 points")
     # a resection's worth of points seen by 2, 3 and 5 ties the part to the pair again; fewer do not
     for n, tied in ((11, False), (12, True)):
@@ -138,7 +139,7 @@ def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
         return ambiguity_flag(_rivals(recon, 3, recent, cameras, counts, 0, cfg), counts, 0)
 
     why = flag([near, shifted], np.array([100, 80]))
-    assert why is not None and "explains 80" in why
+    assert why is not None and "explains 80" in why.reason
     assert flag([near, shifted], np.array([100, 40])) is None  # clearly worse
     assert flag([near, close], np.array([100, 99])) is None  # the same place
 
@@ -156,7 +157,7 @@ def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, t
 
     def with_one_contradicted(recon, cfg):  # as if the final evidence contradicted image 4
         found = real(recon, cfg)
-        return {**found, 4: "contradicted by the other cameras: planted by the test"}
+        return {**found, 4: Flag.parse("contradicted by the other cameras: planted by the test")}
 
     monkeypatch.setattr(trust, "contradicted_cameras", with_one_contradicted)
     paths, calib = scene_on_disk(small_box_scene.prefix(5), tmp_path)
@@ -175,7 +176,7 @@ def test_a_flagged_camera_is_said_everywhere_and_strict_fails(small_box_scene, t
 
 
 def test_the_last_line_names_each_flag_by_its_kind():
-    from stereoseed.sfm.flags import flag_kind
+    from stereoseed.scene.camera_life import flag_kind
 
     assert flag_kind("ambiguous: repeated structure (the best camera explains 24 ...)") == "ambiguous: repeated structure"
     assert flag_kind("weak: only 22 of its observations are of points two other cameras also see") == "weak"
@@ -224,8 +225,9 @@ def _finished_ring_and_a_wrong_4(cfg):
 
 def _misplaced_4(recon, P_wrong, found_by="motion prior"):
     """View 4 given the wrong camera ``P_wrong`` (a copy) as if ``found_by`` had placed it there."""
+    as_if_placed_by(recon, 4, found_by)
     view = recon.views[4]
-    view.found_by, view.P = found_by, P_wrong.copy()
+    view.P = P_wrong.copy()
     return view
 
 
@@ -238,15 +240,15 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
 
     cfg = Config()
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    recon.views[4].found_by = placed_by
+    as_if_placed_by(recon, 4, placed_by)
     assert contradicted_by_neighbours(recon, cfg) == {}  # sound cameras: nothing to say
     _misplaced_4(recon, P_wrong, placed_by)
     found = contradicted_by_neighbours(recon, cfg)
     if placed_by == "epipolar chain":
         assert found == {}
         return
-    assert list(found) == [4] and found[4].startswith("contradicted by the other cameras: a camera")
-    assert "found between v3.png and v5.png" in found[4]
+    assert list(found) == [4] and found[4].reason.startswith("contradicted by the other cameras: a camera")
+    assert "found between v3.png and v5.png" in found[4].reason
 
 
 @pytest.mark.parametrize("flagged", [False, True])
@@ -255,24 +257,26 @@ def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagg
     # the view keeps only the neighbours' points that rival explains, and the model is adjusted
     # again. A camera flagged at its registration (chosen on a margin) is tried too, and
     # registered again it carries the first flag no more
-    from stereoseed.sfm.hindsight import register_again
+    from stereoseed.sfm.hindsight import Hindsight, register_again
     from stereoseed.sfm.registration.base import FoundBy
 
     cfg = Config()
     recon, Ps, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    assert register_again(recon, cfg) == ({}, {}, None)  # sound cameras: nothing to do, nothing to say
+    assert register_again(recon, cfg) == Hindsight({}, {})  # sound cameras: nothing to do, nothing to say
     view = _misplaced_4(recon, P_wrong)
     view.zoomed = True  # as if its first camera had claimed a zoom: no evidence for the one found again
     if flagged:
-        view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
+        recon.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) > 0.09
     seen = set(recon.obs_point[recon.obs_view == 4])
-    again, contradicted, ba = register_again(recon, cfg)
+    found = register_again(recon, cfg)
+    again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert list(again) == [4] and "found between v3.png and v5.png" in again[4]
-    assert contradicted is None  # the model moved: the final judgement looks at it afresh
+    # the verdicts on the model as it was (a camera flagged when placed is not judged again)
+    assert set(contradicted) == (set() if flagged else {4})
     assert ba["rounds"] >= 1  # and it was adjusted as a whole
     assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) < 0.002
-    assert view.found_by == FoundBy.HINDSIGHT and view.registration_flag is None and not view.zoomed
+    assert view.found_by == FoundBy.HINDSIGHT and view.placement_flag is None and not view.zoomed
     # its observations now: points of its neighbours (its own beside one neighbour went with the wrong camera)
     now = recon.obs_point[recon.obs_view == 4]
     assert len(now) >= cfg.resection.min_inliers and np.all(np.isin(now, recon.obs_point[np.isin(recon.obs_view, [3, 5])]))
@@ -290,7 +294,8 @@ def test_a_rival_chosen_on_a_margin_is_not_registered_again(monkeypatch):
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
     monkeypatch.setattr(hindsight, "ambiguity_flag", lambda *a: "ambiguous: repeated structure (as if)")
-    again, contradicted, ba = hindsight.register_again(recon, cfg)
+    found = hindsight.register_again(recon, cfg)
+    again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert again == {} and ba is None and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
 
 
@@ -308,14 +313,15 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
     before = recon.checkpoint()
-    again, contradicted, ba = register_again(recon, cfg)
+    found = register_again(recon, cfg)
+    again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert again == {} and ba is None
-    assert list(contradicted) == [4] and contradicted[4].startswith("contradicted by the other cameras")
+    assert list(contradicted) == [4] and contradicted[4].reason.startswith("contradicted by the other cameras")
     after = recon.checkpoint()
     assert np.array_equal(after.points, before.points) and all(
         np.array_equal(a, b) for a, b in zip(after.observations, before.observations))
     assert np.array_equal(view.P, P_wrong)
-    assert view.found_by == FoundBy.MOTION_PRIOR and view.registration_flag is None
+    assert view.found_by == FoundBy.MOTION_PRIOR and view.placement_flag is None
 
 
 def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
@@ -325,5 +331,6 @@ def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
     cfg = Config().replace(pipeline={"mode": "paper"})
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
-    again, contradicted, _ = register_again(recon, cfg)
+    found = register_again(recon, cfg)
+    again, contradicted = found.registered_again, found.contradicted
     assert again == {} and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)

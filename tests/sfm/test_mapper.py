@@ -3,9 +3,10 @@ way COLMAP tests its incremental mapper: initialise, insert, finish; a failed in
 import numpy as np
 import pytest
 
-from ring_helpers import ring, state, assert_same_state, walked
+from ring_helpers import as_if_placed_by, ring, state, assert_same_state, walked
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.sfm.mapper import finish, initialise, insert_view
+from stereoseed.scene.camera_life import Flag
 
 
 def test_initialise_triangulates_the_shared_points_of_the_pair():
@@ -63,7 +64,7 @@ def test_an_unexpected_error_after_the_commit_propagates_with_the_model_restored
 def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box_scene):
     # a weakly placed view can lose its observations to outlier removal until nothing determines
     # its camera; the finishing step then deregisters it and says why
-    from stereoseed.sfm.mapper import _drop_undetermined_views
+    from stereoseed.sfm.finishing import _drop_undetermined_views
     from stereoseed.pipeline import reconstruct
 
     scene = small_box_scene.prefix(5)
@@ -108,7 +109,7 @@ def _flagged_when_placed(monkeypatch, k):
     def flagging(recon, source, i, cfg):
         found = registered(recon, source, i, cfg)
         if i == k and not isinstance(found, mapper.RegistrationFailure):
-            found = dataclasses.replace(found, notes={**found.notes, "flag": "ambiguous: repeated structure (as if)"})
+            found = dataclasses.replace(found, flag=Flag.parse("ambiguous: repeated structure (as if)"))
         return found
 
     monkeypatch.setattr(mapper, "_registered", flagging)
@@ -121,7 +122,7 @@ def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged
     cfg = Config()
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     if flagged:
-        recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+        recon.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     _cannot_follow(monkeypatch, 5, after=(4,))
     before = state(recon)
     report = insert_view(recon, 5, cfg, source)
@@ -132,7 +133,7 @@ def test_a_flagged_view_the_next_cannot_follow_is_withdrawn(monkeypatch, flagged
     assert report["status"] == "registered" and list(report["withdrawn"]) == [names[4]]
     assert "flagged when placed (ambiguous: repeated structure" in report["withdrawn"][names[4]]
     assert not recon.views[4].registered and recon.views[4].status.startswith("failed: ")
-    assert recon.views[4].registration_flag is None and not np.any(recon.obs_view == 4)
+    assert recon.views[4].placement_flag is None and not np.any(recon.obs_view == 4)
     assert np.linalg.norm(camera_center(recon.views[5].P) - camera_center(Ps[5])) < 0.002
 
 
@@ -144,7 +145,7 @@ def test_a_view_placed_by_propagated_matches_alone_the_next_cannot_follow_is_wit
 
     cfg = Config()
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
-    recon.views[4].found_by = FoundBy.QUASI_DENSE
+    as_if_placed_by(recon, 4, FoundBy.QUASI_DENSE)
     _cannot_follow(monkeypatch, 5, after=(4,))
     report = insert_view(recon, 5, cfg, source)
     assert report["status"] == "registered" and list(report["withdrawn"]) == [names[4]]
@@ -156,13 +157,13 @@ def test_a_view_placed_by_propagated_matches_alone_the_next_cannot_follow_is_wit
 def test_a_flagged_view_stays_when_the_next_fails_without_it_too(monkeypatch):
     cfg = Config()
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
-    recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    recon.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     _cannot_follow(monkeypatch, 5, after=(3, 4))
     before = state(recon)
     report = insert_view(recon, 5, cfg, source)
     assert report["status"] == "failed" and "without_flagged_previous" in report
     assert_same_state(before, state(recon))
-    assert recon.views[4].registered and recon.views[4].registration_flag
+    assert recon.views[4].registered and recon.views[4].placement_flag
 
 
 def test_the_report_of_a_withdrawn_view_says_it_failed(monkeypatch):
@@ -187,7 +188,7 @@ def test_a_withdrawal_puts_back_the_model_from_before_the_flagged_view(monkeypat
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
     n_before = len(recon.points)
     _flagged_when_placed(monkeypatch, 5)
-    assert insert_view(recon, 5, cfg, source)["status"] == "registered" and recon.views[5].registration_flag
+    assert insert_view(recon, 5, cfg, source)["status"] == "registered" and recon.views[5].placement_flag
     assert len(recon.points) > n_before  # view 5 made points of its own
     _cannot_follow(monkeypatch, 6, after=(5,))
     report = insert_view(recon, 6, cfg, source)
@@ -203,14 +204,14 @@ def test_an_error_after_a_withdrawal_puts_the_flagged_view_back(monkeypatch):
 
     cfg = Config()
     recon, names, Ps, source = walked(7, upto=4, cfg=cfg)
-    recon.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    recon.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     _cannot_follow(monkeypatch, 5, after=(4,))
     before, status = state(recon), recon.views[4].status
     monkeypatch.setattr(mapper, "_commit_and_grow", _raising(np.linalg.LinAlgError("Singular matrix")))
     report = insert_view(recon, 5, cfg, source)
     assert report["status"] == "failed" and f"placed only without {names[4]}" in report["reason"]
     assert_same_state(before, state(recon))
-    assert recon.views[4].status == status and recon.views[4].registration_flag
+    assert recon.views[4].status == status and recon.views[4].placement_flag
 
 
 def test_the_view_knows_what_placed_it():

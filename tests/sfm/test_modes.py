@@ -25,8 +25,8 @@ def test_the_paper_mode_keeps_two_view_points_and_unlinked_chained_observations(
 def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
     """accurate mode, "focal" model: the BA after an insertion runs on the "fixed" model while no
     image after the pair was found zoomed; then, and in paper mode, on the run's model."""
-    from stereoseed.sfm.modes import mode_of
-    from stereoseed.sfm.reconstruction import Reconstruction, View
+    from stereoseed.sfm.strategy import mode_of
+    from stereoseed.scene.reconstruction import Reconstruction, View
 
     def _unzoomed_held(recon, cfg):  # the BA configuration the mode gives after an insertion
         return mode_of(cfg).adjustment_config(recon, cfg)
@@ -45,7 +45,8 @@ def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
 
 
 def test_each_mode_owns_the_defaults_the_resolved_config_takes():
-    from stereoseed.sfm.modes import AccurateMode, PaperMode, mode_of
+    from stereoseed.sfm.modes import AccurateMode, PaperMode
+    from stereoseed.sfm.strategy import mode_of
 
     for mode, cls in (("paper", PaperMode), ("accurate", AccurateMode)):
         cfg = Config(pipeline=PipelineConfig(mode=mode)).resolve()

@@ -19,6 +19,7 @@ from stereoseed.sfm.registration.quasi_dense import grid_best, weak_chain_limit
 from stereoseed.sfm.registration.reconsider import reconsider
 from stereoseed.sfm.registration.base import RegistrationFailure, register_view
 from stereoseed.synthetic.scene import SceneConfig, render_scene
+from stereoseed.scene.camera_life import Flag
 
 
 def test_grid_best_keeps_the_best_match_of_each_cell():
@@ -81,27 +82,27 @@ def test_an_ambiguous_choice_is_lifted_only_when_the_propagated_matches_tell_the
     recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], cfg)
     found = register_view(recon, 2, cfg)
     assert not isinstance(found, RegistrationFailure)
-    flag = "ambiguous: repeated structure (as if a rival explained nearly as much)"
+    flag = Flag.parse("ambiguous: repeated structure (as if a rival explained nearly as much)")
     # a rival one 'period' (5 cm, 3.5 % of the 1.4 m distance) along the walk: the matches
     # propagated over the whole overlap lie far from its epipolar lines, the flag goes
-    period = dataclasses.replace(found, rivals=(_moved(found.P, 0.05),), notes={"flag": flag})
+    period = dataclasses.replace(found, rivals=(_moved(found.P, 0.05),), flag=flag)
     judged = judge_ambiguity(recon, 1, period, cfg)
-    assert "flag" not in judged.notes and "ambiguity_resolved" in judged.notes
+    assert judged.flag is None and "ambiguity_resolved" in judged.notes
     assert np.array_equal(judged.P, found.P)  # the choice itself never changes
     # a rival 0.1 mm away agrees with them as well as the winner: the flag stays, with the evidence
-    twin = dataclasses.replace(found, rivals=(_moved(found.P, 1e-4),), notes={"flag": flag})
+    twin = dataclasses.replace(found, rivals=(_moved(found.P, 1e-4),), flag=flag)
     judged = judge_ambiguity(recon, 1, twin, cfg)
-    assert judged.notes["flag"] == flag and judged.notes["ambiguity"].startswith("unresolved: the propagated")
+    assert judged.flag == flag and judged.notes["ambiguity"].startswith("unresolved: the propagated")
     # the matches say how the two cameras stand to each other: a flagged previous view lifts nothing
-    recon.views[1].registration_flag = "ambiguous: repeated structure (the previous one)"
+    recon.flag(1, Flag.parse("ambiguous: repeated structure (the previous one)"))
     judged = judge_ambiguity(recon, 1, period, cfg)
-    assert judged.notes["flag"] == flag and "is flagged itself" in judged.notes["ambiguity"]
+    assert judged.flag == flag and "is flagged itself" in judged.notes["ambiguity"]
     # on a rig, either image of the previous station: its flag sits on the image it was resected from
-    recon.views[1].registration_flag = None
-    recon.views[0].registration_flag = "ambiguous: repeated structure (the station's left image)"
+    recon.lift_flag(1, "as if lifted")
+    recon.flag(0, Flag.parse("ambiguous: repeated structure (the station's left image)"))
     recon.rig = Rig.from_projections(recon.views[0].P, recon.views[1].P)
     judged = judge_ambiguity(recon, 1, period, cfg)
-    assert judged.notes["flag"] == flag and f"{recon.views[0].name}, is flagged itself" in judged.notes["ambiguity"]
+    assert judged.flag == flag and f"{recon.views[0].name}, is flagged itself" in judged.notes["ambiguity"]
     no_rivals = dataclasses.replace(period, rivals=())
     assert judge_ambiguity(recon, 1, no_rivals, cfg) is no_rivals  # nothing to judge: as it is
 

@@ -5,7 +5,7 @@ from geometry_helpers import box_points, ring_camera
 from stereoseed.geometry.projection import camera_center, project
 from stereoseed.config import Config, PipelineConfig
 from stereoseed.features.harris import Features
-from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.scene.reconstruction import Reconstruction, View
 from stereoseed.sfm.refinement import global_adjust, select_tracks
 
 

@@ -8,6 +8,7 @@ from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import initialise, insert_view
 from stereoseed.sfm.registration.base import FoundBy, Registration, RegistrationFailure, register_view
+from stereoseed.scene.camera_life import Flag
 
 
 def test_registration_finds_the_camera_and_changes_nothing(started):
@@ -50,7 +51,7 @@ def test_a_right_calibration_is_kept_when_the_robust_F_locks_onto_a_wrong_period
 
 
 def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(started):
-    from stereoseed.sfm.mapper import registrars
+    from stereoseed.sfm.strategy import registrars
     from stereoseed.sfm.registration.base import SparseRegistrar
     from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
     from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
@@ -113,7 +114,7 @@ def test_a_camera_across_a_view_not_placed_needs_confirmation(previous_flagged):
     recon, names, Ps, source = walked(8, upto=3, cfg=cfg, blind=(4,), no_epipolar=(5,))
     insert_view(recon, 4, cfg, source)
     if previous_flagged:
-        recon.views[3].registration_flag = "ambiguous: repeated structure (as if)"
+        recon.flag(3, Flag.parse("ambiguous: repeated structure (as if)"))
     report = insert_view(recon, 5, cfg, source)
     assert report["status"] == "failed" and "placed across 1 view not placed" in report["reason"]
     why = "from v3.png, flagged itself (ambiguous: repeated structure)" if previous_flagged else \

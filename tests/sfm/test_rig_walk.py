@@ -16,9 +16,10 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed.dense.densify import densify
 from stereoseed.experiments.evaluation import surface_distance
 from stereoseed.pipeline import reconstruct
-from stereoseed.sfm.trust import assess
+from stereoseed.sfm.finishing import judge_cameras as assess
 from stereoseed.synthetic.rig import RigConfig, render_rig
 from stereoseed.synthetic.scene import SceneConfig
+from stereoseed.scene.camera_life import Flag
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +72,7 @@ def test_each_station_has_one_uncertainty_and_one_flag(rig_scene, rig_run):
     assert np.linalg.norm(left.position_sigma - right.position_sigma) < 0.2 * np.linalg.norm(left.position_sigma)
     # what flags one image of a station flags its partner (one rigid body)
     again = copy.deepcopy(recon)  # the module's run stays as it is
-    again.views[4].registration_flag = "ambiguous: repeated structure (as if)"
+    again.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     out = assess(again, Config().replace(trust={"keep_flagged": True}))
     assert set(out["flagged"]) == {s.names[4], s.names[5]}
     assert out["flagged"][s.names[5]].endswith(f"(its station's {s.names[4]})")

@@ -47,7 +47,7 @@ def _pool(args: argparse.Namespace, workers: int):
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from stereoseed.pipeline import reconstruct_to_folder  # its report: the folder is not read back
-    from stereoseed.sfm.flags import flag_kind
+    from stereoseed.scene.camera_life import flag_kind
 
     cfg = _config(args)
     if args.scheduler and not args.dense:

@@ -28,7 +28,7 @@ from stereoseed.dense.config import DenseConfig
 from stereoseed.matching.config import PropagationConfig
 from stereoseed.io.ply import write_ply
 from stereoseed.matching.propagation.core import propagate
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of
 from stereoseed.threads import map_chunks, split_rows
 from stereoseed.estimators.triangulation import triangulate_two_view

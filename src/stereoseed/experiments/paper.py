@@ -255,7 +255,7 @@ def _run_job(job: _Job) -> dict[int, dict[str, Any]]:
         if count in job.counts and count < n:  # the run's own end gives the last count
             t = time.perf_counter()
             try:
-                with as_finished(recon, per_image, cfg) as (model, report):
+                with as_finished(recon, cfg) as (model, report):
                     run_time = t - t0 - evaluating + report["final"]["seconds"]  # insertions so far, finishing step
                     out[count] = evaluate(model, report, count, run_time)
             except StereoseedError as e:  # as a run on these images would have failed

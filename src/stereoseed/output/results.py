@@ -33,7 +33,7 @@ from stereoseed.geometry.projection import backproject, camera_center
 from stereoseed.config import Config
 from stereoseed.io.files import atomic_path, write_json
 from stereoseed.io.ply import write_ply
-from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.scene.reconstruction import Reconstruction, View
 
 __all__ = ["FORMAT_VERSION", "exported_points", "write_result", "frustum_mesh"]
 

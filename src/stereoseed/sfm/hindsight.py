@@ -31,14 +31,14 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center, depths
-from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.modes import mode_of
+from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.motion_prior import described_points, explained_points, explaining_matches, hypotheses_near
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import CALIBRATED, adjust, global_adjust
 from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector, _rivals, ambiguity_flag
 
-__all__ = ["contradicted_by_neighbours", "register_again", "between", "Rival"]
+__all__ = ["contradicted_by_neighbours", "register_again", "Hindsight", "between", "Rival"]
 
 log = logging.getLogger(__name__)
 
@@ -74,16 +74,16 @@ class Rival:
     depth: float
     points: np.ndarray
     desc: np.ndarray
-    margin: str | None
+    margin: Flag | None
 
     def where(self, recon: Reconstruction) -> str:
         return (f"a camera {self.distance:.3g} away ({100 * self.distance / self.depth:.1f} % of the scene's depth), "
                 f"found between {recon.views[self.a].name} and {recon.views[self.b].name}, explains {self.explains} "
                 f"of their points, this one {self.kept}")
 
-    def contradiction(self, recon: Reconstruction) -> str:
+    def contradiction(self, recon: Reconstruction) -> Flag:
         """The flag it puts on the view's camera."""
-        return f"{FlagKind.CONTRADICTED}: {self.where(recon)}"
+        return Flag(FlagKind.CONTRADICTED, self.where(recon))
 
 
 def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival | None:
@@ -140,11 +140,11 @@ def _rivals_between(recon: Reconstruction, cfg: Config, sound: list[int], views:
 
 
 def _sound(recon: Reconstruction, doubted: set[int]) -> list[int]:
-    return [v for v in recon.registered_views if not recon.views[v].registration_flag and v not in doubted]
+    return [v for v in recon.registered_views if not recon.views[v].placement_flag and v not in doubted]
 
 
-def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, str]:
-    """{view: reason} of the registered views after the pair, not flagged at their registration
+def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, Flag]:
+    """{view: flag} of the registered views after the pair, not flagged at their registration
     nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
     module's rule; :func:`_rivals_between` says which views). Not on a rig walk (a station's two
     images are one body; their neighbours are each other)."""
@@ -155,23 +155,32 @@ def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[
     return {k: rival.contradiction(recon) for k, rival in _rivals_between(recon, cfg, sound, sound)}
 
 
-def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()
-                   ) -> tuple[dict[int, str], dict[int, str] | None, dict[str, Any] | None]:
+@dataclass(frozen=True)
+class Hindsight:
+    """What judging the cameras between their neighbours did: {view: what was found} of those
+    registered again (``registered_again``), :func:`contradicted_by_neighbours`'s verdicts on the
+    model as it was before any (``contradicted``: they hold for the model only when nothing was
+    registered again), and the global BA's report after any (``ba``, else None)."""
+
+    registered_again: dict[int, str]
+    contradicted: dict[int, Flag]
+    ba: dict[str, Any] | None = None
+
+
+def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> Hindsight:
     """Put the rival a view's neighbours find (:func:`_rival`) in that view's place, flagged
     views included, when the rival is no choice on a margin itself (no camera found there, the
     view's own included, explains ``TrustConfig.ambiguity_ratio`` of its points a period away:
     the registration's rule). The view's observations go, the neighbours' points the rival
     explains become its observations, and the camera is refined on them (the points held); a
     refinement gone astray (fewer than ``ResectionConfig.min_inliers`` of them within
-    ``ransac_threshold_px``, or their RMS over ``max_rms_px``) puts the model back. It claims no
-    zoom. After any, the model is globally adjusted (its outlier rounds included).
-    Returns ({view: what was found}, {view: reason} of :func:`contradicted_by_neighbours` when
-    nothing was registered again, else None: the model moved, judge it again; the global BA's
-    report, or None). Not on a rig; the paper's mode (there to reproduce its experiments) and a
-    run without a final global BA (``ba="local"``) only judge."""
+    ``ransac_threshold_px``, or their RMS over ``max_rms_px``) puts the model back; one that holds
+    is recorded (:meth:`Reconstruction.register_again`). After any, the model is globally adjusted
+    (its outlier rounds included). Not on a rig; the paper's mode (there to reproduce its
+    experiments) and a run without a final global BA (``ba="local"``) only judge."""
     cfg = cfg.resolve()
     if recon.rig is not None:
-        return {}, {}, None
+        return Hindsight({}, {})
     mp, rc = cfg.motion_prior, cfg.resection
     sound = _sound(recon, doubted)
     mode = mode_of(cfg, recon)
@@ -204,12 +213,10 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
                      "again", view.name, fits)
             continue
         again[k] = (f"{rival.where(recon)}; registered again on {fits} of them "
-                    f"(first: {view.found_by}{', flagged' if view.registration_flag else ''})")
-        view.registration_flag = view.flag_reason = None
-        view.found_by = FoundBy.HINDSIGHT
-        view.zoomed = False  # a zoom its first camera claimed is no evidence for this one
+                    f"(first: {view.found_by}{', flagged' if view.placement_flag else ''})")
+        recon.register_again(k, again[k])
         log.warning("%s: registered again between its neighbours: %s", view.name, again[k])
     if not again:
-        return again, contradicted, None
+        return Hindsight(again, contradicted)
     ba, _ = global_adjust(recon, mode.adjustment_config(recon, cfg))  # the zooms may have changed
-    return again, None, ba
+    return Hindsight(again, contradicted, ba)

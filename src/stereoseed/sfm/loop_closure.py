@@ -12,7 +12,7 @@ import numpy as np
 from stereoseed.geometry.projection import fundamental_from_projections, project
 from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 
 __all__ = ["close_loop"]

@@ -7,7 +7,8 @@
 The reconstruction is data; ``source`` (a :class:`~stereoseed.sfm.correspondence.CorrespondenceSource`,
 default :class:`~stereoseed.sfm.correspondence.HarrisZncc`) is where its correspondences come from.
 
-:func:`insert_view` registers view k through the registrars in the order :func:`registrars` gives (each
+:func:`insert_view` registers view k through the registrars in the order
+:func:`stereoseed.sfm.strategy.registrars` gives (each
 changes nothing) and commits the camera at one point only; then the mode's strategy
 (:mod:`stereoseed.sfm.modes`) adds points, grows tracks and adjusts. An image that cannot be
 placed is reported (``"status": "failed"`` with the reason) and leaves the reconstruction as it
@@ -20,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import weakref
 from typing import Any
 
 import numpy as np
@@ -30,25 +30,23 @@ from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
-from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.modes import Mode, holds_intrinsics, mode_of
-from stereoseed.sfm.reconstruction import Reconstruction, View
-from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
+from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.sfm.modes import Mode, holds_intrinsics
+from stereoseed.sfm.strategy import mode_of, registrars
+from stereoseed.sfm.finishing import finish
+from stereoseed.scene.reconstruction import Reconstruction, View
 from stereoseed.sfm.registration.quasi_dense import grow_quasi_dense
-from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
 from stereoseed.sfm.refinement import adjust, ba_report, drop_outliers
-from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registrar, Registration, RegistrationFailure, SparseRegistrar,
-                                             consistent_chain)
-from stereoseed.sfm.hindsight import register_again
-from stereoseed.sfm.trust import assess, contradicted_cameras
-from stereoseed.sfm.view_store import view_of_input
+from stereoseed.sfm.registration.base import (FailureKind, FoundBy, Registration, RegistrationFailure,
+                                              consistent_chain, reported_notes)
+from stereoseed.scene.view_store import view_of_input
 from stereoseed.sfm.tracks import add_two_view_points, new_points_three_view
 from stereoseed.geometry.models import CameraModel
 from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.robust import huber_cost_of_norms
 from stereoseed.estimators.rig_resection import Rig
 
-__all__ = ["initialise", "insert_view", "finish"]
+__all__ = ["initialise", "insert_view", "finish", "pair_rig"]
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +86,7 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     source = source or HarrisZncc(cfg)
     for i in (0, 1):
         view = recon.views[i]
-        view.P, view.status = np.asarray(P_pair[i], np.float64), "calibrated"
+        recon.calibrate(i, P_pair[i])
         view.features = source.features(i, view.image)
         view.point_of_feature = np.full(len(view.features), -1, np.int64)
         if len(view.features) == 0:
@@ -101,8 +99,11 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     if len(ids) < cfg.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
         raise StereoseedError(f"{names[0]}, {names[1]}: only {len(ids)} points triangulated from the calibrated pair "
                               f"({len(m)} matches); check the calibration belongs to these two images")
-    return recon, {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
-                   "seconds": {"total": time.perf_counter() - t0}}
+    report = {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
+              "seconds": {"total": time.perf_counter() - t0}}
+    recon.record(0, {"image": names[0], "status": "calibrated"})
+    recon.record(1, report)
+    return recon, report
 
 
 def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config) -> None:
@@ -132,28 +133,16 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
             f"with more of the scene in view.)")
 
 
-def registrars(cfg: Config, recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
-    """The registrars tried for each view, in order: the sparse matches (epipolar chain against the
-    motion prior), the judge of an ambiguous choice, then the quasi-dense matches where the
-    sparse outcome is weak (a registrar that does not apply returns the outcome it was given). A rig walk's (``recon.rig``): its
-    stations' generalised resection (:class:`stereoseed.sfm.rig.RigRegistrar`)."""
-    if recon is not None and recon.rig is not None:
-        from stereoseed.sfm.rig import RigRegistrar  # rig.py builds on the modes this module imports
-
-        return (RigRegistrar(),)
-    return (SparseRegistrar(), AmbiguityJudge(), QuasiDenseRegistrar())
-
-
 def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
                 source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
     source: the correspondences :func:`initialise` was given (default :class:`HarrisZncc`).
 
-    Returns a JSON-able report: "status" is "registered" or "failed" (with "reason"); a failed
-    view leaves ``recon`` as it was (only the view's status records why). "withdrawn" ({name:
-    reason}, when present): k was placed only once the view before it, doubted when placed
-    (:func:`_doubted_when_placed`), was taken out of the model (:func:`_without_doubted_previous`);
-    that view's own report is out of date (it failed)."""
+    Returns a JSON-able report (also the view's, in its history): "status" is "registered" or
+    "failed" (with "reason"); a failed view leaves ``recon`` as it was (only the view's history
+    records why). "withdrawn" ({name: reason}, when present): k was placed only once the view
+    before it, doubted when placed (:func:`_doubted_when_placed`), was taken out of the model
+    (:func:`_without_doubted_previous`; that view's history says so)."""
     cfg = cfg.resolve()
     source = source or HarrisZncc(cfg)
     view = recon.views[k]
@@ -162,7 +151,7 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     if isinstance(found, RegistrationFailure):
         retried = _without_doubted_previous(recon, source, k, found, cfg)
         if isinstance(retried, RegistrationFailure):
-            return _failed(view, retried.reason, retried)
+            return _failed(recon, k, retried.reason, retried)
         found, withdrawn, state, state_without = retried
     else:
         state = state_without = recon.checkpoint()  # the model before this insertion
@@ -171,22 +160,19 @@ def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
     except np.linalg.LinAlgError as e:
         recon.restore(state)
         why = f"; placed only without {', '.join(withdrawn)}, which stays" if withdrawn else ""
-        return _failed(view, f"{view.name}: numerical failure ({e}){why}; skipped", found)
+        return _failed(recon, k, f"{view.name}: numerical failure ({e}){why}; skipped", found)
     except BaseException:  # anything else (a bug, an interrupt) propagates, with the model as it was
         recon.restore(state)
         raise
     # the model before this insertion, while the view is doubted: what its withdrawal restores
-    _before_doubted[recon] = (k, state_without) if _doubted_when_placed(view) else None
+    recon.insertion_undo = (k, state_without) if _doubted_when_placed(view) else None
     for reason in withdrawn.values():
         log.info("%s", reason)
     if withdrawn:
         report["withdrawn"] = withdrawn
+    recon.record(k, report)
     return report
 
-
-# per reconstruction: (the last view, when it was doubted when placed, the model just before its
-# insertion); a resumed run starts without it
-_before_doubted: "weakref.WeakKeyDictionary[Reconstruction, tuple[int, Any] | None]" = weakref.WeakKeyDictionary()
 
 # the failures an image may owe to the view it was chained to (not its size, not roundoff)
 _CHAIN_FAILURES = (FailureKind.TOO_FEW_MATCHES, FailureKind.NO_CAMERA, FailureKind.DISAGREES)
@@ -194,7 +180,8 @@ _CHAIN_FAILURES = (FailureKind.TOO_FEW_MATCHES, FailureKind.NO_CAMERA, FailureKi
 
 def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
                 cfg: Config) -> Registration | RegistrationFailure:
-    """View k's camera from the registrars (:func:`registrars`), the model unchanged."""
+    """View k's camera from the registrars (:func:`stereoseed.sfm.strategy.registrars`), the
+    model unchanged."""
     found = None
     for registrar in registrars(cfg, recon):
         found = registrar.register(recon, source, k, found, cfg)
@@ -205,8 +192,8 @@ def _doubted_when_placed(view: View) -> str | None:
     """Why ``view``'s registration is weak evidence for its camera, or None: flagged when placed
     (a choice between copies of a repeated pattern, a zoom it could not measure), or placed by
     the propagated matches alone (the sparse chain was too weak to place it)."""
-    if view.registration_flag:
-        return f"flagged when placed ({view.registration_flag})"
+    if view.placement_flag:
+        return f"flagged when placed ({view.placement_flag})"
     return "placed by the propagated matches alone" if view.found_by == FoundBy.QUASI_DENSE else None
 
 
@@ -234,43 +221,35 @@ def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSourc
     if not doubt:
         return failure
     state = recon.checkpoint()
-    kept = _before_doubted.get(recon)
-    if kept is not None and kept[0] == p:
-        recon.restore(kept[1])  # p pending again, as before its insertion
-    else:
-        recon.deregister(p)
-    view.features, view.point_of_feature = None, np.zeros(0, np.int64)  # as a view never placed
+    kept = recon.insertion_undo
+    reason = (f"{view.name}: withdrawn: {doubt}, and the next image, {recon.views[k].name}, "
+              f"was placed only without it")
+    # tried without p: the model as before p's insertion where the run kept it
+    recon.withdraw(p, reason, kept[1] if kept is not None and kept[0] == p else None)
     found = _registered(recon, source, k, cfg)
     if isinstance(found, RegistrationFailure):
         recon.restore(state)
         return dataclasses.replace(failure, notes={**failure.notes, "without_flagged_previous": found.reason})
-    reason = (f"{view.name}: withdrawn: {doubt}, and the next image, {recon.views[k].name}, "
-              f"was placed only without it")
-    view.status = f"failed: {reason}"
-    _before_doubted[recon] = None
+    recon.insertion_undo = None
     return found, {view.name: reason}, state, recon.checkpoint()
 
 
-def _failed(view: View, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
-    view.status = f"failed: {reason}"
+def _failed(recon: Reconstruction, k: int, reason: str, found: Registration | RegistrationFailure) -> dict[str, Any]:
+    """View k could not be placed (``reason``): recorded in its history; its report."""
     log.info("%s", reason)
     failure = found.kind if isinstance(found, RegistrationFailure) else FailureKind.NUMERICAL
-    return {"image": view.name, "status": "failed", "reason": reason, "failure": failure, "matches": found.matches,
-            "chained_points": found.chained_points, **found.notes,
-            "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
+    report = {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": failure,
+              "matches": found.matches, "chained_points": found.chained_points, **reported_notes(found),
+              "seconds": dict(found.seconds, total=float(sum(found.seconds.values())))}
+    recon.fail(k, reason, report)
+    return report
 
 
-def _commit(view: View, reg: Registration) -> None:
+def _commit(recon: Reconstruction, k: int, reg: Registration) -> None:
     """The one place where a registered camera enters the reconstruction."""
     cand = reg.candidate
-    view.keep_image(cand.image, cand.rotated_180)
-    view.features = cand.features
-    view.point_of_feature = np.full(len(cand.features), -1, np.int64)
-    view.camera_model = CameraModel.FOCAL if reg.free_camera_refused else None
-    view.camera = reg.resection.camera
-    view.registration_flag = view.flag_reason = reg.notes.get("flag")
-    view.found_by = reg.found_by
-    view.zoomed = reg.zoomed
+    recon.register(k, reg.resection.camera, reg.found_by, cand.features, cand.image, cand.rotated_180,
+                   CameraModel.FOCAL if reg.free_camera_refused else None, reg.zoomed, reg.flag)
 
 
 def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int, reg: Registration,
@@ -280,9 +259,9 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
     mode = mode_of(cfg, recon)
     view = recon.views[k]
     prev = recon.registered_before(k, 1)[0]
-    _commit(view, reg)
+    _commit(recon, k, reg)
     report: dict[str, Any] = {"image": view.name, "matches": reg.matches, "chained_points": reg.chained_points,
-                              "registered_by": reg.found_by, **reg.notes}
+                              "registered_by": reg.found_by, **reported_notes(reg)}
     if reg.quasi_dense is not None:
         report["quasi_dense"] = reg.quasi_dense.report
     if view.rotated_180:
@@ -339,7 +318,6 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
         ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
     timing["bundle"] = time.perf_counter() - t
     removed = drop_outliers(recon, cfg)
-    view.status = "registered"
     report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
@@ -391,15 +369,16 @@ def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: 
     rc = cfg.registration
     measured = sigma <= rc.max_focal_sigma or zoom >= rc.zoom_certain_sigmas * sigma
     # a camera chosen on a margin (a repeated pattern) does not decide the lens of the whole walk
-    kept = bool(asked and measured and not view.registration_flag)
+    kept = bool(asked and measured and not view.placement_flag)
     recon.restore(runs[kept][2])
     view.zoomed = kept
     out = {"bic_for_the_zoom": float(evidence), "zoom": float(zoom), "focal_sigma": float(sigma), "kept": kept}
     if asked and not measured:
-        view.registration_flag = view.flag_reason = (
-            f"{FlagKind.UNCERTAIN}: its residuals ask for a {100 * zoom:.1f} % zoom that this view measures only to "
-            f"{100 * sigma:.1f} % (1 sigma; a zoom and a step along the optical axis look alike here)")
-        out["flag"] = view.flag_reason
+        flag = Flag(FlagKind.UNCERTAIN, f"its residuals ask for a {100 * zoom:.1f} % zoom that this view measures only "
+                                        f"to {100 * sigma:.1f} % (1 sigma; a zoom and a step along the optical axis "
+                                        f"look alike here)")
+        recon.flag(k, flag)
+        out["flag"] = flag.reason
     return runs[kept][0], out
 
 
@@ -420,46 +399,3 @@ def _refocused(camera: Camera, focal: float, points: np.ndarray) -> Camera:
 def _window_cost(recon: Reconstruction, sel: np.ndarray, cfg: Config) -> float:
     err = recon.observation_errors(sel & recon.alive[recon.obs_point])
     return 2.0 * huber_cost_of_norms(err[np.isfinite(err)], cfg.bundle.huber_px)
-
-
-def finish(recon: Reconstruction, cfg: Config = Config(), source: CorrespondenceSource | None = None) -> dict[str, Any]:
-    """After the last insertion: the mode's finishing step (accurate: loop closure, a final
-    global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``), a camera that its
-    neighbours place clearly better elsewhere registered again there
-    (:func:`stereoseed.sfm.hindsight.register_again`), then each camera judged
-    (:func:`stereoseed.sfm.trust.assess`: its uncertainty, a flag where the run cannot vouch for it)."""
-    t = time.perf_counter()
-    cfg = cfg.resolve()
-    out = mode_of(cfg, recon).finish(recon, cfg, source or HarrisZncc(cfg))
-    between = None
-    if cfg.trust.judge_between_neighbours:
-        again, between, ba = register_again(recon, cfg, doubted=set(contradicted_cameras(recon, cfg)))
-        if again:
-            out["registered_again"] = {recon.views[v].name: found for v, found in again.items()}
-            out["registered_again_ba"] = ba
-    dropped = _drop_undetermined_views(recon, cfg)
-    if dropped:
-        out["dropped"] = dropped
-        between = None  # the model moved: judged again
-    out["trust"] = assess(recon, cfg, between)
-    out["seconds"] = time.perf_counter() - t
-    return out
-
-
-def _drop_undetermined_views(recon: Reconstruction, cfg: Config) -> dict[str, str]:
-    """Deregister the moving camera's views left with fewer observations than a resection needs
-    (``ResectionConfig.min_inliers``): outlier removal can strip a weakly placed view (the motion
-    prior's camera from a dozen points) until nothing determines its camera, and a global BA then
-    moves it anywhere (a dino view 0.4 m off went to 2.2 m on 9 observations). Returns
-    {name: reason} of the views dropped."""
-    dropped = {}
-    counts = np.bincount(recon.obs_view, minlength=len(recon.views))
-    for k in recon.registered_views:
-        if k >= 2 and counts[k] < cfg.resection.min_inliers:
-            reason = (f"{recon.views[k].name}: dropped at the end, only {counts[k]} observations left after outlier "
-                      f"removal (a camera needs {cfg.resection.min_inliers}); its camera is not determined")
-            recon.deregister(k)
-            recon.views[k].status = f"failed: {reason}"
-            dropped[recon.views[k].name] = reason
-            log.info("%s", reason)
-    return dropped

@@ -22,13 +22,13 @@ from stereoseed.sfm.config import MODE_DEFAULTS, ModeDefaults
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.matching.containers import Matches
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import adjust, ba_report, global_adjust
 from stereoseed.sfm.registration.base import implausible_motion
 from stereoseed.sfm.tracks import add_two_view_points, retriangulate, track_by_projection
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["Mode", "PaperMode", "AccurateMode", "mode_of", "holds_intrinsics"]
+__all__ = ["Mode", "PaperMode", "AccurateMode", "holds_intrinsics"]
 
 PAPER_COST_IMAGES = 3  # eq. 12: the local BA's cost runs over the last three images
 
@@ -180,13 +180,3 @@ def holds_intrinsics(recon: Reconstruction, cfg: Config, besides: int | None = N
     pc = cfg.pipeline
     return (pc.hold_unzoomed and pc.camera_model == CameraModel.FOCAL
             and not any(recon.views[v].zoomed for v in recon.registered_views if v > 1 and v != besides))
-
-
-def mode_of(cfg: Config, recon: Reconstruction | None = None) -> Mode:
-    """The strategy of ``cfg.pipeline.mode``; a rig walk's (``recon.rig``) its own
-    (:class:`stereoseed.sfm.rig.RigMode`)."""
-    if recon is not None and recon.rig is not None:
-        from stereoseed.sfm.rig import RigMode  # rig.py builds on this module
-
-        return RigMode()
-    return PaperMode() if cfg.pipeline.mode == "paper" else AccurateMode()

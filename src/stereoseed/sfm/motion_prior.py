@@ -21,7 +21,7 @@ from stereoseed.estimators.config import ResectionConfig
 from stereoseed.sfm.config import MotionPriorConfig
 from stereoseed.features.harris import Features
 from stereoseed.geometry.neighbours import nearest_within
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 
 __all__ = ["pose_matrix", "predict_pose", "predict_camera", "recent_points", "described_points", "hypotheses_by_motion_prior", "explained_points", "explaining_matches", "Hypothesis",
            "trusted_chain_inliers"]

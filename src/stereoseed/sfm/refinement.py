@@ -13,7 +13,7 @@ import numpy as np
 from stereoseed.arrays import unique
 from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
 from stereoseed.config import Config
-from stereoseed.sfm.reconstruction import Reconstruction, eq14
+from stereoseed.scene.reconstruction import Reconstruction, eq14
 
 __all__ = ["adjust", "ba_report", "bundle_problem", "drop_outliers", "global_adjust", "select_tracks"]
 

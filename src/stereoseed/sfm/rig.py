@@ -37,7 +37,7 @@ from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.sfm.modes import AccurateMode
 from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_matrix, predict_pose, recent_points
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
                                               _rivals, ambiguity_flag, chained_points)
@@ -177,9 +177,9 @@ class RigRegistrar:
                                        kind=FailureKind.NO_CAMERA)
         reg = _registration(cand, res.projections()[side_of(k)], (res, matches, n_pairs), t0)
         if rivals:
-            reg.notes["flag"] = ambiguity_flag(rivals, counts, best)
             # judged as a single camera's choice is, on this image and the previous station's of its side
-            reg = dataclasses.replace(reg, rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
+            reg = dataclasses.replace(reg, flag=ambiguity_flag(rivals, counts, best),
+                                      rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
             reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, cfg, source)
         return reg
 

@@ -12,7 +12,7 @@ from stereoseed.features.harris import Features, describe
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.two_view import epipolar_band_mask
 from stereoseed.geometry.neighbours import nearest_within
-from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.scene.reconstruction import Reconstruction, View
 from stereoseed.sfm.correspondence import CorrespondenceSource, optional
 from stereoseed.estimators.triangulation import triangulate, triangulate_tracks
 

@@ -7,19 +7,20 @@ knows then (the field's answer to "a clean report on a wrong result"):
 * its consistency: a camera whose observations reproject much worse than the other cameras'
   after the final BA is contradicted by them (a camera placed one period over on a repeated
   pattern keeps residuals the model cannot explain away), and so is a predicted camera that a
-  camera found between its neighbours outdoes (:mod:`stereoseed.sfm.hindsight`);
+  camera found between its neighbours outdoes (:mod:`stereoseed.sfm.hindsight`; the caller gives
+  those verdicts);
 * its ties: a camera seeing too few points that other cameras also see is held where its
   registration put it, unchecked by the final BA; and a part of the walk tied to the calibrated
   pair only through a flagged camera floats once that camera leaves the model.
 
 A camera that fails either is *flagged*: it stays registered (its P is written) but ``reliable``
 is False with the reason, and, unless ``TrustConfig.keep_flagged``, its observations leave the
-model, so no point and no dense match rests on it.
+model, so no point and no dense match rests on it. :func:`judge` only returns the verdicts;
+:mod:`stereoseed.sfm.finishing` applies them through the model.
 """
 from __future__ import annotations
 
-import logging
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
@@ -27,18 +28,16 @@ from scipy import sparse
 from stereoseed.config import Config
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
-from stereoseed.sfm.flags import FlagKind
-from stereoseed.sfm.hindsight import contradicted_by_neighbours
-from stereoseed.sfm.modes import mode_of
+from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of, station_partner
 from stereoseed.sfm.refinement import CALIBRATED, bundle_problem  # the pair: the frame itself, never flagged
 
-__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "cut_off_cameras", "tied_observation_limit",
-           "assess"]
+__all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras", "cut_off_cameras",
+           "tied_observation_limit", "Verdicts", "judge"]
 
-log = logging.getLogger(__name__)
 
 
 def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
@@ -71,8 +70,8 @@ def _median_depth(recon: Reconstruction, view: int) -> float:
     return float(np.median(depths(recon.views[view].P, pts))) if len(pts) else float("nan")
 
 
-def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
-    """{view: reason} of the registered views after the pair whose observations reproject worse
+def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, Flag]:
+    """{view: flag} of the registered views after the pair whose observations reproject worse
     than ``TrustConfig.residual_factor`` x the median camera's RMS (and the floor)."""
     tc = cfg.trust
     views = [v for v in recon.registered_views if v not in CALIBRATED]
@@ -90,8 +89,8 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, str]:
     typical = float(np.median(list(rms.values())))
     limit = max(tc.residual_factor * typical, tc.residual_floor_px)
     observations = np.bincount(recon.obs_view, minlength=n_views)
-    return {v: (f"{FlagKind.CONTRADICTED}: its {int(observations[v])} observations "
-                f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
+    return {v: Flag(FlagKind.CONTRADICTED, f"its {int(observations[v])} observations "
+                                           f"reproject at {rms[v]:.2f} px RMS, the cameras' median is {typical:.2f} px")
             for v in views if v in rms and rms[v] > limit}
 
 
@@ -110,8 +109,8 @@ def _tied(recon: Reconstruction, vouched: set[int]) -> np.ndarray:
     return live & (observers[recon.obs_point] >= 3)
 
 
-def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, str]:
-    """{view: reason} of the registered views after the pair with fewer than
+def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, Flag]:
+    """{view: flag} of the registered views after the pair with fewer than
     :func:`tied_observation_limit` observations of live points that two other cameras also see.
     A rig's station counts its two images' observations together (the rig holds them).
     vouched: the views the run vouches for: only their observations tie, and only they are
@@ -123,14 +122,14 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     for v in recon.registered_views:
         per_group[group(v)] = per_group.get(group(v), 0) + int(per_view[v])
     need = tied_observation_limit(cfg)
-    return {v: (f"{FlagKind.WEAK}: only {per_group[group(v)]} of its observations are of points two other cameras also "
-                f"see; the final BA cannot check its place with fewer than {need}")
+    return {v: Flag(FlagKind.WEAK, f"only {per_group[group(v)]} of its observations are of points two other cameras "
+                                   f"also see; the final BA cannot check its place with fewer than {need}")
             for v in recon.registered_views
             if v not in CALIBRATED and v in vouched and per_group[group(v)] < need}
 
 
-def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, str]:
-    """{view: reason} of the ``vouched`` views after the pair that no chain of vouched views links
+def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, Flag]:
+    """{view: flag} of the ``vouched`` views after the pair that no chain of vouched views links
     to the calibrated pair with at least ``ResectionConfig.min_inliers`` shared points (points
     three vouched cameras see, which carry the pair's frame and scale from camera to camera) at
     every link: a part of the walk joined to the rest only through a flagged camera floats once
@@ -156,73 +155,60 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
                 reached.add(w)
                 frontier.append(w)
     tied_to_pair = sorted(reached)
-    return {v: (f"{FlagKind.WEAK}: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
-                f"shares at most {int(shared[v, tied_to_pair].max())} points seen by three of them with those tied "
-                f"to the pair (a link needs {need})")
+    return {v: Flag(FlagKind.WEAK, f"no chain of the cameras the run vouches for ties it to the calibrated pair: it "
+                                   f"shares at most {int(shared[v, tied_to_pair].max())} points seen by three of them "
+                                   f"with those tied to the pair (a link needs {need})")
             for v in sorted(vouched) if v not in reached}
 
 
-def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> str | None:
+def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> Flag | None:
     if not u.determined:
-        return f"{FlagKind.UNCERTAIN}: {u.reason}"
+        return Flag(FlagKind.UNCERTAIN, u.reason)
     depth = _median_depth(recon, view)
     worst = float(np.max(u.position_sigma))
     if np.isfinite(depth) and worst > cfg.trust.max_position_sigma * depth:
-        return (f"{FlagKind.UNCERTAIN}: 1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to the scene, "
-                f"limit {100 * cfg.trust.max_position_sigma:.1f} %)")
+        return Flag(FlagKind.UNCERTAIN, f"1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to "
+                                        f"the scene, limit {100 * cfg.trust.max_position_sigma:.1f} %)")
     return None
 
 
-def _flag_stations(recon: Reconstruction, reasons: dict[int, str | None]) -> None:
+def _flag_stations(recon: Reconstruction, flags: dict[int, Flag | None]) -> None:
     """A rig's station is one rigid body: what places one of its images wrongly places both."""
     if recon.rig is None:
         return
     for v in recon.registered_views:
         partner = station_partner(v)
-        if reasons[v] is None and reasons.get(partner):
-            reasons[v] = f"{reasons[partner]} (its station's {recon.views[partner].name})"
+        if flags[v] is None and flags.get(partner):
+            flags[v] = flags[partner].through(recon.views[partner].name)
 
 
-def assess(recon: Reconstruction, cfg: Config, between_neighbours: dict[int, str] | None = None) -> dict[str, Any]:
-    """Judge every registered camera after the pair: set each view's ``uncertainty``,
-    ``reliable`` and ``flag_reason``; without ``keep_flagged``, remove the flagged views'
-    observations (and the points left with fewer than two). Returns the JSON-able report:
-    {image name: {"reliable", "flag_reason", "uncertainty"}} under "cameras", and "flagged".
-    between_neighbours: :func:`contradicted_by_neighbours`'s verdicts on this very model, when
-    they are known already (:func:`stereoseed.sfm.hindsight.register_again` gives them)."""
-    cfg = cfg.resolve()
+@dataclass(frozen=True)
+class Verdicts:
+    """The judgement of every registered camera: its flag (None: the run vouches for it) and its
+    uncertainty (the views after the pair whose normal equations give one)."""
+
+    flags: dict[int, Flag | None]
+    uncertainties: dict[int, CameraUncertainty]
+
+
+def judge(recon: Reconstruction, cfg: Config, between_neighbours: dict[int, Flag]) -> Verdicts:
+    """Judge every registered camera (the module's rules); changes nothing. A flag raised while
+    the camera was placed (an ambiguous choice) stays; else its residuals, the verdicts of its
+    neighbours (``between_neighbours``: :func:`stereoseed.sfm.hindsight.contradicted_by_neighbours`
+    on this very model, or {}), its uncertainty and its ties decide."""
     contradicted = contradicted_cameras(recon, cfg)
-    if cfg.trust.judge_between_neighbours:
-        contradicted.update(contradicted_by_neighbours(recon, cfg, doubted=set(contradicted))
-                            if between_neighbours is None else between_neighbours)
+    contradicted.update(between_neighbours)
     uncertainties = camera_uncertainties(recon, cfg)
-    reasons = {}
+    flags: dict[int, Flag | None] = {}
     for v in recon.registered_views:
-        view = recon.views[v]
         u = uncertainties.get(v)
-        view.uncertainty = u
-        # a flag from the registration (an ambiguous choice) stays; else the final evidence decides
-        reasons[v] = None if v in CALIBRATED else (view.registration_flag or contradicted.get(v)
-                                                   or (None if u is None else _uncertain(recon, v, u, cfg)))
-    _flag_stations(recon, reasons)
+        flags[v] = None if v in CALIBRATED else (recon.views[v].placement_flag or contradicted.get(v)
+                                                 or (None if u is None else _uncertain(recon, v, u, cfg)))
+    _flag_stations(recon, flags)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
     # (a station's two images are judged together: both or neither)
     # (and a flag may cut a part of the walk off the pair)
-    while weak := (weakly_tied_cameras(recon, cfg, vouched := {v for v, reason in reasons.items() if reason is None})
+    while weak := (weakly_tied_cameras(recon, cfg, vouched := {v for v, flag in flags.items() if flag is None})
                    or cut_off_cameras(recon, cfg, vouched)):
-        reasons.update(weak)
-    cameras, flagged = {}, {}
-    for v in recon.registered_views:
-        view = recon.views[v]
-        u = view.uncertainty
-        reason = view.flag_reason = reasons[v]
-        cameras[view.name] = {"reliable": view.reliable, "flag_reason": reason,
-                              "uncertainty": None if u is None else u.summary()}
-        if reason:
-            flagged[view.name] = reason
-            log.warning("%s: flagged, %s", view.name, reason)
-    if flagged and not cfg.trust.keep_flagged:
-        out = np.isin(recon.obs_view, [v for v in recon.registered_views if not recon.views[v].reliable])
-        recon.remove_observations(out)
-        recon.remove_lonely_points()
-    return {"cameras": cameras, "flagged": flagged}
+        flags.update(weak)
+    return Verdicts(flags, uncertainties)

@@ -347,7 +347,7 @@ def write_report_html(recon: Any, report: dict[str, Any], out_dir: str | Path, d
     temporary file in out_dir replaces it), titled by the result folder's name (:func:`stereoseed.output.result_set.result_name`).
     Returns its path.
 
-    recon: the :class:`~stereoseed.sfm.reconstruction.Reconstruction`; report: the run's report
+    recon: the :class:`~stereoseed.scene.reconstruction.Reconstruction`; report: the run's report
     dict (report.json); dense: the :class:`~stereoseed.dense.densify.DenseCloud`, shown when given;
     source: a correspondence source (``match``) to draw the weakest insertion's matches with;
     mesh: the dense cloud's :class:`~stereoseed.dense.mesh.Mesh`, shown when given.

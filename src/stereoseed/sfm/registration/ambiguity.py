@@ -13,7 +13,7 @@ import numpy as np
 
 from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import Registration, RegistrationFailure
 from stereoseed.sfm.registration.quasi_dense import (_propagated_to_candidate, camera_epipolar_limit,
                                                      epipolar_agreement, robust_f_agreement)
@@ -38,7 +38,7 @@ class AmbiguityJudge:
 
 def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: Config,
                     source: CorrespondenceSource | None = None) -> Registration:
-    """The ambiguous choice ``found`` (``notes["flag"]``, its ``rivals``) judged by more evidence:
+    """The ambiguous choice ``found`` (its ``flag`` and ``rivals``) judged by more evidence:
     the matches propagated between the previous view and this one, which cover the whole
     overlap, the pattern's ends and everything around it included. The flag is lifted when the
     winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
@@ -53,7 +53,7 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
         return found
     # a rig's station is one body: its flag sits on the image it was resected from (views 2s, 2s+1)
     station = (prev, prev ^ 1) if recon.rig is not None and (prev ^ 1) < len(recon.views) else (prev,)
-    flagged = next((recon.views[v].name for v in station if recon.views[v].registration_flag), None)
+    flagged = next((recon.views[v].name for v in station if recon.views[v].placement_flag), None)
     if flagged is not None:
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: the previous view, "
                                                  f"{flagged}, is flagged itself"})
@@ -72,6 +72,5 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
                 f"nearest rival's (the robust F's own {floor:.2f} px)")
     if winner <= camera_epipolar_limit(floor, cfg) and rival >= cfg.quasi_dense.camera_epipolar_factor * winner:
         log.info("%s: the repeated structure's ambiguity is resolved: %s", found.candidate.name, evidence)
-        notes = {key: value for key, value in found.notes.items() if key != "flag"}
-        return dataclasses.replace(found, notes={**notes, "ambiguity_resolved": evidence})
+        return dataclasses.replace(found, flag=None, notes={**found.notes, "ambiguity_resolved": evidence})
     return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: {evidence}"})

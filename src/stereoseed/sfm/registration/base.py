@@ -23,16 +23,16 @@ from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
-from stereoseed.sfm.flags import FlagKind
+from stereoseed.scene.camera_life import HINDSIGHT, WITHDRAWN_FAILURE, Flag, FlagKind
 from stereoseed.sfm.motion_prior import (Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points,
                                         trusted_chain_inliers)
-from stereoseed.sfm.reconstruction import Reconstruction, View, intrinsics_in_frame
+from stereoseed.scene.reconstruction import Reconstruction, View, intrinsics_in_frame
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["FailureKind", "FoundBy", "Registrar", "SparseRegistrar", "Candidate", "Registration", "RegistrationFailure", "register_view", "implausible_motion", "chained_points",
-           "consistent_chain"]
+__all__ = ["FailureKind", "FoundBy", "Registrar", "SparseRegistrar", "Candidate", "Registration", "RegistrationFailure",
+           "reported_notes", "register_view", "implausible_motion", "chained_points", "consistent_chain"]
 
 
 
@@ -46,7 +46,7 @@ class FailureKind(StrEnum):
     DISAGREES = "disagrees with the propagated matches"  # a weak camera the quasi-dense matches refute
     UNREADABLE = "unreadable image"  # the image file cannot be decoded (the run skips it)
     # flagged when placed, then withdrawn: the next image could be placed only without it
-    WITHDRAWN = "withdrawn after the next image"
+    WITHDRAWN = WITHDRAWN_FAILURE
     # the motion prior's camera predicted across views not placed, which nothing confirms
     UNCONFIRMED = "predicted across views not placed, unconfirmed"
 
@@ -58,7 +58,7 @@ class FoundBy(StrEnum):
     MOTION_PRIOR = "motion prior"  # matches searched where the walk's motion predicts the points
     QUASI_DENSE = "quasi-dense"  # matches propagated from seeds (Lhuillier-Quan), chained
     RIG = "stereo rig"  # both images of a rig's station, their pose resected together (stereoseed.sfm.rig)
-    HINDSIGHT = "between its neighbours"  # found again after the final BA, between the views on both sides (sfm.hindsight)
+    HINDSIGHT = HINDSIGHT  # found again after the final BA, between the views on both sides (sfm.hindsight)
 
 
 
@@ -106,7 +106,9 @@ class Registration:
     # (:class:`stereoseed.sfm.registration.quasi_dense.QuasiDenseMatches`); the report of the attempt
     quasi_dense: Any = None
     notes: dict[str, Any] = field(default_factory=dict)
-    # an ambiguous choice (notes["flag"]): the rival cameras (3, 4) that explain nearly as much
+    # why the run cannot vouch for the camera (an ambiguous choice), None: it can
+    flag: Flag | None = None
+    # an ambiguous choice: the rival cameras (3, 4) that explain nearly as much
     rivals: tuple[np.ndarray, ...] = ()
 
     @property
@@ -141,12 +143,19 @@ class RegistrationFailure:
     candidate: Candidate | None = None
     notes: dict[str, Any] = field(default_factory=dict)
     kind: FailureKind = FailureKind.NO_CAMERA
+    flag: Flag | None = None  # the flag of a camera refused after its registration, as it was
+
+
+def reported_notes(found: Registration | RegistrationFailure) -> dict[str, Any]:
+    """What an outcome's report says besides its figures: its flag's reason ("flag"), then its
+    notes."""
+    return ({"flag": found.flag.reason} if found.flag is not None else {}) | found.notes
 
 
 class Registrar(Protocol):
     """One way of placing the next view. ``register`` sees the previous registrar's outcome for
     the view (None for the first): it returns that outcome or a better-founded one, and changes
-    nothing in ``recon`` (the mapper commits). The mapper owns the order (:func:`stereoseed.sfm.mapper.registrars`)."""
+    nothing in ``recon`` (the mapper commits). The mapper owns the order (:func:`stereoseed.sfm.strategy.registrars`)."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
                  found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure: ...
@@ -183,7 +192,7 @@ class _Resected:
     refused: str | None
     found_by: FoundBy
     hypothesis: Hypothesis | None = None
-    flag: str | None = None
+    flag: Flag | None = None
     rivals: tuple[np.ndarray, ...] = ()  # the cameras (3, 4) that make it ambiguous
 
 
@@ -208,14 +217,14 @@ def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[
     return found
 
 
-def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> str | None:
+def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> Flag | None:
     """The flag of a choice :func:`_rivals` makes ambiguous (what the first rival explains
     against the winner ``best``), or None without one."""
     if not rivals:
         return None
     j, apart, depth = rivals[0]
-    return (f"{FlagKind.AMBIGUOUS} (the best camera explains {counts[best]} recent points, another {apart:.3g} away "
-            f"({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]})")
+    return Flag(FlagKind.AMBIGUOUS, f"(the best camera explains {counts[best]} recent points, another {apart:.3g} "
+                                    f"away ({100 * apart / depth:.1f} % of the scene's depth) explains {counts[j]})")
 
 
 def implausible_motion(P: np.ndarray, previous: View, points: np.ndarray, steps: int, max_zoom: float) -> str | None:
@@ -368,9 +377,8 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, _Failed):
         return RegistrationFailure(found.reason, n_matches, n_chained, seconds, cand, kind=found.kind)
-    notes = {"flag": found.flag} if found.flag else {}
     return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
-                        seconds, notes=notes, rivals=found.rivals)
+                        seconds, flag=found.flag, rivals=found.rivals)
 
 
 def _trusted_chain(inliers: np.ndarray, cfg: Config) -> bool:

@@ -48,7 +48,7 @@ from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import candidate_config
 from stereoseed.matching.zncc import match_zncc
 from stereoseed.matching.propagation.core import propagate
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.threads import in_background
 from stereoseed.sfm.tracks import colors_at
 from stereoseed.estimators.triangulation import triangulate

@@ -12,8 +12,7 @@ import numpy as np
 
 from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
-from stereoseed.sfm.flags import flag_kind
-from stereoseed.sfm.reconstruction import Reconstruction
+from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import FailureKind, FoundBy, Registration, RegistrationFailure
 from stereoseed.sfm.registration.quasi_dense import (QuasiDenseMatches, camera_epipolar_limit, epipolar_agreement,
                                                      register_quasi_dense, robust_f_agreement, weak_chain_limit)
@@ -50,10 +49,10 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     limit = weak_chain_limit(cfg)
     prev = recon.registered_before(k, 1)[0]
     vp = recon.views[prev]
-    if isinstance(found, Registration) and k - prev > 1 and vp.registration_flag:
+    if isinstance(found, Registration) and k - prev > 1 and vp.placement_flag:
         # placed across views not placed from a doubtful camera: any camera found here (this one,
         # the quasi-dense one) only says how it stands to that one
-        return _unconfirmed(found, k, prev, f"from {vp.name}, flagged itself ({flag_kind(vp.registration_flag)})")
+        return _unconfirmed(found, k, prev, f"from {vp.name}, flagged itself ({vp.placement_flag.kind.value})")
     if sparse_inliers >= limit and not _predicted_across_a_gap(found, k, prev):
         return found
     cand = found.candidate
@@ -116,7 +115,7 @@ def _refused(found: Registration, reason: str, kind: FailureKind) -> Registratio
     """The sparse camera ``found`` refused for ``reason`` (also its notes' "sparse_refused")."""
     log.info("%s", reason)
     return RegistrationFailure(reason, found.matches, found.chained_points, found.seconds, found.candidate,
-                               notes={**found.notes, "sparse_refused": reason}, kind=kind)
+                               notes={**found.notes, "sparse_refused": reason}, kind=kind, flag=found.flag)
 
 
 def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,

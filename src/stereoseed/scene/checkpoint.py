@@ -1,8 +1,8 @@
 """Checkpoints of a run, so that an interrupted run can resume (``reconstruct --resume``).
 
 After each insertion the reconstruction's whole state (points, observations, every view's
-camera, interest points and links; not the images, which are read again) and the per-image
-reports are written atomically. The descriptors of a view out of the mapper's working set are
+camera, interest points, links and history, from which the per-image reports are rendered; not
+the images, which are read again) is written atomically. The descriptors of a view out of the mapper's working set are
 written once, when it leaves it, to the folder beside the checkpoint (:func:`spill_folder`), and
 the checkpoint names their file: a checkpoint costs the working set and the model, not the
 whole sequence's descriptors (300 MB at 300 images). A checkpoint belongs to one set of inputs (image pixels, the
@@ -11,8 +11,8 @@ the interrupted one stopped and gives the same result as an uninterrupted run (e
 deterministic, and the correspondence source's caches only save time).
 
 The file holds data only, never code: an uncompressed ``.npz`` of NumPy arrays (read with
-``allow_pickle=False``) whose member ``meta`` is UTF-8 JSON (the version, the inputs' key, the
-reports, each view's flags) and whose member ``mac`` is an HMAC-SHA256 of all the others keyed
+``allow_pickle=False``) whose member ``meta`` is UTF-8 JSON (the version, the inputs' key, each
+view's flags and the events of its history) and whose member ``mac`` is an HMAC-SHA256 of all the others keyed
 by the inputs' key. A checkpoint is used only when it and its folders belong to the user and
 nobody else may write them, its signature matches, and every array has the dtype, shape and
 index range the model needs; anything else is logged and the run starts again.
@@ -41,19 +41,22 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.io.atomic import jsonable
 from stereoseed.io.sequence import ImageSequence
-from stereoseed.sfm.view_store import view_of_input
-from stereoseed.sfm.reconstruction import Checkpoint, Reconstruction
+from stereoseed.scene.camera_life import event_from_json, event_to_json
+from stereoseed.scene.reconstruction import Checkpoint, Reconstruction
+from stereoseed.scene.view_store import view_of_input
 
 __all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
-VERSION = 4  # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied; 4: registration flags
+# 3: arrays and JSON in a signed npz; spilled descriptors named, not copied; 4: registration flags;
+# 5: each view's history (status, flags and reports rendered from it)
+VERSION = 5
 SPILL_SUFFIX = ".spill"  # the spill folder: the checkpoint's name with this added
 _META, _MAC = "meta", "mac"
 _OBSERVATIONS = ("obs_view", "obs_feature", "obs_point", "obs_linked")  # Checkpoint.observations' order
-_VIEW_FLAGS = {"name": str, "status": str, "rotated_180": bool, "camera_model": (str, type(None)),
+_VIEW_FLAGS = {"name": str, "rotated_180": bool, "camera_model": (str, type(None)),
                "zoomed": bool, "registered": bool, "features": bool, "desc_file": (str, type(None)),
-               "registration_flag": (str, type(None))}
+               "history": list}
 _FLOAT = "float"  # an expected dtype: float32 or float64, native byte order
 
 
@@ -68,7 +71,7 @@ _UNUSABLE = (_Refused, OSError, ValueError, EOFError, KeyError, zipfile.BadZipFi
 
 def spill_folder(checkpoint: str | Path) -> Path:
     """The folder beside ``checkpoint`` where the run spills the descriptors of old views
-    (:func:`stereoseed.sfm.view_store.release_pixels`); the checkpoint refers to them."""
+    (:func:`stereoseed.scene.view_store.release_pixels`); the checkpoint refers to them."""
     checkpoint = Path(os.path.abspath(checkpoint))  # normalised as a memory map's file name is
     return checkpoint.with_name(checkpoint.name + SPILL_SUFFIX)
 
@@ -101,8 +104,7 @@ def _spilled_name(desc: np.ndarray, spilled_in: Path) -> str | None:
     return None
 
 
-def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]],
-              key: str) -> dict[str, np.ndarray]:
+def _snapshot(path: str | Path, recon: Reconstruction, key: str) -> dict[str, np.ndarray]:
     """The checkpoint's arrays, the JSON part among them, as they are now: the arrays the run
     changes in place (points, observations, links) are copied; interest points are shared, as
     Features are replaced, never changed in place. The images are read again on resume, the
@@ -113,14 +115,13 @@ def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str,
     arrays.update((name, a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
     views = []
     for i, (view, s) in enumerate(zip(recon.views, state.views)):
-        # what placed the camera is in its report (per_image), written beside
-        P, features, point_of_feature, _, status, rotated, model, zoomed, _, registration_flag, _ = s
-        flags = {"name": view.name, "status": str(status), "rotated_180": bool(rotated),
+        P, features, point_of_feature, _, rotated, model, zoomed, _, history = s
+        flags = {"name": view.name, "rotated_180": bool(rotated),
                  "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
                  "registered": P is not None, "features": features is not None, "desc_file": None,
-                 # why the run cannot vouch for the camera (an ambiguous choice, a zoom it cannot
-                 # measure): judged once, at registration, so a resumed run must not lose it
-                 "registration_flag": registration_flag}
+                 # its status, what placed it, its flags and its report: a resumed run must not
+                 # lose what was judged once, at registration
+                 "history": [event_to_json(e) for e in history]}
         if P is not None:
             arrays[f"view{i}.P"] = np.array(P, np.float64)
         arrays[f"view{i}.point_of_feature"] = np.array(point_of_feature)
@@ -133,7 +134,7 @@ def _snapshot(path: str | Path, recon: Reconstruction, per_image: list[dict[str,
             arrays[f"view{i}.response"] = features.response
             arrays[f"view{i}.image_shape"] = np.asarray(features.image_shape, np.int64)
         views.append(flags)
-    meta = {"version": VERSION, "key": key, "per_image": per_image, "views": views}
+    meta = {"version": VERSION, "key": key, "views": views}
     arrays[_META] = np.frombuffer(json.dumps(meta, default=jsonable).encode("utf-8"), np.uint8)
     return arrays
 
@@ -173,9 +174,9 @@ def _write(path: str | Path, arrays: dict[str, np.ndarray], key: str) -> None:
         raise StereoseedError(f"{path}: cannot write ({e.strerror or e})") from None
 
 
-def save_checkpoint(path: str | Path, recon: Reconstruction, per_image: list[dict[str, Any]], key: str) -> None:
-    """Write the reconstruction's state and the reports so far to ``path`` (atomically)."""
-    _write(path, _snapshot(path, recon, per_image, key), key)
+def save_checkpoint(path: str | Path, recon: Reconstruction, key: str) -> None:
+    """Write the reconstruction's state (its views' histories included) to ``path`` (atomically)."""
+    _write(path, _snapshot(path, recon, key), key)
 
 
 class CheckpointWriter:
@@ -198,10 +199,10 @@ class CheckpointWriter:
         if pending is not None:
             pending.result()
 
-    def save(self, recon: Reconstruction, per_image: list[dict[str, Any]]) -> None:
+    def save(self, recon: Reconstruction) -> None:
         if self._executor is None:
             return
-        arrays = _snapshot(self.path, recon, per_image, self.key)
+        arrays = _snapshot(self.path, recon, self.key)
         self._wait()
         self._pending = self._executor.submit(_write, self.path, arrays, self.key)
 
@@ -281,17 +282,15 @@ def _read(path: Path, key: str) -> dict[str, np.ndarray]:
 
 
 def _meta(arrays: dict[str, np.ndarray], key: str, names: list[str]) -> dict[str, Any]:
-    """The JSON part, its version, key, reports and view flags checked."""
+    """The JSON part, its version, key and view flags checked (the histories are read with the
+    views)."""
     raw = arrays.pop(_META, None)
     if raw is None or raw.dtype != np.uint8 or raw.ndim != 1:
         raise _Refused("no description")
     meta = json.loads(raw.tobytes().decode("utf-8"))
     if not isinstance(meta, dict) or meta.get("version") != VERSION or meta.get("key") != key:
         raise _Refused("written by another version or for other inputs")
-    per_image, views = meta.get("per_image"), meta.get("views")
-    if (not isinstance(per_image, list) or not 2 <= len(per_image) <= len(names)
-            or any(not isinstance(r, dict) or r.get("image") != names[i] for i, r in enumerate(per_image))):
-        raise _Refused("its reports are not of these images")
+    views = meta.get("views")
     if not isinstance(views, list) or len(views) != len(names):
         raise _Refused("its views are not these images")
     for name, flags in zip(names, views):
@@ -351,8 +350,8 @@ def _model_points(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
 
 def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in: Path, n_points: int
                  ) -> list[tuple]:
-    """Each view's (P, Features or None, point_of_feature, status, rotated_180, camera_model,
-    zoomed, registration flag), every array checked (links to points below ``n_points``)."""
+    """Each view's (P, Features or None, point_of_feature, rotated_180, camera_model, zoomed,
+    history), every array and event checked (links to points below ``n_points``)."""
     if any(flags["desc_file"] is not None for flags in meta["views"]):
         _check_owner(os.stat(spilled_in), spilled_in)
     states = []
@@ -376,8 +375,8 @@ def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in
             raise _Refused(f"view {i} names descriptors without interest points")
         pof = _take(arrays, f"view{i}.point_of_feature", np.int64, (None if features is None else len(features),))
         _in_range(pof, -1, n_points, f"view{i}.point_of_feature")
-        states.append((P, features, pof, flags["status"], flags["rotated_180"], flags["camera_model"],
-                       flags["zoomed"], flags["registration_flag"]))
+        history = tuple(event_from_json(e) for e in flags["history"])
+        states.append((P, features, pof, flags["rotated_180"], flags["camera_model"], flags["zoomed"], history))
     return states
 
 
@@ -422,18 +421,18 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         observations = _observations(arrays, states, len(points))
         views, restored = [], []
         lazy = isinstance(images, ImageSequence)
-        for i, (name, (P, features, pof, status, rotated, camera_model, zoomed, flag)) in enumerate(zip(names, states)):
+        for i, (name, (P, features, pof, rotated, camera_model, zoomed, history)) in enumerate(zip(names, states)):
             view = view_of_input(name, images, i)
             image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
             views.append(view)
-            # what placed each camera, as its report says
-            found_by = meta["per_image"][i].get("registered_by") if i < len(meta["per_image"]) else None
-            restored.append((P, features, pof, image, status, rotated, camera_model, zoomed, features is not None,
-                             flag, found_by))
+            restored.append((P, features, pof, image, rotated, camera_model, zoomed, features is not None, history))
         recon = Reconstruction(views)
         # the views check what only they know (a camera model's name, a camera's P)
         recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
+        per_image = recon.reports()
+        if not 2 <= len(per_image) or any(r.get("image") != names[i] for i, r in enumerate(per_image)):
+            raise _Refused("its reports are not of these images")
     except _UNUSABLE as e:  # malformed, or its spilled descriptors gone
         log.warning("%s: unusable checkpoint (%s); starting again", path, e)
         return None
-    return recon, meta["per_image"]
+    return recon, per_image

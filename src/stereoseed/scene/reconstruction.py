@@ -13,225 +13,34 @@ its invariants:
 
 Points and observations live in flat NumPy arrays that grow by doubling, so the pipeline's
 steps stay vectorised and appending does not copy everything each time.
+
+It is also the only code that changes a camera's state (:mod:`stereoseed.scene.camera_life`):
+:meth:`Reconstruction.calibrate`, :meth:`~Reconstruction.register`, :meth:`~Reconstruction.fail`,
+:meth:`~Reconstruction.flag`, :meth:`~Reconstruction.lift_flag`, :meth:`~Reconstruction.judge`,
+:meth:`~Reconstruction.withdraw`, :meth:`~Reconstruction.register_again` and
+:meth:`~Reconstruction.drop`, each appending the event to the view's history.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Any, Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Iterator
 
 import numpy as np
 
 from stereoseed.estimators.bundle import observation_errors
-from stereoseed.geometry.camera import Camera
-from stereoseed.geometry.models import CameraModel
-from stereoseed.geometry.projection import camera_center, intrinsics_turned_180
 from stereoseed.features.harris import Features
-from stereoseed.features.image import to_gray
+from stereoseed.geometry.camera import Camera
+from stereoseed.scene.camera_life import (Calibrated, Dropped, Failed, Flag, Flagged, FlagLifted, Inserted, Judged,
+                                          Registered, RegisteredAgain, Stage, Status, Withdrawn, report_of)
+from stereoseed.scene.view import View, intrinsics_in_frame
 
 __all__ = ["View", "Reconstruction", "Checkpoint", "eq14", "intrinsics_in_frame"]
-
-
-def intrinsics_in_frame(K: np.ndarray, source_turned: bool, turned: bool, image_size: tuple[int, int]) -> np.ndarray:
-    """Intrinsics K (3, 3) of an image (turned by 180 degrees or not) expressed for an image of
-    ``image_size`` (width, height) that is ``turned`` or not."""
-    return K if source_turned == turned else intrinsics_turned_180(K, image_size)
 
 
 def eq14(sum_squared_px: float, n_images: int, n_points: int) -> float:
     """The paper's eq. 14: sum of squared reprojection errors over images x points (px^2, not
     rooted, as the paper prints it)."""
     return float(sum_squared_px / max(1, n_images * n_points))
-
-
-class View:
-    """One input image and what the run knows of it.
-
-    name: file name; image: uint8 BGR (H, W, 3) as the run works on it (turned by 180 degrees
-    when ``rotated_180``); features: its interest points; P: (3, 4) camera in that image's
-    frame, None while unregistered; status: "calibrated", "registered", "pending" or
-    "failed: <reason>"; point_of_feature: (N,) int64, the 3D point each interest point stands
-    for (-1: none); camera_model: the camera model its intrinsics follow when it is not the
-    run's (an 11-DOF camera refused, the focal-only model taken instead); zoomed: its resection
-    took a new focal length rather than the previous image's.
-
-    P is a read-only copy of what was set; K, R and focal are decomposed from it once, on first
-    use after it was set (the camera's RQ decomposition is not repeated).
-    """
-
-    def __init__(self, name: str, features: Features | None = None, P: np.ndarray | None = None,
-                 status: str = "pending", point_of_feature: np.ndarray | None = None,
-                 image: np.ndarray | None = None, rotated_180: bool = False, camera_model: str | None = None,
-                 zoomed: bool = False, load: Callable[[], np.ndarray] | None = None):
-        self.name = name
-        self.features = features
-        self.status = status
-        self.point_of_feature = np.zeros(0, np.int64) if point_of_feature is None else point_of_feature
-        self._load = load
-        self._size: tuple[int, int] | None = None
-        self.image = image
-        self._gray_released = False
-        self.rotated_180 = rotated_180
-        self.camera_model = camera_model
-        self.zoomed = zoomed
-        self._camera: Camera | None = None
-        self.P = P
-        # why its registration could not vouch for the camera (an ambiguous choice), set when it
-        # is committed; then what the finishing step says (stereoseed.sfm.trust): whether the run
-        # can vouch for it, why not, and its 1-sigma uncertainty from the final BA
-        self.registration_flag: str | None = None
-        self.flag_reason: str | None = None
-        # what placed its camera (registration.base.FoundBy), set when it is committed (a
-        # checkpoint gives it back from the saved reports)
-        self.found_by: str | None = None
-        self.uncertainty: Any = None
-
-    @property
-    def features(self) -> Features | None:
-        """The interest points (their grey image None after :meth:`release_pixels`, until
-        :meth:`restore_gray`)."""
-        return self._features
-
-    @features.setter
-    def features(self, features: Features | None) -> None:
-        self._features = features
-        self._gray_released = False
-
-    def restore_gray(self) -> Features | None:
-        """The interest points with their grey image, computed again from the image if it was
-        released (what matching or tracking against an old view needs)."""
-        f = self._features
-        if f is not None and f.gray is None and self._gray_released:
-            self._features = replace(f, gray=to_gray(self.image))
-            self._gray_released = False
-        return self._features
-
-    def replace_features(self, **changes: Any) -> None:
-        """The same interest points with some arrays exchanged (a memory-mapped ``desc``, ``gray``
-        None when the grey image is let go: :func:`restore_gray` computes it again). The pixels'
-        residency is :mod:`stereoseed.sfm.view_store`'s business; the view only records it."""
-        f = self._features
-        if f is None or not changes:
-            return
-        self._features = replace(f, **changes)
-        self._gray_released = self._gray_released or ("gray" in changes and changes["gray"] is None)
-
-    @property
-    def can_read_image_again(self) -> bool:
-        """Whether the view's image can be had again once let go (read from its file, or held)."""
-        return self._load is not None or self._image is not None
-
-    def keep_image(self, image: np.ndarray, rotated_180: bool) -> None:
-        """The image the run works on: held only when the view cannot read it again (turned, or
-        given in memory)."""
-        self.image = image if (rotated_180 or self._load is None) else None
-        self.rotated_180 = rotated_180
-
-    @property
-    def image(self) -> np.ndarray | None:
-        """The image as the run works on it: the one set, else the input image read on demand
-        through ``load`` (a long sequence does not hold every image)."""
-        if self._image is None and self._load is not None:
-            return self._load()
-        return self._image
-
-    @image.setter
-    def image(self, image: np.ndarray | None) -> None:
-        self._image = image
-        if image is not None:  # letting go of an image (it is read again) keeps its size known
-            self._size = (image.shape[1], image.shape[0])
-
-    @property
-    def camera(self) -> Camera | None:
-        """The view's camera in the frame of the image the run works on; None while unregistered."""
-        return self._camera
-
-    @camera.setter
-    def camera(self, camera: Camera | None) -> None:
-        self._camera = camera
-
-    @property
-    def P(self) -> np.ndarray | None:
-        return None if self._camera is None else self._camera.P
-
-    @P.setter
-    def P(self, P: np.ndarray | None) -> None:
-        """A new P keeps the camera model the view's camera had (a refinement moves the camera
-        within its model)."""
-        if P is None:
-            self._camera = None
-        else:
-            model = self._camera.model if self._camera is not None else CameraModel(self.camera_model or "free")
-            self._camera = Camera(P, model)
-
-    @property
-    def K(self) -> np.ndarray:
-        return self._camera.K
-
-    @property
-    def R(self) -> np.ndarray:
-        return self._camera.R
-
-    @property
-    def center(self) -> np.ndarray:
-        return camera_center(self._camera.P)
-
-    @property
-    def focal(self) -> float:
-        """Focal length (px, along x)."""
-        return self._camera.focal
-
-    @property
-    def reliable(self) -> bool:
-        """Whether the run vouches for the camera (no ``flag_reason``)."""
-        return self.flag_reason is None
-
-    @property
-    def registered(self) -> bool:
-        return self._camera is not None
-
-    @property
-    def image_size(self) -> tuple[int, int] | None:
-        """(width, height) of the image; None for a view without one (a camera alone)."""
-        if self._size is None:
-            image = self.image
-            self._size = None if image is None else (image.shape[1], image.shape[0])
-        return self._size
-
-    @property
-    def P_input(self) -> np.ndarray | None:
-        """P (3, 4) in the pixel frame of the input image (P works in the frame the run used)."""
-        if self._camera is None or not self.rotated_180:
-            return self.P
-        return self._camera.turned_180(self.image_size).P
-
-    def in_frame_of(self, K: np.ndarray, source: "View") -> np.ndarray:
-        """Intrinsics K (3, 3) of ``source``'s image expressed for this view's image: turning an
-        image by 180 degrees maps pixel (x, y) to (W - 1 - x, H - 1 - y), which moves the
-        principal point (focal lengths and skew stay, the roll goes into R)."""
-        return intrinsics_in_frame(K, source.rotated_180, self.rotated_180, self.image_size)
-
-    def append_features(self, features: Features) -> np.ndarray:
-        """Add interest points found by tracking, not detection; returns their indices (K,)."""
-        f = self.features
-        start = len(f)
-        self.features = Features(np.vstack([f.points, features.points]), np.vstack([f.desc, features.desc]),
-                                 np.concatenate([f.valid, features.valid]),
-                                 np.concatenate([f.response, features.response]), f.image_shape, f.gray)
-        self.point_of_feature = np.concatenate([self.point_of_feature, np.full(len(features), -1, np.int64)])
-        return np.arange(start, start + len(features))
-
-    def _state(self) -> tuple:
-        """(P, features, point_of_feature, image, status, rotated_180, camera_model, zoomed,
-        grey image released, registration flag, what placed the camera)."""
-        return (self.P, self._features, self.point_of_feature.copy(), self._image, self.status, self.rotated_180,
-                self.camera_model, self.zoomed, self._gray_released, self.registration_flag, self.found_by)
-
-    def _restore(self, state: tuple) -> None:
-        P, self.features, self.point_of_feature, self.image, self.status, self.rotated_180, self.camera_model, \
-            self.zoomed, self._gray_released, self.registration_flag, self.found_by = state
-        self.flag_reason = self.registration_flag  # the final judgement (trust.assess) comes after the last insertion
-        self._camera = None  # the restored P follows the restored camera_model, not the current camera's model
-        self.P = P
 
 
 def _rows_by_value(values: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
@@ -319,6 +128,10 @@ class Reconstruction:
         self._obs_feature = _Growing(np.int64)
         self._obs_point = _Growing(np.int64)
         self._obs_linked = _Growing(bool)
+        # (view k, the model just before k's insertion) while k, the last view placed, is doubted
+        # (flagged when placed, or placed by the propagated matches alone): what withdrawing k
+        # puts back (stereoseed.sfm.mapper); None otherwise
+        self.insertion_undo: tuple[int, Checkpoint] | None = None
 
     # ------------------------------------------------------------ arrays (views, read them)
     points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")
@@ -404,15 +217,109 @@ class Reconstruction:
             done += 1
         return done
 
-    def deregister(self, view: int) -> None:
-        """Forget a view's camera and observations, and the points no longer seen twice (its
-        interest points stay: they describe the image). The view's status becomes "pending"."""
+    def _forget_camera(self, view: int) -> None:
+        """A view's camera and observations gone, and the points no longer seen twice (its
+        interest points stay: they describe the image)."""
         self.remove_observations(self.obs_view == view)
         self.remove_lonely_points()
         v = self.views[view]
-        v.P, v.camera_model, v.zoomed, v.status, v.found_by = None, None, False, "pending", None
-        v.registration_flag = v.flag_reason = None  # what its registration said of the camera it no longer has
+        v.P, v.camera_model, v.zoomed = None, None, False
         v.point_of_feature[:] = -1
+
+    # ------------------------------------------------------------ a camera's life
+    def calibrate(self, view: int, P: np.ndarray) -> None:
+        """View ``view`` is one of the calibrated pair, its camera P (3, 4)."""
+        self.views[view].P = np.asarray(P, np.float64)
+        self.views[view]._record(Calibrated())
+
+    def register(self, view: int, camera: Camera, found_by: str, features: Features, image: np.ndarray,
+                 rotated_180: bool, camera_model: str | None, zoomed: bool, flag: Flag | None = None) -> None:
+        """Commit a registration: view ``view``'s ``camera`` (in the frame of ``image``, turned by
+        180 degrees when ``rotated_180``), its interest points (none linked yet), the camera model
+        it keeps when not the run's, whether it took a zoom, what placed it, and the flag its
+        registration raised."""
+        v = self.views[view]
+        v.keep_image(image, rotated_180)
+        v.features = features
+        v.point_of_feature = np.full(len(features), -1, np.int64)
+        v.camera_model = camera_model
+        v.camera = camera
+        v.zoomed = zoomed
+        v._record(Registered(found_by))
+        if flag is not None:
+            v._record(Flagged(flag, Stage.PLACED))
+
+    def record(self, view: int, report: dict[str, Any]) -> None:
+        """View ``view``'s step of the run is done: ``report`` is what it did."""
+        self.views[view]._record(Inserted(report))
+
+    def fail(self, view: int, reason: str, report: dict[str, Any]) -> None:
+        """View ``view`` could not be placed: ``reason``, and the attempt's ``report``."""
+        v = self.views[view]
+        if v.registered:
+            raise ValueError(f"{v.name}: a placed camera is withdrawn or dropped, not failed")
+        v._record(Failed(reason, report))
+
+    def _placed(self, view: int) -> None:
+        if self.views[view].life.status not in (Status.REGISTERED, Status.CALIBRATED):
+            raise ValueError(f"{self.views[view].name}: {self.views[view].status}; only a placed camera has a flag")
+
+    def flag(self, view: int, flag: Flag, stage: Stage = Stage.PLACED) -> None:
+        """The run cannot vouch for view ``view``'s camera: ``flag``, raised at ``stage``."""
+        self._placed(view)
+        self.views[view]._record(Flagged(flag, stage))
+
+    def lift_flag(self, view: int, why: str) -> None:
+        """Later evidence (``why``) lifts view ``view``'s flag."""
+        self._placed(view)
+        self.views[view]._record(FlagLifted(why))
+
+    def judge(self, view: int, flag: Flag | None) -> None:
+        """The judgement after the last insertion: view ``view``'s final flag (None: vouched for)."""
+        self._placed(view)
+        self.views[view]._record(Judged(flag))
+
+    def withdraw(self, view: int, reason: str, before: Checkpoint | None = None) -> None:
+        """Take view ``view`` out of the model (``reason``): back to the model ``before`` its
+        insertion when the run kept it (its points, the adjustments and outlier removals it
+        caused: the model as it was), else its camera and observations only. Its interest points
+        go too (as a view never placed); its history stays and says why."""
+        v = self.views[view]
+        if v.life.status != Status.REGISTERED:
+            raise ValueError(f"{v.name}: {v.status}; only a registered camera is withdrawn")
+        history, life = v.history, v.life
+        if before is not None:
+            self.restore(before)
+        else:
+            self._forget_camera(view)
+        v.features, v.point_of_feature = None, np.zeros(0, np.int64)
+        v.history, v.life = history, life  # the restore took them back to before the insertion
+        v._record(Withdrawn(reason))
+
+    def register_again(self, view: int, found: str) -> None:
+        """View ``view``'s camera is the one its neighbours found (``found`` says what and how;
+        the caller moved it there): its flags are lifted, and it claims no zoom (a zoom its first
+        camera claimed is no evidence for this one)."""
+        self._placed(view)
+        self.views[view].zoomed = False
+        self.views[view]._record(RegisteredAgain(found))
+
+    def drop(self, view: int, reason: str) -> None:
+        """Take view ``view`` out at the end (``reason``): its camera and observations go."""
+        self._placed(view)
+        self._forget_camera(view)
+        self.views[view]._record(Dropped(reason))
+
+    def reports(self) -> list[dict[str, Any]]:
+        """Each view's entry of the run's report, rendered from its history, for the views the run
+        has reached (a prefix of the sequence)."""
+        out = []
+        for v in self.views:
+            report = report_of(v.history)
+            if report is None:
+                break
+            out.append(report)
+        return out
 
     def checkpoint(self, copy: bool = True) -> Checkpoint:
         """Everything an insertion may change (points, observations, views). ``copy`` False

@@ -7,7 +7,8 @@ import pytest
 from geometry_helpers import ring_camera
 from stereoseed.geometry.projection import decompose_projection
 from stereoseed.features.harris import Features
-from stereoseed.sfm.reconstruction import Reconstruction, View, eq14
+from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.scene.reconstruction import Reconstruction, View, eq14
 
 
 def _views(n_views=3, n_features=10):
@@ -85,24 +86,23 @@ def test_merging_moves_observations_unless_a_view_sees_both():
     assert recon.views[2].point_of_feature[4] == 0 and recon.views[3].point_of_feature[4] == 0
 
 
-def test_deregister_and_checkpoint_restore():
+def test_a_withdrawal_and_checkpoint_restore():
     recon = _views()
+    recon.register(2, recon.views[2].camera, "motion prior", recon.views[2].features,
+                   np.zeros((480, 640, 3), np.uint8), False, None, False, Flag.parse("ambiguous: repeated structure (as if)"))
     ids = recon.add_points(np.ones((2, 3)), np.zeros((2, 3)))
     for v in range(3):
         recon.add_observations(v, [0, 1], ids)
-    recon.views[2].found_by = "motion prior"
-    recon.views[2].registration_flag = "ambiguous: repeated structure (as if)"
     saved = recon.checkpoint()
     P2 = recon.views[2].P.copy()
-    recon.deregister(2)
-    assert recon.views[2].found_by is None and recon.views[2].registration_flag is None
-    recon.views[2].found_by = "quasi-dense"  # what a later registration would say
+    recon.withdraw(2, "v2: withdrawn")
+    assert recon.views[2].found_by is None and recon.views[2].placement_flag is None
     recon.points[:] = 7.0
-    assert not recon.views[2].registered and recon.views[2].point_of_feature.max() == -1
+    assert not recon.views[2].registered and len(recon.views[2].point_of_feature) == 0
     assert recon.track_lengths().tolist() == [2, 2]
     recon.restore(saved)
     np.testing.assert_array_equal(recon.views[2].P, P2)
-    assert recon.views[2].found_by == "motion prior" and recon.views[2].registration_flag.startswith("ambiguous")
+    assert recon.views[2].found_by == "motion prior" and recon.views[2].placement_flag.kind == FlagKind.AMBIGUOUS
     assert recon.track_lengths().tolist() == [3, 3] and np.all(recon.points == 1.0)
     assert recon.views[2].point_of_feature[:2].tolist() == [0, 1]
     recon.add_points(np.zeros((40, 3)), np.zeros((40, 3)))  # the restored arrays still grow

@@ -10,11 +10,12 @@ import pytest
 
 from stereoseed import pipeline
 from stereoseed.features.harris import Features
-from stereoseed.sfm import checkpoint as ck
-from stereoseed.sfm.view_store import release_pixels
-from stereoseed.sfm.checkpoint import CheckpointWriter, load_checkpoint, save_checkpoint, spill_folder
+from stereoseed.scene import checkpoint as ck
+from stereoseed.scene.view_store import release_pixels
+from stereoseed.scene.checkpoint import CheckpointWriter, load_checkpoint, save_checkpoint, spill_folder
 from stereoseed.errors import StereoseedError
-from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.scene.camera_life import Flag
+from stereoseed.scene.reconstruction import Reconstruction, View
 from stereoseed.config import Config
 from scene_helpers import scene_on_disk
 
@@ -112,11 +113,14 @@ def test_a_background_checkpoint_is_the_state_when_saved(tmp_path):
     recon = _small_reconstruction()
     path = tmp_path / "run.npz"
     with CheckpointWriter(path, "key") as writer:
-        writer.save(recon, [{"image": "a"}])
+        recon.record(0, {"image": "a"})
+        writer.save(recon)
         recon.points[:] = -1.0
+        recon.record(1, {"image": "b"})
         recon.add_points(np.ones((2, 3)), np.zeros((2, 3), np.uint8))
     meta = _meta_of(path)
-    assert meta["key"] == "key" and meta["per_image"] == [{"image": "a"}]
+    assert meta["key"] == "key" and [v["history"] for v in meta["views"]] == [
+        [{"event": "Inserted", "report": {"image": "a"}}], []]
     with np.load(path, allow_pickle=False) as npz:
         np.testing.assert_array_equal(npz["points"], np.arange(12.0).reshape(4, 3))
 
@@ -125,14 +129,14 @@ def test_a_failed_background_checkpoint_is_reported(tmp_path):
     (tmp_path / "a_file").write_text("")
     with pytest.raises(StereoseedError, match="cannot write"):
         with CheckpointWriter(tmp_path / "a_file" / "run.npz", "key") as writer:
-            writer.save(_small_reconstruction(), [])
+            writer.save(_small_reconstruction())
 
 
 def test_a_failed_background_checkpoint_does_not_hide_the_runs_own_error(tmp_path):
     (tmp_path / "a_file").write_text("")
     with pytest.raises(KeyError, match="the run's"):
         with CheckpointWriter(tmp_path / "a_file" / "run.npz", "key") as writer:
-            writer.save(_small_reconstruction(), [])
+            writer.save(_small_reconstruction())
             raise KeyError("the run's")
 
 
@@ -187,11 +191,12 @@ def saved(tmp_path) -> _Saved:
         features = Features(rng.uniform(0, 30, (n, 2)), rng.standard_normal((n, 9)).astype(np.float32),
                             rng.random(n) > 0.2, rng.random(n), (24, 32))
         P = K @ np.hstack([np.eye(3), [[0.1 * i], [0.0], [0.0]]]) if i < 2 else None
-        views.append(View(name, features, P=P, status="registered" if i < 2 else "pending",
-                          point_of_feature=np.full(n, -1, np.int64), image=images[i], rotated_180=i == 1,
-                          camera_model="focal" if i == 1 else None, zoomed=i == 1))
+        views.append(View(name, features, P=P, point_of_feature=np.full(n, -1, np.int64), image=images[i],
+                          rotated_180=i == 1, camera_model="focal" if i == 1 else None, zoomed=i == 1))
     recon = Reconstruction(views)
-    recon.views[1].registration_flag = "ambiguous: repeated structure (as a run would say)"
+    recon.calibrate(0, views[0].P)
+    recon.register(1, views[1].camera, "motion prior", views[1].features, images[1], True, "focal", True,
+                   Flag.parse("ambiguous: repeated structure (as a run would say)"))
     ids = recon.add_points(rng.standard_normal((5, 3)) + [0.0, 0.0, 5.0], rng.integers(0, 256, (5, 3)))
     recon.add_observations(0, np.arange(5), ids)
     recon.add_observations(1, np.arange(1, 6), ids)
@@ -200,7 +205,9 @@ def saved(tmp_path) -> _Saved:
     release_pixels(recon.views[0], spill_folder(path))
     per_image = [{"image": "a.png", "status": "calibrated"},
                  {"image": "b.png", "status": "calibrated pair", "new_points": np.int64(5), "rms": 0.25}]
-    save_checkpoint(path, recon, per_image, KEY)
+    for i, report in enumerate(per_image):
+        recon.record(i, report)
+    save_checkpoint(path, recon, KEY)
     return _Saved(path, images, names, recon, per_image)
 
 
@@ -215,8 +222,9 @@ def test_a_checkpoint_gives_back_the_model_and_reports_with_spilled_descriptors_
     for name in ("points", "colors", "alive", "obs_view", "obs_feature", "obs_point", "obs_linked"):
         np.testing.assert_array_equal(getattr(recon, name), getattr(saved.recon, name))
     for a, b in zip(recon.views, saved.recon.views):
-        assert (a.name, a.status, a.rotated_180, a.camera_model, a.zoomed, a.registration_flag) == \
-            (b.name, b.status, b.rotated_180, b.camera_model, b.zoomed, b.registration_flag)
+        assert (a.name, a.status, a.rotated_180, a.camera_model, a.zoomed, a.placement_flag, a.found_by) == \
+            (b.name, b.status, b.rotated_180, b.camera_model, b.zoomed, b.placement_flag, b.found_by)
+        assert a.history == b.history  # a resume replays the same history
         assert (a.P is None and b.P is None) or np.array_equal(a.P, b.P)
         for field in ("points", "desc", "valid", "response"):
             np.testing.assert_array_equal(getattr(a.features, field), getattr(b.features, field))
@@ -231,7 +239,7 @@ def test_a_checkpoint_gives_back_the_model_and_reports_with_spilled_descriptors_
 
 
 def _refused(saved: _Saved, caplog, why: str, key: str = KEY) -> None:
-    with caplog.at_level(logging.WARNING, logger="stereoseed.sfm.checkpoint"):
+    with caplog.at_level(logging.WARNING, logger="stereoseed.scene.checkpoint"):
         assert _load(saved, key) is None
     assert "starting again" in caplog.text and why in caplog.text, caplog.text
 
@@ -314,9 +322,10 @@ def _out_of_range(a, value=999):
     (_flag(0, "desc_file", "desc_gone.npy"), KEY, "cannot be read"),
     (_flag(0, "name", "z.png"), KEY, "description of 'a.png' is malformed"),
     (_flag(1, "zoomed", "yes"), KEY, "description of 'b.png' is malformed"),
-    (_flag(1, "registration_flag", 3), KEY, "description of 'b.png' is malformed"),
+    (_flag(1, "history", 3), KEY, "description of 'b.png' is malformed"),
+    (_flag(1, "history", [{"event": "Registered", "found_by": "x", "code": "os.system"}]), KEY, "malformed Registered"),
     (lambda arrays, meta: meta.update(version=3), KEY, "another version"),
-    (lambda arrays, meta: meta.update(per_image=meta["per_image"][:1]), KEY, "reports are not of these images"),
+    (_flag(1, "history", []), KEY, "reports are not of these images"),
 ])
 def test_an_altered_or_malformed_checkpoint_is_refused(saved, caplog, change, key, why):
     # the traversal's target exists and holds descriptors: only its name refuses it
@@ -363,7 +372,7 @@ def test_a_planted_pickle_beside_the_output_is_never_run(ring_on_disk, tmp_path,
     marker = tmp_path / "ran"
     (staging / ".checkpoint.pkl").write_bytes(_planted_pickle(marker))
     (staging / pipeline.CHECKPOINT).write_bytes(_planted_pickle(marker))
-    with caplog.at_level(logging.WARNING, logger="stereoseed.sfm.checkpoint"):
+    with caplog.at_level(logging.WARNING, logger="stereoseed.scene.checkpoint"):
         report = pipeline.reconstruct_to_folder(images_txt, calib, out, resume=True)
     assert not marker.exists()
     assert "resumed_images" not in report and report["registered"] == report["images"]

@@ -1,6 +1,6 @@
 """Where a view's pixels and descriptors live while a long walk runs: held, let go (the grey image
 computed again from the image when needed) or spilled to a file and memory-mapped. The
-reconstruction stays data (:mod:`stereoseed.sfm.reconstruction`); this module does the disk.
+reconstruction stays data (:mod:`stereoseed.scene.reconstruction`); this module does the disk.
 
 A view out of the mapper's working set keeps only its points in memory, and a page of its
 descriptors is read back only if an old view is matched again, so the memory of a long run
@@ -19,7 +19,7 @@ import numpy as np
 from stereoseed.config import Config
 from stereoseed.io.files import atomic_path
 from stereoseed.io.sequence import ImageSequence
-from stereoseed.sfm.reconstruction import Reconstruction, View
+from stereoseed.scene.reconstruction import Reconstruction, View
 
 __all__ = ["view_of_input", "release_pixels", "working_set", "release_old_views"]
 

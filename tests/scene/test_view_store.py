@@ -4,8 +4,8 @@ import numpy as np
 
 from stereoseed.features.harris import extract_features
 from stereoseed.io.sequence import ImageSequence
-from stereoseed.sfm.reconstruction import View
-from stereoseed.sfm.view_store import release_pixels
+from stereoseed.scene.reconstruction import View
+from stereoseed.scene.view_store import release_pixels
 
 
 def test_a_view_releases_its_grey_image_and_restores_the_same_one(files):
@@ -57,12 +57,3 @@ def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch, sma
         assert (a.P is None) == (b.P is None)
         if a.P is not None:
             np.testing.assert_array_equal(a.P, b.P)
-
-
-def test_a_rollback_restores_the_registration_flag():
-    # an insertion that fails after its commit is rolled back: the flag its registration raised goes too
-    view = View("v.png", image=np.zeros((6, 8, 3), np.uint8))
-    before = view._state()
-    view.registration_flag = view.flag_reason = "ambiguous: repeated structure (as if)"
-    view._restore(before)
-    assert view.registration_flag is None and view.flag_reason is None
