@@ -3,7 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["unique", "distinct_pair_firsts", "sorted_groups", "sort_order"]
+__all__ = ["unique", "distinct_pair_firsts", "sorted_groups", "sort_order", "read_only_float64"]
+
+
+def read_only_float64(a: np.ndarray) -> np.ndarray:
+    """A float64 copy of ``a`` that cannot be written (a value type's arrays stay its own)."""
+    a = np.array(a, np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def unique(values: np.ndarray) -> np.ndarray:

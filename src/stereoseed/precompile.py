@@ -43,12 +43,12 @@ log = logging.getLogger(__name__)
 # name -> (module, function, argument types in Numba's notation): the types a run passes (every
 # array C-contiguous and writable; the dense stage's arrays arrive in its workers as copies)
 KERNELS: dict[str, tuple[str, str, str]] = {
-    "render": ("stereoseed.synthetic.render", "_render_kernel",
+    "render": ("stereoseed.synthetic.render", "render_kernel",
                ("float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean, float64[::1], float64, float64[::1], "
                 "int64, int64, int64, float64, float64, float64[:, ::1], float64[:, ::1], float64[:, ::1], "
                 "int64[:, ::1], float64, float64, float32[:, :, ::1], float64, float32[:, :, ::1], float64, float64, "
                 "float64[:, ::1], float64[::1], float64[:, ::1], float64[::1], float64")),
-    "cast": ("stereoseed.synthetic.render", "_cast_kernel", "float64[::1], float64[:, ::1], float64, float64"),
+    "cast": ("stereoseed.synthetic.render", "cast_kernel", "float64[::1], float64[:, ::1], float64, float64"),
     "refine_camera": ("stereoseed.estimators._calibration_kernels", "refine_camera",
                       ("float64[:, ::1], float64[:, :, ::1], float64[::1], float64[:, ::1], float64[::1], "
                        "float64[:, ::1], float64[:, ::1], float64, int64")),
@@ -59,18 +59,18 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                       "float64, float64, float64, float64, float64, float64, float64[:, ::1], boolean[::1]")),
     "repeats": ("stereoseed.geometry.neighbours", "_repeats_kernel",
                 "float64[:, ::1], float64, float64[::1], float64, int64, int64[::1], int64[::1], boolean[::1]"),
-    "candidate_pairs": ("stereoseed.matching._zncc_kernels", "_candidate_pairs",
+    "candidate_pairs": ("stereoseed.matching._zncc_kernels", "candidate_pairs_kernel",
                         ("float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
                          "float64")),
-    "pair_scores": ("stereoseed.matching._zncc_kernels", "_pair_scores",
+    "pair_scores": ("stereoseed.matching._zncc_kernels", "pair_scores",
                     ("float32[:, ::1], float32[:, :, ::1], boolean[:, ::1], int64[::1], int32[::1], float32[:, ::1], "
                      "float32[::1], float32[:, :, ::1], float32[:, ::1], float64")),
-    "best_of_pairs": ("stereoseed.matching._zncc_kernels", "_best_of_pairs",
+    "best_of_pairs": ("stereoseed.matching._zncc_kernels", "best_of_pairs",
                       "int64[::1], int32[::1], float32[::1], int64"),
-    "align": ("stereoseed.matching._alignment_kernel", "_align_kernel",
+    "align": ("stereoseed.matching._alignment_kernel", "align_kernel",
               ("float32[:, ::1], float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], float64[:, ::1], "
                "int64, int64, float64, float64")),
-    "competitors": ("stereoseed.matching._zncc_kernels", "_competitors",
+    "competitors": ("stereoseed.matching._zncc_kernels", "best_competitors",
                     ("int64[::1], int32[::1], float32[::1], int64[::1], int64[::1], float64[:, ::1], float64[:, ::1], "
                      "float64")),
     "largest_angles": ("stereoseed.estimators.triangulation", "_largest_angles",
@@ -88,27 +88,27 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "observation_errors": ("stereoseed.estimators.bundle", "_observation_errors",
                            ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], "
                             "float64[::1]")),
-    "normal_equations": ("stereoseed.estimators.bundle", "_normal_equations",
+    "normal_equations": ("stereoseed.estimators._schur", "normal_equations",
                          ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], int64[::1], "
                           "int64[::1], float64[:, :, :, ::1], float64, int64[::1], int64, int64, int64")),
-    "eliminate_points": ("stereoseed.estimators.bundle", "_eliminate_points",
+    "eliminate_points": ("stereoseed.estimators._schur", "eliminate_points",
                          ("float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64, "
                           "int64[::1], int64[::1]")),
-    "add_point_pairs": ("stereoseed.estimators.bundle", "_add_point_pairs",
+    "add_point_pairs": ("stereoseed.estimators._schur", "_add_point_pairs",
                         ("float64[:, ::1], int64[::1], int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], "
                          "int64, int64")),
-    "mirror_upper": ("stereoseed.estimators.bundle", "_mirror_upper", "float64[:, ::1], int64"),
-    "back_substitute": ("stereoseed.estimators.bundle", "_back_substitute",
+    "mirror_upper": ("stereoseed.estimators._schur", "_mirror_upper", "float64[:, ::1], int64"),
+    "back_substitute": ("stereoseed.estimators._schur", "back_substitute",
                         ("float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, ::1], int64[::1], "
                          "int64[::1]")),
-    "candidate_mask": ("stereoseed.matching._zncc_kernels", "_candidate_kernel",
+    "candidate_mask": ("stereoseed.matching._zncc_kernels", "candidate_kernel",
                        ("float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[::1], float64[::1], "
                         "float64")),
-    "window_stats": ("stereoseed.matching.propagation._kernels", "_window_stats", "float64[:, ::1], int64"),
-    "zncc_points": ("stereoseed.matching.propagation._kernels", "_zncc_points",
+    "window_stats": ("stereoseed.matching.propagation._kernels", "window_stats", "float64[:, ::1], int64"),
+    "zncc_points": ("stereoseed.matching.propagation._kernels", "zncc_points",
                     ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
                      "int64[:, ::1], int64")),
-    "propagate": ("stereoseed.matching.propagation._kernels", "_propagate_kernel",
+    "propagate": ("stereoseed.matching.propagation._kernels", "propagate_kernel",
                   ("float64[:, ::1], float64[:, ::1], float64[:, ::1], boolean[:, ::1], float64[:, ::1], "
                    "float64[:, ::1], boolean[:, ::1], int64[:, ::1], float64[::1], float64, int64, int64, int64, "
                    "boolean, float64[:, ::1], float64")),
@@ -116,7 +116,7 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                       ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int32[::1], int32[::1], "
                        "float64[:, ::1], boolean, float64[:, ::1], int64, float64, float64, float64, float64[::1], "
                        "float64[::1]")),
-    "refine_quadratic": ("stereoseed.matching.propagation.refine", "_refine_quadratic",
+    "refine_quadratic": ("stereoseed.matching.propagation.refine", "refine_quadratic",
                          ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], "
                           "int32[::1], int32[::1], int32[::1], int32[::1], int64, boolean, float64[:, ::1]")),
     "two_view": ("stereoseed.estimators.triangulation", "_two_view_kernel",

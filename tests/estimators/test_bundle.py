@@ -123,48 +123,48 @@ def _reduced_camera_case():
 
 
 def test_reduced_camera_matrix_is_w_vinv_wt():
-    from stereoseed.estimators.bundle import _reduced_camera_matrix, _thread_rows
+    from stereoseed.estimators._schur import reduced_camera_matrix, thread_rows
 
     args, expected = _reduced_camera_case()
     order, starts, cams, _, _, n_cams = args
-    rows = _thread_rows(order, starts, cams, n_cams)
-    np.testing.assert_allclose(_reduced_camera_matrix(*args, rows), expected, atol=1e-9)
+    rows = thread_rows(order, starts, cams, n_cams)
+    np.testing.assert_allclose(reduced_camera_matrix(*args, rows), expected, atol=1e-9)
 
 
 def test_reduced_camera_matrix_shared_among_threads_is_the_same(monkeypatch):
     # each thread owns whole block rows: the same additions in the same order, bit for bit
-    from stereoseed.estimators import bundle
+    from stereoseed.estimators import _schur as bundle
 
     args, _ = _reduced_camera_case()
     order, starts, cams, _, _, n_cams = args
-    single = bundle._reduced_camera_matrix(*args, bundle._thread_rows(order, starts, cams, n_cams))
+    single = bundle.reduced_camera_matrix(*args, bundle.thread_rows(order, starts, cams, n_cams))
     from stereoseed import threads
 
     monkeypatch.setattr(threads, "_chunks", 3)
     monkeypatch.setattr(bundle, "PAIRS_PER_THREAD", 1)
-    rows = bundle._thread_rows(order, starts, cams, n_cams)
+    rows = bundle.thread_rows(order, starts, cams, n_cams)
     assert len(rows) == 4  # three threads
-    np.testing.assert_array_equal(bundle._reduced_camera_matrix(*args, rows), single)
+    np.testing.assert_array_equal(bundle.reduced_camera_matrix(*args, rows), single)
 
 
 def test_solve_symmetric_falls_back_to_least_squares():
-    from stereoseed.estimators.bundle import _solve_symmetric
+    from stereoseed.estimators._schur import solve_symmetric
 
     A = np.random.default_rng(0).normal(size=(6, 6))
     S = A @ A.T + np.eye(6)
     b = np.arange(6.0)
-    np.testing.assert_allclose(S @ _solve_symmetric(S, b), b, atol=1e-10)
+    np.testing.assert_allclose(S @ solve_symmetric(S, b), b, atol=1e-10)
     singular = np.zeros((3, 3))
     singular[0, 0] = 2.0  # not definite: Cholesky fails, least squares gives the minimum-norm answer
-    np.testing.assert_allclose(_solve_symmetric(singular, np.array([4.0, 0.0, 0.0])), [2.0, 0.0, 0.0])
+    np.testing.assert_allclose(solve_symmetric(singular, np.array([4.0, 0.0, 0.0])), [2.0, 0.0, 0.0])
 
 
 def test_a_singular_point_block_gives_no_step_instead_of_an_error():
-    from stereoseed.estimators.bundle import _eliminate_points, _solve_symmetric
+    from stereoseed.estimators._schur import eliminate_points, solve_symmetric
 
     V = np.zeros((1, 3, 3))
     V[0] -= 1e-12 * np.eye(3)  # cancels the damping's 1e-12: det 0
-    Vinv, Y, rhs = _eliminate_points(V, np.zeros((1, 3)), np.zeros((1, 7)), np.ones((1, 7, 3)), 0.0,
+    Vinv, Y, rhs = eliminate_points(V, np.zeros((1, 3)), np.zeros((1, 7)), np.ones((1, 7, 3)), 0.0,
                                      np.zeros(1, np.int64), np.zeros(1, np.int64))
     assert not np.isfinite(Vinv).all()  # no ZeroDivisionError: the step is refused by its cost
-    assert np.isnan(_solve_symmetric(np.full((7, 7), np.inf), np.ones(7))).all()
+    assert np.isnan(solve_symmetric(np.full((7, 7), np.inf), np.ones(7))).all()

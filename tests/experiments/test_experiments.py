@@ -110,7 +110,7 @@ def test_quick_bench_tables_have_a_row_per_sequence(quick_bench):
 def test_a_run_that_cannot_start_is_recorded_not_raised():
     """A sequence the pipeline cannot even initialise (no texture to match) gives a result with
     the pipeline's message and no numbers; the bench carries on and writes null there."""
-    from stereoseed.experiments.paper import _Job, _json_clean, _run_job, _Sequence, _stats
+    from stereoseed.experiments.paper import _Job, json_clean, _run_job, _Sequence, _stats
 
     scene = render_scene(SceneConfig(n_images=2, **_TINY))
     flat = [np.full_like(im, 128) for im in scene.images]
@@ -121,7 +121,7 @@ def test_a_run_that_cannot_start_is_recorded_not_raised():
     result = results[2]
     assert result["error"] and result["registered"] == 0 and "rms_3d_m" not in result
     assert _stats([None, float("nan")])["valid"] == 0
-    assert _json_clean({"x": [float("nan"), 1.0]}) == {"x": [None, 1.0]}
+    assert json_clean({"x": [float("nan"), 1.0]}) == {"x": [None, 1.0]}
 
 
 def test_one_run_serves_every_count_of_a_job(small_box_scene):

@@ -220,7 +220,7 @@ def test_band_mask_agrees_with_epipolar_distances():
 
 def test_candidates_and_best_scores_agree_with_numpy():
     from stereoseed.matching.zncc import candidate_mask, candidate_pairs
-    from stereoseed.matching._zncc_kernels import _best_of_pairs
+    from stereoseed.matching._zncc_kernels import best_of_pairs
 
     P1, P2 = two_cameras()
     F = fundamental_from_projections(P1, P2)
@@ -239,7 +239,7 @@ def test_candidates_and_best_scores_agree_with_numpy():
     np.testing.assert_array_equal(np.stack(np.nonzero(banded)), np.stack([rows, cols]))
     # ties and rows without a candidate resolve as np.argmax does
     s = np.where(banded, np.round(rng.random(banded.shape), 1), -np.inf).astype(np.float32)
-    best_col, best_score, best_row = _best_of_pairs(indptr, cols, s[rows, cols], 90)
+    best_col, best_score, best_row = best_of_pairs(indptr, cols, s[rows, cols], 90)
     np.testing.assert_array_equal(best_col, np.argmax(s, axis=1))
     np.testing.assert_array_equal(best_row, np.argmax(s, axis=0))
     np.testing.assert_array_equal(best_score, s.max(axis=1))
@@ -250,7 +250,7 @@ def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
     scales), the pairs the bound leaves out all score at most the floor, and the competitors
     are the best scores outside the winner's neighbourhood."""
     from stereoseed.matching.zncc import _bound_terms, _scaled_descriptors, candidate_pairs
-    from stereoseed.matching._zncc_kernels import _competitors, _pair_scores
+    from stereoseed.matching._zncc_kernels import best_competitors, pair_scores
 
     _, feats = textured
     f1, f2 = feats[0], feats[1]
@@ -263,11 +263,11 @@ def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
     rows = np.repeat(np.arange(len(v1)), np.diff(indptr))
     none = np.zeros((len(v1), 0), np.float32), np.zeros(len(v1), np.float32)
     nothing2 = np.zeros(desc2.shape[:2] + (0,), np.float32), np.zeros(desc2.shape[:2], np.float32)
-    ptr_all, cols_all, s_all = _pair_scores(desc1, desc2, ok2, indptr, cols, *none, *nothing2, -np.inf)
+    ptr_all, cols_all, s_all = pair_scores(desc1, desc2, ok2, indptr, cols, *none, *nothing2, -np.inf)
     np.testing.assert_array_equal(ptr_all, indptr)
     np.testing.assert_array_equal(cols_all, cols)
     np.testing.assert_allclose(s_all, dense[rows, cols], atol=2e-6)
-    ptr_kept, cols_kept, s_kept = _pair_scores(desc1, desc2, ok2, indptr, cols, *_bound_terms(desc1),
+    ptr_kept, cols_kept, s_kept = pair_scores(desc1, desc2, ok2, indptr, cols, *_bound_terms(desc1),
                                                *_bound_terms(desc2), 0.6)
     kept_rows = np.repeat(np.arange(len(v1)), np.diff(ptr_kept))
     above = s_all > 0.6
@@ -279,7 +279,7 @@ def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
     matrix[rows, cols] = s_all
     which = np.flatnonzero(np.isfinite(matrix).any(axis=1))[:50]
     winners = np.argmax(matrix[which], axis=1)
-    comp1, comp2 = _competitors(indptr, cols, s_all, which, winners, x1, x2, 5.5**2)
+    comp1, comp2 = best_competitors(indptr, cols, s_all, which, winners, x1, x2, 5.5**2)
     far2 = np.linalg.norm(x2[None, :] - x2[winners][:, None], axis=2) > 5.5
     far1 = np.linalg.norm(x1[None, :] - x1[which][:, None], axis=2) > 5.5
     np.testing.assert_array_equal(comp2, np.where(far2, matrix[which], -np.inf).max(axis=1))
@@ -676,9 +676,9 @@ def test_the_relaxed_match_reuses_the_pair_cache(textured, monkeypatch):
     scene, feats = textured
     cfg = MatchingConfig()
     F = fundamental_from_projections(scene.P[0], scene.P[1])
-    kernel = alignment._align_kernel
+    kernel = alignment.align_kernel
     aligned: list[int] = []
-    monkeypatch.setattr(alignment, "_align_kernel", lambda *a: aligned.append(len(a[4])) or kernel(*a))
+    monkeypatch.setattr(alignment, "align_kernel", lambda *a: aligned.append(len(a[4])) or kernel(*a))
 
     def relaxed_rows(known, cache):
         match_pair(feats[0], feats[1], cfg, F=known, cache=cache)

@@ -501,22 +501,22 @@ def test_quadratic_refinement_reads_no_window_leaving_image_2(monkeypatch):
     inv2 = 0 and must not be read (the kernel ran off the array: a segfault on a Dask worker,
     where the image ended a memory mapping). Run in Python, where such a read raises."""
     from stereoseed.matching.propagation import refine as propagation_refine
-    from stereoseed.matching.propagation._kernels import _dot_window, _window_stats
+    from stereoseed.matching.propagation._kernels import dot_window, window_stats
 
     rng = np.random.default_rng(3)
     half = 2
     I1, I2 = rng.uniform(0, 1, (2, 20, 24))
-    mean1, inv1 = _window_stats(I1, half)
-    _, inv2 = _window_stats(I2, half)
+    mean1, inv1 = window_stats(I1, half)
+    _, inv2 = window_stats(I2, half)
     # x2 one pixel inside each border: the centres of the 3x3 grid are in, some windows are not
     x1 = np.array([10, 10, 10, 12], np.int32)  # the last one well inside
     y1 = np.array([10, 10, 8, 9], np.int32)
     x2 = np.array([1, 22, 11, 12], np.int32)
     y2 = np.array([9, 9, 18, 9], np.int32)
     F = np.zeros((3, 3))
-    compiled = propagation_refine._refine_quadratic(I1, mean1, inv1, I2, inv2, x1, y1, x2, y2, half, False, F)
-    monkeypatch.setattr(propagation_refine, "_dot_window", _dot_window.py_func)
-    python = propagation_refine._refine_quadratic.py_func(I1, mean1, inv1, I2, inv2, x1, y1, x2, y2, half, False, F)
+    compiled = propagation_refine.refine_quadratic(I1, mean1, inv1, I2, inv2, x1, y1, x2, y2, half, False, F)
+    monkeypatch.setattr(propagation_refine, "dot_window", dot_window.py_func)
+    python = propagation_refine.refine_quadratic.py_func(I1, mean1, inv1, I2, inv2, x1, y1, x2, y2, half, False, F)
     np.testing.assert_array_equal(python[0][:3], x2[:3])  # a window left image 2: x2 stays integer
     np.testing.assert_array_equal(python[1][:3], y2[:3])
     assert np.all(np.abs(python[0][3:] - x2[3:]) <= 1.0)  # refined within one pixel

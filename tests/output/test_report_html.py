@@ -152,7 +152,7 @@ def test_a_failing_part_is_logged_and_left_out(run, tmp_path, monkeypatch, caplo
         raise RuntimeError("boom")
 
     monkeypatch.setattr(report_html, "_weakest_insertion", broken)
-    monkeypatch.setattr(report_html, "_figure_times", broken)
+    monkeypatch.setattr(report_html, "figure_times", broken)
     with caplog.at_level(logging.WARNING, logger="stereoseed.output.report.html"):
         text = write_report_html(*run, tmp_path, source=HarrisZncc(Config())).read_text(encoding="utf-8")
     assert "Matches of the weakest insertion" not in text and 'id="times"' not in text

@@ -8,7 +8,7 @@ from ring_helpers import as_if_placed_by, walked
 from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center
 from stereoseed.sfm.mapper import finish
-from stereoseed.sfm.registration.base import _rivals, ambiguity_flag
+from stereoseed.sfm.registration.base import ambiguous_rivals, ambiguity_flag
 from stereoseed.sfm.finishing import judge_cameras as assess
 from stereoseed.scene.camera_life import Flag
 
@@ -136,7 +136,7 @@ def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     shifted = ring_camera(30.0 + 4 * 20.0 + 6.0, height=0.7)[3]  # ~15 cm along the ring: a period over
     close = ring_camera(30.0 + 4 * 20.0 + 0.1, height=0.7)[3]  # 2.4 mm: the same camera
     def flag(cameras, counts):  # the winner: the first
-        return ambiguity_flag(_rivals(recon, 3, recent, cameras, counts, 0, cfg), counts, 0)
+        return ambiguity_flag(ambiguous_rivals(recon, 3, recent, cameras, counts, 0, cfg), counts, 0)
 
     why = flag([near, shifted], np.array([100, 80]))
     assert why is not None and "explains 80" in why.reason

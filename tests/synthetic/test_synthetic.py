@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from stereoseed.geometry.projection import camera_center, compose_projection, project
-from stereoseed.features.edge_corners import _edge_corners
+from stereoseed.features.edge_corners import corners_on_edges
 from stereoseed.features.image import to_gray
 from stereoseed.geometry.lens import distort_pixels, undistort_image, undistort_pixels
 from stereoseed.synthetic.render import add_noise
@@ -465,7 +465,7 @@ def test_lens_corners_land_on_the_rendered_corners(plain_pair, i):
         angle = _corner_angles(scene, i)
         X = scene.corners[scene.corner_visibility(i) & (angle > 60) & (angle < 120)]
         truth = scene.project(i, X)
-        found, ok = _edge_corners(gray, gx, gy, truth)
+        found, ok = corners_on_edges(gray, gx, gy, truth)
         assert ok.sum() >= 40
         err = np.linalg.norm(found[ok] - truth[ok], axis=1)
         assert np.median(err) < 0.15 and np.percentile(err, 90) < 0.3 and err.max() < 0.5, err

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereoseed.estimators.bundle import (BundleProblem, _eliminate_points, _normal_equations,
-                                          _reduced_camera_matrix, _thread_rows, observation_errors, pairs_by_point)
+from stereoseed.estimators._schur import eliminate_points, normal_equations, reduced_camera_matrix, thread_rows
+from stereoseed.estimators.bundle import BundleProblem, observation_errors, pairs_by_point
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.models import CameraModel
 
@@ -291,7 +291,7 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         both_idx = np.flatnonzero(both)
         both_row = np.full(len(oc_k), -1, np.int64)
         both_row[both_idx] = np.arange(len(both_idx))
-        U, gc, V, gp, W = _normal_equations(Ps, X, oc_k, op_k, xy_k, cam_slot, pt_slot, dP, np.inf, both_row,
+        U, gc, V, gp, W = normal_equations(Ps, X, oc_k, op_k, xy_k, cam_slot, pt_slot, dP, np.inf, both_row,
                                             nC, len(pts), len(both_idx))
         ev = np.linalg.eigvalsh(V) if len(pts) else np.ones((0, 3))
         bad = ev[:, 0] < POINT_RCOND * ev[:, 2]
@@ -301,11 +301,11 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         keep &= ~np.isin(op, pts[bad])
 
     both_point, both_camera = pt_slot[op_k[both_idx]], cam_slot[oc_k[both_idx]]
-    Vinv, Y, _ = _eliminate_points(V, gp, gc, W, 0.0, both_point, both_camera)
-    # grouped by point, then camera: the layout _reduced_camera_matrix's kernel adds pairs in
+    Vinv, Y, _ = eliminate_points(V, gp, gc, W, 0.0, both_point, both_camera)
+    # grouped by point, then camera: the layout reduced_camera_matrix's kernel adds pairs in
     order, starts = pairs_by_point(both_point, both_camera)
-    S = _reduced_camera_matrix(order, starts, both_camera, np.swapaxes(W, 1, 2).copy(), Y, nC,
-                               _thread_rows(order, starts, both_camera, nC))
+    S = reduced_camera_matrix(order, starts, both_camera, np.swapaxes(W, 1, 2).copy(), Y, nC,
+                               thread_rows(order, starts, both_camera, nC))
     for i in range(nC):
         S[i * n:(i + 1) * n, i * n:(i + 1) * n] += U[i]
     t_built = time.perf_counter()

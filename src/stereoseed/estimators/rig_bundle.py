@@ -28,16 +28,9 @@ import numpy as np
 from numba import njit
 from scipy.sparse import csr_matrix
 
-from stereoseed.estimators.bundle import (
-    _back_substitute,
-    _eliminate_points,
-    damped_camera_system,
-    damped_step,
-    pairs_by_point,
-    _solve_symmetric,
-    _thread_rows,
-    observation_errors,
-)
+from stereoseed.estimators._schur import (back_substitute, damped_camera_system, eliminate_points, solve_symmetric,
+                                         thread_rows)
+from stereoseed.estimators.bundle import damped_step, observation_errors, pairs_by_point
 from stereoseed.estimators.config import BundleConfig
 from stereoseed.estimators.rig_resection import Rig
 from stereoseed.estimators.robust import huber_cost_of_norms, huber_weights
@@ -285,7 +278,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
     both = obs_pt[virt_obs] >= 0  # the virtual observations of free points: the rows of W
     w_obs, w_cam, w_pt = virt_obs[both], virt_cam[both], obs_pt[virt_obs[both]]
     pair_order, starts = pairs_by_point(w_pt, w_cam)
-    rows = _thread_rows(pair_order, starts, w_cam, n_cams) if n_cams else None
+    rows = thread_rows(pair_order, starts, w_cam, n_cams) if n_cams else None
     cross = np.flatnonzero((obs_cam >= 0) & (side == 1)) if refine_rig else np.zeros(0, np.int64)
     point_obs = np.flatnonzero(obs_pt >= 0)
 
@@ -311,7 +304,7 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
         U_cross = _sum_blocks(obs_cam[cross], _gram(w[cross], J_st[cross], J_rig[cross]), n_cams)
         Wt = np.swapaxes(W, 1, 2).copy()
         def trial(lam: float) -> tuple[tuple | None, float]:  # called at once by damped_step, in this iteration
-            Vinv, Y, rhs = _eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
+            Vinv, Y, rhs = eliminate_points(V, gp, gc, W, lam, w_pt, w_cam)
             if n_cams:
                 S = damped_camera_system(pair_order, starts, w_cam, Wt, Y, U, lam, rows)
                 if refine_rig:  # the station-rig blocks no single observation block carries
@@ -319,10 +312,10 @@ def rig_bundle_adjust(problem: RigBundleProblem, config: RigBundleConfig = RigBu
                     for c in range(len(free_idx)):
                         S[c * _N:(c + 1) * _N, g] += U_cross[c]
                         S[g, c * _N:(c + 1) * _N] += U_cross[c].T
-                dc = _solve_symmetric(S, rhs.ravel()).reshape(n_cams, _N)
+                dc = solve_symmetric(S, rhs.ravel()).reshape(n_cams, _N)
             else:
                 dc = np.zeros((0, _N))
-            dp = _back_substitute(Vinv, gp, W, dc, w_pt, w_cam)
+            dp = back_substitute(Vinv, gp, W, dc, w_pt, w_cam)
             if not np.all(np.isfinite(dc)):
                 return None, np.inf
             moved = _step(rig, R, t, X, dc, dp, free_idx, pt_idx, rig_slot)

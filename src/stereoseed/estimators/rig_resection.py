@@ -34,9 +34,10 @@ from stereoseed.errors import StereoseedError
 from stereoseed.estimators.bundle import damped_step
 from stereoseed.estimators.config import BundleConfig, ResectionConfig
 from stereoseed.estimators.robust import huber_cost, huber_weights
-from stereoseed.geometry.camera import _read_only
+from stereoseed.arrays import read_only_float64
+from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.models import rotation_from_vector
-from stereoseed.geometry.projection import compose_projection, decompose_projection
+from stereoseed.geometry.projection import compose_projection
 from stereoseed.validation import positive, whole
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class Rig:
             if a.shape != shape or not np.all(np.isfinite(a)):
                 raise StereoseedError(f"rig: {name} must be {shape} finite numbers, got shape {a.shape}; "
                                       f"check the calibration")
-            object.__setattr__(self, name, _read_only(a))
+            object.__setattr__(self, name, read_only_float64(a))
         for name in ("K_left", "K_right"):
             K = np.array(getattr(self, name))
             lower = np.abs(K[np.tril_indices(3, -1)])
@@ -73,19 +74,20 @@ class Rig:
                 raise StereoseedError(f"rig: {name} is not an intrinsic matrix (upper triangular, positive focal "
                                       f"lengths); check the calibration")
             K[np.tril_indices(3, -1)] = 0.0  # a decomposition's rounding: the pixels are computed from (0, 0, 1)
-            object.__setattr__(self, name, _read_only(K / K[2, 2]))
+            object.__setattr__(self, name, read_only_float64(K / K[2, 2]))
         R = self.R_rl
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
             raise StereoseedError("rig: R_rl is not a rotation (orthonormal, determinant +1); check the calibration")
         # the RANSAC's and the BA's inner loops index the two Ks by side: stacked once
-        object.__setattr__(self, "_Ks", _read_only(np.stack([self.K_left, self.K_right])))
+        object.__setattr__(self, "_Ks", read_only_float64(np.stack([self.K_left, self.K_right])))
 
     @classmethod
     def from_projections(cls, P_left: np.ndarray, P_right: np.ndarray) -> Rig:
         """The rig of a calibrated pair of cameras P_left, P_right (3, 4) taken together (the
-        first station): both decomposed, the right camera's pose related to the left's."""
-        K_l, R_l, t_l = decompose_projection(np.asarray(P_left, np.float64))
-        K_r, R_r, t_r = decompose_projection(np.asarray(P_right, np.float64))
+        first station): both decomposed (:class:`~stereoseed.geometry.camera.Camera`), the right
+        camera's pose related to the left's."""
+        K_l, R_l, t_l = Camera(P_left).krt
+        K_r, R_r, t_r = Camera(P_right).krt
         R_rl = R_r @ R_l.T
         return cls(K_l, K_r, R_rl, t_r - R_rl @ t_l)
 

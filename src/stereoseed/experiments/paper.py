@@ -52,7 +52,7 @@ from stereoseed.config import Config
 
 from stereoseed.sfm.config import PipelineConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.experiments.report import LABELS, _json_clean, _plot_fig7, _plot_fig8, _plot_fig9, _plot_table2, _summary_md
+from stereoseed.experiments.report import LABELS, json_clean, plot_fig7, plot_fig8, plot_fig9, plot_table2, summary_md
 from stereoseed.io.files import write_json, write_text
 
 __all__ = ["VARIANTS", "BenchPlan", "FULL_PLAN", "QUICK_PLAN", "run_paper_bench", "noisy_images",
@@ -425,16 +425,16 @@ def run_paper_bench(out_dir: str | os.PathLike, quick: bool = False, seed: int =
     with tqdm(total=n_renders, unit="step", file=sys.stderr, disable=not progress, desc="paper bench") as bar:
         layout, fig8, results = _run_all(plan, seed, bar, workers)
     data = _assemble(plan, seed, layout, fig8, results)
-    _plot_fig7(data["fig7"], out / "fig7_rms_vs_images.png")
-    _plot_fig8(data["fig8"], out / "fig8_time_vs_images.png")
-    _plot_fig9(data["fig9"], out / "fig9_rms_vs_noise.png")
-    _plot_table2(data["table2"], out / "table2_progression.png")
+    plot_fig7(data["fig7"], out / "fig7_rms_vs_images.png")
+    plot_fig8(data["fig8"], out / "fig8_time_vs_images.png")
+    plot_fig9(data["fig9"], out / "fig9_rms_vs_noise.png")
+    plot_table2(data["table2"], out / "table2_progression.png")
     data["seconds"] = time.perf_counter() - t_start
     data["files"] = ["fig7_rms_vs_images.png", "fig8_time_vs_images.png", "fig9_rms_vs_noise.png",
                      "table2_progression.png", "paper_bench.json", "summary.md"]
-    data = _json_clean(data)
+    data = json_clean(data)
     write_json(out / "paper_bench.json", data)
-    write_text(out / "summary.md", _summary_md(data))
+    write_text(out / "summary.md", summary_md(data))
     return data
 
 

@@ -1,9 +1,9 @@
 """Figures and Markdown summary of the paper bench (:mod:`stereoseed.experiments.paper`).
 
 Every function takes the bench's JSON-able data (``paper_bench.json``: metres and seconds, None
-for a missing value) and writes or returns one output: ``_plot_fig7``, ``_plot_fig8``,
-``_plot_fig9``, ``_plot_table2`` a PNG each (Matplotlib's Agg canvas, no pyplot state),
-``_summary_md`` the Markdown tables; ``_json_clean`` makes the data strict JSON.
+for a missing value) and writes or returns one output: ``plot_fig7``, ``plot_fig8``,
+``plot_fig9``, ``plot_table2`` a PNG each (Matplotlib's Agg canvas, no pyplot state),
+``summary_md`` the Markdown tables; ``json_clean`` makes the data strict JSON.
 """
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def _save(fig: Any, path: Path) -> None:
         fig.savefig(tmp, format="png", dpi=120)
 
 
-def _plot_fig7(d: dict, path: Path) -> None:
+def plot_fig7(d: dict, path: Path) -> None:
     fig, ax = _figure()
     x = np.array(d["images"])
     for v, values in d["rms_3d_m"].items():
@@ -76,7 +76,7 @@ def _plot_fig7(d: dict, path: Path) -> None:
     _save(fig, path)
 
 
-def _plot_fig8(d: dict, path: Path) -> None:
+def plot_fig8(d: dict, path: Path) -> None:
     fig, (left, right) = _figure(2, width=12.0)
     for v, run in d["variants"].items():
         if run.get("total_s") is None:
@@ -112,7 +112,7 @@ def _plot_fig8(d: dict, path: Path) -> None:
     _save(fig, path)
 
 
-def _plot_fig9(d: dict, path: Path) -> None:
+def plot_fig9(d: dict, path: Path) -> None:
     fig, ax = _figure()
     sig = np.array(d["sigmas"])
     variants = list(d["variants"])
@@ -133,7 +133,7 @@ def _plot_fig9(d: dict, path: Path) -> None:
     _save(fig, path)
 
 
-def _plot_table2(d: dict, path: Path) -> None:
+def plot_table2(d: dict, path: Path) -> None:
     fig, (left, right) = _figure(2, width=12.0)
     colors = {"box14": "tab:blue", "box18": "tab:purple", "temple": "tab:brown"}
     lines = {"local": "-", "accurate": "--"}
@@ -179,7 +179,7 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _summary_md(d: dict) -> str:
+def summary_md(d: dict) -> str:
     parts = [f"# Paper bench ({'quick' if d['quick'] else 'full'} run, seed {d['seed']})\n",
              f"Run time {d['seconds']:.0f} s. Variants: "
              + "; ".join(f"**{v}** = {x['label']}" for v, x in d["variants"].items()) + ".\n"]
@@ -242,14 +242,14 @@ def _summary_md(d: dict) -> str:
     return "".join(parts)
 
 
-def _json_clean(obj: Any) -> Any:
+def json_clean(obj: Any) -> Any:
     """NaN and infinities become null (strict JSON has no NaN); tuples become lists."""
     if isinstance(obj, dict):
-        return {str(k): _json_clean(v) for k, v in obj.items()}
+        return {str(k): json_clean(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
+        return [json_clean(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _json_clean(obj.tolist())
+        return json_clean(obj.tolist())
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, np.integer):

@@ -233,7 +233,7 @@ def _edge_corner_kernel(gray, gx, gy, pts, radius, apex, half, s_from, s_to, s_s
         ok[i] = True
 
 
-def _edge_corners(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def corners_on_edges(gray: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Junctions (N, 2) moved to the intersection of their two edges where both edges are found
     and straight (see _EDGE_WINDOW). Returns (positions (N, 2), moved (N,) bool)."""
     out = np.array(points, np.float64, copy=True)

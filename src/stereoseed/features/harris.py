@@ -24,7 +24,7 @@ from numba import njit
 from stereoseed.features.config import FeatureConfig
 
 from stereoseed.matching.config import MatchingConfig
-from stereoseed.features.edge_corners import _edge_corners
+from stereoseed.features.edge_corners import corners_on_edges
 from stereoseed.errors import StereoseedError
 from stereoseed.features.image import sample_bilinear, to_gray
 from stereoseed.geometry.neighbours import repeats_earlier
@@ -294,7 +294,7 @@ def _refine_subpixel(
     replaces it where the junction model fits (:func:`_is_junction`) and the refinement stayed
     inside its window; where it does not, a window half as wide is tried the same way. With
     ``edge_corners`` a junction then moves to the intersection of its two edges where both are
-    found and straight (:func:`stereoseed.features.edge_corners._edge_corners`).
+    found and straight (:func:`stereoseed.features.edge_corners.corners_on_edges`).
     """
     peak = _quadratic_peak(harris, xi, yi)
     if win <= 0 or len(peak) == 0:
@@ -317,7 +317,7 @@ def _refine_subpixel(
         refined[rest], ok[rest] = _junction_refinement(gray, gx, gy, peak[rest], size, junction_tol)
     if edge_corners and ok.any():
         junctions = np.flatnonzero(ok)
-        moved_to, moved = _edge_corners(gray, gx, gy, refined[junctions])
+        moved_to, moved = corners_on_edges(gray, gx, gy, refined[junctions])
         refined[junctions[moved]] = moved_to[moved]
     return np.where(ok[:, None], refined, peak)
 

@@ -13,16 +13,11 @@ from functools import cached_property
 import numpy as np
 
 from stereoseed.geometry.models import CameraModel, krt_from_params, params_from_projection
+from stereoseed.arrays import read_only_float64
 from stereoseed.geometry.projection import (camera_center, compose_projection, decompose_projection, depths,
                                             intrinsics_turned_180, project)
 
 __all__ = ["Camera"]
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, np.float64)
-    a.flags.writeable = False
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,17 +34,17 @@ class Camera:
     lens: np.ndarray | None = field(default=None)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "P", _read_only(self.P))
+        object.__setattr__(self, "P", read_only_float64(self.P))
         object.__setattr__(self, "model", CameraModel(self.model))
         if self.lens is not None:
-            object.__setattr__(self, "lens", _read_only(self.lens))
+            object.__setattr__(self, "lens", read_only_float64(self.lens))
 
     @classmethod
     def from_krt(cls, K: np.ndarray, R: np.ndarray, t: np.ndarray, model: CameraModel = CameraModel.FREE,
                  lens: np.ndarray | None = None) -> "Camera":
         """The camera K [R | t]; its K, R, t are the ones given (no decomposition)."""
         cam = cls(compose_projection(K, R, t), model, lens)
-        cam.__dict__["_krt"] = tuple(_read_only(a) for a in (K, R, np.ravel(t)))
+        cam.__dict__["_krt"] = tuple(read_only_float64(a) for a in (K, R, np.ravel(t)))
         return cam
 
     @classmethod
@@ -60,7 +55,7 @@ class Camera:
 
     @cached_property
     def _krt(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return tuple(_read_only(a) for a in decompose_projection(self.P))
+        return tuple(read_only_float64(a) for a in decompose_projection(self.P))
 
     @property
     def krt(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """Numba kernels of the affine patch alignment (:func:`stereoseed.matching.alignment.align_matches`).
 
 Inverse-compositional affine Lucas-Kanade (Baker & Matthews, IJCV 2004) on zero-mean
-unit-norm patches, one match at a time, allocation-free per match: :func:`_align_kernel` makes
+unit-norm patches, one match at a time, allocation-free per match: :func:`align_kernel` makes
 the scratch arrays once and calls :func:`_align_one` for each match, which samples patches with
 :func:`_sample_normalised` and inverts its 6x6 Hessian with :func:`_invert`.
 """
@@ -89,7 +89,7 @@ def _invert(a, out, work):
 @njit(cache=True, nogil=True, fastmath=True)
 def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
                tmpl, img, jac, hess, hess_inv, work, A, t, b, dp, t_out, A_out, zncc, converged):
-    """Align match i (see :func:`_align_kernel`); every array argument after uy is scratch or
+    """Align match i (see :func:`align_kernel`); every array argument after uy is scratch or
     output, so nothing is allocated here."""
     npx = tmpl.shape[0]
     h1, w1 = g1.shape
@@ -211,7 +211,7 @@ def _align_one(i, g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm, ux, uy,
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
+def align_kernel(g1, gx, gy, g2, x1, x2, r, max_iters, tol, min_norm):
     """Inverse-compositional affine Lucas-Kanade for every match (M,): images g1, gx, gy, g2
     float32, x1, x2 (M, 2), half patch side r; returns t (M, 2), A (M, 2, 2), zncc (M,),
     converged (M,) as :func:`stereoseed.matching.alignment.align_matches` describes them.

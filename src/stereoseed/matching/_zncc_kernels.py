@@ -3,8 +3,8 @@
 The candidates of a pair of images are a sparse set (a search window holds about a quarter of
 the pairs, an epipolar band a few hundredths), kept as CSR arrays: for point i of image 1 its
 candidate columns (points of image 2) are ``cols[indptr[i]:indptr[i + 1]]``, in increasing
-order. Only those pairs are scored (:func:`_pair_scores`), and the mutual best and the
-uniqueness test run on them (:func:`_best_of_pairs`, :func:`_competitors`): nothing of size
+order. Only those pairs are scored (:func:`pair_scores`), and the mutual best and the
+uniqueness test run on them (:func:`best_of_pairs`, :func:`best_competitors`): nothing of size
 N1 x N2 is made.
 """
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# An upper bound of a ZNCC (:func:`_pair_scores`) at most this far above the acceptance
+# An upper bound of a ZNCC (:func:`pair_scores`) at most this far above the acceptance
 # threshold cannot prune: it covers the rounding of a float32 dot product of unit vectors
 # (at most n * 2^-24 ~ 1e-5 for the 121 terms of an 11 x 11 patch) with ten times to spare.
 _BOUND_MARGIN = 1e-4
@@ -23,7 +23,7 @@ _FAST = {"reassoc", "nsz", "contract"}
 
 @njit(cache=True, nogil=True, inline="always")
 def _candidate_row(i, centre, xs, ys, radius2, lines2, norm2, limit1, band, row):
-    """row (N2,) bool: the candidates of point i of image 1 (see :func:`_candidate_kernel`).
+    """row (N2,) bool: the candidates of point i of image 1 (see :func:`candidate_kernel`).
     The one place the test is written, so the dense mask and the CSR pairs agree bit for bit."""
     cx, cy = centre[i, 0], centre[i, 1]
     a, b, c = lines2[i, 0], lines2[i, 1], lines2[i, 2]
@@ -38,7 +38,7 @@ def _candidate_row(i, centre, xs, ys, radius2, lines2, norm2, limit1, band, row)
 
 
 @njit(cache=True, nogil=True)
-def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
+def candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
     """The (N1, N2) bool mask of :func:`stereoseed.matching.zncc.candidate_mask` from the window
     centres (N1, 2), the points of image 2 (N2, 2), the epipolar lines in image 2 (N1, 3) and
     the normals' lengths of the lines in image 2 (N1,) and image 1 (N2,)."""
@@ -52,8 +52,8 @@ def _candidate_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
 
 
 @njit(cache=True, nogil=True)
-def _candidate_pairs(centre, x2, radius2, lines2, norm2, norm1, band):
-    """The same candidates as :func:`_candidate_kernel`, as CSR arrays: indptr (N1 + 1,)
+def candidate_pairs_kernel(centre, x2, radius2, lines2, norm2, norm1, band):
+    """The same candidates as :func:`candidate_kernel`, as CSR arrays: indptr (N1 + 1,)
     int64 and cols (K,) int32, increasing within a row."""
     n1, n2 = centre.shape[0], x2.shape[0]
     xs, ys = x2[:, 0].copy(), x2[:, 1].copy()
@@ -76,7 +76,7 @@ def _candidate_pairs(centre, x2, radius2, lines2, norm2, norm1, band):
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
-def _pair_scores(desc1, desc2, ok2, indptr, cols, proj1, rest1, proj2, rest2, floor):
+def pair_scores(desc1, desc2, ok2, indptr, cols, proj1, rest1, proj2, rest2, floor):
     """ZNCC of the candidate pairs, best over several descriptor sets of image 2.
 
     desc1: (N1, D) float32; desc2: (S, N2, D) float32, usable where ok2 (S, N2) bool; indptr
@@ -128,7 +128,7 @@ def _pair_scores(desc1, desc2, ok2, indptr, cols, proj1, rest1, proj2, rest2, fl
 
 
 @njit(cache=True, nogil=True)
-def _best_of_pairs(indptr, cols, scores, n2):
+def best_of_pairs(indptr, cols, scores, n2):
     """Best column of each row (N1,) int64, its score (N1,) float32 (-inf without a
     candidate) and best row of each column (N2,) int64 over the CSR pairs; the first of equal
     maxima (lowest index), 0 where there is no candidate, as np.argmax of a matrix holding
@@ -152,7 +152,7 @@ def _best_of_pairs(indptr, cols, scores, n2):
 
 
 @njit(cache=True, nogil=True)
-def _competitors(indptr, cols, scores, rows, winners, x1, x2, excl2):
+def best_competitors(indptr, cols, scores, rows, winners, x1, x2, excl2):
     """The best competitors of the matches (rows[k], winners[k]) (K,): comp2 (K,) float32, the
     best score of row rows[k] at a column whose point lies farther than sqrt(excl2) from
     x2[winners[k]]; comp1 (K,) float32, the best score of column winners[k] at a row whose

@@ -22,7 +22,7 @@ from stereoseed.matching.config import MatchingConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import DEFAULT_MIN_PATCH_STD, Features, describe
 from stereoseed.threads import concat_chunks
-from stereoseed.matching._alignment_kernel import _align_kernel
+from stereoseed.matching._alignment_kernel import align_kernel
 from stereoseed.matching.containers import Alignment, Matches
 
 __all__ = ["PairCache", "align_matches", "filter_localization", "refine_features"]
@@ -154,7 +154,7 @@ def align_matches(
     x1 = np.ascontiguousarray(x1, np.float64)
     x2 = np.ascontiguousarray(x2, np.float64)
     args = (patch_size // 2, int(max_iters), float(tol_px), float(DEFAULT_MIN_PATCH_STD * patch_size))
-    return Alignment(*concat_chunks(lambda a, b: _align_kernel(g1, gx, gy, g2, x1[a:b], x2[a:b], *args),
+    return Alignment(*concat_chunks(lambda a, b: align_kernel(g1, gx, gy, g2, x1[a:b], x2[a:b], *args),
                                     len(x1), _ALIGNMENTS_PER_THREAD))
 
 

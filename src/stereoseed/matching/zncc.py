@@ -19,7 +19,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features, describe_scaled
 from stereoseed.threads import map_chunks, split_rows
 from stereoseed.matching.containers import Matches, as_points
-from stereoseed.matching._zncc_kernels import _best_of_pairs, _candidate_kernel, _candidate_pairs, _competitors, _pair_scores
+from stereoseed.matching._zncc_kernels import best_of_pairs, candidate_kernel, candidate_pairs_kernel, best_competitors, pair_scores
 
 if TYPE_CHECKING:
     from stereoseed.matching.alignment import PairCache
@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 # float32 resolution of a ZNCC near 1 (dot product of 121 float32 terms): score differences
 # below it are ties. A numerical property of the scores, not a threshold to tune.
 _ZNCC_EPS = 1e-5
-# Terms of the upper bound that spares scoring hopeless pairs (zncc_kernels._pair_scores): the
+# Terms of the upper bound that spares scoring hopeless pairs (zncc_kernels.pair_scores): the
 # lowest frequencies of the patch. More terms bound tighter and cost more per pair; the results
 # do not depend on it.
 _BOUND_TERMS = 16
@@ -70,7 +70,7 @@ def candidate_mask(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarr
     (3, 3), within ``band_px`` of each other's epipolar line in both images (the max of both
     one-sided distances, as :func:`stereoseed.geometry.projection.epipolar_distances`). One pass over the
     pairs, no (N1, N2) temporaries."""
-    return _candidate_kernel(*_candidate_arguments(x1, x2, radius_px, F, band_px))
+    return candidate_kernel(*_candidate_arguments(x1, x2, radius_px, F, band_px))
 
 
 def candidate_pairs(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndarray | None = None,
@@ -78,7 +78,7 @@ def candidate_pairs(x1: np.ndarray, x2: np.ndarray, radius_px: float, F: np.ndar
     """The pairs of :func:`candidate_mask` as CSR arrays: indptr (N1 + 1,) int64 and cols (K,)
     int32, the candidates of x1[i] being ``cols[indptr[i]:indptr[i + 1]]`` (increasing)."""
     centre, x2, radius2, lines2, norm2, norm1, band = _candidate_arguments(x1, x2, radius_px, F, band_px)
-    parts = map_chunks(lambda a, b: _candidate_pairs(centre[a:b], x2, radius2, lines2[a:b], norm2[a:b], norm1, band),
+    parts = map_chunks(lambda a, b: candidate_pairs_kernel(centre[a:b], x2, radius2, lines2[a:b], norm2[a:b], norm1, band),
                        split_rows(len(centre), _CANDIDATE_ROWS_PER_THREAD))
     return _join_rows(parts)
 
@@ -106,7 +106,7 @@ def _low_frequency_basis(patch_size: int) -> np.ndarray:
 
 def _bound_terms(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Projections (..., L) float32 of descriptors (..., D) float32 on the low-frequency basis
-    and the norms (...,) float32 of what the basis leaves out (see zncc_kernels._pair_scores).
+    and the norms (...,) float32 of what the basis leaves out (see zncc_kernels.pair_scores).
     The norm of the residual vector itself, not sqrt(|a|^2 - |B a|^2): no cancellation where
     the basis holds almost all of a patch."""
     basis = _low_frequency_basis(int(round(np.sqrt(desc.shape[-1])))).astype(np.float32)
@@ -134,7 +134,7 @@ def _scaled_descriptors(f2: Features, v2: np.ndarray, scales: tuple[float, ...])
 def _score_pairs(f1: Features, f2: Features, v1: np.ndarray, v2: np.ndarray, scales: tuple[float, ...],
                  pairs: tuple[np.ndarray, np.ndarray], floor: float, store: dict) -> tuple:
     """Scores of the candidate ``pairs`` (CSR over v1 x v2), best over the scales; with a floor
-    > -inf, the pairs scoring at most ``floor`` left out (zncc_kernels._pair_scores). ``store``
+    > -inf, the pairs scoring at most ``floor`` left out (zncc_kernels.pair_scores). ``store``
     keeps the descriptors and bound terms for the next call on the same two feature sets."""
     def kept(key, make):
         if key not in store:
@@ -152,7 +152,7 @@ def _score_pairs(f1: Features, f2: Features, v1: np.ndarray, v2: np.ndarray, sca
     indptr, cols = pairs
 
     def rows(a: int, b: int) -> tuple:
-        return _pair_scores(desc1[a:b], desc2, ok2, indptr[a:b + 1] - indptr[a], cols[indptr[a]:indptr[b]],
+        return pair_scores(desc1[a:b], desc2, ok2, indptr[a:b + 1] - indptr[a], cols[indptr[a]:indptr[b]],
                             proj1[a:b], rest1[a:b], proj2, rest2, float(floor))
 
     return _join_rows(map_chunks(rows, split_rows(len(desc1), _SCORED_ROWS_PER_THREAD)))
@@ -227,7 +227,7 @@ def match_zncc(
         if key is not None:
             store[key] = scored
     indptr, cols, scores = scored
-    best2, score, best1 = _best_of_pairs(indptr, cols, scores, len(v2))
+    best2, score, best1 = best_of_pairs(indptr, cols, scores, len(v2))
     keep = score > config.min_zncc
     if config.mutual:
         keep &= best1[best2] == np.arange(len(v1))
@@ -238,7 +238,7 @@ def match_zncc(
         if len(rows):
             # Competitors in image 2 (other columns of the row) and in image 1 (other rows of
             # the column), ignoring those within excl px of the winner.
-            comp1, comp2 = _competitors(indptr, cols, scores, rows, best2[rows], x1v, x2v, excl * excl)
+            comp1, comp2 = best_competitors(indptr, cols, scores, rows, best2[rows], x1v, x2v, excl * excl)
             comp = np.maximum(comp1, comp2).astype(np.float64)
             best = score[rows].astype(np.float64)
             # sqrt(1 - best) < r sqrt(1 - comp)  <=>  1 - best < r^2 (1 - comp); -inf passes.

@@ -36,7 +36,7 @@ from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.motion_prior import described_points, explained_points, explaining_matches, hypotheses_near
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import CALIBRATED, adjust, global_adjust
-from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector, _rivals, ambiguity_flag
+from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector, ambiguous_rivals, ambiguity_flag
 
 __all__ = ["contradicted_by_neighbours", "register_again", "Hindsight", "between", "Rival"]
 
@@ -114,7 +114,7 @@ def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival 
     if not rivals:
         return None
     n, d, i = max(rivals)
-    margin = ambiguity_flag(_rivals(recon, a, pids, cameras, counts, i, cfg), counts, i)
+    margin = ambiguity_flag(ambiguous_rivals(recon, a, pids, cameras, counts, i, cfg), counts, i)
     return Rival(a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc, margin)
 
 

@@ -40,7 +40,7 @@ from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
-                                              _rivals, ambiguity_flag, chained_points)
+                                              ambiguous_rivals, ambiguity_flag, chained_points)
 from stereoseed.sfm.registration.ambiguity import judge_ambiguity
 
 __all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
@@ -166,7 +166,7 @@ class RigRegistrar:
             counts += explained_points(c.features, [P[sd] for P in cameras],
                                        recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
         best = int(np.argmax(counts))
-        rivals = _rivals(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
+        rivals = ambiguous_rivals(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
         # the winner refitted on every pair of both images it explains, from all sets
         X, x, side = (np.concatenate(a) for a in zip(*pairs))
         err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)

@@ -119,7 +119,7 @@ def _sample_ray(us, vs, Minv, Kinv, Rt, has_lens, lens, r2_max, centre_ok, xdc, 
 
 
 @njit(parallel=True, cache=True)
-def _render_kernel(Minv, Kinv, Rt, has_lens, lens, r2_max, C, height_px, width_px, ss, half, height, face_o,
+def render_kernel(Minv, Kinv, Rt, has_lens, lens, r2_max, C, height_px, width_px, ss, half, height, face_o,
                    face_u, face_v, grid, sq_size, sq_gap, tex_faces, face_texel, tex_ground, ground_texel,
                    ground_radius, albedo, shade, tints, sky, far_ground):
     """Box-filtered supersampled render -> (H, W, 3) linear RGB. Minv = R^T K^-1 (3, 3), C (3,).
@@ -166,7 +166,7 @@ def _render_kernel(Minv, Kinv, Rt, has_lens, lens, r2_max, C, height_px, width_p
 
 
 @njit(parallel=True, cache=True)
-def _cast_kernel(C, dirs, half, height):
+def cast_kernel(C, dirs, half, height):
     """First hits of rays C + t dirs[n]: t (N,) float64 (inf if none), labels (N,) int8."""
     n = dirs.shape[0]
     ts = np.empty(n, dtype=np.float64)

@@ -55,7 +55,7 @@ import numpy as np
 from stereoseed.geometry.projection import camera_center, compose_projection, depths, project
 from stereoseed.io.files import write_image, write_text
 from stereoseed.geometry.lens import distort_pixels, lens_coefficients, principal_r2, undistort_pixels
-from stereoseed.synthetic.render import _cast_kernel, _render_kernel, add_noise  # the sensor's noise lives with the renderer
+from stereoseed.synthetic.render import cast_kernel, render_kernel, add_noise  # the sensor's noise lives with the renderer
 
 __all__ = ["BOX_HALF", "BOX_HEIGHT", "SQUARE_SIZE", "SQUARE_GAP", "GROUND_RADIUS", "FACE_LABELS", "FACE_NORMALS",
            "FACE_ORIGIN", "FACE_U", "FACE_V", "SceneConfig", "SyntheticScene", "box_corners", "render_scene",
@@ -286,7 +286,7 @@ def _seeded_textures(seed: int) -> tuple[np.ndarray, np.ndarray]:
 def _cast(C: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First hit along each ray. C (3,), dirs (N, 3) -> t (N,), labels (N,) int8."""
     dirs = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
-    return _cast_kernel(np.ascontiguousarray(C, dtype=np.float64), dirs, BOX_HALF, BOX_HEIGHT)
+    return cast_kernel(np.ascontiguousarray(C, dtype=np.float64), dirs, BOX_HALF, BOX_HEIGHT)
 
 
 def _snap_to_surface(points: np.ndarray, labels: np.ndarray) -> None:
@@ -552,7 +552,7 @@ def render_views(config: SceneConfig, Ks: list, Rs: list, ts: list) -> list[np.n
     images = []
     for i, (K, R, t) in enumerate(zip(Ks, Rs, ts)):
         Kinv = np.linalg.inv(K)
-        rgb = _render_kernel(np.ascontiguousarray(R.T @ Kinv), np.ascontiguousarray(Kinv),
+        rgb = render_kernel(np.ascontiguousarray(R.T @ Kinv), np.ascontiguousarray(Kinv),
                              np.ascontiguousarray(R.T), bool(np.any(lens)), np.asarray(lens, np.float64),
                              float(r2_max), -R.T @ t, *scene_args)
         image = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)  # RGB -> BGR

@@ -11,11 +11,11 @@ from numba import njit
 
 # Only re-association (and fused multiply-add) is allowed: enough to vectorise the 25-term
 # window sums; the "no NaN" flag stays off because the refinement tests for NaN.
-_FASTMATH = {"reassoc", "contract"}
+FASTMATH = {"reassoc", "contract"}
 
 
 @njit(cache=True, nogil=True)
-def _window_stats(img, half):
+def window_stats(img, half):
     """Per-pixel window mean and inverse norm.
 
     img: (H, W) float64; half: window half-size. Returns mean (H, W) float64 and inv_norm
@@ -47,7 +47,7 @@ def _window_stats(img, half):
 
 
 @njit(cache=True)
-def _load_centred(img, mean, x, y, half, buf):
+def load_centred(img, mean, x, y, half, buf):
     """Copy the window of (x, y) minus its mean into buf ((2*half+1)^2,) float64."""
     m = mean[y, x]
     k = 0
@@ -57,10 +57,10 @@ def _load_centred(img, mean, x, y, half, buf):
             k += 1
 
 
-@njit(cache=True, fastmath=_FASTMATH)
-def _dot_window(buf, img, x, y, half):
+@njit(cache=True, fastmath=FASTMATH)
+def dot_window(buf, img, x, y, half):
     """sum_w buf * I(window of (x, y)). Since buf sums to zero this equals the centred product,
-    so image 2 needs no mean: ZNCC = inv1 * inv2 * _dot_window(...)."""
+    so image 2 needs no mean: ZNCC = inv1 * inv2 * dot_window(...)."""
     s = 0.0
     k = 0
     for wy in range(-half, half + 1):
@@ -71,7 +71,7 @@ def _dot_window(buf, img, x, y, half):
 
 
 @njit(cache=True, nogil=True)
-def _zncc_points(I1, mean1, inv1, I2, inv2, pts, half):
+def zncc_points(I1, mean1, inv1, I2, inv2, pts, half):
     """ZNCC of integer pairs pts (N, 4) int64 (x1, y1, x2, y2); -1 where a window is invalid."""
     H1, W1 = I1.shape
     H2, W2 = I2.shape
@@ -83,8 +83,8 @@ def _zncc_points(I1, mean1, inv1, I2, inv2, pts, half):
             continue
         if inv1[y1, x1] == 0.0 or inv2[y2, x2] == 0.0:
             continue
-        _load_centred(I1, mean1, x1, y1, half, buf)
-        out[i] = inv1[y1, x1] * inv2[y2, x2] * _dot_window(buf, I2, x2, y2, half)
+        load_centred(I1, mean1, x1, y1, half, buf)
+        out[i] = inv1[y1, x1] * inv2[y2, x2] * dot_window(buf, I2, x2, y2, half)
     return out
 
 
@@ -130,7 +130,7 @@ def _heap_pop(hs, hi, n):
 
 
 @njit(cache=True)
-def _epipolar_line(F, x, y):
+def epipolar_line(F, x, y):
     """The epipolar line (a, b, c) in image 2 of pixel (x, y) of image 1, normalised so that
     a x' + b y' + c is the signed distance in pixels, and the norm it had (0 at the epipole,
     where the line is undefined and (a, b, c) are left as they are)."""
@@ -161,7 +161,7 @@ def _claim(x1, y1, x2, y2, score, m, match_x, match_y, taken2, mx1, my1, mx2, my
 
 
 @njit(cache=True, nogil=True)
-def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, min_zncc,
+def propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, min_zncc,
                       half, radius, grad, use_f, F, band):
     """Best-first propagation. See the module docstring for the algorithm.
 
@@ -230,7 +230,7 @@ def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, m
                 b = 0.0
                 c = 0.0
                 if use_f:
-                    a, b, c, nrm = _epipolar_line(F, ux, uy)
+                    a, b, c, nrm = epipolar_line(F, ux, uy)
                     if not nrm > 0.0:  # u is the epipole: every u' is on its (undefined) line
                         a = 0.0
                         b = 0.0
@@ -250,9 +250,9 @@ def _propagate_kernel(I1, mean1, inv1, ok1, I2, inv2, ok2, seeds, seed_scores, m
                         if use_f and abs(a * vx2 + b * vy2 + c) > band:
                             continue
                         if not loaded:  # centre the window of u once for its <= 9 u'
-                            _load_centred(I1, mean1, ux, uy, half, buf)
+                            load_centred(I1, mean1, ux, uy, half, buf)
                             loaded = True
-                        z = iu * inv2[vy2, vx2] * _dot_window(buf, I2, vx2, vy2, half)
+                        z = iu * inv2[vy2, vx2] * dot_window(buf, I2, vx2, vy2, half)
                         if z > min_zncc:
                             cs[nc] = z
                             cu[nc] = uy * W1 + ux

@@ -3,7 +3,7 @@
 Paper §4.4 / paper.md "Match propagation, precisely". Starting from sparse seed matches, a global
 best-first search grows matches into their neighbourhoods:
 
-1. Every pixel gets its 5x5 window mean and inverse norm once (``_window_stats``), so that each
+1. Every pixel gets its 5x5 window mean and inverse norm once (``window_stats``), so that each
    ZNCC during the search is a single 25-term dot product, and a texture flag
    ``s(x) = max_{4-neighbours} |I(x+d) - I(x)| > min_texture``.
 2. The rounded seeds, scored by their 5x5 ZNCC at integer positions, are accepted best first
@@ -41,9 +41,9 @@ import numpy as np
 from stereoseed.matching.config import PropagationConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.features.image import to_gray
-from stereoseed.matching.propagation._kernels import _propagate_kernel, _window_stats, _zncc_points
+from stereoseed.matching.propagation._kernels import propagate_kernel, window_stats, zncc_points
 from stereoseed.threads import map_items
-from stereoseed.matching.propagation.refine import _refine_affine, _refine_quadratic
+from stereoseed.matching.propagation.refine import refine_affine, refine_quadratic
 
 __all__ = [
     "PropagationResult",
@@ -242,7 +242,7 @@ def propagate(
         raise StereoseedError(f"F must be a finite (3, 3) matrix, got shape {Fm.shape}")
 
     # per-pixel statistics; ok = may take part in a match (textured, full window, not flat)
-    (mean1, inv1), (mean2, inv2) = map_items(lambda img: _window_stats(img, half), (I1, I2))
+    (mean1, inv1), (mean2, inv2) = map_items(lambda img: window_stats(img, half), (I1, I2))
     ok1 = texture_mask(I1, cfg.min_texture) & (inv1 > 0.0)
     ok2 = texture_mask(I2, cfg.min_texture) & (inv2 > 0.0)
 
@@ -254,14 +254,14 @@ def propagate(
               & (rs[:, 2] >= 0) & (rs[:, 2] < W2) & (rs[:, 3] >= 0) & (rs[:, 3] < H2))
     zs = np.full(n_given, -1.0)
     if inside.any():
-        zs[inside] = _zncc_points(I1, mean1, inv1, I2, inv2, np.ascontiguousarray(rs[inside]), half)
+        zs[inside] = zncc_points(I1, mean1, inv1, I2, inv2, np.ascontiguousarray(rs[inside]), half)
     keep = inside & (zs > cfg.min_zncc)
     key = seed_scores if seed_scores is not None else zs
     idx = np.flatnonzero(keep)
     idx = idx[np.argsort(-key[idx], kind="stable")]
     t1 = time.perf_counter()
 
-    x1, y1, x2, y2, sc, n_used, match_x, match_y = _propagate_kernel(
+    x1, y1, x2, y2, sc, n_used, match_x, match_y = propagate_kernel(
         I1, mean1, inv1, ok1, I2, inv2, ok2,
         np.ascontiguousarray(rs[idx]), np.ascontiguousarray(zs[idx]),
         float(cfg.min_zncc), half, int(cfg.neighbourhood), int(cfg.disparity_gradient),
@@ -281,7 +281,7 @@ def propagate(
             wanted[:] = False
             wanted[rows] = True
         if subpixel_method == "affine":
-            fx2, fy2, used = _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, Fm,
+            fx2, fy2, used = refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, Fm,
                                             float(cfg.min_zncc), rows)
             used &= wanted  # a wanted row's neighbours were refined on the way: they stay whole
             fx2[~wanted], fy2[~wanted] = x2[~wanted], y2[~wanted]
@@ -291,7 +291,7 @@ def propagate(
             fx2, fy2 = x2.astype(np.float64), y2.astype(np.float64)
             rest = np.flatnonzero(wanted)
         if rest.size:
-            fx2[rest], fy2[rest] = _refine_quadratic(I1, mean1, inv1, I2, inv2, x1[rest], y1[rest],
+            fx2[rest], fy2[rest] = refine_quadratic(I1, mean1, inv1, I2, inv2, x1[rest], y1[rest],
                                                      x2[rest], y2[rest], half, use_f, Fm)
             refined_by[rest] = 1
     else:

@@ -2,9 +2,9 @@
 
 Two methods (see :func:`stereoseed.matching.propagation.core.propagate` and ``docs/propagation.md``):
 
-* :func:`_refine_quadratic`: least-squares quadratic through the plain ZNCC at the 3x3 integer
+* :func:`refine_quadratic`: least-squares quadratic through the plain ZNCC at the 3x3 integer
   shifts of x2, maximised along the epipolar line of x1 when F is given.
-* :func:`_refine_affine`: the local affine map x1 -> x2 is fitted on the neighbouring matches,
+* :func:`refine_affine`: the local affine map x1 -> x2 is fitted on the neighbouring matches,
   image 2's window is warped by it and its ZNCC maximised along the epipolar line.
 
 Images are (H, W) float64 grey levels in [0, 1]; matches are (M,) int32 arrays x1, y1, x2, y2.
@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 from numba import njit
 
-from stereoseed.matching.propagation._kernels import _FASTMATH, _dot_window, _epipolar_line, _load_centred
+from stereoseed.matching.propagation._kernels import FASTMATH, dot_window, epipolar_line, load_centred
 from stereoseed.threads import concat_chunks
 
 
 @njit(cache=True, nogil=True)
-def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f, F):
+def refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f, F):
     """Sub-pixel x2 for each integer match by a quadratic fit of the 3x3 ZNCC surface.
 
     The ZNCC at the 9 integer shifts of x2 is fitted by least squares with
@@ -48,14 +48,14 @@ def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f
         oy = 0.0
         valid = x2 - 1 >= 0 and y2 - 1 >= 0 and x2 + 1 < W2 and y2 + 1 < H2
         if valid:
-            _load_centred(I1, mean1, x1, y1, half, buf)
+            load_centred(I1, mean1, x1, y1, half, buf)
             for sy in range(-1, 2):
                 for sx in range(-1, 2):
                     iv = inv2[y2 + sy, x2 + sx]
                     if iv == 0.0:  # flat, or its window leaves image 2: reading it would run off the
                         valid = False  # array (a segfault where the image ends a memory mapping)
                     else:
-                        z[sy + 1, sx + 1] = inv1[y1, x1] * iv * _dot_window(buf, I2, x2 + sx, y2 + sy, half)
+                        z[sy + 1, sx + 1] = inv1[y1, x1] * iv * dot_window(buf, I2, x2 + sx, y2 + sy, half)
         # quadratic coefficients on the 3x3 grid (orthogonal-polynomial least squares)
         b = c = d = e = g = 0.0
         if valid:
@@ -71,7 +71,7 @@ def _refine_quadratic(I1, mean1, inv1, I2, inv2, mx1, my1, mx2, my2, half, use_f
             g = (rowp + rowm - 2.0 * row0) / 6.0
             e = (z[2, 2] - z[2, 0] - z[0, 2] + z[0, 0]) / 4.0
         if use_f:
-            la, lb, lc, nrm = _epipolar_line(F, x1, y1)
+            la, lb, lc, nrm = epipolar_line(F, x1, y1)
             if nrm > 0.0:
                 r = la * x2 + lb * y2 + lc  # signed distance of x2 to the line
                 px = -r * la  # foot of the perpendicular, as an offset from x2
@@ -197,7 +197,7 @@ def _affine_fields(fx, fy, x1, y1, radius, system):
     return out
 
 
-@njit(cache=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=FASTMATH)
 def _warped_zncc(buf, norm1, I2, cx, cy, jxx, jxy, jyx, jyy, half):
     """ZNCC of a centred image-1 window (buf, its norm norm1) against image 2 sampled
     bilinearly at cx + J (wx, wy) for the window offsets (wx, wy). _INVALID (-2) if the warped
@@ -270,7 +270,7 @@ def _refine_affine_pass(I1, mean1, inv1, I2, x1s, y1s, aff, use_f, F, half, sear
         py = y1s[i]
         if inv1[py, px] == 0.0:
             continue
-        _load_centred(I1, mean1, px, py, half, buf)
+        load_centred(I1, mean1, px, py, half, buf)
         norm1 = 1.0 / inv1[py, px]
         cx = aff[i, 0]
         cy = aff[i, 1]
@@ -286,7 +286,7 @@ def _refine_affine_pass(I1, mean1, inv1, I2, x1s, y1s, aff, use_f, F, half, sear
         rx = cx
         ry = cy
         if use_f:
-            la, lb, lc, nrm = _epipolar_line(F, px, py)
+            la, lb, lc, nrm = epipolar_line(F, px, py)
             if nrm == 0.0:
                 continue
             r = la * cx + lb * cy + lc
@@ -356,7 +356,7 @@ def _refine_affine_pass(I1, mean1, inv1, I2, x1s, y1s, aff, use_f, F, half, sear
                         if not zg[j, k] > _INVALID:
                             interior = False
             if interior:
-                # the same 3x3 least-squares quadratic as _refine_quadratic, in grid units
+                # the same 3x3 least-squares quadratic as refine_quadratic, in grid units
                 colm = zg[bj - 1, bk - 1] + zg[bj, bk - 1] + zg[bj + 1, bk - 1]
                 col0 = zg[bj - 1, bk] + zg[bj, bk] + zg[bj + 1, bk]
                 colp = zg[bj - 1, bk + 1] + zg[bj, bk + 1] + zg[bj + 1, bk + 1]
@@ -382,7 +382,7 @@ def _refine_affine_pass(I1, mean1, inv1, I2, x1s, y1s, aff, use_f, F, half, sear
     return out_x, out_y, used
 
 
-def _refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc, rows=None):
+def refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc, rows=None):
     """Affine-adapted refinement of the matches (``_AFFINE_PASSES`` passes).
 
     x1, y1, x2, y2: (M,) int32 integer matches; rows: (R,) int64 the matches whose position is

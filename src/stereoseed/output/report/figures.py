@@ -36,7 +36,7 @@ _LEGEND_RIGHT = {"x": 1.02, "xanchor": "left", "y": 1.0, "yanchor": "top"}
 # ---------------------------------------------------------------- small helpers
 
 
-def _optional(what: str, build: Callable[[], Any]) -> Any:
+def optional_part(what: str, build: Callable[[], Any]) -> Any:
     """build(), or None (logged) when it fails: no part of the report may fail the run."""
     try:
         return build()
@@ -46,7 +46,7 @@ def _optional(what: str, build: Callable[[], Any]) -> Any:
         return None
 
 
-def _num(value: Any) -> float | None:
+def finite_number(value: Any) -> float | None:
     """A finite float, or None."""
     try:
         f = float(value)
@@ -77,7 +77,7 @@ def _subsample(points: np.ndarray, colors: np.ndarray, limit: int, seed: int = 0
     return points[keep], colors[keep]
 
 
-def _finite_cloud(points: Any, colors: Any) -> tuple[np.ndarray, np.ndarray]:
+def finite_cloud(points: Any, colors: Any) -> tuple[np.ndarray, np.ndarray]:
     if points is None:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     pts = np.asarray(points, np.float64).reshape(-1, 3)
@@ -90,7 +90,7 @@ def _finite_cloud(points: Any, colors: Any) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------- geometry
 
 
-def _registered_cameras(recon: Any) -> list[tuple[int, str, np.ndarray, tuple[int, int]]]:
+def registered_cameras(recon: Any) -> list[tuple[int, str, np.ndarray, tuple[int, int]]]:
     """(index, name, P_input, (width, height)) of each registered view with a finite camera."""
     cams = []
     for i, v in enumerate(recon.views):
@@ -104,7 +104,7 @@ def _registered_cameras(recon: Any) -> list[tuple[int, str, np.ndarray, tuple[in
     return cams
 
 
-def _scene_frame(points: np.ndarray, centers: np.ndarray) -> dict[str, Any]:
+def scene_frame(points: np.ndarray, centers: np.ndarray) -> dict[str, Any]:
     """Size of the scene and its ground plane: 'up' is the normal of the plane the camera
     centres lie in (a ring around the object), pointing from the object to the cameras; with
     fewer than three cameras or a straight path, +Z. Returns size, centre, up, the two ground
@@ -160,7 +160,7 @@ def _shown(points: np.ndarray, colors: np.ndarray, frame: dict[str, Any]) -> tup
 _DARK = "#1f2430"
 
 
-def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
+def figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray, np.ndarray],
                cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None,
                mesh: Any = None, rig: bool = False) -> dict[str, Any]:
     """The mesh (when given; a legend click shows or hides it), the clouds (a click picks a point:
@@ -179,8 +179,8 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
                      "i": faces[:, 0].tolist(), "j": faces[:, 1].tolist(), "k": faces[:, 2].tolist(),
                      "vertexcolor": _hex_colors(mesh.colors), "flatshading": False, "hoverinfo": "none",
                      "lighting": {"ambient": 0.7, "diffuse": 0.5}})
-    dense = None if dense_cloud is None else _optional(
-        "the dense cloud", lambda: _finite_cloud(dense_cloud.points, dense_cloud.colors))
+    dense = None if dense_cloud is None else optional_part(
+        "the dense cloud", lambda: finite_cloud(dense_cloud.points, dense_cloud.colors))
     if dense is not None and len(dense[0]):
         near_pts, near_cols, far = _shown(*dense, frame)
         pts, cols = _subsample(near_pts, near_cols, MAX_DENSE_POINTS)
@@ -257,7 +257,7 @@ def _figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray
     return {"data": data, "layout": layout, "measure": measure}
 
 
-def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
+def figure_path(frame: dict[str, Any], sparse: np.ndarray,
                  cams: list[tuple[int, str, np.ndarray, tuple[int, int]]], unit: str | None = None) -> dict[str, Any]:
     e1, e2 = frame["e1"], frame["e2"]
     data: list[dict[str, Any]] = []
@@ -296,25 +296,25 @@ def _figure_path(frame: dict[str, Any], sparse: np.ndarray,
     return {"data": data, "layout": layout}
 
 
-def _insertions(report: dict[str, Any]) -> list[dict[str, Any]]:
+def insertions(report: dict[str, Any]) -> list[dict[str, Any]]:
     return [r for r in report.get("per_image") or [] if isinstance(r, dict)]
 
 
-def _figure_reprojection(report: dict[str, Any]) -> dict[str, Any] | None:
+def figure_reprojection(report: dict[str, Any]) -> dict[str, Any] | None:
     names, before, after = [], [], []
-    for r in _insertions(report):
+    for r in insertions(report):
         ba = r.get("ba") if isinstance(r.get("ba"), dict) else {}
-        b, a = _num(ba.get("rms_before_px")), _num(ba.get("rms_after_px"))
+        b, a = finite_number(ba.get("rms_before_px")), finite_number(ba.get("rms_after_px"))
         if b is None and a is None:
             continue
         names.append(str(r.get("image", "?")))
         before.append(b)
         after.append(a)
     final = (report.get("final") or {}).get("final_ba") if isinstance(report.get("final"), dict) else None
-    if isinstance(final, dict) and (_num(final.get("rms_before_px")) is not None):
+    if isinstance(final, dict) and (finite_number(final.get("rms_before_px")) is not None):
         names.append("final BA")
-        before.append(_num(final.get("rms_before_px")))
-        after.append(_num(final.get("rms_after_px")))
+        before.append(finite_number(final.get("rms_before_px")))
+        after.append(finite_number(final.get("rms_after_px")))
     if not names:
         return None
     data = [{"type": "bar", "name": "before BA", "x": names, "y": before, "marker": {"color": "#ff7f0e"}},
@@ -325,8 +325,8 @@ def _figure_reprojection(report: dict[str, Any]) -> dict[str, Any] | None:
     return {"data": data, "layout": layout}
 
 
-def _figure_times(report: dict[str, Any]) -> dict[str, Any] | None:
-    rows = [r for r in _insertions(report) if isinstance(r.get("seconds"), dict)]
+def figure_times(report: dict[str, Any]) -> dict[str, Any] | None:
+    rows = [r for r in insertions(report) if isinstance(r.get("seconds"), dict)]
     if not rows:
         return None
     names = [str(r.get("image", "?")) for r in rows]
@@ -336,11 +336,11 @@ def _figure_times(report: dict[str, Any]) -> dict[str, Any] | None:
         for r in rows:
             s = r["seconds"]
             if part == "other":
-                total = _num(s.get("total"))
-                known = sum(_num(s.get(p)) or 0.0 for p in _TIME_PARTS)
+                total = finite_number(s.get("total"))
+                known = sum(finite_number(s.get(p)) or 0.0 for p in _TIME_PARTS)
                 ys.append(max(0.0, total - known) if total is not None else None)
             else:
-                ys.append(_num(s.get(part)))
+                ys.append(finite_number(s.get(part)))
         if any(y for y in ys):
             data.append({"type": "bar", "name": part, "x": names, "y": ys})
     layout = {"barmode": "stack", "margin": {"l": 55, "r": 10, "t": TOOLBAR_MARGIN_PX, "b": 90},

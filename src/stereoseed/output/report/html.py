@@ -34,8 +34,8 @@ import numpy as np
 
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.atomic import jsonable, write_text
-from stereoseed.output.report.figures import (_figure_3d, _figure_path, _figure_reprojection, _figure_times,
-                             _finite_cloud, _insertions, _num, _optional, _registered_cameras, _scene_frame)
+from stereoseed.output.report.figures import (figure_3d, figure_path, figure_reprojection, figure_times,
+                             finite_cloud, insertions, finite_number, optional_part, registered_cameras, scene_frame)
 from stereoseed.output.report.measure import MEASURE_SCRIPT, unit_label
 from stereoseed.output.result_set import result_name
 
@@ -48,7 +48,7 @@ MAX_MATCH_LINES = 60
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
-    f = _num(value)
+    f = finite_number(value)
     if f is None:
         return "—" if value is None else html.escape(str(value))
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
@@ -70,8 +70,8 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
 
     names = [str(v.name) for v in recon.views]
     best = None
-    for r in _insertions(report):
-        if r.get("status") != "registered" or _num(r.get("resection_inliers")) is None:
+    for r in insertions(report):
+        if r.get("status") != "registered" or finite_number(r.get("resection_inliers")) is None:
             continue
         try:
             k = names.index(str(r.get("image")))
@@ -121,7 +121,7 @@ def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
     rep = report.get("reprojection") if isinstance(report.get("reprojection"), dict) else {}
     items = [("registered", f"{_fmt(report.get('registered'))} / {_fmt(report.get('images'))} images"),
              ("sparse points", _fmt(report.get("points"))),
-             ("reprojection RMS", f"{_fmt(rep.get('rms_px'))} px" if _num(rep.get("rms_px")) is not None else "—"),
+             ("reprojection RMS", f"{_fmt(rep.get('rms_px'))} px" if finite_number(rep.get("rms_px")) is not None else "—"),
              ("observations", _fmt(rep.get("observations"))),
              ("mode", html.escape(str(report.get("mode", "—")))),
              ("camera model", html.escape(str(report.get("camera_model", "—")))),
@@ -145,12 +145,12 @@ def _times(report: dict[str, Any], dense: dict[str, Any] | None) -> list[tuple[s
     report without it, the stages the report holds and their sum."""
     timing = report.get("timing") if isinstance(report.get("timing"), dict) else {}
     stages = timing.get("stages_s") if isinstance(timing.get("stages_s"), dict) else {}
-    stages = {str(k): _num(v) for k, v in stages.items() if _num(v) is not None}
-    total = _num(timing.get("total_s"))
+    stages = {str(k): finite_number(v) for k, v in stages.items() if finite_number(v) is not None}
+    total = finite_number(timing.get("total_s"))
     label = "total time (this command; resumed)" if report.get("resumed_images") else "total time"
     if total is None:  # the incremental run's and the dense stage's times, as the report holds them
-        stages = {k: v for k, v in (("sparse", _num(report.get("seconds"))),
-                                    ("dense", _num((dense or {}).get("seconds")))) if v is not None}
+        stages = {k: v for k, v in (("sparse", finite_number(report.get("seconds"))),
+                                    ("dense", finite_number((dense or {}).get("seconds")))) if v is not None}
         total, label = (sum(stages.values()), "total time (sparse + dense)") if stages else (None, label)
     if total is None:
         return [("total time", "—")]
@@ -169,7 +169,7 @@ def _trust_cells(judged: dict[str, Any] | None) -> list[str]:
     if judged is None:
         return ["—", ""]
     u = judged.get("uncertainty") if isinstance(judged.get("uncertainty"), dict) else {}
-    sigmas = [s for s in (u.get("position_sigma") or []) if _num(s) is not None]
+    sigmas = [s for s in (u.get("position_sigma") or []) if finite_number(s) is not None]
     sigma = f"{max(sigmas):.3g}" if sigmas else ("undetermined" if u else "—")
     if judged.get("reliable") is False:
         return [html.escape(sigma), f'flagged: {html.escape(str(judged.get("flag_reason") or ""))}']
@@ -181,7 +181,7 @@ def _table(recon: Any, report: dict[str, Any]) -> str:
     models = {str(v.name): getattr(v, "camera_model", None) for v in getattr(recon, "views", [])}
     final = report.get("final") if isinstance(report.get("final"), dict) else {}
     trust = (final.get("trust") or {}).get("cameras") or {} if isinstance(final.get("trust"), dict) else {}
-    for n, r in enumerate(_insertions(report)):
+    for n, r in enumerate(insertions(report)):
         status = str(r.get("status", "—"))
         ba = r.get("ba") if isinstance(r.get("ba"), dict) else {}
         seconds = r.get("seconds") if isinstance(r.get("seconds"), dict) else {}
@@ -263,32 +263,32 @@ def render_report_html(recon: Any, report: dict[str, Any], title: str | None = N
     """The report's HTML text (see :func:`write_report_html`); optional parts that fail are
     logged and left out."""
     report = report if isinstance(report, dict) else {}
-    sparse = _optional("the sparse cloud", lambda: _finite_cloud(*recon.live_points()))
+    sparse = optional_part("the sparse cloud", lambda: finite_cloud(*recon.live_points()))
     if sparse is None:
         sparse = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-    cams = _optional("the cameras", lambda: _registered_cameras(recon)) or []
-    frame = _optional("the scene frame", lambda: _scene_frame(sparse[0], np.array([camera_center(P) for _, _, P, _ in cams]).reshape(-1, 3)))
+    cams = optional_part("the cameras", lambda: registered_cameras(recon)) or []
+    frame = optional_part("the scene frame", lambda: scene_frame(sparse[0], np.array([camera_center(P) for _, _, P, _ in cams]).reshape(-1, 3)))
     figures: dict[str, Any] = {}
     unit = report.get("unit") if isinstance(report.get("unit"), str) else None
     if frame is not None:
         rig = getattr(recon, "rig", None) is not None
-        fig = _optional("the 3D view", lambda: _figure_3d(dense, frame, sparse, cams, unit, mesh, rig))
+        fig = optional_part("the 3D view", lambda: figure_3d(dense, frame, sparse, cams, unit, mesh, rig))
         if fig is not None and fig["data"]:
             figures["view3d"] = {**fig, "webgl": True}
-        fig = _optional("the camera path", lambda: _figure_path(frame, sparse[0], cams, unit))
+        fig = optional_part("the camera path", lambda: figure_path(frame, sparse[0], cams, unit))
         if fig is not None and fig["data"]:
             figures["path"] = fig
-    for key, what, build in (("reprojection", "the reprojection plot", _figure_reprojection),
-                             ("times", "the time plot", _figure_times)):
-        fig = _optional(what, lambda: build(report))
+    for key, what, build in (("reprojection", "the reprojection plot", figure_reprojection),
+                             ("times", "the time plot", figure_times)):
+        fig = optional_part(what, lambda: build(report))
         if fig is not None:
             figures[key] = fig
-    matches = _optional("the weakest insertion's matches", lambda: _weakest_insertion(recon, report, source))
-    summary = _optional("the summary", lambda: _summary(dense, report)) or ""
-    table = _optional("the per-image table", lambda: _table(recon, report)) or '<p class="note">no per-image report</p>'
-    encoded = {key: _optional(f"figure {key!r}", lambda: _json_for_script(fig)) for key, fig in figures.items()}
+    matches = optional_part("the weakest insertion's matches", lambda: _weakest_insertion(recon, report, source))
+    summary = optional_part("the summary", lambda: _summary(dense, report)) or ""
+    table = optional_part("the per-image table", lambda: _table(recon, report)) or '<p class="note">no per-image report</p>'
+    encoded = {key: optional_part(f"figure {key!r}", lambda: _json_for_script(fig)) for key, fig in figures.items()}
     figures = {key: fig for key, fig in figures.items() if encoded[key] is not None}
-    plotly_js = _optional("the Plotly bundle", _plotly_js) if figures else None
+    plotly_js = optional_part("the Plotly bundle", _plotly_js) if figures else None
     if plotly_js is None:
         figures = {}
 

@@ -1,5 +1,5 @@
 """An ambiguous registration (a repeated pattern: a rival camera a period away explains nearly as
-much, :func:`stereoseed.sfm.registration.base._rivals`) judged by more evidence than the points
+much, :func:`stereoseed.sfm.registration.base.ambiguous_rivals`) judged by more evidence than the points
 that chose it: the matches propagated between the previous view and this one, which cover the
 whole overlap, the pattern's ends and everything around it included (Lhuillier & Quan's
 propagation, as the quasi-dense registration runs it). Only the flag is judged, never the
@@ -15,7 +15,7 @@ from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import Registration, RegistrationFailure
-from stereoseed.sfm.registration.quasi_dense import (_propagated_to_candidate, camera_epipolar_limit,
+from stereoseed.sfm.registration.quasi_dense import (propagated_to_candidate, camera_epipolar_limit,
                                                      epipolar_agreement, robust_f_agreement)
 
 __all__ = ["AmbiguityJudge", "judge_ambiguity"]
@@ -59,7 +59,7 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
                                                  f"{flagged}, is flagged itself"})
     try:
         # only the grid's matches are read (the robust F and the agreement): only they are refined
-        qd = _propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
+        qd = propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
     except np.linalg.LinAlgError as e:  # a degenerate configuration: no evidence, the flag stays
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: numerical failure ({e})"})
     if qd.F is None:

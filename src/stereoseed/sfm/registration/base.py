@@ -196,7 +196,7 @@ class _Resected:
     rivals: tuple[np.ndarray, ...] = ()  # the cameras (3, 4) that make it ambiguous
 
 
-def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
+def ambiguous_rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
             best: int, cfg: Config) -> list[tuple[int, float, float]]:
     """The cameras that make the winner ``best`` of competing cameras (3, 4) ambiguous, as
     (index, distance from the winner, the recent points' depth): each explains at least
@@ -218,7 +218,7 @@ def _rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[
 
 
 def ambiguity_flag(rivals: list[tuple[int, float, float]], counts: np.ndarray, best: int) -> Flag | None:
-    """The flag of a choice :func:`_rivals` makes ambiguous (what the first rival explains
+    """The flag of a choice :func:`ambiguous_rivals` makes ambiguous (what the first rival explains
     against the winner ``best``), or None without one."""
     if not rivals:
         return None
@@ -431,7 +431,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
             # a repeated pattern: another camera, a period away, explains nearly as much. The best
             # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
             Ps = [c[0][0].P for c in cameras]
-            ambiguous = _rivals(recon, prev, recent[0], Ps, counts, best, cfg)
+            ambiguous = ambiguous_rivals(recon, prev, recent[0], Ps, counts, best, cfg)
             flag, rivals = ambiguity_flag(ambiguous, counts, best), tuple(Ps[j] for j, _, _ in ambiguous)
     if chosen is not None:
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR

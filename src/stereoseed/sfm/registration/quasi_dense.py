@@ -394,7 +394,7 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
             return np.vstack([_observed(recon, prev)[2], pair.xa])
 
         # grow_quasi_dense (keep_tracks) reads the pixels of points added after this: all refined
-        qd = _propagated_to_candidate(recon, source, prev, cand, cfg,
+        qd = propagated_to_candidate(recon, source, prev, cand, cfg,
                                       None if cfg.quasi_dense.keep_tracks else chained_pixels)
         seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
         seconds["propagation"] -= waited
@@ -426,7 +426,7 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
                         quasi_dense=qd), qd
 
 
-def _propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource, prev: int, cand: Candidate,
+def propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource, prev: int, cand: Candidate,
                              cfg: Config, chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
     """Steps 1-3: the seeds of (prev, cand) and their propagation (``chained_pixels``: as
     :func:`propagate_pair`'s)."""
