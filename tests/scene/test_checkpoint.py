@@ -326,6 +326,9 @@ def _out_of_range(a, value=999):
     (_flag(1, "history", [{"event": "Registered", "found_by": "x", "code": "os.system"}]), KEY, "malformed Registered"),
     (lambda arrays, meta: meta.update(version=3), KEY, "another version"),
     (_flag(1, "history", []), KEY, "reports are not of these images"),
+    (lambda arrays, meta: meta.update(insertion_undo={"view": 1, "views": meta["views"]}), KEY,
+     "before the last insertion is malformed"),
+    (_flag(0, "features_as_now", True), KEY, "description of 'a.png' is malformed"),
 ])
 def test_an_altered_or_malformed_checkpoint_is_refused(saved, caplog, change, key, why):
     # the traversal's target exists and holds descriptors: only its name refuses it

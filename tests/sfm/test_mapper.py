@@ -181,6 +181,46 @@ def test_the_report_of_a_withdrawn_view_says_it_failed(monkeypatch):
     assert report["per_image"][5]["status"] == "registered" and report["registered"] == 6
 
 
+def test_a_resumed_run_withdraws_a_doubted_view_as_the_uninterrupted_one(monkeypatch, tmp_path):
+    # the model before the doubted view's insertion is part of the checkpoint: interrupted just
+    # after that view, the resumed run puts it back as the uninterrupted run does (its points,
+    # adjustments and outlier removals gone), not only the view's camera and observations
+    import stereoseed.pipeline as pipeline
+
+    def untimed(value):
+        if isinstance(value, dict):
+            return {k: untimed(v) for k, v in value.items() if k != "seconds"}
+        return [untimed(v) for v in value] if isinstance(value, list) else value
+
+    _flagged_when_placed(monkeypatch, 4)
+    _cannot_follow(monkeypatch, 5, after=(4,))
+    images, names, Ps, source = ring(7)
+    whole, report = pipeline.reconstruct(images, names, Ps[:2], Config(), source=source)
+    checkpoint = tmp_path / "run.npz"
+
+    def interrupt(recon, per_image):
+        if len(per_image) == 5:  # view 4 placed, flagged: the model before it is kept
+            assert recon.insertion_undo is not None and recon.insertion_undo[0] == 4
+            raise KeyboardInterrupt
+
+    images, names, Ps, source = ring(7)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.reconstruct(images, names, Ps[:2], Config(), source=source, checkpoint=checkpoint,
+                             after_insertion=interrupt)
+    images, names, Ps, source = ring(7)
+    for i in range(len(images)):  # the exact source knows the interest points it gave (a resume asks for none)
+        source.features(i, images[i])
+    resumed, again = pipeline.reconstruct(images, names, Ps[:2], Config(), source=source, checkpoint=checkpoint,
+                                          resume=True)
+    assert again["resumed_images"] == names[:5] and report["per_image"][4]["status"] == "failed"
+    assert untimed(again["per_image"]) == untimed(report["per_image"])
+    np.testing.assert_array_equal(resumed.live_points()[0], whole.live_points()[0])
+    for a, b in zip(resumed.views, whole.views):
+        assert a.history == b.history and (a.P is None) == (b.P is None)
+        if a.P is not None:
+            np.testing.assert_array_equal(a.P, b.P)
+
+
 def test_a_withdrawal_puts_back_the_model_from_before_the_flagged_view(monkeypatch):
     # the flagged view's points, the adjustments and the outlier removals of its insertion go
     # with it: every point left from then on was made by the next image's insertion

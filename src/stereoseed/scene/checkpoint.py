@@ -49,14 +49,15 @@ __all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint
 
 log = logging.getLogger(__name__)
 # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied; 4: registration flags;
-# 5: each view's history (status, flags and reports rendered from it)
+# 5: each view's history (status, flags and reports rendered from it), the model before a doubted insertion
 VERSION = 5
 SPILL_SUFFIX = ".spill"  # the spill folder: the checkpoint's name with this added
 _META, _MAC = "meta", "mac"
 _OBSERVATIONS = ("obs_view", "obs_feature", "obs_point", "obs_linked")  # Checkpoint.observations' order
 _VIEW_FLAGS = {"name": str, "rotated_180": bool, "camera_model": (str, type(None)),
                "zoomed": bool, "registered": bool, "features": bool, "desc_file": (str, type(None)),
-               "history": list}
+               "features_as_now": bool, "history": list}
+_UNDO = "undo."  # the prefix of the model before the last insertion (Reconstruction.insertion_undo)
 _FLOAT = "float"  # an expected dtype: float32 or float64, native byte order
 
 
@@ -104,37 +105,60 @@ def _spilled_name(desc: np.ndarray, spilled_in: Path) -> str | None:
     return None
 
 
+def _state_arrays(state: Checkpoint, names: list[str], spilled_in: Path, prefix: str = "",
+                  now: Checkpoint | None = None) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    """The arrays and view descriptions of a model's ``state`` (a :class:`Checkpoint`), named
+    with ``prefix``. now: the state beside which ``state`` is kept (the model before the last
+    insertion): a view whose interest points are the very ones it has now says so
+    ("features_as_now") rather than writing them twice."""
+    arrays = {f"{prefix}points": state.points.copy(), f"{prefix}colors": state.colors.copy(),
+              f"{prefix}alive": state.alive.copy()}
+    arrays.update((f"{prefix}{name}", a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
+    views = []
+    for i, (name, s) in enumerate(zip(names, state.views)):
+        P, features, point_of_feature, _, rotated, model, zoomed, _, history = s
+        as_now = now is not None and features is not None and features is now.views[i][1]
+        flags = {"name": name, "rotated_180": bool(rotated),
+                 "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
+                 "registered": P is not None, "features": features is not None, "desc_file": None,
+                 "features_as_now": as_now,
+                 # its status, what placed it, its flags and its report: a resumed run must not
+                 # lose what was judged once, at registration
+                 "history": [event_to_json(e) for e in history]}
+        view = f"{prefix}view{i}"
+        if P is not None:
+            arrays[f"{view}.P"] = np.array(P, np.float64)
+        arrays[f"{view}.point_of_feature"] = np.array(point_of_feature)
+        if features is not None and not as_now:
+            flags["desc_file"] = _spilled_name(features.desc, spilled_in)
+            if flags["desc_file"] is None:
+                arrays[f"{view}.desc"] = features.desc
+            arrays[f"{view}.points"] = features.points
+            arrays[f"{view}.valid"] = features.valid
+            arrays[f"{view}.response"] = features.response
+            arrays[f"{view}.image_shape"] = np.asarray(features.image_shape, np.int64)
+        views.append(flags)
+    return arrays, views
+
+
 def _snapshot(path: str | Path, recon: Reconstruction, key: str) -> dict[str, np.ndarray]:
     """The checkpoint's arrays, the JSON part among them, as they are now: the arrays the run
     changes in place (points, observations, links) are copied; interest points are shared, as
     Features are replaced, never changed in place. The images are read again on resume, the
-    grey images recomputed from them."""
+    grey images recomputed from them. The model as it was before the last insertion, while the
+    run keeps it (``Reconstruction.insertion_undo``), is saved beside it under ``undo.``: a
+    resumed run withdraws a doubted view as the uninterrupted one would."""
     state = recon.checkpoint(copy=False)
     spilled_in = spill_folder(path)
-    arrays = {"points": state.points.copy(), "colors": state.colors.copy(), "alive": state.alive.copy()}
-    arrays.update((name, a.copy()) for name, a in zip(_OBSERVATIONS, state.observations))
-    views = []
-    for i, (view, s) in enumerate(zip(recon.views, state.views)):
-        P, features, point_of_feature, _, rotated, model, zoomed, _, history = s
-        flags = {"name": view.name, "rotated_180": bool(rotated),
-                 "camera_model": None if model is None else str(getattr(model, "value", model)), "zoomed": bool(zoomed),
-                 "registered": P is not None, "features": features is not None, "desc_file": None,
-                 # its status, what placed it, its flags and its report: a resumed run must not
-                 # lose what was judged once, at registration
-                 "history": [event_to_json(e) for e in history]}
-        if P is not None:
-            arrays[f"view{i}.P"] = np.array(P, np.float64)
-        arrays[f"view{i}.point_of_feature"] = np.array(point_of_feature)
-        if features is not None:
-            flags["desc_file"] = _spilled_name(features.desc, spilled_in)
-            if flags["desc_file"] is None:
-                arrays[f"view{i}.desc"] = features.desc
-            arrays[f"view{i}.points"] = features.points
-            arrays[f"view{i}.valid"] = features.valid
-            arrays[f"view{i}.response"] = features.response
-            arrays[f"view{i}.image_shape"] = np.asarray(features.image_shape, np.int64)
-        views.append(flags)
-    meta = {"version": VERSION, "key": key, "views": views}
+    names = [v.name for v in recon.views]
+    arrays, views = _state_arrays(state, names, spilled_in)
+    undo = None
+    if recon.insertion_undo is not None:
+        k, before = recon.insertion_undo
+        more, undo_views = _state_arrays(before, names, spilled_in, _UNDO, now=state)
+        arrays.update(more)
+        undo = {"view": int(k), "views": undo_views}
+    meta = {"version": VERSION, "key": key, "views": views, "insertion_undo": undo}
     arrays[_META] = np.frombuffer(json.dumps(meta, default=jsonable).encode("utf-8"), np.uint8)
     return arrays
 
@@ -293,11 +317,23 @@ def _meta(arrays: dict[str, np.ndarray], key: str, names: list[str]) -> dict[str
     views = meta.get("views")
     if not isinstance(views, list) or len(views) != len(names):
         raise _Refused("its views are not these images")
+    _check_views(views, names, as_now_allowed=False)
+    undo = meta.get("insertion_undo")
+    if undo is not None:
+        if (not isinstance(undo, dict) or undo.keys() != {"view", "views"} or type(undo["view"]) is not int
+                or not 2 <= undo["view"] < len(names) or not isinstance(undo["views"], list)
+                or len(undo["views"]) != len(names)):
+            raise _Refused("the model before the last insertion is malformed")
+        _check_views(undo["views"], names, as_now_allowed=True)
+    return meta
+
+
+def _check_views(views: list[Any], names: list[str], as_now_allowed: bool) -> None:
     for name, flags in zip(names, views):
         if (not isinstance(flags, dict) or flags.keys() != _VIEW_FLAGS.keys() or flags["name"] != name
-                or any(not isinstance(flags[k], kind) for k, kind in _VIEW_FLAGS.items())):
+                or any(not isinstance(flags[k], kind) for k, kind in _VIEW_FLAGS.items())
+                or (flags["features_as_now"] and not as_now_allowed)):
             raise _Refused(f"the description of {name!r} is malformed")
-    return meta
 
 
 def _take(arrays: dict[str, np.ndarray], name: str, dtype: Any, shape: tuple[int | None, ...]) -> np.ndarray:
@@ -341,54 +377,70 @@ def _spilled(name: str, folder: Path, n: int) -> np.ndarray:
     return desc
 
 
-def _model_points(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (M, 3), colours (M, 3), alive (M,)) checked."""
-    points = _take(arrays, "points", np.float64, (None, 3))
+def _model_points(arrays: dict[str, np.ndarray], prefix: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (M, 3), colours (M, 3), alive (M,)) checked (arrays named with ``prefix``)."""
+    points = _take(arrays, f"{prefix}points", np.float64, (None, 3))
     m = len(points)
-    return points, _take(arrays, "colors", np.uint8, (m, 3)), _take(arrays, "alive", bool, (m,))
+    return (points, _take(arrays, f"{prefix}colors", np.uint8, (m, 3)),
+            _take(arrays, f"{prefix}alive", bool, (m,)))
 
 
-def _view_states(arrays: dict[str, np.ndarray], meta: dict[str, Any], spilled_in: Path, n_points: int
-                 ) -> list[tuple]:
+def _model_state(arrays: dict[str, np.ndarray], views: list[dict[str, Any]], spilled_in: Path,
+                 prefix: str = "", now: list[tuple] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, ...], list[tuple]]:
+    """(points, colours, alive, observations, view states) of one saved state, checked."""
+    points, colors, alive = _model_points(arrays, prefix)
+    states = _view_states(arrays, views, spilled_in, len(points), prefix, now)
+    return points, colors, alive, _observations(arrays, states, len(points), prefix), states
+
+
+def _view_states(arrays: dict[str, np.ndarray], views: list[dict[str, Any]], spilled_in: Path, n_points: int,
+                 prefix: str = "", now: list[tuple] | None = None) -> list[tuple]:
     """Each view's (P, Features or None, point_of_feature, rotated_180, camera_model, zoomed,
-    history), every array and event checked (links to points below ``n_points``)."""
-    if any(flags["desc_file"] is not None for flags in meta["views"]):
+    history), every array and event checked (links to points below ``n_points``); arrays named
+    with ``prefix``; ``now``: the states whose interest points a view "features_as_now" shares."""
+    if any(flags["desc_file"] is not None for flags in views):
         _check_owner(os.stat(spilled_in), spilled_in)
     states = []
-    for i, flags in enumerate(meta["views"]):
-        P = _take(arrays, f"view{i}.P", np.float64, (3, 4)) if flags["registered"] else None
+    for i, flags in enumerate(views):
+        view = f"{prefix}view{i}"
+        P = _take(arrays, f"{view}.P", np.float64, (3, 4)) if flags["registered"] else None
         features = None
-        if flags["features"]:
-            points = _take(arrays, f"view{i}.points", _FLOAT, (None, 2))
+        if flags["features_as_now"]:
+            features = None if now is None or not flags["features"] else now[i][1]
+            if features is None:
+                raise _Refused(f"{view} says it shares interest points the model does not have")
+        elif flags["features"]:
+            points = _take(arrays, f"{view}.points", _FLOAT, (None, 2))
             n = len(points)
             if flags["desc_file"] is None:
-                desc = _take(arrays, f"view{i}.desc", _FLOAT, (n, None))
+                desc = _take(arrays, f"{view}.desc", _FLOAT, (n, None))
             else:
                 desc = _spilled(flags["desc_file"], spilled_in, n)
-            valid = _take(arrays, f"view{i}.valid", bool, (n,))
-            response = _take(arrays, f"view{i}.response", _FLOAT, (n,))
-            image_shape = _take(arrays, f"view{i}.image_shape", np.int64, (2,))
+            valid = _take(arrays, f"{view}.valid", bool, (n,))
+            response = _take(arrays, f"{view}.response", _FLOAT, (n,))
+            image_shape = _take(arrays, f"{view}.image_shape", np.int64, (2,))
             if np.any(image_shape <= 0):
-                raise _Refused(f"view{i}.image_shape is not an image's")
+                raise _Refused(f"{view}.image_shape is not an image's")
             features = Features(points, desc, valid, response, (int(image_shape[0]), int(image_shape[1])), gray=None)
         elif flags["desc_file"] is not None:
-            raise _Refused(f"view {i} names descriptors without interest points")
-        pof = _take(arrays, f"view{i}.point_of_feature", np.int64, (None if features is None else len(features),))
-        _in_range(pof, -1, n_points, f"view{i}.point_of_feature")
+            raise _Refused(f"{view} names descriptors without interest points")
+        pof = _take(arrays, f"{view}.point_of_feature", np.int64, (None if features is None else len(features),))
+        _in_range(pof, -1, n_points, f"{view}.point_of_feature")
         history = tuple(event_from_json(e) for e in flags["history"])
         states.append((P, features, pof, flags["rotated_180"], flags["camera_model"], flags["zoomed"], history))
     return states
 
 
-def _observations(arrays: dict[str, np.ndarray], states: list[tuple], n_points: int) -> tuple[np.ndarray, ...]:
+def _observations(arrays: dict[str, np.ndarray], states: list[tuple], n_points: int,
+                  prefix: str = "") -> tuple[np.ndarray, ...]:
     """(obs_view, obs_feature, obs_point, obs_linked), each observation's view, interest point
-    and point seen to exist; refused if any array is left over."""
-    obs_view = _take(arrays, "obs_view", np.int64, (None,))
+    and point seen to exist (arrays named with ``prefix``)."""
+    obs_view = _take(arrays, f"{prefix}obs_view", np.int64, (None,))
     o = len(obs_view)
-    obs_feature, obs_point = _take(arrays, "obs_feature", np.int64, (o,)), _take(arrays, "obs_point", np.int64, (o,))
-    obs_linked = _take(arrays, "obs_linked", bool, (o,))
-    if arrays:
-        raise _Refused(f"unexpected arrays ({', '.join(sorted(arrays)[:3])})")
+    obs_feature = _take(arrays, f"{prefix}obs_feature", np.int64, (o,))
+    obs_point = _take(arrays, f"{prefix}obs_point", np.int64, (o,))
+    obs_linked = _take(arrays, f"{prefix}obs_linked", bool, (o,))
     _in_range(obs_view, 0, len(states), "obs_view")
     _in_range(obs_point, 0, n_points, "obs_point")
     # a view without interest points has none to observe with
@@ -416,19 +468,34 @@ def load_checkpoint(path: str | Path, images: Sequence[np.ndarray], names: list[
         return None
     try:
         meta = _meta(arrays, key, names)
-        points, colors, alive = _model_points(arrays)
-        states = _view_states(arrays, meta, spilled_in, len(points))
-        observations = _observations(arrays, states, len(points))
-        views, restored = [], []
+        *model, states = _model_state(arrays, meta["views"], spilled_in)
+        undo = meta["insertion_undo"]
+        if undo is not None:
+            *before, before_states = _model_state(arrays, undo["views"], spilled_in, _UNDO, now=states)
+        if arrays:
+            raise _Refused(f"unexpected arrays ({', '.join(sorted(arrays)[:3])})")
+        views = [view_of_input(name, images, i) for i, name in enumerate(names)]
         lazy = isinstance(images, ImageSequence)
-        for i, (name, (P, features, pof, rotated, camera_model, zoomed, history)) in enumerate(zip(names, states)):
-            view = view_of_input(name, images, i)
-            image = cv2.rotate(view.image, cv2.ROTATE_180) if rotated else (None if lazy else images[i])
-            views.append(view)
-            restored.append((P, features, pof, image, rotated, camera_model, zoomed, features is not None, history))
+        turned: dict[int, np.ndarray] = {}  # the images the run turned, read once
+
+        def restored(view_states: list[tuple]) -> tuple[tuple, ...]:
+            out = []
+            for i, (P, features, pof, rotated, camera_model, zoomed, history) in enumerate(view_states):
+                if rotated and i not in turned:
+                    turned[i] = cv2.rotate(views[i].image, cv2.ROTATE_180)
+                image = turned[i] if rotated else (None if lazy else images[i])
+                out.append((P, features, pof, image, rotated, camera_model, zoomed, features is not None, history))
+            return tuple(out)
+
         recon = Reconstruction(views)
         # the views check what only they know (a camera model's name, a camera's P)
-        recon.restore(Checkpoint(points, colors, alive, observations, tuple(restored)))
+        recon.restore(Checkpoint(*model[:3], model[3], restored(states)))
+        if undo is not None:
+            undo_state = Checkpoint(*before[:3], before[3], restored(before_states))
+            now = recon.checkpoint()
+            recon.restore(undo_state)  # checked as the model's own state is
+            recon.restore(now)
+            recon.insertion_undo = (undo["view"], undo_state)
         per_image = recon.reports()
         if not 2 <= len(per_image) or any(r.get("image") != names[i] for i, r in enumerate(per_image)):
             raise _Refused("its reports are not of these images")
