@@ -87,7 +87,7 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
     # the points the first camera sees: a walk that turns leaves others behind it (negative depths)
     pts = recon.points[recon.points_seen_by(0)]
     distance = float(np.median(depths(truth[names[0]], pts))) if len(pts) else float("nan")
-    per_image, placed, trusted = [], [], []
+    per_image, placed, trusted, ratios = [], [], [], []
     for v, r in zip(recon.views, report["per_image"]):
         entry = {"image": v.name, "status": r.get("status")}
         if r.get("registered_by"):
@@ -103,10 +103,17 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
             err = float(np.linalg.norm(camera_center(v.P_input) - camera_center(truth[v.name])))
             entry["centre_error"] = round(err, 5)
             entry["centre_error_pct"] = round(100 * err / distance, 3)
+            u = getattr(v, "uncertainty", None)
+            if u is not None:  # the stated 1-sigma position (its worst axis) and the error in sigmas
+                sigma = float(np.max(u.position_sigma))
+                entry["position_sigma"] = round(sigma, 6)
+                entry["error_over_sigma"] = round(err / sigma, 2) if sigma > 0 else None
             if len(per_image) >= 2:
                 placed.append(err)
                 if reliable:
                     trusted.append(err)
+                    if entry.get("error_over_sigma") is not None:
+                        ratios.append(entry["error_over_sigma"])
         per_image.append(entry)
 
     def summary(errors: list[float]) -> dict:
@@ -117,7 +124,11 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
                 "median_pct": float(100 * np.median(e) / distance), "worst_pct": float(100 * e.max() / distance)}
 
     return {"images": len(names), "registered": report["registered"], "distance": distance, "seconds": seconds,
-            "placed": summary(placed), "unflagged": summary(trusted), "per_image": per_image,
+            "placed": summary(placed), "unflagged": summary(trusted),
+            # the unflagged cameras' error against the published cameras in stated sigmas (worst axis)
+            "coverage": {"count": len(ratios), "within_3_sigma": float(np.mean(np.array(ratios) <= 3.0)) if ratios else None,
+                         "median_error_over_sigma": float(np.median(ratios)) if ratios else None},
+            "per_image": per_image,
             "loop_closure": (report.get("final") or {}).get("loop_closure")}
 
 

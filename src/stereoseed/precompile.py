@@ -89,7 +89,8 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                            ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], "
                             "float64[::1]")),
     "normal_equations": ("stereoseed.estimators._schur", "normal_equations",
-                         ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], int64[::1], "
+                         ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], float64[::1], "
+                          "int64[::1], "
                           "int64[::1], float64[:, :, :, ::1], float64, int64[::1], int64, int64, int64")),
     "eliminate_points": ("stereoseed.estimators._schur", "eliminate_points",
                          ("float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64, "

@@ -229,3 +229,36 @@ def test_cameras_moved_together_share_their_group_s_covariance():
     for c in (3, 4):
         assert np.all(np.diag(together[c].covariance) / together[c].sigma_px ** 2
                       < np.diag(alone[c].covariance) / alone[c].sigma_px ** 2)
+
+
+def test_observations_sharing_a_window_count_once():
+    """A camera whose every match is repeated 8 times a pixel or two away (as propagated matches
+    are, pixel by pixel) is not measured better: counted one per 11 px cell, its sigma is that of
+    the matches alone (to the digits: the information of an observation is its camera's and its
+    point's, wherever its pixel, and nine of a ninth each make one); counted each, it shrinks (not by sqrt(9): the
+    points' own uncertainty, which the repeats do not reduce, stays in it)."""
+    from stereoseed.estimators.covariance import one_per_cell
+
+    cell, sigma = 11.0, 0.5
+    rng = np.random.default_rng(3)
+    problem = _scene(rng, noise=sigma)
+    # each match in the middle of its cell, and one match per cell (two in one cell would count once)
+    centred = (np.floor(problem.obs_xy / cell) + 0.5) * cell
+    problem.obs_xy[:] = centred + np.clip(problem.obs_xy - centred, -3.0, 3.0)
+    problem = _select(problem, one_per_cell(problem.obs_camera, problem.obs_xy, cell) == 1.0)
+    last = len(ANGLES) - 1
+    mine = np.flatnonzero(problem.obs_camera == last)
+    offsets = np.array([(dx, dy) for dx in (-2, 0, 2) for dy in (-2, 0, 2) if (dx, dy) != (0, 0)], float)
+    repeats = np.repeat(problem.obs_xy[mine], 8, axis=0) + np.tile(offsets, (len(mine), 1))
+    dense = BundleProblem(problem.Ps, problem.free_cameras, problem.points, problem.free_points,
+                          np.r_[problem.obs_camera, np.full(len(repeats), last)],
+                          np.r_[problem.obs_point, np.repeat(problem.obs_point[mine], 8)],
+                          np.r_[problem.obs_xy, repeats], problem.model, problem.reference_K)
+    share = one_per_cell(dense.obs_camera, dense.obs_xy, cell)
+    others = dense.obs_camera != last  # one per cell; the last camera's: nine per cell
+    assert np.all(share[others] == 1.0) and np.allclose(share[~others], 1 / 9)
+    base = camera_uncertainty(problem, sigma_px=sigma)[last].position_sigma
+    counted_each = camera_uncertainty(dense, sigma_px=sigma)[last].position_sigma
+    counted_once = camera_uncertainty(dense, sigma_px=sigma, independent_cell_px=cell)[last].position_sigma
+    np.testing.assert_allclose(counted_once, base, rtol=1e-6)
+    assert np.all(counted_each < 0.85 * base)

@@ -180,14 +180,15 @@ def homogeneous(Ps, c, x0, x1, x2):
 
 
 @njit(cache=True, nogil=True)
-def normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row, n_cams, n_points, n_both):
+def normal_equations(Ps, X, oc, op, xy, weight, cam_slot, pt_slot, dP, delta, both_row, n_cams, n_points, n_both):
     """The Gauss-Newton blocks of the robust (Huber, IRLS) reprojection error, one pass over the
     observations with nothing stored per observation but W: U (n_cams, n, n) and gc (n_cams, n)
     of the free cameras, V (n_points, 3, 3) and gp (n_points, 3) of the free points, and
     W (n_both, n, 3) = w Jc^T Jp of each observation of a free point by a free camera (its row
     ``both_row[o]``). Ps (C, 3, 4), X (M, 3); oc, op (O,) observation -> camera, point;
-    xy (O, 2); cam_slot (C,), pt_slot (M,) the free index or -1; dP (n_cams, n, 3, 4) dP/dparams
-    of each free camera."""
+    xy (O, 2); weight (O,) each observation's weight (1: a whole independent observation; the
+    covariance counts correlated ones as a share of one); cam_slot (C,), pt_slot (M,) the free
+    index or -1; dP (n_cams, n, 3, 4) dP/dparams of each free camera."""
     n = dP.shape[1]
     U = np.zeros((n_cams, n, n))
     gc = np.zeros((n_cams, n))
@@ -203,7 +204,7 @@ def normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, delta, both_row, 
         u, v = h0 / h2, h1 / h2
         ru, rv = u - xy[o, 0], v - xy[o, 1]
         norm = np.sqrt(ru * ru + rv * rv)
-        w = 1.0 if norm <= delta else delta / max(norm, 1e-300)
+        w = (1.0 if norm <= delta else delta / max(norm, 1e-300)) * weight[o]
         sc, sp = cam_slot[c], pt_slot[p]
         if sc >= 0:
             for j in range(n):

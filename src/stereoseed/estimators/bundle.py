@@ -187,12 +187,13 @@ def bundle_adjust(problem: BundleProblem, config: BundleConfig = BundleConfig())
     pair_order, point_starts = pairs_by_point(both_point, both_camera)
     rows = thread_rows(pair_order, point_starts, both_camera, nC)
 
+    whole = np.ones(len(oc))  # every observation is one (the covariance weighs correlated ones less)
     lam = 1e-3
     cost = huber_cost_of_norms(observation_errors(Ps, X, oc, op, xy), delta)
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):
         dP = _projection_derivatives(params, model, free_ref_K) if nC else np.zeros((0, n, 3, 4))
-        U, gc, V, gp, Wb = normal_equations(Ps, X, oc, op, xy, cam_slot, pt_slot, dP, float(delta), both_row,
+        U, gc, V, gp, Wb = normal_equations(Ps, X, oc, op, xy, whole, cam_slot, pt_slot, dP, float(delta), both_row,
                                             nC, nP, len(both_idx_all))
 
         Wt = np.swapaxes(Wb, 1, 2).copy()  # rows of W^T: contiguous for the reduced system's kernel

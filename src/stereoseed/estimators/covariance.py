@@ -36,7 +36,7 @@ from stereoseed.estimators.bundle import BundleProblem, observation_errors, pair
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["CameraUncertainty", "camera_uncertainty", "parameter_names"]
+__all__ = ["CameraUncertainty", "camera_uncertainty", "one_per_cell", "parameter_names"]
 
 log = logging.getLogger(__name__)
 
@@ -219,8 +219,25 @@ def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: 
     return blocks, g_determined[slot], g_worst[slot], n_weak, len(ids)
 
 
+def one_per_cell(obs_camera: np.ndarray, obs_xy: np.ndarray, cell_px: float) -> np.ndarray:
+    """(O,) float64: each observation's share of one independent observation, 1 / the number of
+    observations of its camera in its square cell of ``cell_px`` pixels (obs_camera (O,) int,
+    obs_xy (O, 2) px). Matches whose correlation windows overlap share pixels, so their errors
+    are not independent: a region matched pixel by pixel (propagated matches) is one piece of
+    evidence per window, not one per pixel. Every observation keeps its share, so every point
+    stays seen from all its cameras."""
+    if len(obs_camera) == 0:
+        return np.zeros(0)
+    cells = np.floor(np.asarray(obs_xy, np.float64) / cell_px)
+    cells[~np.isfinite(cells)] = -1.0
+    keys = np.stack([np.asarray(obs_camera, np.int64), cells[:, 0].astype(np.int64), cells[:, 1].astype(np.int64)])
+    _, cell, counts = np.unique(keys, axis=1, return_inverse=True, return_counts=True)
+    return 1.0 / counts[cell.ravel()]
+
+
 def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
-                       groups: tuple[np.ndarray, np.ndarray] | None = None) -> list[CameraUncertainty | None]:
+                       groups: tuple[np.ndarray, np.ndarray] | None = None,
+                       independent_cell_px: float | None = None) -> list[CameraUncertainty | None]:
     """The uncertainty of every free camera of ``problem`` at its solution (a converged
     :func:`stereoseed.estimators.bundle.bundle_adjust`'s cameras and points).
 
@@ -231,6 +248,8 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
     station, the rig held): (group (C,) int per camera of ``problem.Ps``, A (C, n, n): the camera's
     parameter increment = A @ its group's). The normal equations are then those of the groups'
     parameters (T^T S T) and each camera's covariance A Sigma_group A^T.
+    independent_cell_px: the observations of a camera in one image cell of this size share the
+    information of one observation (:func:`one_per_cell`); None: each is independent evidence.
     Returns one entry per camera of ``problem.Ps`` (C,): None for a fixed camera, else a
     :class:`CameraUncertainty` (undetermined ones with infinite sigmas and a reason). Free
     cameras are first put in the model's family, as the BA does.
@@ -284,6 +303,7 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
     cam_slot[free_cams] = np.arange(nC)
     for _ in range(2):  # a second pass only when a point's block turns out too ill-conditioned
         oc_k, op_k, xy_k = oc[keep], op[keep], xy[keep]
+        weight_k = np.ones(len(oc_k)) if independent_cell_px is None else one_per_cell(oc_k, xy_k, independent_cell_px)
         pts = np.flatnonzero(free_pts & (np.bincount(op_k, minlength=len(X)) > 0))
         pt_slot = np.full(len(X), -1, np.int64)
         pt_slot[pts] = np.arange(len(pts))
@@ -291,7 +311,7 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         both_idx = np.flatnonzero(both)
         both_row = np.full(len(oc_k), -1, np.int64)
         both_row[both_idx] = np.arange(len(both_idx))
-        U, gc, V, gp, W = normal_equations(Ps, X, oc_k, op_k, xy_k, cam_slot, pt_slot, dP, np.inf, both_row,
+        U, gc, V, gp, W = normal_equations(Ps, X, oc_k, op_k, xy_k, weight_k, cam_slot, pt_slot, dP, np.inf, both_row,
                                             nC, len(pts), len(both_idx))
         ev = np.linalg.eigvalsh(V) if len(pts) else np.ones((0, 3))
         bad = ev[:, 0] < POINT_RCOND * ev[:, 2]

@@ -323,9 +323,16 @@ class TrustConfig:
     # median camera's RMS (and worse than residual_floor_px) is contradicted by the others.
     residual_factor: float = 3.0
     residual_floor_px: float = 0.5
-    # A camera whose 1-sigma position (its worst axis) exceeds max_position_sigma x its median
-    # depth is not determined well enough to build on.
-    max_position_sigma: float = 0.01
+    # A camera whose 3-sigma position (its worst axis) exceeds 1 % of its median depth is not
+    # determined well enough to build on (issue #47: a walk 1 % off is visibly wrong).
+    max_position_sigma: float = 0.01 / 3
+    # The cameras' uncertainty counts one observation per camera and square image cell of this
+    # size (px): the matching's 11x11 ZNCC window (MatchingConfig.patch_size), so matches whose
+    # windows overlap - the propagated matches, one per pixel - count as the correlated evidence
+    # they are, not as thousands of independent ones (issue #47: the dino cameras placed by
+    # propagated matches were 10-22 mm off with a stated sigma of 1-4 mm). None: every
+    # observation independent.
+    independent_cell_px: float | None = 11.0
     # After the final BA, a camera must be tied to the model by at least this many observations
     # of points two other cameras also see (each pins it as a 3D-2D pair does; a two-view point
     # only moves with it); fewer and the BA cannot check where its registration put it (a view
@@ -342,6 +349,8 @@ class TrustConfig:
     def __post_init__(self) -> None:
         in_range(self, "ambiguity_ratio", 0.0, 1.0)
         positive(self, "ambiguity_shift", "residual_factor", "max_position_sigma")
+        if self.independent_cell_px is not None:
+            positive(self, "independent_cell_px")
         if self.min_tied_observations is not None:
             whole(self, "min_tied_observations")
         if self.residual_floor_px < 0:

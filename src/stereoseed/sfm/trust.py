@@ -42,14 +42,16 @@ __all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras"
 
 def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
     """{view: its uncertainty} for every registered view after the pair, from the normal
-    equations of all registered views (the pair fixed) and every live point; a rig walk's with
-    one pose per station (the rig held, as its bundle adjustment holds it)."""
+    equations of all registered views (the pair fixed) and every live point, each camera's
+    observations counted once per ``TrustConfig.independent_cell_px`` cell of its image; a rig
+    walk's with one pose per station (the rig held, as its bundle adjustment holds it)."""
     # the model the final BA used (the accurate mode holds the calibrated intrinsics when no image zoomed)
     built = bundle_problem(recon, mode_of(cfg, recon).adjustment_config(recon, cfg), recon.registered_views)
     if built is None:
         return {}
     problem, cams, _ = built
-    found = camera_uncertainty(problem, groups=None if recon.rig is None else _stations(recon, cams))
+    found = camera_uncertainty(problem, groups=None if recon.rig is None else _stations(recon, cams),
+                               independent_cell_px=cfg.trust.independent_cell_px)
     return {int(v): u for v, u in zip(cams, found) if u is not None}
 
 
@@ -167,8 +169,8 @@ def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Conf
     depth = _median_depth(recon, view)
     worst = float(np.max(u.position_sigma))
     if np.isfinite(depth) and worst > cfg.trust.max_position_sigma * depth:
-        return Flag(FlagKind.UNCERTAIN, f"1-sigma position {worst:.3g} ({100 * worst / depth:.1f} % of its distance to "
-                                        f"the scene, limit {100 * cfg.trust.max_position_sigma:.1f} %)")
+        return Flag(FlagKind.UNCERTAIN, f"3-sigma position {3 * worst:.3g} ({300 * worst / depth:.1f} % of its distance "
+                                        f"to the scene, limit {300 * cfg.trust.max_position_sigma:.1f} %)")
     return None
 
 
