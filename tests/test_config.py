@@ -96,7 +96,8 @@ import typing  # noqa: E402
 from stereoseed.cli import main  # noqa: E402
 from stereoseed.config import ConfigError  # noqa: E402
 
-_WORDS = ("paper", "accurate", "free", "zero-skew", "focal", "fixed", "local", "global", "final", "affine", "quadratic")
+_WORDS = ("paper", "accurate", "free", "zero-skew", "focal", "fixed", "local", "global", "final", "affine", "quadratic",
+          "auto", "as-given")
 
 
 def _candidates(hint, default):

@@ -154,7 +154,7 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
                                            pool=pool, dense_progress=dense_progress, rig_right=rig_right, mesh=mesh)
             return load_result(out)
         sequence, names, P_pair, lenses = pipeline.load_sequence_and_lenses(images, calib_path, cfg.video,
-                                                                            rig_right=rig_right)
+                                                                            rig_right=rig_right, ordering=cfg.ordering)
         recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress, rig=rig_right is not None)
         cloud = None
         if dense:

@@ -26,6 +26,7 @@ from typing import Any, Mapping
 
 from stereoseed.features.config import FeatureConfig
 from stereoseed.matching.config import MatchingConfig, PropagationConfig
+from stereoseed.matching.ordering import OrderingConfig
 from stereoseed.estimators.config import TriangulationConfig, ResectionConfig, BundleConfig
 from stereoseed.dense.config import DenseConfig, MeshConfig
 from stereoseed.io.config import VideoConfig
@@ -37,7 +38,7 @@ from stereoseed.sfm.config import (LoopClosureConfig, MotionPriorConfig, Outlier
 __all__ = ["Config", "ResolvedConfig", "ConfigError", "NONE", "FeatureConfig", "MatchingConfig", "PropagationConfig", "TriangulationConfig",
            "ResectionConfig", "BundleConfig", "DenseConfig", "VideoConfig", "QuasiDenseConfig", "MotionPriorConfig",
            "TrackingConfig", "LoopClosureConfig", "PipelineConfig", "RegistrationConfig", "OutlierConfig",
-           "PairCheckConfig", "ExportConfig", "TrustConfig"]
+           "PairCheckConfig", "ExportConfig", "TrustConfig", "OrderingConfig"]
 
 # The fields a mode fills where they hold None, as (section, field, its ModeDefaults attribute):
 # what Config.resolve fills in and Config.with_mode gives back to the new mode.
@@ -66,6 +67,7 @@ class Config:
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     quasi_dense: QuasiDenseConfig = field(default_factory=QuasiDenseConfig)
     video: VideoConfig = field(default_factory=VideoConfig)
+    ordering: OrderingConfig = field(default_factory=OrderingConfig)  # photos in any order (matching/ordering.py)
     export: ExportConfig = field(default_factory=ExportConfig)
 
     def __post_init__(self) -> None:

@@ -25,13 +25,14 @@ from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Pref
 from stereoseed.errors import StereoseedError
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration,
-                                 read_calibration_unit)
+                                 read_calibration_unit, read_image)
 from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
 from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import FailureKind
-from stereoseed.io.sequence import ImageSequence
+from stereoseed.io.sequence import ImageSequence, header_size
+from stereoseed.matching.ordering import OrderingConfig, thumbnail, walk_order
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.report.html import write_report_html
 from stereoseed.output.result_set import ResultSet
@@ -273,8 +274,36 @@ def load_sequence(images_source: str | list[str], calib_path: str, video: VideoC
     return load_sequence_and_lenses(images_source, calib_path, video, keyframes_to, rig_right)[:3]
 
 
+def _in_walk_order(entries: list[Any], names: list[str], ordering: OrderingConfig) -> tuple[list[Any], list[str]]:
+    """``entries`` and ``names`` in the walk order their images support
+    (:func:`stereoseed.matching.ordering.walk_order`), the calibrated pair first; as given for
+    a video's keyframes (ordered in time), or when an image's header does not give the second
+    camera's size (it is skipped in place, unread) or an image cannot be read (its reason comes
+    when the run reaches it)."""
+    if ordering.mode == "as-given" or len(entries) <= 3 or not all(isinstance(e, Path) for e in entries):
+        return entries, names
+    size = header_size(entries[1])
+    if size is None or any(header_size(e) != size for e in entries[2:]):
+        log.info("the images are not all of the second camera's size: kept in the order given")
+        return entries, names
+    try:
+        thumbnails = [thumbnail(read_image(e), ordering.thumbnail_px) for e in entries]
+    except StereoseedError as e:
+        log.info("kept in the order given (%s)", e)
+        return entries, names
+    order, why, doubt = walk_order(thumbnails, ordering)
+    if doubt:
+        log.warning("%s", doubt)
+    if why is None:
+        return entries, names
+    log.warning("the images are run in the order their overlaps give (%s): %s", why,
+                ", ".join(names[i] for i in order))
+    return [entries[i] for i in order], [names[i] for i in order]
+
+
 def load_sequence_and_lenses(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
-                             keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None
+                             keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None,
+                             ordering: OrderingConfig | None = None
                              ) -> tuple[ImageSequence, list[str], list[np.ndarray], list]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
     (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras, the
@@ -295,10 +324,16 @@ def load_sequence_and_lenses(images_source: str | list[str], calib_path: str, vi
     ``rig_right``: a stereo rig walked with both cameras (:mod:`stereoseed.sfm.rig`):
     ``images_source`` holds the left camera's images, this the right one's, image k of each taken
     together, the first two the calibrated pair; the sequence interleaves them (left, right, ...)
-    and each image goes through its own camera's lens."""
+    and each image goes through its own camera's lens.
+
+    ``ordering``: photos in any order are put in walk order from their overlaps
+    (:func:`stereoseed.matching.ordering.walk_order`; the first two stay the calibrated pair);
+    None: the order given (a video's, a rig's always)."""
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
     if rig_right is None:
         entries, names = _sequence_entries(sources, video, keyframes_to)
+        if ordering is not None:
+            entries, names = _in_walk_order(entries, names, ordering)
     else:
         entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right),
                                       video, keyframes_to)
@@ -461,7 +496,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
         try:
             # a video's keyframes are kept with the result, which names them
             images, names, P_pair, lenses = load_sequence_and_lenses(images_source, calib_path, cfg.video,
-                                                                     staging / "keyframes", rig_right=rig_right)
+                                                                     staging / "keyframes", rig_right=rig_right,
+                                                                     ordering=cfg.ordering)
             _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
             unit = read_calibration_unit(calib_path)
         except BaseException:

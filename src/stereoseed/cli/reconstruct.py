@@ -29,6 +29,8 @@ def _config(args: argparse.Namespace):
             changes["trust"] = {"keep_flagged": True}
         if getattr(args, "refine_rig", False):
             changes["pipeline"]["refine_rig"] = True
+        if getattr(args, "order", None) is not None:
+            changes["ordering"] = {"mode": args.order}
         return cfg.replace(**changes)
     except ValueError as e:
         raise StereoseedError(str(e)) from None
@@ -187,6 +189,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_SKIPPED} when any image could not be placed or was flagged (the results "
                         f"are written)")
+    p.add_argument("--order", choices=["auto", "as-given"], default=None,
+                   help="auto (default): photos given in another order than the walk's are put in walk order from "
+                        "their overlaps, the first two staying the calibrated pair; as-given: run them as given")
     p.set_defaults(func=_cmd_reconstruct)
 
 

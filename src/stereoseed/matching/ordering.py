@@ -1,0 +1,174 @@
+"""The walk through photos given in any order (issue #49, "photos in any order").
+
+The incremental mapper needs its images in walk order: each one is placed from the one before
+it. A folder in name order is often not that order (templeSparseRing's names are not its ring),
+and every peer takes a folder of photos. The order is recovered from the images themselves: the
+overlap of every pair, measured on thumbnails (SIFT features matched both ways, the matches a
+robust fundamental matrix keeps), then a walk through that graph from the calibrated pair (images
+0 and 1 stay first: the calibration says which they are) that maximises the overlap of
+consecutive images (greedy, then improved by reversing parts of it, as for a travelling
+salesman's path). A given order that is already a walk is kept; one the overlaps contradict is
+replaced, and the caller says so.
+
+Pure functions on arrays: the caller reads the thumbnails (:func:`thumbnail`).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from stereoseed.validation import positive, whole
+
+__all__ = ["OrderingConfig", "thumbnail", "overlaps", "best_walk", "walk_order", "walk_strength"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OrderingConfig:
+    # "auto": a given order that the overlaps show to be a walk is kept, else the images are
+    # ordered from them; "as-given": never reordered (the order is the user's)
+    mode: str = "auto"
+    # thumbnails' long side (px): SIFT needs a few hundred features per view (ORB found too few
+    # on the temple's white plaster); a 24-megapixel photo is matched at a 1/8 of its size
+    thumbnail_px: int = 640
+    features: int = 1500  # SIFT features per thumbnail: about what the sparse matcher keeps per image
+    ratio: float = 0.8  # Lowe's ratio test (IJCV 2004: 0.8 drops 90 % of false matches)
+    ransac_px: float = 2.0  # the robust F's threshold on thumbnails (a pixel and a half of 640 px)
+    # two thumbnails overlap when at least this many matches agree on one F (a robust F of 8 points
+    # with a few more to spare: fewer agree by chance among a thousand matches)
+    min_inliers: int = 20
+    # a given order is replaced only when the recovered walk's total overlap is this many times its
+    # own (or the given order has a step without overlap): a walk in order is not second-guessed
+    replace_factor: float = 1.25
+    # every pair is matched (n^2 / 2): above this many images the order is kept as given
+    max_images: int = 200
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("auto", "as-given"):
+            raise ValueError(f"OrderingConfig.mode must be 'auto' or 'as-given', got {self.mode!r}")
+        whole(self, "thumbnail_px", "features", "min_inliers", "max_images", minimum=8)
+        positive(self, "ratio", "ransac_px", "replace_factor")
+        if not self.ratio < 1.0:
+            raise ValueError(f"OrderingConfig.ratio must be < 1, got {self.ratio!r}")
+
+
+def thumbnail(image: np.ndarray, long_side: int) -> np.ndarray:
+    """A grey uint8 thumbnail (h, w) of ``image`` (H, W[, 3]) whose long side is at most
+    ``long_side`` px (never enlarged)."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    scale = long_side / max(grey.shape[:2])
+    if scale >= 1.0:
+        return np.ascontiguousarray(grey)
+    size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
+    return cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+
+
+def overlaps(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig()) -> np.ndarray:
+    """(N, N) int symmetric: for each pair of thumbnails (h, w) uint8, the number of SIFT matches
+    (mutual best, ratio-tested) that a robust fundamental matrix keeps; 0 below
+    ``cfg.min_inliers`` or without a robust F."""
+    detector = cv2.SIFT_create(nfeatures=cfg.features)
+    found = [detector.detectAndCompute(t, None) for t in thumbnails]
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    n = len(thumbnails)
+    out = np.zeros((n, n), np.int64)
+    for i in range(n):
+        ki, di = found[i]
+        for j in range(i + 1, n):
+            kj, dj = found[j]
+            if di is None or dj is None or len(ki) < 8 or len(kj) < 8:
+                continue
+            x1, x2 = _mutual_matches(matcher, ki, di, kj, dj, cfg.ratio)
+            if len(x1) < max(8, cfg.min_inliers):
+                continue
+            _, mask = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, cfg.ransac_px, 0.999)
+            inliers = 0 if mask is None else int(mask.sum())
+            out[i, j] = out[j, i] = inliers if inliers >= cfg.min_inliers else 0
+    return out
+
+
+def _mutual_matches(matcher, ki, di, kj, dj, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) float32 in both images of the matches that pass the ratio test and are each
+    other's best both ways."""
+    forward = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(di, dj, k=2)
+               if len(m) == 2 and m[0].distance < ratio * m[1].distance}
+    backward = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(dj, di, k=2)
+                if len(m) == 2 and m[0].distance < ratio * m[1].distance}
+    pairs = [(a, b) for a, b in forward.items() if backward.get(b) == a]
+    x1 = np.float32([ki[a].pt for a, _ in pairs]).reshape(-1, 2)
+    x2 = np.float32([kj[b].pt for _, b in pairs]).reshape(-1, 2)
+    return x1, x2
+
+
+def walk_strength(order: list[int], overlap: np.ndarray) -> tuple[int, int]:
+    """(total overlap of consecutive images, the weakest step's) of ``order``."""
+    steps = [int(overlap[a, b]) for a, b in zip(order, order[1:])]
+    return (sum(steps), min(steps)) if steps else (0, 0)
+
+
+def best_walk(overlap: np.ndarray) -> list[int]:
+    """An order of the N images of ``overlap`` (N, N) starting with 0, 1 (the calibrated pair)
+    whose consecutive images overlap most: greedy from image 1 (the next image is the unused one
+    overlapping the last most), then reversals of a part of the walk while one increases the total
+    overlap (2-opt)."""
+    n = len(overlap)
+    order, unused = [0, 1], set(range(2, n))
+    while unused:
+        last = order[-1]
+        nxt = max(sorted(unused), key=lambda u: (overlap[last, u], overlap[order, u].max()))
+        order.append(nxt)
+        unused.discard(nxt)
+    improved = True
+    while improved:  # at most n^2 reversals each pass; the walks are short
+        improved = False
+        for i in range(2, n - 1):
+            for j in range(i + 1, n):
+                # reversing order[i..j] changes the steps (i-1, i) and (j, j+1)
+                a, b = order[i - 1], order[i]
+                c, d = order[j], order[j + 1] if j + 1 < n else None
+                before = overlap[a, b] + (overlap[c, d] if d is not None else 0)
+                after = overlap[a, c] + (overlap[b, d] if d is not None else 0)
+                if after > before:
+                    order[i:j + 1] = order[i:j + 1][::-1]
+                    improved = True
+    return order
+
+
+def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig()
+               ) -> tuple[list[int], str | None, str | None]:
+    """The order to run the images of ``thumbnails`` in (their index list, 0 and 1 first), why
+    it is not the given one (None: kept as given), and a doubt about a given order that was kept
+    (None: none). A walk is taken only where the images support every step of it (each pair of
+    consecutive thumbnails overlaps): a step without overlap (a plain back of an object, a wide
+    step) leaves the order to the user, since the mapper's motion prior may bridge it in the
+    given order but not in one guessed around it."""
+    n = len(thumbnails)
+    given = list(range(n))
+    if cfg.mode == "as-given" or n <= 3:
+        return given, None, None
+    if n > cfg.max_images:
+        log.info("%d images: more than OrderingConfig.max_images (%d), kept in the given order", n, cfg.max_images)
+        return given, None, None
+    overlap = overlaps(thumbnails, cfg)
+    found = best_walk(overlap)
+    (total, weakest), (found_total, found_weakest) = walk_strength(given, overlap), walk_strength(found, overlap)
+    better = found != given and (weakest == 0 or found_total >= cfg.replace_factor * total)
+    if better and found_weakest > 0:
+        why = (f"a step of the given order has no overlap, every step of the order found has {found_weakest} "
+               f"matches or more" if weakest == 0 else
+               f"consecutive images of the order found overlap by {found_total} matches in all, the given order's "
+               f"by {total}")
+        return found, why, None
+    gaps = [i for i, (a, b) in enumerate(zip(given, given[1:])) if overlap[a, b] == 0]
+    doubt = None
+    if better:
+        doubt = (f"{len(gaps)} step(s) of the given order show no overlap (the first after image {gaps[0]}) and "
+                 f"another order overlaps more ({found_total} matches against {total}); if the photos are not in "
+                 f"walk order, list them in the order they were taken") if gaps else (
+                 f"another order of the images overlaps more ({found_total} matches against {total}); if the photos "
+                 f"are not in walk order, list them in the order they were taken")
+    return given, None, doubt

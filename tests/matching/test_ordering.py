@@ -1,0 +1,68 @@
+"""Photos in any order (issue #49): the walk recovered from the images' overlaps, the calibrated
+pair first; a given walk kept; an order the images cannot support end to end left as given."""
+import random
+
+import numpy as np
+import pytest
+
+from stereoseed.matching.ordering import OrderingConfig, best_walk, thumbnail, walk_order, walk_strength
+
+
+def _ring_overlap(n, reach=3, seed=0):
+    """(n, n) overlaps of an open walk: images k apart overlap by 200 / k up to ``reach`` apart,
+    with noise."""
+    rng = np.random.default_rng(seed)
+    ov = np.zeros((n, n), np.int64)
+    for i in range(n):
+        for j in range(i + 1, min(n, i + reach + 1)):
+            ov[i, j] = ov[j, i] = int(200 / (j - i) + rng.integers(0, 20))
+    return ov
+
+
+def test_the_best_walk_of_a_shuffled_walk_is_the_walk():
+    n = 14
+    truth = _ring_overlap(n)
+    perm = [0, 1] + random.Random(3).sample(range(2, n), n - 2)
+    shuffled = truth[np.ix_(perm, perm)]
+    found = best_walk(shuffled)
+    assert [perm[i] for i in found] == list(range(n))
+    assert walk_strength(list(range(n)), truth) == walk_strength(found, shuffled)
+
+
+def test_a_shuffled_walk_of_photos_is_put_back_in_order_and_a_walk_is_kept(box_scene):
+    scene = box_scene
+    n = 7
+    thumbs = [thumbnail(im, 320) for im in scene.images[:n]]
+    order, why, doubt = walk_order(thumbs)
+    assert order == list(range(n)) and why is None and doubt is None  # a walk in order is not second-guessed
+    perm = [0, 1] + random.Random(1).sample(range(2, n), n - 2)
+    order, why, _ = walk_order([thumbs[i] for i in perm])
+    assert [perm[i] for i in order] == list(range(n)) and why
+    assert walk_order([thumbs[i] for i in perm], OrderingConfig(mode="as-given"))[0] == list(range(n))
+
+
+def test_an_order_the_images_cannot_support_end_to_end_is_left_as_given(monkeypatch):
+    # a step of the walk that nothing matches across (the plain back of an object): no order is
+    # guessed around it, since the mapper's motion prior may bridge it in the given order only
+    import stereoseed.matching.ordering as ordering
+
+    n = 10
+    truth = _ring_overlap(n, reach=2)
+    truth[4, 5] = truth[5, 4] = truth[3, 5] = truth[5, 3] = truth[4, 6] = truth[6, 4] = 0
+    perm = [0, 1, 7, 3, 9, 2, 5, 8, 4, 6]
+    monkeypatch.setattr(ordering, "overlaps", lambda thumbs, cfg: truth[np.ix_(perm, perm)])
+    order, why, doubt = walk_order([np.zeros((8, 8), np.uint8)] * n)
+    assert order == list(range(n)) and why is None
+    assert "show no overlap" in doubt and "list them in the order they were taken" in doubt
+
+
+def test_the_fountain_shuffled_is_put_back_in_walk_order():
+    import cv2
+    from conftest import _sequence_dir
+
+    folder = _sequence_dir("strechaFountainP11")
+    names = sorted(p.name for p in folder.glob("*.jpg"))
+    perm = [0, 1] + random.Random(2).sample(range(2, len(names)), len(names) - 2)
+    thumbs = [thumbnail(cv2.imread(str(folder / names[i])), 640) for i in perm]
+    order, why, _ = walk_order(thumbs)
+    assert [perm[i] for i in order] == list(range(len(names))), why
