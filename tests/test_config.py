@@ -97,7 +97,7 @@ from stereoseed.cli import main  # noqa: E402
 from stereoseed.config import ConfigError  # noqa: E402
 
 _WORDS = ("paper", "accurate", "free", "zero-skew", "focal", "fixed", "local", "global", "final", "affine", "quadratic",
-          "auto", "as-given")
+          "auto", "images", "as-given")
 
 
 def _candidates(hint, default):

@@ -266,21 +266,23 @@ def _allow_open_files(count: int) -> None:
 
 
 def load_sequence(images_source: str | list[str], calib_path: str, video: VideoConfig = VideoConfig(),
-                  keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None
-                  ) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
+                  keyframes_to: str | Path | None = None, rig_right: str | list[str] | None = None,
+                  ordering: OrderingConfig | None = None) -> tuple[ImageSequence, list[str], list[np.ndarray]]:
     """An image sequence and the pair's calibration: (the images, read when needed as uint8 BGR
     (:class:`stereoseed.io.sequence.ImageSequence`), names, the pair's two (3, 4) cameras); as
     :func:`load_sequence_and_lenses`, without the lenses."""
-    return load_sequence_and_lenses(images_source, calib_path, video, keyframes_to, rig_right)[:3]
+    return load_sequence_and_lenses(images_source, calib_path, video, keyframes_to, rig_right, ordering)[:3]
 
 
-def _in_walk_order(entries: list[Any], names: list[str], ordering: OrderingConfig) -> tuple[list[Any], list[str]]:
+def _in_walk_order(entries: list[Any], names: list[str], ordering: OrderingConfig,
+                   from_folder: bool) -> tuple[list[Any], list[str]]:
     """``entries`` and ``names`` in the walk order their images support
-    (:func:`stereoseed.matching.ordering.walk_order`), the calibrated pair first; as given for
-    a video's keyframes (ordered in time), or when an image's header does not give the second
-    camera's size (it is skipped in place, unread) or an image cannot be read (its reason comes
-    when the run reaches it)."""
-    if ordering.mode == "as-given" or len(entries) <= 3 or not all(isinstance(e, Path) for e in entries):
+    (:func:`stereoseed.matching.ordering.walk_order`), the calibrated pair first, for a folder's
+    photos (any input's with ``OrderingConfig.mode`` "images"); as given for a video's keyframes
+    (ordered in time), or when an image's header does not give the second camera's size (it is
+    skipped in place, unread) or an image cannot be read (its reason comes when the run reaches it)."""
+    if (ordering.mode == "as-given" or (ordering.mode == "auto" and not from_folder) or len(entries) <= 3
+            or not all(isinstance(e, Path) for e in entries)):
         return entries, names
     size = header_size(entries[1])
     if size is None or any(header_size(e) != size for e in entries[2:]):
@@ -327,13 +329,14 @@ def load_sequence_and_lenses(images_source: str | list[str], calib_path: str, vi
     and each image goes through its own camera's lens.
 
     ``ordering``: photos in any order are put in walk order from their overlaps
-    (:func:`stereoseed.matching.ordering.walk_order`; the first two stay the calibrated pair);
-    None: the order given (a video's, a rig's always)."""
+    (:func:`_in_walk_order`; the first two stay the calibrated pair); None: the order given (a
+    video's, a rig's always)."""
     sources = [images_source] if isinstance(images_source, (str, Path)) else list(images_source)
     if rig_right is None:
         entries, names = _sequence_entries(sources, video, keyframes_to)
         if ordering is not None:
-            entries, names = _in_walk_order(entries, names, ordering)
+            from_folder = len(sources) == 1 and Path(sources[0]).is_dir()
+            entries, names = _in_walk_order(entries, names, ordering, from_folder)
     else:
         entries, names = _rig_entries(sources, [rig_right] if isinstance(rig_right, (str, Path)) else list(rig_right),
                                       video, keyframes_to)

@@ -66,3 +66,25 @@ def test_the_fountain_shuffled_is_put_back_in_walk_order():
     thumbs = [thumbnail(cv2.imread(str(folder / names[i])), 640) for i in perm]
     order, why, _ = walk_order(thumbs)
     assert [perm[i] for i in order] == list(range(len(names))), why
+
+
+def test_a_folder_in_another_order_is_run_in_walk_order_and_a_list_as_written(box_scene, tmp_path):
+    # the file names of a folder say nothing of the walk; a list file is an order someone wrote
+    import cv2
+
+    from scene_helpers import write_calib
+    from stereoseed.pipeline import load_sequence
+
+    n = 7
+    perm = [0, 1] + random.Random(4).sample(range(2, n), n - 2)
+    names = [f"photo_{k:02d}.png" for k in range(n)]  # name order: perm's
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for name, i in zip(names, perm):
+        cv2.imwrite(str(folder / name), box_scene.images[i])
+    calib = write_calib(tmp_path / "calib.json", box_scene.P[:2])
+    _, got, _ = load_sequence(str(folder), str(calib), ordering=OrderingConfig(thumbnail_px=320))
+    assert got == [names[perm.index(k)] for k in range(n)]
+    listing = tmp_path / "list.txt"
+    listing.write_text("".join(f"photos/{name}\n" for name in names))
+    assert load_sequence(str(listing), str(calib), ordering=OrderingConfig(thumbnail_px=320))[1] == names

@@ -189,9 +189,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_SKIPPED} when any image could not be placed or was flagged (the results "
                         f"are written)")
-    p.add_argument("--order", choices=["auto", "as-given"], default=None,
-                   help="auto (default): photos given in another order than the walk's are put in walk order from "
-                        "their overlaps, the first two staying the calibrated pair; as-given: run them as given")
+    p.add_argument("--order", choices=["auto", "images", "as-given"], default=None,
+                   help="auto (default): a folder's photos are run in the walk order their overlaps give, the first "
+                        "two staying the calibrated pair (a list file as written); images: a list's too; as-given: "
+                        "never reordered")
     p.set_defaults(func=_cmd_reconstruct)
 
 
