@@ -136,7 +136,8 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
     per_camera = (problem, sol)
     if rig:
         relative = shot_poses(problem, sol, shots)
-        check_shots(relative, cfg, {i: (views[0][i].name, views[1][i].name) for i in relative})
+        agreeing = check_shots(relative, cfg, {i: (views[0][i].name, views[1][i].name) for i in relative})
+        relative = {i: relative[i] for i in agreeing}  # the single shots' evidence, each shot's own relative pose
         prior = (view_poses(problem, sol, shots), sol.state.faces)
         # each camera's intrinsics as its own views determine them, held: free, the rig's fit would
         # trade a long lens's principal point against the rig's rotation (rig_check); what the
@@ -157,6 +158,8 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
             cal.notes.append(f"{labels[c]}: the target's faces do not fit together as one rigid body as well as each "
                              f"fits on its own (intrinsics chi-square {test[0]:.0f}, limit {test[1]:.0f}: a face not "
                              "flat, the target flexed): its intrinsics are those of its faces taken one by one")
+    if rig:
+        cal.notes += cal.rig.notes
     return cal
 
 

@@ -34,7 +34,8 @@ from stereoseed.errors import StereoseedError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RigResult", "judge", "view_poses", "shot_poses", "check_shots", "Spread", "jackknife", "consensus", "face_pnp_poses"]
+__all__ = ["RigResult", "judge", "view_poses", "shot_poses", "check_shots", "Spread", "jackknife", "consensus",
+           "face_pnp_poses"]
 
 # the median 3D error's norm over the RMS of the norm, for a normal error alike on the 3 axes
 # (1.538 sigma against sqrt(3) sigma): a robust RMS of scattered estimates from their median
@@ -58,6 +59,7 @@ class RigResult:
     trade: list[dict] = field(default_factory=list)
     checks: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def baseline_mm(self) -> float:
@@ -104,8 +106,9 @@ def apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def check_shots(relative: dict[int, np.ndarray], cfg: CalibrationConfig, names: dict[int, tuple[str, str]]
                 ) -> list[int]:
     """The shots (view index: its two photos' ``names``) whose relative pose agrees
-    (cfg.rig_shot_agreement_deg and _share of the baseline) with the most others'. Raises :class:`StereoseedError` when fewer than
-    cfg.rig_min_agreeing_share of them do: the photos were not taken together in this order."""
+    (cfg.rig_shot_agreement_deg and _share of the baseline) with the most others'. Raises
+    :class:`StereoseedError` when fewer than cfg.rig_min_agreeing_share of them do: the photos
+    were not taken together in this order."""
     keys = sorted(relative)
     if len(keys) < 3:  # two shots cannot outvote each other; the rig's fit judges them
         return keys
@@ -189,11 +192,12 @@ def _spread(rig: tuple[Problem, Solution, list], given: dict) -> Spread:
 
 
 def jackknife(rig: tuple[Problem, Solution, list], per_camera: tuple[Problem, Solution], flat: list[tuple],
-              from_faces: list[bool]) -> tuple[Spread, list[Spread]] | None:
+              from_faces: list[bool]) -> tuple[Spread, list[Spread], np.ndarray] | None:
     """The rig's pose without each shot both cameras saw, each camera's intrinsics re-estimated
-    without it (:func:`_intrinsics_without`) and the rig's fit following them; and the same with
-    one camera's intrinsics moved at a time (whose intrinsics limit the rig). None with fewer
-    than two such shots."""
+    without it (:func:`_intrinsics_without`) and the rig's fit following them; the same with one
+    camera's intrinsics moved at a time (whose intrinsics limit the rig); and each camera's
+    principal point's standard errors (C, 2) over the same shots. None with fewer than two
+    such shots."""
     keys = sorted({members[0][1] for members in rig[2] if len({c for c, _ in members}) > 1})
     if len(keys) < 2:
         return None
@@ -202,7 +206,9 @@ def jackknife(rig: tuple[Problem, Solution, list], per_camera: tuple[Problem, So
     for c in range(rig[0].n_cameras):
         mask = (np.arange(rig[0].n_cameras) == c).astype(float)
         alone.append(_spread(rig, {i: (dK * mask[:, None, None], dl * mask[:, None]) for i, (dK, dl) in given.items()}))
-    return _spread(rig, given), alone
+    points = np.array([dK[:, :2, 2] for dK, _ in given.values()])  # (shots, C, 2): cx, cy without each
+    n = len(keys)
+    return _spread(rig, given), alone, np.sqrt((n - 1) / n * np.sum((points - points.mean(axis=0)) ** 2, axis=0))
 
 
 def face_pnp_poses(views: list[list[ViewResult]], K: list[np.ndarray], lens: list[np.ndarray]) -> list[np.ndarray]:
@@ -245,15 +251,14 @@ def consensus(poses: list[np.ndarray]) -> tuple[np.ndarray, float, float] | None
         float(_MEDIAN_TO_RMS_3D * np.median(mm) / np.sqrt(n))
 
 
-def _weakest(alone: list[Spread], K: list[np.ndarray], covariance: list, labels: list[str]) -> str:
+def _weakest(alone: list[Spread], K: list[np.ndarray], point_se: np.ndarray, k: float, labels: list[str]) -> str:
     """The camera whose intrinsics move the rig most when a shot is left out, with its principal
-    point and how well its own views determine it."""
+    point and how well its own views determine it (k standard errors over the shots)."""
     c = int(np.argmax([a.se_deg for a in alone]))
-    cov = covariance[c]
-    sigma = "" if cov is None else f" +- ({np.sqrt(cov[2, 2]):.0f}, {np.sqrt(cov[3, 3]):.0f}) px"
     return (f"{labels[c]}'s intrinsics are weakly determined by its views (principal point ({K[c][0, 2]:.0f}, "
-            f"{K[c][1, 2]:.0f}){sigma}, f = {K[c][0, 0]:.0f} px; with a long lens the principal point trades against "
-            "the rig's rotation): add views with the target near the frame's edges and corners, tilted")
+            f"{K[c][1, 2]:.0f}) +- ({k * point_se[c, 0]:.0f}, {k * point_se[c, 1]:.0f}) px, f = {K[c][0, 0]:.0f} px; "
+            "with a long lens the principal point trades against the rig's rotation): add views with the target near "
+            "the frame's edges and corners, tilted")
 
 
 def judge(result: RigResult, views: list[list[ViewResult]], rig: tuple[Problem, Solution, list],
@@ -271,12 +276,15 @@ def judge(result: RigResult, views: list[list[ViewResult]], rig: tuple[Problem, 
     weak = None
     spreads = jackknife(rig, per_camera, flat, from_faces) if spread else None
     se_deg = se_mm = 0.0
+    if spread and spreads is None:
+        result.warnings.append("rig: fewer than two shots seen by both cameras: nothing tells how well they determine "
+                               "camera 2's pose from camera 1; take more shots with both cameras at once")
     if spreads is not None:
-        total, alone = spreads
+        total, alone, point_se = spreads
         se_deg, se_mm = total.se_deg, total.se_mm
         result.spread_mm, result.spread_deg = total.max_mm, total.max_deg
         result.uncertainty_mm, result.uncertainty_deg = k * se_mm, k * se_deg
-        weak = _weakest(alone, K, covariance, labels)
+        weak = _weakest(alone, K, point_se, k, labels)
         if result.uncertainty_deg > cfg.rig_warn_rotation_deg or \
                 result.uncertainty_mm > cfg.rig_warn_baseline_share * result.baseline_mm:
             result.warnings.append(
@@ -297,8 +305,14 @@ def judge(result: RigResult, views: list[list[ViewResult]], rig: tuple[Problem, 
                              "focal_px": [float(moved.K[c][0, 0]), float(moved.K[c][1, 1])],
                              "chi2": float(delta @ np.linalg.pinv(cov) @ delta), "limit": limit,
                              "rig_turns_deg": turn, "rig_moves_mm": shift})
-    if result.trade and turn > (result.uncertainty_deg or 0.0):
-        most = max(result.trade, key=lambda p: p["chi2"])
+    most = max(result.trade, key=lambda p: p["chi2"], default=None)
+    if most is not None and turn <= (result.uncertainty_deg or 0.0):
+        c = most["camera"]
+        result.notes.append(
+            f"rig: each camera's intrinsics are held at its own views' fit; the shots together would pull {labels[c]}'s "
+            f"principal point from ({K[c][0, 2]:.0f}, {K[c][1, 2]:.0f}) to ({most['principal_point_px'][0]:.0f}, "
+            f"{most['principal_point_px'][1]:.0f}) px and turn the rig by {turn:.2f} deg, within its stated uncertainty")
+    elif most is not None:
         c = most["camera"]
         result.warnings.append(
             f"rig: the shots together pull {labels[c]}'s principal point from ({K[c][0, 2]:.0f}, {K[c][1, 2]:.0f}) to "

@@ -94,8 +94,8 @@ def _report_cameras(cal, labels: list[str]) -> None:
               + " from where target.json puts them")
     if cal.rig is not None:
         spread = ("" if cal.rig.spread_mm is None else
-                  f"; uncertainty +-{cal.rig.uncertainty_mm:.2f} mm, +-{cal.rig.uncertainty_deg:.2f} deg (leaving out one "
-                  f"shot, the intrinsics re-estimated too, moves it by up to {cal.rig.spread_mm:.2f} mm, "
+                  f"; uncertainty +-{cal.rig.uncertainty_mm:.2f} mm, +-{cal.rig.uncertainty_deg:.2f} deg (leaving "
+                  f"out one shot, the intrinsics re-estimated too, moves it by up to {cal.rig.spread_mm:.2f} mm, "
                   f"{cal.rig.spread_deg:.3f} deg)")
         say(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
               f"from {cal.rig.shots} shots{spread}")
