@@ -14,8 +14,13 @@ How (the fitting itself in :mod:`stereoseed.calibration.stages`, each step's rea
    never with ``rigid_target``).
 4. Each camera's intrinsics from 3 are checked against 2's (:func:`_consistency`): a target that
    is not the rigid body 3 assumes biases them, and that camera keeps 2's; 3 again.
-5. A rig: one relative pose for all the shots the cameras took together, from 3's poses; its
-   leave-one-shot-out spread.
+5. A rig (:mod:`stereoseed.calibration.rig_check`): the shots' relative poses from 3 checked
+   against each other (refused when most disagree: photos not listed in the same order); one
+   relative pose for all the shots the cameras took together, each camera's intrinsics held at
+   3's (with a long lens the principal point trades against the rig's rotation); its uncertainty
+   from a jackknife over shots that re-estimates the intrinsics too, the shots' pull on the
+   intrinsics and the pose against the single shots and the faces' PnP judged (warnings, or
+   refused with ``strict``).
 6. Each camera is checked to be a physical one (:func:`stereoseed.calibration.config.camera_problems`),
    its RMS judged (a warning, or refused above ``CalibrationConfig.max_rms_px``).
 
@@ -176,11 +181,12 @@ def _solve_all(target: Target, views: list[list[ViewResult]], flat: list[tuple],
         bad = [k for k, r in per_view.items() if r > limit and not (pair and view_of(k)[1] == 0)]
         if not bad:
             return problem, sol, shots
+        cause = ("another camera's image, a moved lens, a target that moved between the rig's two exposures, or two "
+                 "photos not taken together (listed out of order)" if rig else "another camera's image or a moved lens")
         for k in bad:
             c, i = view_of(k)
-            views[c][i].reason = (
-                f"its corners reproject at {per_view[k]:.1f} px while the views reproject at {median:.2f} px (median): "
-                "another camera's image, a moved lens, or a target that moved between the rig's two exposures")
+            views[c][i].reason = (f"its corners reproject at {per_view[k]:.1f} px while the views reproject at "
+                                  f"{median:.2f} px (median): {cause}")
         problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3, prior)
         state.K, state.lens, state.rig = sol.state.K, sol.state.lens, sol.state.rig
         sol = fit(problem, state, cfg)
