@@ -1,6 +1,7 @@
 """Calibration from real photographs (../shared/data/charucoCube and charucoFlat, pyCamSet's test
 data) against OpenCV on the same images: the hand-made cube per camera, the fixed pair from one
-shot and from all of them (--rig), the flat board (`stereoseed intrinsics`).
+shot and from all of them (--rig, also on subsets of the shots against OpenCV's stereoCalibrate with its
+own intrinsics), the flat board (`stereoseed intrinsics`).
 
     python benchmarks/bench_realcal.py          # prints JSON; also a section of make bench
 """
@@ -150,6 +151,55 @@ def cube(folder: Path) -> dict:
                                           "difference_mm": float(np.linalg.norm(rig.rig.t - T.ravel())),
                                           "difference_deg": float(np.degrees(np.linalg.norm(
                                               cv2.Rodrigues(rig.rig.R @ R.T)[0])))}}
+    out["rig_24_shots"].update(uncertainty_mm=rig.rig.uncertainty_mm, uncertainty_deg=rig.rig.uncertainty_deg)
+    out["rig_subsets"] = rig_subsets(target, detections)
+    return out
+
+
+# the subsets of the 24 shots the rig is tried on (#52): all, halves, fewer shots (fewer lens
+# views), views of one face only for at least one camera
+RIG_SUBSETS = {"all24": list(range(24)), "even12": list(range(0, 24, 2)), "odd12": list(range(1, 24, 2)),
+               "first8": list(range(8)), "mid8": list(range(6, 14)), "last10": list(range(14, 24)),
+               "every3": list(range(0, 24, 3)), "odd6": list(range(1, 24, 4)), "six": [0, 5, 9, 12, 16, 21],
+               "one_face": [2, 3, 4, 11, 12, 13, 18, 19, 20, 21]}
+
+
+def _opencv_rig(target, detections) -> tuple[np.ndarray, np.ndarray]:
+    """stereoCalibrate on the faces both cameras saw, the intrinsics held at OpenCV's per-face fits."""
+    size = detections[0][0].image_size
+    cams = [_opencv_faces(target, _groups(target, detections[c]), size) for c in (0, 1)]
+    obj, img1, img2 = shared_face_boards(target, detections)
+    *_, R, T, _, _ = cv2.stereoCalibrate(obj, img1, img2, cams[0]["_K"], cams[0]["_d"], cams[1]["_K"], cams[1]["_d"],
+                                         size, flags=cv2.CALIB_FIX_INTRINSIC)
+    return R, T.ravel()
+
+
+def rig_subsets(target, detections) -> dict:
+    """--rig against OpenCV's stereoCalibrate (intrinsics at its per-face fits) on the same shots:
+    the rotation and translation apart, the stated uncertainty, and whether it warned of weak
+    intrinsics; and against OpenCV on all 24 shots (the best estimate there is)."""
+    R_all, T_all = _opencv_rig(target, detections)
+    out = {}
+    for name, shots in RIG_SUBSETS.items():
+        dets = [[d[i] for i in shots] for d in detections]
+        R, T = _opencv_rig(target, dets)
+        start = time.perf_counter()
+        cal = calibrate_cameras(target, dets, rig=True)
+        rig = cal.rig
+        apart = {k: {"rotation_deg": float(np.degrees(np.linalg.norm(cv2.Rodrigues(rig.R @ Rr.T)[0]))),
+                     "translation_mm": float(np.linalg.norm(rig.t - Tr)),
+                     "baseline_mm": float(rig.baseline_mm - np.linalg.norm(Tr))}
+                 for k, (Rr, Tr) in (("opencv_same_shots", (R, T)), ("opencv_all_24", (R_all, T_all)))}
+        out[name] = {"shots": shots, "baseline_mm": rig.baseline_mm, "angle_deg": rig.angle_deg,
+                     "opencv_baseline_mm": float(np.linalg.norm(T)),
+                     "opencv_angle_deg": float(np.degrees(np.linalg.norm(cv2.Rodrigues(R)[0]))), **apart,
+                     "uncertainty_mm": rig.uncertainty_mm, "uncertainty_deg": rig.uncertainty_deg,
+                     "leave_one_out_mm": rig.spread_mm, "leave_one_out_deg": rig.spread_deg,
+                     "covers_opencv": bool(apart["opencv_same_shots"]["rotation_deg"] <= rig.uncertainty_deg
+                                           and apart["opencv_same_shots"]["translation_mm"] <= rig.uncertainty_mm),
+                     "warns_weak_intrinsics": any("weakly determined" in w for w in cal.warnings),
+                     "pull_deg": rig.trade[0]["rig_turns_deg"] if rig.trade else None,
+                     "checks": rig.checks, "seconds": time.perf_counter() - start}
     return out
 
 

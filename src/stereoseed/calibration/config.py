@@ -8,7 +8,7 @@ import numpy as np
 
 from stereoseed.validation import in_range, positive
 
-__all__ = ["CalibrationConfig", "camera_problems"]
+__all__ = ["CalibrationConfig", "camera_problems", "chi2_quantile_4"]
 
 
 @dataclass(frozen=True)
@@ -56,16 +56,42 @@ class CalibrationConfig:
     consistency_quantile: float | None = 0.999
     max_iterations: int = 200
 
+    # --- a fixed rig (--rig): its shots checked against each other, its pose against its evidence ---
+    # Two views taken together give the rig's relative pose from each camera's own fit of its
+    # view: within ~2.5 degrees and 8 % of the baseline on the real cube's views of one face with
+    # a 21-degree lens (0.1-0.5 degree with two faces or more); a photo paired with another
+    # shot's is off by the target's turn between the two shots, tens of degrees. Shots agree
+    # when within both of these of each other.
+    rig_shot_agreement_deg: float = 5.0
+    rig_shot_agreement_share: float = 0.25  # of the baseline
+    # Fewer shots than this share agreeing with one relative pose: no fixed pair took them
+    # together in the order given (a majority is what a rig with a few bad shots still has).
+    rig_min_agreeing_share: float = 0.5
+    # The rig's stated uncertainty, in standard errors of the jackknife over shots (the
+    # intrinsics re-estimated with each shot left out): 3 covers what a normal error exceeds
+    # 0.3 % of the time, and the jackknife's own uncertainty from a dozen shots.
+    rig_uncertainty_sigmas: float = 3.0
+    # Above these the rig is reported as weakly determined (a warning naming the intrinsics
+    # that limit it; refused with strict): 0.3 degree moves a point 5 mm at 1 m, 1 % of the
+    # baseline is 1 % of every distance the pair measures.
+    rig_warn_rotation_deg: float = 0.3
+    rig_warn_baseline_share: float = 0.01
+
     # --- what the user is told (not fatal unless max_rms_px is given) ---
     # a camera's RMS above this is reported as a warning: sharp corners on an accurate target
     # reproject within ~0.5 px, 1-2 px is a blurred view or an imperfect target
     warn_rms_px: float = 1.5
     max_rms_px: float | None = None  # above this the calibration is refused (--max-rms)
+    # a result whose own checks disagree (a rig weakly determined, its pose against its shots'
+    # evidence) is refused instead of written with a warning (--strict)
+    strict: bool = False
 
     def __post_init__(self) -> None:
         positive(self, "max_aspect_difference", "max_tangential", "huber_sigmas", "huber_min_px",
                  "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views",
-                 "refine_evidence_bic")
+                 "refine_evidence_bic", "rig_shot_agreement_deg", "rig_shot_agreement_share", "rig_uncertainty_sigmas",
+                 "rig_warn_rotation_deg", "rig_warn_baseline_share")
+        in_range(self, "rig_min_agreeing_share", 0.0, 1.0)
         in_range(self, "principal_point_region", 0.0, 1.0)
         if self.consistency_quantile is not None:
             in_range(self, "consistency_quantile", 0.5, 0.999999)
@@ -108,3 +134,13 @@ def _monotonic(K: np.ndarray, lens: np.ndarray, size: tuple[int, int]) -> bool:
     k1, k2, k3 = lens[0], lens[1], lens[4]
     slope = 1 + 3 * k1 * r2 + 5 * k2 * r2 ** 2 + 7 * k3 * r2 ** 3  # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6)
     return bool(np.all(slope > 0))
+
+
+def chi2_quantile_4(p: float) -> float:
+    """The p-quantile of the chi-square distribution with 4 degrees of freedom, whose CDF is
+    1 - exp(-x / 2) (1 + x / 2): bisection to 1e-9 (18.467 at 0.999)."""
+    low, high = 0.0, 1000.0
+    while high - low > 1e-9 * max(high, 1.0):
+        x = (low + high) / 2
+        low, high = (x, high) if 1 - np.exp(-x / 2) * (1 + x / 2) < p else (low, x)
+    return (low + high) / 2

@@ -41,7 +41,7 @@ from stereoseed.estimators.robust import huber_cost_of_norms, huber_weights
 log = logging.getLogger(__name__)
 
 __all__ = ["Group", "Problem", "State", "Solution", "solve", "residuals", "projections", "rotation_vector",
-           "intrinsics_covariance", "leave_one_out"]
+           "intrinsics_covariance", "leave_one_out", "leave_out", "pulled"]
 
 
 @dataclass
@@ -296,17 +296,71 @@ def leave_one_out(problem: Problem, sol: Solution, shots: list[int]) -> dict[int
     """Per shot of ``shots``, the solution again without its corners: one Gauss-Newton step from
     ``sol`` on the normal equations less that shot's share (the one-step jackknife: exact to
     first order, and a linear solve per shot instead of a fit)."""
-    layout = _Layout(problem)
-    parts: list = []
-    H, b = _normal_equations(problem, sol.state, layout, sol.huber_px, parts)
+    return leave_out(problem, sol, {s: (lambda g, s=s: g.shot == s) for s in shots})
+
+
+def leave_out(problem: Problem, sol: Solution, drops: dict, given: dict | None = None) -> dict:
+    """Per key of ``drops`` (a predicate on the groups to leave out), the one-step jackknife of
+    :func:`leave_one_out`. ``given``: per key, the change (C, 3, 3) of K and (C, 5) of the lens
+    that another fit found without those corners: the cameras' intrinsics are then moved by it,
+    not solved for, and the rest of the parameters follow them (how a two-stage fit, intrinsics
+    first and held, answers the same question)."""
+    free = problem.free_intrinsics
+    if given is not None:  # the camera columns are needed to carry the given change into the rest
+        problem.free_intrinsics = np.ones_like(free)
+    try:
+        layout = _Layout(problem)
+        parts: list = []
+        H, b = _normal_equations(problem, sol.state, layout, sol.huber_px, parts)
+    finally:
+        problem.free_intrinsics = free
+    camera = np.zeros(layout.size, bool)
+    for c, start in enumerate(layout.camera):
+        if start is not None:
+            camera[start:start + layout.n_intrinsics] = True
     out = {}
-    for s in shots:
+    for key, dropped in drops.items():
         Hs, bs = H.copy(), b.copy()
         for g, (idx, Hg, bg) in zip(problem.groups, parts):
-            if g.shot == s:
+            if dropped(g):
                 Hs[np.ix_(idx, idx)] -= Hg
                 bs[idx] -= bg
         diag = np.diag(Hs).copy()
         Hs[np.diag_indices_from(Hs)] = np.where(diag > 1e-12 * max(diag.max(), 1e-300), diag, 1.0)
-        out[s] = layout.apply(sol.state, -np.linalg.solve(Hs, bs), problem)
+        if given is None:
+            dx = -np.linalg.solve(Hs, bs)
+        else:
+            dK, dlens = given[key]
+            dx = np.zeros(layout.size)
+            for c, start in enumerate(layout.camera):
+                dx[start:start + 4] = dK[c, 0, 0], dK[c, 1, 1], dK[c, 0, 2], dK[c, 1, 2]
+                dx[start + 4:start + layout.n_intrinsics] = dlens[c, :problem.n_lens]
+            rest = ~camera
+            dx[rest] = -np.linalg.solve(Hs[np.ix_(rest, rest)], bs[rest] + Hs[np.ix_(rest, camera)] @ dx[camera])
+        out[key] = layout.apply(sol.state, dx, problem)
     return out
+
+
+def pulled(problem: Problem, sol: Solution, information: list[np.ndarray | None]) -> State:
+    """One Gauss-Newton step from ``sol`` with each camera's fx, fy, cx, cy free where
+    ``information`` gives their prior's information matrix (4, 4), the prior centred on their
+    values in ``sol`` (another fit's estimate and its inverse covariance), the lens held: where
+    the corners and that fit together put the intrinsics, and every other parameter with them."""
+    free = problem.free_intrinsics
+    problem.free_intrinsics = np.array([info is not None for info in information])
+    try:
+        layout = _Layout(problem)
+        H, b = _normal_equations(problem, sol.state, layout, sol.huber_px)
+    finally:
+        problem.free_intrinsics = free
+    for start, info in zip(layout.camera, information):
+        if start is None:
+            continue
+        H[start:start + 4, start:start + 4] += info
+        lens = slice(start + 4, start + layout.n_intrinsics)  # held: no row couples to it
+        H[lens, :], H[:, lens], b[lens] = 0.0, 0.0, 0.0
+        H[lens, lens] = np.eye(layout.n_intrinsics - 4)
+    diag = np.diag(H).copy()
+    H[np.diag_indices_from(H)] = np.where(diag > 0, diag, 1.0)
+    return layout.apply(sol.state, -np.linalg.solve(H, b), problem)
+

@@ -14,8 +14,13 @@ How (the fitting itself in :mod:`stereoseed.calibration.stages`, each step's rea
    never with ``rigid_target``).
 4. Each camera's intrinsics from 3 are checked against 2's (:func:`_consistency`): a target that
    is not the rigid body 3 assumes biases them, and that camera keeps 2's; 3 again.
-5. A rig: one relative pose for all the shots the cameras took together, from 3's poses; its
-   leave-one-shot-out spread.
+5. A rig (:mod:`stereoseed.calibration.rig_check`): the shots' relative poses from 3 checked
+   against each other (refused when most disagree: photos not listed in the same order); one
+   relative pose for all the shots the cameras took together, each camera's intrinsics held at
+   3's (with a long lens the principal point trades against the rig's rotation); its uncertainty
+   from a jackknife over shots that re-estimates the intrinsics too, the shots' pull on the
+   intrinsics and the pose against the single shots and the faces' PnP judged (warnings, or
+   refused with ``strict``).
 6. Each camera is checked to be a physical one (:func:`stereoseed.calibration.config.camera_problems`),
    its RMS judged (a warning, or refused above ``CalibrationConfig.max_rms_px``).
 
@@ -31,9 +36,10 @@ import cv2
 import numpy as np
 
 from stereoseed.calibration import poses as rt
-from stereoseed.calibration.config import CalibrationConfig, camera_problems
+from stereoseed.calibration.config import CalibrationConfig, camera_problems, chi2_quantile_4
 from stereoseed.calibration.detection import Detection
-from stereoseed.calibration.refine_target import Problem, Solution, leave_one_out, projections
+from stereoseed.calibration.refine_target import Problem, Solution, intrinsics_covariance, projections
+from stereoseed.calibration.rig_check import RigResult, check_shots, judge, shot_poses, view_poses
 from stereoseed.calibration.stages import (ViewResult, fit, flat_stage, joint_problem, rms, view_errors, view_key,
                                           view_of)
 from stereoseed.calibration.target import Target
@@ -60,25 +66,6 @@ class CameraResult:
 
 
 @dataclass
-class RigResult:
-    """Camera c's pose from camera 0's (R, t: X_c = R X_0 + t) and, leave-one-shot-out, how far
-    it moves: the largest change of t (mm) and of the rotation (degrees)."""
-    R: np.ndarray
-    t: np.ndarray
-    shots: int
-    spread_mm: float | None = None
-    spread_deg: float | None = None
-
-    @property
-    def baseline_mm(self) -> float:
-        return float(np.linalg.norm(self.t))
-
-    @property
-    def angle_deg(self) -> float:
-        return float(np.degrees(np.linalg.norm(cv2.Rodrigues(self.R)[0])))
-
-
-@dataclass
 class Calibration:
     cameras: list[CameraResult]
     target: Target  # the faces where they were found to be
@@ -102,19 +89,6 @@ def _coverage(views: list[ViewResult], size: tuple[int, int]) -> float:
             hull = cv2.convexHull((v.detection.pixels / scale).astype(np.int32))
             cv2.fillConvexPoly(mask, hull, 1)
     return float(mask.mean())
-
-
-def _leave_one_out(problem: Problem, sol: Solution, shots: list, rig: RigResult) -> None:
-    """The rig's pose again without each shot both cameras saw (:func:`refine_target.leave_one_out`):
-    the largest change of the relative pose is what one shot more or less is worth."""
-    both = [s for s, members in enumerate(shots) if len({c for c, _ in members}) > 1]
-    moves_mm, moves_deg = [], []
-    for state in leave_one_out(problem, sol, both).values():
-        R, t = rt.to_rt(state.rig[1])
-        moves_mm.append(float(np.linalg.norm(t - rig.t)))
-        moves_deg.append(rt.angle_deg(rt.from_rt(R @ rig.R.T, np.zeros(3))))
-    if moves_mm:
-        rig.spread_mm, rig.spread_deg = max(moves_mm), max(moves_deg)
 
 
 def _check_views(views: list[list[ViewResult]], pair: bool, labels: list[str]) -> None:
@@ -164,17 +138,33 @@ def calibrate_cameras(target: Target, detections: list[list[Detection]], rig: bo
     fixed = [(flat[c][0], flat[c][1]) if c in held else known[c] for c in range(C)]
     if held:
         problem, sol, shots = _solve_all(target, views, flat, False, rigid_target, fixed, k3, cfg, pair)
+    per_camera = (problem, sol)
     if rig:
-        prior = (_view_poses(problem, sol, shots), sol.state.faces)
-        start = [(sol.state.K[c], sol.state.lens[c], *flat[c][2:]) for c in range(C)]  # the poses, cov, lens terms
-        problem, sol, shots = _solve_all(target, views, start, True, rigid_target, fixed, k3, cfg, pair, prior)
-    cal = _results(target, views, problem, sol, shots, rig, rigid_target, known, cfg, labels, leave_one_out, pair)
+        relative = shot_poses(problem, sol, shots)
+        agreeing = check_shots(relative, cfg, {i: (views[0][i].name, views[1][i].name) for i in relative})
+        relative = {i: relative[i] for i in agreeing}  # the single shots' evidence, each shot's own relative pose
+        prior = (view_poses(problem, sol, shots), sol.state.faces)
+        # each camera's intrinsics as its own views determine them, held: free, the rig's fit would
+        # trade a long lens's principal point against the rig's rotation (rig_check); what the
+        # shots would pull them to is judged after
+        own = [(sol.state.K[c].copy(), sol.state.lens[c].copy()) for c in range(C)]
+        start = [(own[c][0], own[c][1], *flat[c][2:]) for c in range(C)]  # the poses, cov, lens terms
+        problem, sol, shots = _solve_all(target, views, start, True, rigid_target, own, k3, cfg, pair, prior)
+    cal = _results(target, views, problem, sol, shots, rig, rigid_target, known, cfg, labels, pair)
+    if rig:
+        covariance = [None if known[c] is not None else flat[c][3] if c in held else
+                      intrinsics_covariance(*per_camera, c) for c in range(C)]
+        judge(cal.rig, views, (problem, sol, shots), per_camera, flat, [c in held for c in range(C)], covariance,
+              relative, cfg, labels, leave_one_out)
+        cal.warnings += cal.rig.warnings
     for c, test in enumerate(tests):
         cal.cameras[c].consistency, cal.cameras[c].from_faces = test, c in held
         if c in held:
             cal.notes.append(f"{labels[c]}: the target's faces do not fit together as one rigid body as well as each "
                              f"fits on its own (intrinsics chi-square {test[0]:.0f}, limit {test[1]:.0f}: a face not "
                              "flat, the target flexed): its intrinsics are those of its faces taken one by one")
+    if rig:
+        cal.notes += cal.rig.notes
     return cal
 
 
@@ -191,37 +181,15 @@ def _solve_all(target: Target, views: list[list[ViewResult]], flat: list[tuple],
         bad = [k for k, r in per_view.items() if r > limit and not (pair and view_of(k)[1] == 0)]
         if not bad:
             return problem, sol, shots
+        cause = ("another camera's image, a moved lens, a target that moved between the rig's two exposures, or two "
+                 "photos not taken together (listed out of order)" if rig else "another camera's image or a moved lens")
         for k in bad:
             c, i = view_of(k)
-            views[c][i].reason = (
-                f"its corners reproject at {per_view[k]:.1f} px while the views reproject at {median:.2f} px (median): "
-                "another camera's image, a moved lens, or a target that moved between the rig's two exposures")
+            views[c][i].reason = (f"its corners reproject at {per_view[k]:.1f} px while the views reproject at "
+                                  f"{median:.2f} px (median): {cause}")
         problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3, prior)
         state.K, state.lens, state.rig = sol.state.K, sol.state.lens, sol.state.rig
         sol = fit(problem, state, cfg)
-
-
-def _view_poses(problem: Problem, sol: Solution, shots: list) -> dict[tuple[int, int], np.ndarray]:
-    """Each view's pose (camera from the target's frame, 6-vector) in a solution."""
-    out = {}
-    for s, members in enumerate(shots):
-        for c, i in members:
-            pose = rt.compose(sol.state.rig[c], sol.state.shots[s])
-            if problem.local[s]:
-                face = next(g.face for g in problem.groups if g.shot == s)
-                pose = rt.compose(pose, rt.inverse(sol.state.faces[face]))
-            out[c, i] = pose
-    return out
-
-
-def chi2_quantile_4(p: float) -> float:
-    """The p-quantile of the chi-square distribution with 4 degrees of freedom, whose CDF is
-    1 - exp(-x / 2) (1 + x / 2): bisection to 1e-9 (18.467 at 0.999)."""
-    low, high = 0.0, 1000.0
-    while high - low > 1e-9 * max(high, 1.0):
-        x = (low + high) / 2
-        low, high = (x, high) if 1 - np.exp(-x / 2) * (1 + x / 2) < p else (low, x)
-    return (low + high) / 2
 
 
 def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: CalibrationConfig
@@ -247,8 +215,7 @@ def _consistency(problem: Problem, sol: Solution, flat: list[tuple], cfg: Calibr
 
 
 def _results(target: Target, views: list[list[ViewResult]], problem: Problem, sol: Solution, shots: list, rig: bool,
-             rigid: bool, known: list, cfg: CalibrationConfig, labels: list[str], leave_one_out: bool,
-             pair: bool) -> Calibration:
+             rigid: bool, known: list, cfg: CalibrationConfig, labels: list[str], pair: bool) -> Calibration:
     state = sol.state
     face_poses = [rt.to_rt(p[:6]) for p in state.faces]
     projected = projections(problem, state)
@@ -307,8 +274,6 @@ def _results(target: Target, views: list[list[ViewResult]], problem: Problem, so
     if rig:
         R, t = rt.to_rt(state.rig[1])
         rig_result = RigResult(R, t, sum(1 for s in shots if len({c for c, _ in s}) > 1))
-        if leave_one_out:
-            _leave_one_out(problem, sol, shots, rig_result)
     return Calibration(cameras, target.moved(face_poses), moves, rig_result, warnings)
 
 
@@ -333,9 +298,7 @@ def calibration_json(cal: Calibration) -> dict:
     out["target_faces"] = [{"face": f, "moved_mm": None if m is None else m[0], "turned_deg": None if m is None else m[1]}
                            for f, m in enumerate(cal.face_moves)]
     if cal.rig is not None:
-        out["rig"] = {"R": cal.rig.R.tolist(), "t": cal.rig.t.tolist(), "baseline_mm": cal.rig.baseline_mm,
-                      "angle_deg": cal.rig.angle_deg, "shots": cal.rig.shots,
-                      "leave_one_out_mm": cal.rig.spread_mm, "leave_one_out_deg": cal.rig.spread_deg}
+        out["rig"] = cal.rig.as_json()
     for c, cam in enumerate(cal.cameras):
         if cam.consistency is not None:
             out["cameras"][c]["rigid_target_chi2"] = {"value": cam.consistency[0], "limit": cam.consistency[1],

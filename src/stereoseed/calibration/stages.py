@@ -124,10 +124,10 @@ def flat_stage(target: Target, views: list[ViewResult], known: tuple | None, k3:
                 what: str, keep_first: bool) -> tuple:
     """One camera's K, lens, per (view, face) the pose that maps the face's nominal points into
     the camera, the covariance of fx, fy, cx, cy (None when given) and the lens terms estimated
-    (0 with fewer boards than cfg.min_flat_views: then the joint fit estimates the lens). Views
-    that disagree with
-    the others are marked unused (never the first when ``keep_first``: the pair's view, judged
-    by the whole calibration)."""
+    (0 with fewer boards than cfg.min_flat_views: then the joint fit estimates the lens), and the
+    fit itself (its problem, each board a shot, and solution: a rig's spread leaves views out of
+    it). Views that disagree with the others are marked unused (never the first when
+    ``keep_first``: the pair's view, judged by the whole calibration)."""
     size = next(v.detection.image_size for v in views if v.used)
     K = None if known is None else known[0]
     lens = np.zeros(5) if known is None else known[1]
@@ -188,7 +188,7 @@ def flat_stage(target: Target, views: list[ViewResult], known: tuple | None, k3:
                                "target")
         return flat_stage(target, views, known, k3, cfg, what, keep_first)
     return state.K[0], state.lens[0], {k: state.shots[s] for s, k in enumerate(keys)}, \
-        intrinsics_covariance(problem, sol, 0), problem.n_lens
+        intrinsics_covariance(problem, sol, 0), problem.n_lens, problem, sol
 
 
 def _free_faces(n_faces: int, shot_faces: list[set[int]], rigid: bool) -> np.ndarray:

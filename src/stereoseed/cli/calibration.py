@@ -16,7 +16,7 @@ def _config(args: argparse.Namespace):
 
     if args.max_rms is not None and not args.max_rms > 0:
         raise StereoseedError(f"--max-rms {args.max_rms:g}: give a limit in pixels above 0")
-    return CalibrationConfig(max_rms_px=args.max_rms)
+    return CalibrationConfig(max_rms_px=args.max_rms, strict=args.strict)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -94,7 +94,9 @@ def _report_cameras(cal, labels: list[str]) -> None:
               + " from where target.json puts them")
     if cal.rig is not None:
         spread = ("" if cal.rig.spread_mm is None else
-                  f"; leaving out one shot moves it by up to {cal.rig.spread_mm:.2f} mm, {cal.rig.spread_deg:.3f} deg")
+                  f"; uncertainty +-{cal.rig.uncertainty_mm:.2f} mm, +-{cal.rig.uncertainty_deg:.2f} deg (leaving "
+                  f"out one shot, the intrinsics re-estimated too, moves it by up to {cal.rig.spread_mm:.2f} mm, "
+                  f"{cal.rig.spread_deg:.3f} deg)")
         say(f"rig: camera 2 from camera 1: baseline {cal.rig.baseline_mm:.2f} mm, rotation {cal.rig.angle_deg:.2f} deg, "
               f"from {cal.rig.shots} shots{spread}")
     for note in cal.notes:
@@ -176,6 +178,9 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="keep the target's faces where target.json puts them (default: estimate where they are)")
     p.add_argument("--max-rms", type=float, metavar="PX",
                    help="refuse a camera whose corners reproject worse than this RMS (default: only a warning)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a calibration whose own checks disagree (a rig weakly determined or off its shots' "
+                        "evidence) instead of writing it with a warning")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
