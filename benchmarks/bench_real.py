@@ -46,7 +46,7 @@ SETS = {
 }
 
 
-def _walk(folder: Path, walk: Walk) -> list[str]:
+def walk_images(folder: Path, walk: Walk) -> list[str]:
     """The walk's images: ring_order.txt where the set has one, else the calibration file's
     images in name order; reversed if asked, then every ``step``-th from ``start``."""
     order = folder / "ring_order.txt"
@@ -68,7 +68,7 @@ def run_walk(walk: Walk, cfg: Config = Config()) -> dict:
     seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
     if not seq.is_dir():
         return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
-    recon, report, seconds = reconstruct_listed([seq / n for n in _walk(seq, walk)], seq / walk.par, cfg)
+    recon, report, seconds = reconstruct_listed([seq / n for n in walk_images(seq, walk)], seq / walk.par, cfg)
     return set_figures(recon, report, read_middlebury_par(seq / walk.par), seconds)
 
 

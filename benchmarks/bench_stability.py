@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench_real import SETS, Walk, _walk, reconstruct_listed, set_figures
+from bench_real import SETS, Walk, walk_images, reconstruct_listed, set_figures
 from stereoseed.config import Config
 from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.geometry.projection import camera_center
@@ -81,7 +81,7 @@ def run_walk(walk: Walk, copies: list[str] | None = None, count: int | None = No
     seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
     if not seq.is_dir():
         return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
-    paths = [seq / n for n in _walk(seq, walk)[:count]]
+    paths = [seq / n for n in walk_images(seq, walk)[:count]]
     truth = read_middlebury_par(seq / walk.par)
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
