@@ -11,7 +11,7 @@ import bench_stability  # noqa: E402
 
 
 def test_the_temple_saved_otherwise_moves_no_camera_beyond_its_sigma_unflagged():
-    # the first 7 images of the temple's walk (~12 s warm on 2 cores) from its PNGs, a JPEG q90
+    # the first 7 images of the temple's walk (7-20 s on the shared 2 cores) from its PNGs, a JPEG q90
     # copy and a +-1 grey-level copy: three copies, so the centres' median is one of a camera's
     # own places and the spread is a move, not half of one
     r = bench_stability.run_walk(bench_stability.SETS["templeSparseRing"], ["jpeg90", "noise1"], count=7)
