@@ -46,7 +46,7 @@ SETS = {
 }
 
 
-def _walk(folder: Path, walk: Walk) -> list[str]:
+def walk_images(folder: Path, walk: Walk) -> list[str]:
     """The walk's images: ring_order.txt where the set has one, else the calibration file's
     images in name order; reversed if asked, then every ``step``-th from ``start``."""
     order = folder / "ring_order.txt"
@@ -68,16 +68,20 @@ def run_walk(walk: Walk, cfg: Config = Config()) -> dict:
     seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
     if not seq.is_dir():
         return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
-    names = _walk(seq, walk)
+    recon, report, seconds = reconstruct_listed([seq / n for n in walk_images(seq, walk)], seq / walk.par, cfg)
+    return set_figures(recon, report, read_middlebury_par(seq / walk.par), seconds)
+
+
+def reconstruct_listed(paths: list[Path], par: Path, cfg: Config = Config()) -> tuple:
+    """(reconstruction, report, seconds) of the images ``paths`` in that order, through a list
+    file as a user would give them, the pair's cameras from ``par`` looked up by file name."""
     with tempfile.TemporaryDirectory() as tmp:
         listing = Path(tmp) / "walk.txt"
-        listing.write_text("".join(f"{seq / n}\n" for n in names))
-        images, names, P_pair = load_sequence(str(listing), str(seq / walk.par))
-        truth = read_middlebury_par(seq / walk.par)
+        listing.write_text("".join(f"{p}\n" for p in paths))
+        images, names, P_pair = load_sequence(str(listing), str(par))
         t = time.perf_counter()
         recon, report = reconstruct(images, names, P_pair, cfg)
-        seconds = time.perf_counter() - t
-    return set_figures(recon, report, truth, seconds)
+        return recon, report, time.perf_counter() - t
 
 
 def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) -> dict:

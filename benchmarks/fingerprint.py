@@ -46,7 +46,7 @@ def _runs(real: bool):
                                                 Config(pipeline=PipelineConfig(mode=mode)))
     if not real:
         return
-    from bench_real import SETS, _walk
+    from bench_real import SETS, walk_images
     from bench_walks import WALKS
 
     for name, walk in {**SETS, **WALKS}.items():
@@ -55,7 +55,7 @@ def _runs(real: bool):
             continue
         with tempfile.TemporaryDirectory() as tmp:
             listing = Path(tmp) / "walk.txt"
-            listing.write_text("".join(f"{folder / n}\n" for n in _walk(folder, walk)))
+            listing.write_text("".join(f"{folder / n}\n" for n in walk_images(folder, walk)))
             images, names, P_pair = load_sequence(str(listing), str(folder / walk.par))
         yield f"real {name}", reconstruct(images, names, P_pair, Config())
 
