@@ -276,24 +276,6 @@ def test_temple_ring_registers_every_image_near_the_true_cameras(temple_run):
     assert sum(bool(v.rotated_180) for v in recon.views) >= 1
 
 
-def test_reference_intrinsics_follow_an_image_turned_upside_down():
-    # The constrained camera models share the calibrated camera's principal point; in an image
-    # turned by 180 degrees (View.rotated_180) it sits at (W - 1 - cx, H - 1 - cy).
-    from stereoseed.geometry.projection import compose_projection
-    from stereoseed.scene.reconstruction import View
-
-    K = np.array([[1500.0, 0.0, 302.3], [0.0, 1498.0, 246.9], [0.0, 0.0, 1.0]])
-    upright = View("a.png", image=np.zeros((480, 640, 3), np.uint8))
-    turned = View("b.png", image=np.zeros((480, 640, 3), np.uint8), rotated_180=True)
-    R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
-    P_input = compose_projection(K, R, np.array([0.1, 0.0, 2.0]))
-    turned.P = np.array([[-1.0, 0, 639], [0, -1.0, 479], [0, 0, 1]]) @ P_input  # the run's frame
-    np.testing.assert_allclose(turned.K, turned.in_frame_of(K, upright), atol=1e-9)
-    np.testing.assert_allclose(turned.P_input, P_input, atol=1e-12)
-    np.testing.assert_allclose(upright.in_frame_of(turned.in_frame_of(K, upright), turned), K)
-    assert upright.in_frame_of(K, upright) is K
-
-
 def test_corners_from_exact_pixels_with_the_true_cameras_are_exact(box_scene):
     vis = [box_scene.corner_visibility(i) for i in range(box_scene.n_images)]
     X, seen = corners_from_exact_pixels(list(box_scene.P), box_scene.corners, box_scene.P, vis)
