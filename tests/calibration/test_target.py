@@ -279,8 +279,8 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
 def test_cli_target_two_faces(tmp_path, capsys):
     out = tmp_path / "t"
     assert main(["target", "--out", str(out), "--faces", "2", "--size", "letter"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["assembly.png", "face_0.pdf", "face_0.png", "face_1.pdf",
-                                                     "face_1.png", "target.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".stereoseed-target.json", "assembly.png", "face_0.pdf",
+                                                     "face_0.png", "face_1.pdf", "face_1.png", "target.json"]
     assert len(load_target(out / "target.json").faces) == 2
     assert "target.json" in capsys.readouterr().out
     (tmp_path / "file").write_text("x")
