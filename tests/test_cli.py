@@ -7,6 +7,7 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed import cli
 from stereoseed.cli import main
 from stereoseed.synthetic.scene import write_scene
+from cli_helpers import run
 
 
 @pytest.fixture(scope="module")
@@ -161,3 +162,51 @@ def test_config_prints_the_resolved_configuration_as_toml(capsys):
     shown = tomllib.loads(capsys.readouterr().out)
     assert shown["pipeline"]["camera_model"] == "free" and shown["matching"]["first_pass_ratio"] == "none"
     assert Config.from_dict(shown).resolve() == Config().with_mode("paper").resolve()
+
+
+def _unchanged(paths) -> dict:
+    return {p: p.read_bytes() for p in paths}
+
+
+def test_no_writer_writes_over_its_input(scene_files, tmp_path, capsys):
+    """Issue 48 row 3: an output, given (-o, --out) or derived (calibrate's <stem>_target.json),
+    that is one of the command's inputs is refused in one line before any work; the input stays."""
+    from cli_helpers import one_line_error
+
+    paths, _ = scene_files
+    points = tmp_path / "p1.txt"
+    points.write_bytes(paths["points1"].read_bytes())
+    target = tmp_path / "calib_target.json"
+    target.write_text("{}")
+    image = tmp_path / "a.png"
+    image.write_bytes(paths["images"][0].read_bytes())
+    link = tmp_path / "hard.png"  # another name of the same image
+    link.hardlink_to(image)
+    before = _unchanged([points, target, image])
+    for args, says in (
+            (["calibrate", paths["pattern"], points, paths["points2"], "-o", points], f"{points}: is also an input"),
+            (["calibrate", "--target", target, image, image, "-o", tmp_path / "calib.json"],
+             f"{target}: is also an input"),
+            (["calibrate", "--target", tmp_path / "t.json", image, image, "--intrinsics1", tmp_path / "c.yaml", "-o",
+              tmp_path / "c.yaml"], "is also an input"),
+            (["intrinsics", image, "--target", target, "-o", target], "is also an input"),
+            (["match", image, paths["images"][1], "-o", link], f"{link}: is also an input ({image})"),
+            (["export", tmp_path, "--format", "colmap", "--out", tmp_path], "is also an input")):
+        code, _, err = run(capsys, *args)
+        assert code == 2 and one_line_error(err) and says in err, (args, err)
+    assert _unchanged([points, target, image]) == before
+    assert not (tmp_path / "calib.json").exists()
+
+
+def test_a_check_image_never_lands_on_a_photo(tmp_path):
+    """calibrate's check image of photo 7.jpg is <stem of -o>_cam1_7.png: a photo of that name
+    gets another one."""
+    from stereoseed.cli.calibration import _unique_png
+
+    out = tmp_path / "calib.json"
+    photo = tmp_path / "calib_cam1_7.png"
+    photo.write_bytes(b"a photo")
+    taken: set[str] = set()
+    assert _unique_png(out, 1, "x/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_2.png"
+    assert _unique_png(out, 1, "y/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_3.png"
+    assert _unique_png(out, 2, "7.jpg", taken, [photo, out]) == tmp_path / "calib_cam2_7.png"
