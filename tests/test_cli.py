@@ -210,3 +210,24 @@ def test_a_check_image_never_lands_on_a_photo(tmp_path):
     assert _unique_png(out, 1, "x/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_2.png"
     assert _unique_png(out, 1, "y/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_3.png"
     assert _unique_png(out, 2, "7.jpg", taken, [photo, out]) == tmp_path / "calib_cam2_7.png"
+
+
+@pytest.mark.parametrize("how", ["one point", "one line"])
+def test_calibrate_refuses_degenerate_typed_points(scene_files, tmp_path, capsys, how):
+    """Issue 48 row 4: every pixel alike (or all on one line) gave an all-NaN camera, RMS nan,
+    exit 0; now one line naming the file, exit 2, nothing written (with --lens too: a traceback)."""
+    from cli_helpers import one_line_error
+
+    paths, _ = scene_files
+    pixels = np.loadtxt(paths["points1"])
+    same = tmp_path / "same.txt"
+    if how == "one point":
+        np.savetxt(same, np.full_like(pixels, 100.0))
+    else:
+        np.savetxt(same, np.c_[pixels[:, 0], 2 * pixels[:, 0] + 7])
+    for lens in ([], ["--lens"]):
+        code, _, err = run(capsys, "calibrate", paths["pattern"], same, paths["points2"], "-o", tmp_path / "c.json",
+                           *lens)
+        where = "at one point" if how == "one point" else "on one line"
+        assert code == 2 and one_line_error(err) and f"{same}: the {len(pixels)} pixels lie {where}" in err, err
+        assert not (tmp_path / "c.json").exists()
