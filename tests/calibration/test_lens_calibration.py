@@ -158,3 +158,33 @@ def test_calib_json_and_opencv_files_give_the_lens(tmp_path):
     (tmp_path / "bad.yaml").write_text("%YAML:1.0\nfoo: 1\n")
     with pytest.raises(StereoseedError, match="camera_matrix"):
         read_opencv_camera(tmp_path / "bad.yaml")
+
+
+_READ_DEEP = """
+import sys
+from stereoseed.calibration.lens_calibration import read_opencv_camera
+from stereoseed.errors import StereoseedError
+try:
+    read_opencv_camera(sys.argv[1])
+except StereoseedError as e:
+    print(e)
+"""
+
+
+@pytest.mark.parametrize("name, text", [
+    ("flow.yaml", "%YAML:1.0\n---\ncamera_matrix: " + "[" * 100000 + "]" * 100000 + "\n"),
+    ("dashes.yaml", "%YAML:1.0\n---\ncamera_matrix:\n  " + "- " * 100000 + "1\n"),
+    ("deep.xml", '<?xml version="1.0"?>\n<opencv_storage>' + "<a>" * 100000 + "</a>" * 100000 + "</opencv_storage>\n"),
+    ("deep.json", '{"camera_matrix": ' + "[" * 100000 + "]" * 100000 + "}"),
+])
+def test_a_deeply_nested_intrinsics_file_is_refused_not_a_crash(tmp_path, name, text):
+    """Issue 48 row 6: OpenCV's FileStorage recursed into a deeply nested file until the process
+    died of SIGSEGV (in a child process here, so that the old code's crash is a failure)."""
+    import subprocess
+    import sys
+
+    path = tmp_path / name
+    path.write_text(text)
+    done = subprocess.run([sys.executable, "-c", _READ_DEEP, str(path)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-300:]
+    assert done.stdout.startswith(f"{path}: nested ") and "more than any calibration file (64 at most)" in done.stdout

@@ -248,6 +248,7 @@ def test_a_flat_target_loads_as_planar(target3, tmp_path, flat):
     ("nan", r"faces\[2\]\.origin: expected a list of 3 finite numbers"),
     ("legacy", r"faces\[0\]\.board\.legacy: expected true or false"),
     ("dictionary", r"faces\[0\]\.board\.dictionary: not an ArUco dictionary"),
+    ("deep", r"nested 100001 levels deep, more than any target file \(64 at most\)"),  # issue 48 row 6
 ])
 def test_bad_target_json_one_line(target3, tmp_path, bad, message):
     def edit(data):
@@ -270,6 +271,8 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
         (tmp_path / "face_1.png").unlink()
     elif bad == "malformed":
         path.write_text('{"unit": "mm", "faces": [')
+    elif bad == "deep":  # Python's json raised RecursionError: a traceback
+        path.write_text('{"unit": "mm", "faces": ' + "[" * 100000 + "]" * 100000 + "}")
     with pytest.raises(StereoseedError, match=rf"^{path}: .*{message}") as e:
         load_target(path)
     assert "\n" not in str(e.value)

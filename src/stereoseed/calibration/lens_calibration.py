@@ -23,6 +23,7 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.calibration import check_correspondences, dlt_projection
 from stereoseed.geometry.projection import compose_projection, depths
 from stereoseed.errors import StereoseedError
+from stereoseed.io.nesting import read_bounded_text
 from stereoseed.io.files import atomic_path
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
 
@@ -226,6 +227,10 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
         raise StereoseedError(f"{path}: empty file; {hint}")
     if b"\0" in head or head.startswith(b"\x89PNG"):
         raise StereoseedError(f"{path}: a binary file, not an OpenCV calibration file; {hint}")
+    try:  # bounded before OpenCV's parser, which recurses per level and crashes on a deeply nested file
+        read_bounded_text(path, "calibration file", hint, encoding="latin-1")
+    except OSError as e:
+        raise StereoseedError(f"{path}: cannot be read ({e.strerror}); {hint}") from None
     try:  # OpenCV's parser reports a malformed file as cv2.error, or as a SystemError around it
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         if not fs.isOpened():

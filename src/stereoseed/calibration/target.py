@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
+from stereoseed.io.nesting import read_bounded_text
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +281,8 @@ def load_target(path: str | os.PathLike) -> Target:
         raise StereoseedError(f"{path}: target file not found; run stereoseed target --out DIR first, "
                               "or give DIR/target.json")
     try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        data = json.loads(read_bounded_text(path, "target file", "give the target.json written by stereoseed target",
+                                            "utf-8-sig"))
     except (OSError, UnicodeDecodeError, ValueError) as e:
         detail = f" (line {e.lineno})" if isinstance(e, json.JSONDecodeError) else ""
         raise StereoseedError(f"{path}: not a readable JSON target{detail}; give the target.json written by "
