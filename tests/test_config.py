@@ -182,6 +182,7 @@ def test_the_resolved_config_round_trips_through_toml_and_report_json(cfg, tmp_p
     ('[motion_prior]\nradius_fractions = 0.1\n', "[motion_prior] radius_fractions = 0.1: expected an array of numbers"),
     ('[resection]\nmin_points = 9\nmin_inliers = 8\n', "[resection] min_points, min_inliers: ResectionConfig"),
     ('[pipeline\nmode = "paper"\n', "not valid TOML"),
+    ("[pipeline]\nmode = " + "[" * 100000 + "]" * 100000 + "\n", "nested more than 64 levels deep"),  # RecursionError
 ])
 def test_a_bad_config_file_is_one_line_naming_the_file_and_the_key(text, says, tmp_path, capsys):
     path = tmp_path / "run.toml"

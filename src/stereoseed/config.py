@@ -125,9 +125,15 @@ class Config:
         import tomllib
 
         path = Path(path)
+        from stereoseed.io.nesting import MAX_NESTING, nesting_depth
+
         raw = _file_bytes(path, "a TOML configuration file (docs/config.md)")
         try:
-            data = tomllib.loads(raw.decode("utf-8"))
+            text = raw.decode("utf-8")
+            if nesting_depth(text) > MAX_NESTING:  # tomllib recurses per level: RecursionError, a traceback
+                raise ConfigError(f"{path}: nested more than {MAX_NESTING} levels deep; give a TOML configuration "
+                                  f"file (docs/config.md: one table per section)")
+            data = tomllib.loads(text)
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not UTF-8 text; give a TOML configuration file (docs/config.md)") from None
         except tomllib.TOMLDecodeError as e:
