@@ -64,6 +64,33 @@ def test_a_truncated_tracks_file_is_one_line(copy, tmp_path, capsys):
     assert not (tmp_path / "model").exists()
 
 
+def test_a_zip_bomb_tracks_file_is_refused_before_it_is_decompressed(copy, tmp_path, capsys, monkeypatch):
+    """Issue 48 row 9: a tracks.npz whose point_xyz inflates ~1000-fold (here 96 MiB of zeros behind
+    a valid .npy header; 4.5 GB in the report) was decompressed whole before it was validated."""
+    import zipfile
+
+    with np.load(copy / "tracks.npz") as npz:
+        tracks = {k: npz[k] for k in npz.files}
+    rows = 2**22  # 96 MiB of float64 (x, y, z)
+    with zipfile.ZipFile(copy / "tracks.npz", "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, array in tracks.items():
+            if name != "point_xyz":
+                with zf.open(f"{name}.npy", "w") as f:
+                    np.lib.format.write_array(f, array)
+        with zf.open("point_xyz.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (rows, 3)})
+            zeros = bytes(2**20)
+            for _ in range(rows * 24 // len(zeros)):
+                f.write(zeros)
+    assert (copy / "tracks.npz").stat().st_size < 1_000_000
+    inflated = []
+    real = zipfile.ZipExtFile.read
+    monkeypatch.setattr(zipfile.ZipExtFile, "read", lambda self, n=-1: inflated.append(self.name) or real(self, n))
+    code, err = export(capsys, copy, tmp_path / "out")
+    assert code == 2 and one_line_error(err) and "tracks.npz: its arrays declare" in err
+    assert "point_xyz.npy" not in inflated
+
+
 def test_a_cameras_file_missing_images_is_one_line(copy, tmp_path, capsys):
     edit_cameras(copy, lambda images: images.pop())
     code, err = export(capsys, copy, tmp_path / "model")
