@@ -220,3 +220,23 @@ def test_an_export_into_the_result_folder_is_refused(copy, capsys):
     code, err = export(capsys, copy, copy)
     assert code == 2 and one_line_error(err)
     assert sorted(p.name for p in copy.iterdir()) == before
+
+
+def test_a_text_export_over_a_binary_one_leaves_no_stale_bin_files(result, tmp_path, capsys):
+    """Issue 48 row 10: COLMAP reads a folder's .bin model before its .txt one, so the binary
+    export the folder held before would have been read instead of the new text one."""
+    out = tmp_path / "m"
+    assert export(capsys, result, out, "--binary")[0] == 0
+    assert export(capsys, result, out)[0] == 0
+    assert sorted(p.name for p in out.iterdir()) == [".stereoseed-export.json", "cameras.txt", "images.txt",
+                                                     "points3D.txt"]
+    assert sorted(json.loads((out / ".stereoseed-export.json").read_text())["files"]) == [
+        "cameras.txt", "images.txt", "points3D.txt"]
+    assert export(capsys, result, out, "--binary")[0] == 0
+    assert sorted(p.suffix for p in out.iterdir() if p.suffix in (".txt", ".bin")) == [".bin"] * 3
+    theirs = tmp_path / "theirs"  # a binary model the export did not write: never removed, even with --force
+    theirs.mkdir()
+    (theirs / "cameras.bin").write_bytes(b"their model")
+    code, err = export(capsys, result, theirs, "--force")
+    assert code == 2 and one_line_error(err) and "cameras.bin: a COLMAP model stereoseed export did not write" in err
+    assert sorted(p.name for p in theirs.iterdir()) == ["cameras.bin"]

@@ -62,7 +62,9 @@ from stereoseed.output.export import (
     flagged_warnings,
     logged,
     skew_warning,
+    other_colmap_model,
     record_written,
+    remove_written,
     tracks_by_point,
     write_colmap_binary,
     write_colmap_text,
@@ -351,6 +353,7 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
     out = Path(out_dir)
     fmt = "COLMAP's binary model" if binary else "COLMAP's text model"
     images, warnings, photos = _prepare(result, out, fmt, image_sources, force, cfg, any_space=not binary)
+    stale = other_colmap_model(out, "sparse/0", binary) if out.is_dir() else []
     sparse = [f"sparse/0/{name}" for name in colmap_files(binary)]
     record_written(out, [f"images/{result.names[im.index]}" for im in images] + sparse)
     written = _write_images(result, images, photos, out / "images")
@@ -376,6 +379,7 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
         flagged = tuple(result.names[i] for i in flagged_images(result) if image_id[i])
         write_colmap_text(out / "sparse" / "0", cams, rows, tr, tracks, flagged)
     written += [out / p for p in sparse]
+    remove_written(out, stale)
     return Handoff(len(images), len(cameras), len(tr["point_xyz"]), any(im.lens is not None for im in images),
                    written, logged(result.warnings + warnings))
 
