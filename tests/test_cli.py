@@ -231,3 +231,21 @@ def test_calibrate_refuses_degenerate_typed_points(scene_files, tmp_path, capsys
         where = "at one point" if how == "one point" else "on one line"
         assert code == 2 and one_line_error(err) and f"{same}: the {len(pixels)} pixels lie {where}" in err, err
         assert not (tmp_path / "c.json").exists()
+
+
+def test_a_reader_that_stops_reading_is_no_error_of_the_command():
+    """Issue 48 row 12: `stereoseed ... | head -1` exited 2 ("Broken pipe") after its work was
+    done; the pipe's reader is gone before the command writes a line here."""
+    import subprocess
+
+    from cli_helpers import cli_command
+
+    child = subprocess.Popen(cli_command("config"), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    child.stdout.close()
+    try:
+        err = child.stderr.read().decode()
+        assert child.wait(timeout=60) == 0 and err == ""
+    finally:
+        child.stderr.close()
+        if child.poll() is None:
+            child.kill()
