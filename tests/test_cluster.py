@@ -276,7 +276,8 @@ def test_sequence_list_format(tmp_path):
     assert (read_sequence_list(listing, tmp_path / "root", allow_outside=True)[0].out
             == str((tmp_path / "root" / "out/a").resolve()))
     for text, says in (("a b\n", "line 1: 2 field(s)"), ("a b c\nd e c\n", "lines 1 and 2: both write c"),
-                       ("\"a b c\n", "line 1: No closing quotation"), ("# nothing\n", "no sequence")):
+                       ("\"a b c\n", "line 1: No closing quotation"), ("# nothing\n", "no sequence"),
+                       ("a b c\nd\0 e f\n", "line 2: a NUL byte, which no path can hold")):  # issue 48 row 11
         listing.write_text(text)
         with pytest.raises(StereoseedError, match=re.escape(says)):
             read_sequence_list(listing)

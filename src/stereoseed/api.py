@@ -302,12 +302,17 @@ def _from_points(inputs: Sequence[Any], lens: bool, k3: bool, cfg: CalibrationCo
             raise StereoseedError(f"{name}: {len(pixels)} image points but {len(pattern)} pattern points "
                                   f"in {pattern_name}; give one pixel per pattern point, same order")
         _refuse_degenerate_pixels(pixels, name)
-        if lens:
-            cal = calibrate_lens([(pattern, pixels)], k3=k3, what=[name], max_rms_px=cfg.max_rms_px)
-            entries.append(cal.to_dict())
-            warnings += cal.warnings
-        else:
-            entries.append(calibrate_camera(pattern, pixels, what=name).to_dict())
+        try:
+            if lens:
+                cal = calibrate_lens([(pattern, pixels)], k3=k3, what=[name], max_rms_px=cfg.max_rms_px)
+                entries.append(cal.to_dict())
+                warnings += cal.warnings
+            else:
+                entries.append(calibrate_camera(pattern, pixels, what=name).to_dict())
+        except np.linalg.LinAlgError:  # a pattern of 1e-200 m: its normal equations are singular in floating point
+            raise StereoseedError(f"{pattern_name}: its points are too close together to be told apart "
+                                  f"numerically (extent {np.ptp(pattern, axis=0).max():.3g}); give them in "
+                                  f"millimetres or metres") from None
     names = [str(v) if isinstance(v, (str, Path)) else f"camera {i}'s pixels" for i, v in enumerate(inputs[1:], 1)]
     _refuse_non_finite(entries, names)
     return PairCalibration([CalibratedCamera.from_entry(e) for e in entries], {"cameras": entries}, warnings)

@@ -247,6 +247,11 @@ def _refused(cls: type, key: str, value: Any) -> bool:
     return False
 
 
+# a whole number in a configuration file fits a C int: OpenCV's and the compiled kernels' integer
+# parameters are C ints (a larger one overflows deep in a run), and no setting needs more
+MAX_SETTING_INT = 2**31 - 1
+
+
 class _WrongType(Exception):
     """A value that is not of its field's type; the message says what the field takes."""
 
@@ -275,9 +280,13 @@ def _typed(hint: Any, value: Any) -> Any:
             return value
     elif hint is int:
         if isinstance(value, int) and not isinstance(value, bool):
+            if abs(value) > MAX_SETTING_INT:
+                raise _WrongType(f"expected a whole number within +-{MAX_SETTING_INT}")
             return int(value)
     elif hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):  # no setting means anything by NaN or infinity
+                raise _WrongType("expected a finite number")
             return float(value)
     elif hint is str:
         if isinstance(value, str):

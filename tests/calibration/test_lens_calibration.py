@@ -188,3 +188,29 @@ def test_a_deeply_nested_intrinsics_file_is_refused_not_a_crash(tmp_path, name, 
     done = subprocess.run([sys.executable, "-c", _READ_DEEP, str(path)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr[-300:]
     assert done.stdout.startswith(f"{path}: nested ") and "more than any calibration file (64 at most)" in done.stdout
+
+
+@pytest.mark.parametrize("size", [float("inf"), float("nan"), 1e30, 640.5, -640])
+def test_an_image_size_that_is_no_whole_number_of_pixels_is_refused_naming_it(tmp_path, size):
+    """Issue 48 row 11: calib.json's image_size and a YAML's image_width of .inf were an
+    OverflowError traceback; NaN was blamed on the distortion, 1e30 accepted."""
+    views, K, _ = _views(1)
+    cal = calibrate_lens(views, SIZE)
+    entry = cal.to_dict() | {"image_size": [size, 480]}
+    calib = tmp_path / "calib.json"
+    calib.write_text(json.dumps({"cameras": [entry, {"P": cal.P.tolist()}]}))
+    with pytest.raises(StereoseedError, match=r"calib.json: camera 0: image_size: expected the image's width and "
+                                              r"height in pixels, two whole numbers from 1 to 65535"):
+        read_lenses(calib)
+    yaml = tmp_path / "cam.yaml"
+    fs = cv2.FileStorage(str(yaml), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", LENS.reshape(1, 5))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    assert read_opencv_camera(yaml)[2] == (640, 480)
+    text = yaml.read_text().replace("image_width: 640", f"image_width: {'.inf' if size == float('inf') else size}")
+    yaml.write_text(text.replace("image_width: nan", "image_width: .nan"))
+    with pytest.raises(StereoseedError, match="cam.yaml: image_width, image_height: expected the image's width"):
+        read_opencv_camera(yaml)

@@ -197,7 +197,7 @@ def _copy(target3, tmp_path, edit):
     data = json.loads(target3.read_text())
     edit(data)
     path = tmp_path / "target.json"
-    path.write_text(json.dumps(data).replace('"@NaN@"', "NaN"))  # json.dumps writes NaN as NaN too
+    path.write_text(json.dumps(data).replace('"@NaN@"', "NaN").replace('"@Infinity@"', "Infinity"))
     return path
 
 
@@ -249,6 +249,8 @@ def test_a_flat_target_loads_as_planar(target3, tmp_path, flat):
     ("legacy", r"faces\[0\]\.board\.legacy: expected true or false"),
     ("dictionary", r"faces\[0\]\.board\.dictionary: not an ArUco dictionary"),
     ("deep", r"nested 100001 levels deep, more than any target file \(64 at most\)"),  # issue 48 row 6
+    ("infinite squares", r"faces\[0\]\.board\.squares: expected a whole number >= 3"),  # row 11: OverflowError
+    ("NaN first id", r"faces\[1\]\.board\.first_id: expected a whole number >= 0"),
 ])
 def test_bad_target_json_one_line(target3, tmp_path, bad, message):
     def edit(data):
@@ -265,6 +267,10 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
             faces[2]["origin"][0] = "@NaN@"
         elif bad == "dictionary":
             faces[0]["board"]["dictionary"] = "DICT_NOPE"
+        elif bad == "infinite squares":
+            faces[0]["board"]["squares"][0] = "@Infinity@"
+        elif bad == "NaN first id":
+            faces[1]["board"]["first_id"] = "@NaN@"
 
     path = _copy(target3, tmp_path, edit)
     if bad == "missing image":

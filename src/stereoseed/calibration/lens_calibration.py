@@ -23,6 +23,7 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.calibration import check_correspondences, dlt_projection
 from stereoseed.geometry.projection import compose_projection, depths
 from stereoseed.errors import StereoseedError
+from stereoseed.io.image_header import recorded_image_size
 from stereoseed.io.nesting import read_bounded_text
 from stereoseed.io.files import atomic_path
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
@@ -197,13 +198,13 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
             d = np.asarray(d, np.float64).reshape(-1)
             K = np.asarray(cam["K"], np.float64).reshape(3, 3) if "K" in cam else Camera(
                 np.asarray(cam["P"], np.float64)).krt[0]
-            size = tuple(int(v) for v in cam["image_size"]) if "image_size" in cam else None
         except (ValueError, TypeError, KeyError):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' needs 4 or 5 numbers (k1 k2 p1 p2 [k3]) and 'K' "
                                   f"a 3x3 matrix") from None
         if d.size not in (4, 5) or not np.all(np.isfinite(d)) or not np.all(np.isfinite(K)):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3]), "
                                   f"got {d.size}")
+        size = recorded_image_size(cam["image_size"], f"{path}: camera {i}: image_size") if "image_size" in cam else None
         lenses.append(Lens(K, lens_coefficients(d), size))
     return lenses + [None] * (2 - len(lenses))
 
@@ -257,7 +258,7 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
     if d.size > 5 and np.any(d[5:] != 0):
         raise StereoseedError(f"{path}: distortion terms beyond k3 (the rational or thin-prism model) are not "
                               f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
-    size = (int(width), int(height)) if width > 0 and height > 0 else None
+    size = None if width == 0 and height == 0 else recorded_image_size((width, height), f"{path}: image_width, image_height")
     return K, lens_coefficients(d[:5]), size
 
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -204,7 +205,8 @@ def _vector(value: Any, n: int, where: str) -> np.ndarray:
 
 
 def _int(value: Any, where: str, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value) or value < low:
+    if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+            or value != int(value) or value < low):
         raise StereoseedError(f"{where}: expected a whole number >= {low}; fix target.json")
     return int(value)
 

@@ -4,16 +4,34 @@ decode is refused by it before a byte of its pixels is read (:func:`refuse_huge_
 PNG may announce 20000 x 20000 pixels, 1.2 GB decoded."""
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 
 from stereoseed.errors import StereoseedError
 
-__all__ = ["header_size", "refuse_huge_image", "MAX_IMAGE_PIXELS"]
+__all__ = ["header_size", "refuse_huge_image", "recorded_image_size", "MAX_IMAGE_PIXELS", "MAX_IMAGE_SIDE"]
 
 # the largest photos of today's cameras (a 102 MP medium-format sensor) pass; decoded as BGR this
 # is 360 MB, and the features and the matching hold several float copies of an image at once
 MAX_IMAGE_PIXELS = 120_000_000
+# the longest side a JPEG can hold; an image size a calibration file records beyond it is a typo
+MAX_IMAGE_SIDE = 65535
+
+
+def recorded_image_size(values: object, where: str) -> tuple[int, int]:
+    """(width, height) as a calibration file records it (two whole numbers within 1 ..
+    MAX_IMAGE_SIDE, as JSON or FileStorage numbers), else a StereoseedError naming ``where``."""
+    try:
+        width, height = values  # type: ignore[misc]
+        good = all(not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v == int(v)
+                   and 1 <= v <= MAX_IMAGE_SIDE for v in (width, height))
+    except (TypeError, ValueError):
+        good = False
+    if not good:
+        raise StereoseedError(f"{where}: expected the image's width and height in pixels, two whole numbers from 1 "
+                              f"to {MAX_IMAGE_SIDE}, got {str(values)[:60]}")
+    return int(width), int(height)
 
 
 def refuse_huge_image(path: str | Path) -> None:
