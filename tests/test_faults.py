@@ -361,6 +361,20 @@ def test_a_swap_refused_at_commit_leaves_the_previous_results_and_a_staging_fold
     assert (again.commit() / "cameras.json").read_text() == "again"
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
+def test_a_fifo_planted_as_the_checkpoint_is_removed_not_read(tmp_path, caplog):
+    """Issue 48 row 12: --resume opened a FIFO planted as the checkpoint and waited forever for a
+    writer; the staging folder keeps only a regular file (or real folder) of the kept names."""
+    results = ResultSet(tmp_path / "o")
+    staging = results.open()
+    os.mkfifo(staging / pipeline.CHECKPOINT)
+    (staging / "spill").mkdir()
+    (staging / "spill" / "kept.npy").write_bytes(b"x")
+    assert results.open(keep=(pipeline.CHECKPOINT, "spill")) == staging
+    assert sorted(p.name for p in staging.iterdir()) == [STAGING_MARKER, "spill"]
+    assert "not a file or folder stereoseed writes; removed" in caplog.text
+
+
 # --- 5. batch: one folder per sequence, inside the output root --------------------------------------
 def _sequence_list(folder: Path, *outs: str) -> Path:
     path = folder / "sequences.txt"

@@ -28,6 +28,8 @@ from stereoseed.io.image_header import header_size  # re-exported: the walk's an
 
 __all__ = ["ImageSequence", "header_size"]
 
+_FINGERPRINT_CHUNK = 2**20  # bytes of a file hashed at a time (the same digest as the whole file's)
+
 Entry = Union[Path, np.ndarray]  # a file to read, or an image already in memory (a video keyframe)
 Transform = Callable[[int, np.ndarray], np.ndarray]  # (index, image read) -> image the run uses
 
@@ -159,8 +161,10 @@ class ImageSequence(Sequence):
             if isinstance(entry, np.ndarray):
                 h.update(str(entry.shape).encode())
                 h.update(np.ascontiguousarray(entry).tobytes())
-            else:
-                h.update(Path(entry).read_bytes())
+            else:  # a chunk at a time: a 3 GB file the walk skips by its header is not held whole
+                with open(entry, "rb") as f:
+                    while chunk := f.read(_FINGERPRINT_CHUNK):
+                        h.update(chunk)
         return h.digest()
 
     def source(self, index: int) -> str:

@@ -213,7 +213,9 @@ class ResultSet:
                 write_json(self.staging / STAGING_MARKER, {"stereoseed": "staging folder", "result": str(self.path)})
             else:
                 for entry in self.staging.iterdir():
-                    if entry.name != STAGING_MARKER and entry.name not in keep:
+                    if entry.name != STAGING_MARKER and (entry.name not in keep or not _plain(entry)):
+                        if entry.name in keep:  # reading a FIFO planted as the checkpoint would wait forever
+                            log.warning("%s: not a file or folder stereoseed writes; removed", entry)
                         _remove(entry)
         except OSError as e:
             raise StereoseedError(f"{self.staging}: cannot write ({e.strerror or e}); give a writable folder") from None
@@ -267,6 +269,15 @@ class ResultSet:
         stereoseed made is removed."""
         if self._ours():
             shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def _plain(entry: Path) -> bool:
+    """Whether ``entry`` is a regular file or a real folder (not a link, a FIFO, a socket, a device)."""
+    try:
+        mode = os.lstat(entry).st_mode
+    except OSError:
+        return False
+    return stat.S_ISREG(mode) or stat.S_ISDIR(mode)
 
 
 def staging_folder(path: Path) -> Path:
