@@ -317,8 +317,7 @@ def _write_images(result: Result, images: list[PinholeImage], photos: dict[int, 
     for im in images:
         target = folder / result.names[im.index]
         if im.lens is None:
-            with atomic_path(target) as tmp:
-                shutil.copyfile(photos[im.index], tmp)
+            copy_as_read(photos[im.index], target)
         else:
             photo = read_image(photos[im.index])
             _check_size(photos[im.index], photo.shape[1::-1], result.sizes[im.index])
@@ -327,6 +326,27 @@ def _write_images(result: Result, images: list[PinholeImage], photos: dict[int, 
             write_image(target, cv2.remap(photo, *maps[im.camera], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
         written.append(target)
     return written
+
+
+# the EXIF block of a photo sits in its first segments, before any pixel data
+_EXIF_WITHIN_BYTES = 2**16
+
+
+def copy_as_read(photo: Path, target: Path) -> None:
+    """``photo`` copied byte for byte to ``target``, unless its EXIF orientation turns it when it
+    is read (as stereoseed read it, and its cameras are of the turned image): then its turned
+    pixels are written, which a reader that ignores EXIF sees the same way."""
+    with open(photo, "rb") as f:
+        head = f.read(_EXIF_WITHIN_BYTES)
+    if b"Exif" in head:
+        data = np.fromfile(photo, np.uint8)
+        turned = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        raw = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if turned is not None and raw is not None and (turned.shape != raw.shape or not np.array_equal(turned, raw)):
+            write_image(target, turned)
+            return
+    with atomic_path(target) as tmp:
+        shutil.copyfile(photo, tmp)
 
 
 def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cfg: HandoffConfig,
