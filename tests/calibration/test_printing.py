@@ -109,6 +109,13 @@ def test_target_never_replaces_or_removes_a_file_it_did_not_write(tmp_path, caps
     err = capsys.readouterr().err
     assert code == 2 and one_line_error(err) and "face_1.pdf: stereoseed target did not write it" in err
     assert (fresh / "face_1.pdf").read_bytes() == b"edited"
+    record = tmp_path / "rec" / TARGET_RECORD  # a file of the record's name that is no record: left alone
+    record.parent.mkdir()
+    record.write_text("mine")
+    code = main(["target", "--out", str(record.parent)] + (["--force"] if force else []))
+    err = capsys.readouterr().err
+    assert code == 2 and one_line_error(err) and "is not the record stereoseed target keeps" in err
+    assert record.read_text() == "mine"
 
 
 @pytest.mark.parametrize("force", [False, True])

@@ -17,6 +17,7 @@ from typing import Iterable
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import write_json
+from stereoseed.io.nesting import read_bounded_text
 
 __all__ = ["same_file", "refuse_input_as_output", "OwnedFiles"]
 
@@ -69,11 +70,11 @@ class OwnedFiles:
         self._hashes: dict[str, str] = {}
         if self.record.exists() or self.record.is_symlink():
             try:
-                files = json.loads(self.record.read_text(encoding="utf-8"))["files"]
+                files = json.loads(read_bounded_text(self.record, "record", ""))["files"]
                 if not isinstance(files, dict):
                     raise TypeError
                 self._hashes = {k: v for k, v in files.items() if isinstance(k, str) and isinstance(v, str)}
-            except (OSError, ValueError, KeyError, TypeError, RecursionError):
+            except (OSError, ValueError, KeyError, TypeError, StereoseedError):
                 raise StereoseedError(f"{self.record}: is not the record {command} keeps of the files it wrote; "
                                       f"move it away or give another folder") from None
 
