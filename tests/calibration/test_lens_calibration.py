@@ -214,6 +214,10 @@ def test_an_image_size_that_is_no_whole_number_of_pixels_is_refused_naming_it(tm
     yaml.write_text(text.replace("image_width: nan", "image_width: .nan"))
     with pytest.raises(StereoseedError, match="cam.yaml: image_width, image_height: expected the image's width"):
         read_opencv_camera(yaml)
+    # row 13: a zero K undistorted every image into black, said as "no interest points"
+    calib.write_text(json.dumps({"cameras": [cal.to_dict() | {"K": np.zeros((3, 3)).tolist()}, {"P": cal.P.tolist()}]}))
+    with pytest.raises(StereoseedError, match=r"calib.json: camera 0: K \[\[0.0, 0.0, 0.0\].* is no camera"):
+        read_lenses(calib)
     # row 13: [640, 480, 3] (a NumPy shape's tail) was taken as 640x480 and blamed on the images
     calib.write_text(json.dumps({"cameras": [cal.to_dict() | {"image_size": [640, 480, 3]}, {"P": cal.P.tolist()}]}))
     with pytest.raises(StereoseedError, match=r"image_size: expected .* got \[640, 480, 3\]"):

@@ -204,9 +204,23 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
         if d.size not in (4, 5) or not np.all(np.isfinite(d)) or not np.all(np.isfinite(K)):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3]), "
                                   f"got {d.size}")
+        _refuse_no_camera(K, f"{path}: camera {i}: K")
         size = recorded_image_size(cam["image_size"], f"{path}: camera {i}: image_size") if "image_size" in cam else None
         lenses.append(Lens(K, lens_coefficients(d), size))
     return lenses + [None] * (2 - len(lenses))
+
+
+# a K decomposed from P holds rounding where an exact one holds zeros: K[1, 0] may be this much of fy
+_K_ROUNDING = 1e-9
+
+
+def _refuse_no_camera(K: np.ndarray, where: str) -> None:
+    """Refuse a K (3, 3) that is no camera's: its images would be undistorted into nothing (a zero
+    K made every image black, later said as "no interest points")."""
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
+            and abs(K[1, 0]) <= _K_ROUNDING * K[1, 1]):
+        raise StereoseedError(f"{where} {np.round(K, 3).tolist()} is no camera (it needs positive finite focal "
+                              f"lengths fx, fy on the diagonal and a last row 0 0 1)")
 
 
 def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
@@ -249,10 +263,7 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
         raise StereoseedError(f"{path}: needs camera_matrix (3x3) and distortion_coefficients (k1 k2 p1 p2 [k3 ...]); "
                               f"{hint}")
     K, d = np.asarray(K, np.float64), np.asarray(d, np.float64).reshape(-1)
-    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
-            and K[1, 0] == 0 and np.isfinite(K[0, 1])):
-        raise StereoseedError(f"{path}: camera_matrix {np.round(K, 3).tolist()} is no camera (it needs positive finite "
-                              "focal lengths fx, fy on the diagonal and a last row 0 0 1)")
+    _refuse_no_camera(K, f"{path}: camera_matrix")
     if not np.all(np.isfinite(d)):
         raise StereoseedError(f"{path}: distortion_coefficients hold NaN or infinite values")
     if d.size > 5 and np.any(d[5:] != 0):
