@@ -191,11 +191,19 @@ def test_no_writer_writes_over_its_input(scene_files, tmp_path, capsys):
               tmp_path / "c.yaml"], "is also an input"),
             (["intrinsics", image, "--target", target, "-o", target], "is also an input"),
             (["match", image, paths["images"][1], "-o", link], f"{link}: is also an input ({image})"),
-            (["export", tmp_path, "--format", "colmap", "--out", tmp_path], "is also an input")):
+            (["export", tmp_path, "--format", "colmap", "--out", tmp_path], "is also an input"),
+            # the derived name on a file of the user's that is no input: their target, say, copied there
+            (["calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json"],
+             f"{target}: exists and is not a target stereoseed calibrate wrote")):
         code, _, err = run(capsys, *args)
         assert code == 2 and one_line_error(err) and says in err, (args, err)
     assert _unchanged([points, target, image]) == before
     assert not (tmp_path / "calib.json").exists()
+    from stereoseed.api import REFINED_TARGET_NOTE  # one an earlier calibrate wrote is its to replace
+
+    target.write_text(json.dumps({"unit": "mm", "note": REFINED_TARGET_NOTE, "faces": []}))
+    code, _, err = run(capsys, "calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json")
+    assert code == 2 and "t.json: target file not found" in err  # past the check: the next refusal
 
 
 def test_a_check_image_never_lands_on_a_photo(tmp_path):

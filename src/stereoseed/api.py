@@ -188,6 +188,10 @@ def _calibration_file(calib: Any) -> Iterator[str]:
 
 
 # ---------------------------------------------------------------------------------- calibrate
+# the note of the target calibrate writes as it found it: how a later run knows the file is its own
+REFINED_TARGET_NOTE = "the target's faces where the calibration found them (stereoseed calibrate)"
+
+
 @dataclass
 class CalibratedCamera:
     """One camera of the pair as calib.json holds it: P = K [R | t] (3, 4) for undistorted
@@ -248,8 +252,7 @@ class PairCalibration:
         if self.calibration is None:
             raise StereoseedError("write_target: this calibration is from typed points; it found no target")
         path = Path(path)
-        return write_json(path, target_json(self.calibration.target, path.parent.resolve(),
-                                            "the target's faces where the calibration found them (stereoseed calibrate)"))
+        return write_json(path, target_json(self.calibration.target, path.parent.resolve(), REFINED_TARGET_NOTE))
 
 
 def calibrate(inputs: Sequence[Any], *, target: PathLike | None = None,

@@ -28,8 +28,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     inputs = _calibrate_inputs(args)
     refuse_input_as_output(args.output, inputs, "give another -o")
     if args.target:
-        refuse_input_as_output(_refined_target_path(Path(args.output)), inputs,
-                               "give another -o (the target as found goes to <stem of -o>_target.json)")
+        refined = _refined_target_path(Path(args.output))
+        refuse_input_as_output(refined, inputs, "give another -o (the target as found goes to <stem of -o>_target.json)")
+        if (refined.exists() or refined.is_symlink()) and not _refined_by_calibrate(refined):
+            raise StereoseedError(f"{refined}: exists and is not a target stereoseed calibrate wrote (the target as "
+                                  f"found goes to <stem of -o>_target.json); move it away or give another -o")
     if not args.target:
         pair = calibrate(args.inputs, lens_images=(args.lens_images1 or [], args.lens_images2 or []), rig=args.rig,
                          lens=args.lens, k3=args.k3, cfg=_config(args))
@@ -55,6 +58,22 @@ def _calibrate_inputs(args: argparse.Namespace) -> list:
 def _refined_target_path(out: Path) -> Path:
     """Where `calibrate --target` writes the target as found: beside calib.json."""
     return out.with_name(f"{out.stem}_target.json")
+
+
+def _refined_by_calibrate(path: Path) -> bool:
+    """Whether ``path`` is a target an earlier `calibrate --target` wrote (its note says so)."""
+    import json
+
+    from stereoseed.api import REFINED_TARGET_NOTE
+    from stereoseed.io.nesting import read_bounded_text
+
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        data = json.loads(read_bounded_text(path, "target file", ""))
+    except (OSError, ValueError, StereoseedError):
+        return False
+    return isinstance(data, dict) and data.get("note") == REFINED_TARGET_NOTE
 
 
 def _detect_all(target, paths: list[str]) -> list:
