@@ -167,9 +167,9 @@ def _connect(scheduler: str, timeout: float) -> Any:
     kind = answer.get("type") if isinstance(answer, dict) else None
     if kind != "Scheduler":
         # the peer's own word is not echoed (it could be anything, lines long): only Dask's other servers
-        what = f"a Dask {kind}" if kind in _OTHER_DASK_SERVERS else "not a Dask scheduler"
-        raise StereoseedError(f"{scheduler}: that is {what}, not the scheduler; give the scheduler's address "
-                              f"(dask scheduler prints it), tcp://HOST:PORT")
+        what = f"a Dask {kind}, not the scheduler" if kind in _OTHER_DASK_SERVERS else "not a Dask scheduler"
+        raise StereoseedError(f"{scheduler}: that is {what}; give the scheduler's address (dask scheduler prints it), "
+                              f"tcp://HOST:PORT")
     client = Client(scheduler, timeout=timeout, set_as_default=False)
     try:
         _check_workers(client, scheduler, timeout)
