@@ -131,6 +131,14 @@ def test_calibrate_from_typed_points_gives_the_true_cameras_and_a_calib_json(rin
         stereoseed.calibrate([pattern, pts1[:1], pts2])
     with pytest.raises(StereoseedError, match="write_target"):
         from_files.write_target(tmp_path / "t.json")
+    with pytest.raises(StereoseedError, match=r"^the pattern: its points are too close together .*e-20"):
+        stereoseed.calibrate([pattern * 1e-200, pts1, pts2])  # issue 48 row 11: a LinAlgError traceback
+    # a calibration with a NaN camera (however it came about) is never written as a good one
+    broken = stereoseed.PairCalibration(from_files.cameras, json.loads(json.dumps(from_files.report)))
+    broken.report["cameras"][1]["K"][0][0] = float("nan")
+    with pytest.raises(StereoseedError, match="camera 2: the calibration came out with a non-finite K"):
+        broken.write(tmp_path / "nan.json")
+    assert not (tmp_path / "nan.json").exists()
 
 
 def test_calibrate_from_photos_of_the_synthetic_target(tmp_path):

@@ -7,6 +7,7 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed import cli
 from stereoseed.cli import main
 from stereoseed.synthetic.scene import write_scene
+from cli_helpers import run
 
 
 @pytest.fixture(scope="module")
@@ -161,3 +162,98 @@ def test_config_prints_the_resolved_configuration_as_toml(capsys):
     shown = tomllib.loads(capsys.readouterr().out)
     assert shown["pipeline"]["camera_model"] == "free" and shown["matching"]["first_pass_ratio"] == "none"
     assert Config.from_dict(shown).resolve() == Config().with_mode("paper").resolve()
+
+
+def _unchanged(paths) -> dict:
+    return {p: p.read_bytes() for p in paths}
+
+
+def test_no_writer_writes_over_its_input(scene_files, tmp_path, capsys):
+    """Issue 48 row 3: an output, given (-o, --out) or derived (calibrate's <stem>_target.json),
+    that is one of the command's inputs is refused in one line before any work; the input stays."""
+    from cli_helpers import one_line_error
+
+    paths, _ = scene_files
+    points = tmp_path / "p1.txt"
+    points.write_bytes(paths["points1"].read_bytes())
+    target = tmp_path / "calib_target.json"
+    target.write_text("{}")
+    image = tmp_path / "a.png"
+    image.write_bytes(paths["images"][0].read_bytes())
+    link = tmp_path / "hard.png"  # another name of the same image
+    link.hardlink_to(image)
+    before = _unchanged([points, target, image])
+    for args, says in (
+            (["calibrate", paths["pattern"], points, paths["points2"], "-o", points], f"{points}: is also an input"),
+            (["calibrate", "--target", target, image, image, "-o", tmp_path / "calib.json"],
+             f"{target}: is also an input"),
+            (["calibrate", "--target", tmp_path / "t.json", image, image, "--intrinsics1", tmp_path / "c.yaml", "-o",
+              tmp_path / "c.yaml"], "is also an input"),
+            (["intrinsics", image, "--target", target, "-o", target], "is also an input"),
+            (["match", image, paths["images"][1], "-o", link], f"{link}: is also an input ({image})"),
+            (["export", tmp_path, "--format", "colmap", "--out", tmp_path], "is also an input"),
+            # the derived name on a file of the user's that is no input: their target, say, copied there
+            (["calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json"],
+             f"{target}: exists and is not a target stereoseed calibrate wrote")):
+        code, _, err = run(capsys, *args)
+        assert code == 2 and one_line_error(err) and says in err, (args, err)
+    assert _unchanged([points, target, image]) == before
+    assert not (tmp_path / "calib.json").exists()
+    from stereoseed.api import REFINED_TARGET_NOTE  # one an earlier calibrate wrote is its to replace
+
+    target.write_text(json.dumps({"unit": "mm", "note": REFINED_TARGET_NOTE, "faces": []}))
+    code, _, err = run(capsys, "calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json")
+    assert code == 2 and "t.json: target file not found" in err  # past the check: the next refusal
+
+
+def test_a_check_image_never_lands_on_a_photo(tmp_path):
+    """calibrate's check image of photo 7.jpg is <stem of -o>_cam1_7.png: a photo of that name
+    gets another one."""
+    from stereoseed.cli.calibration import _unique_png
+
+    out = tmp_path / "calib.json"
+    photo = tmp_path / "calib_cam1_7.png"
+    photo.write_bytes(b"a photo")
+    taken: set[str] = set()
+    assert _unique_png(out, 1, "x/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_2.png"
+    assert _unique_png(out, 1, "y/7.jpg", taken, [photo, out]) == tmp_path / "calib_cam1_7_3.png"
+    assert _unique_png(out, 2, "7.jpg", taken, [photo, out]) == tmp_path / "calib_cam2_7.png"
+
+
+@pytest.mark.parametrize("how", ["one point", "one line"])
+def test_calibrate_refuses_degenerate_typed_points(scene_files, tmp_path, capsys, how):
+    """Issue 48 row 4: every pixel alike (or all on one line) gave an all-NaN camera, RMS nan,
+    exit 0; now one line naming the file, exit 2, nothing written (with --lens too: a traceback)."""
+    from cli_helpers import one_line_error
+
+    paths, _ = scene_files
+    pixels = np.loadtxt(paths["points1"])
+    same = tmp_path / "same.txt"
+    if how == "one point":
+        np.savetxt(same, np.full_like(pixels, 100.0))
+    else:
+        np.savetxt(same, np.c_[pixels[:, 0], 2 * pixels[:, 0] + 7])
+    for lens in ([], ["--lens"]):
+        code, _, err = run(capsys, "calibrate", paths["pattern"], same, paths["points2"], "-o", tmp_path / "c.json",
+                           *lens)
+        where = "at one point" if how == "one point" else "on one line"
+        assert code == 2 and one_line_error(err) and f"{same}: the {len(pixels)} pixels lie {where}" in err, err
+        assert not (tmp_path / "c.json").exists()
+
+
+def test_a_reader_that_stops_reading_is_no_error_of_the_command():
+    """Issue 48 row 12: `stereoseed ... | head -1` exited 2 ("Broken pipe") after its work was
+    done; the pipe's reader is gone before the command writes a line here."""
+    import subprocess
+
+    from cli_helpers import cli_command
+
+    child = subprocess.Popen(cli_command("config"), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    child.stdout.close()
+    try:
+        err = child.stderr.read().decode()
+        assert child.wait(timeout=60) == 0 and err == ""
+    finally:
+        child.stderr.close()
+        if child.poll() is None:
+            child.kill()

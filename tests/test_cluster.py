@@ -5,12 +5,15 @@ import os
 import re
 import socket
 import sys
+import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
 from distributed import Client, LocalCluster
 
+from cli_helpers import one_line_error
 from process_helpers import alive_in_group, wait_until
 from scene_helpers import scene_on_disk
 from stereoseed.batch import read_sequence_list, run_batch
@@ -156,6 +159,97 @@ def test_a_workers_address_is_refused_naming_what_answered(scheduler):
                                  f"(dask scheduler prints it), tcp://HOST:PORT")
 
 
+class _Touch:
+    """Unpickled, it creates the file at ``path``: what a hostile peer's pickle could do."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return open, (self.path, "w")
+
+
+def _dask_message(message: dict, *frames: bytes) -> bytes:
+    """``message`` and extra ``frames`` in Dask's TCP framing (distributed.comm.tcp)."""
+    import struct
+
+    import msgpack
+
+    frames = (msgpack.packb(message, use_bin_type=True), *frames)
+    prelude = struct.pack(f"Q{len(frames)}Q", len(frames), *map(len, frames))
+    return struct.pack("Q", len(prelude) + sum(map(len, frames))) + prelude + b"".join(frames)
+
+
+@contextmanager
+def _hostile_listener(payload: bytes):
+    """A listener on 127.0.0.1 that answers every connection, and everything sent on it, with
+    ``payload``; yields its address."""
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(0.2)
+    stop = threading.Event()
+
+    def serve():
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except socket.timeout:
+                continue
+            with conn:
+                conn.settimeout(2)
+                try:
+                    for _ in range(3):  # the handshake, the question, one more
+                        conn.sendall(payload)
+                        if not conn.recv(65536):
+                            break
+                except OSError:
+                    pass
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    finally:
+        stop.set()
+        thread.join(5)
+        server.close()
+
+
+def test_a_pickle_from_the_scheduler_address_is_never_unpickled(tmp_path, capsys):
+    """Issue 48 row 1: whatever answers at --scheduler with a pickle (marked as Dask marks one,
+    in the handshake itself) runs nothing: refused in one line before Dask's client reads it."""
+    import msgpack
+    import pickle
+
+    planted = tmp_path / "planted"
+    pickled = msgpack.packb({"pickled-obj": pickle.dumps(_Touch(planted)), "num-sub-frames": 0})
+    payload = _dask_message({"compression": None, "python": [3, 11, 0], "pickle-protocol": 5,
+                             "type": {"__Pickled__": 1}, "op": {"__Pickled__": 1}}, pickled)
+    with _hostile_listener(payload) as address:
+        code = main(["reconstruct", str(tmp_path / "images.txt"), "--calib", str(tmp_path / "calib.json"),
+                     "--dense", "--out", str(tmp_path / "o"), "--scheduler", address, "--connect-timeout", "2",
+                     "--quiet"])
+    err = capsys.readouterr().err
+    assert not planted.exists()
+    assert code == 2 and one_line_error(err)
+    assert err.startswith(f"stereoseed: error: {address}: that is not a Dask scheduler")
+
+
+def test_the_probe_refuses_a_huge_announced_reply_and_odd_addresses(tmp_path):
+    """A peer announcing a message of 2**62 bytes is refused before anything is allocated;
+    only tcp:// addresses are probed."""
+    import struct
+
+    with _hostile_listener(struct.pack("Q", 2**62)) as address:
+        with pytest.raises(StereoseedError, match="that is not a Dask scheduler .it announced a message of"):
+            with executor_for(address, 2, connect_timeout=2):
+                pass
+    for bad, says in (("tls://127.0.0.1:1", "only tcp:// addresses"), ("tcp://127.0.0.1", "tcp://HOST:PORT"),
+                      ("tcp://127.0.0.1:99999", "tcp://HOST:PORT")):
+        with pytest.raises(StereoseedError, match=re.escape(says)):
+            with executor_for(bad, 2, connect_timeout=1):
+                pass
+
+
 def test_scheduler_without_dense_and_without_dask_are_refused(sequence_files, tmp_path, capsys, monkeypatch):
     seq = sequence_files
     args = ["reconstruct", str(seq / "images.txt"), "--calib", str(seq / "calib.json"), "--out", str(tmp_path / "o"),
@@ -182,7 +276,8 @@ def test_sequence_list_format(tmp_path):
     assert (read_sequence_list(listing, tmp_path / "root", allow_outside=True)[0].out
             == str((tmp_path / "root" / "out/a").resolve()))
     for text, says in (("a b\n", "line 1: 2 field(s)"), ("a b c\nd e c\n", "lines 1 and 2: both write c"),
-                       ("\"a b c\n", "line 1: No closing quotation"), ("# nothing\n", "no sequence")):
+                       ("\"a b c\n", "line 1: No closing quotation"), ("# nothing\n", "no sequence"),
+                       ("a b c\nd\0 e f\n", "line 2: a NUL byte, which no path can hold")):  # issue 48 row 11
         listing.write_text(text)
         with pytest.raises(StereoseedError, match=re.escape(says)):
             read_sequence_list(listing)

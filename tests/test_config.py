@@ -183,6 +183,14 @@ def test_the_resolved_config_round_trips_through_toml_and_report_json(cfg, tmp_p
     ('[motion_prior]\nradius_fractions = 0.1\n', "[motion_prior] radius_fractions = 0.1: expected an array of numbers"),
     ('[resection]\nmin_points = 9\nmin_inliers = 8\n', "[resection] min_points, min_inliers: ResectionConfig"),
     ('[pipeline\nmode = "paper"\n', "not valid TOML"),
+    ("[pipeline]\nmode = " + "[" * 100000 + "]" * 100000 + "\n", "nested more than 64 levels deep"),  # RecursionError
+    # issue 48 row 11: tracebacks deep in a run, or a cloud of 0 or 1 points
+    ('[features]\nmax_corners = 3000000000\n', "max_corners = 3000000000: expected a whole number within +-2147483647"),
+    ('[matching]\nseed = 9223372036854775807\n', "seed = 9223372036854775807: expected a whole number within"),
+    ('[matching]\npatch_size = 100001\n', "patch_size = 100001: MatchingConfig: patch_size must be an odd positive "
+                                           "integer up to 101"),
+    ('[dense]\nfusion_voxel = nan\n', "fusion_voxel = NaN: expected a finite number"),
+    ('[dense]\nfusion_voxel = inf\n', "fusion_voxel = Infinity: expected a finite number"),
 ])
 def test_a_bad_config_file_is_one_line_naming_the_file_and_the_key(text, says, tmp_path, capsys):
     path = tmp_path / "run.toml"

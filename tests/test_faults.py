@@ -313,6 +313,68 @@ def test_commit_drops_every_stale_checkpoint(tmp_path):
     assert on_disk(out) == ["cameras.json"] and listed(out) == ["cameras.json"]
 
 
+def test_an_out_that_is_a_loop_of_links_or_a_mount_point_is_refused_before_any_work(seq, tmp_path, capsys,
+                                                                                      monkeypatch):
+    """Issue 48 rows 7 and 12: both failed after the whole run (the swap by renaming refused),
+    a mount point leaving a staging folder every later run refused."""
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    code, _, err = run(capsys, "reconstruct", seq[0]["images_txt"], "--calib", seq[1], "--out", loop)
+    assert code == 2 and one_line_error(err) and f"{loop}: is a symbolic link that leads to no folder" in err
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    real = os.path.ismount
+    monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == volume or real(p))  # mounting needs privileges
+    code, _, err = run(capsys, "reconstruct", seq[0]["images_txt"], "--calib", seq[1], "--out", volume)
+    assert code == 2 and one_line_error(err) and f"{volume}: is a mount point" in err and "volume/results" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loop", "volume"]  # no staging folder, no lock left
+
+
+@pytest.mark.parametrize("refused", ["moving the results away", "moving the new ones in"])
+def test_a_swap_refused_at_commit_leaves_the_previous_results_and_a_staging_folder_the_next_run_takes(
+        tmp_path, monkeypatch, refused):
+    from stereoseed.output import result_set
+
+    out = tmp_path / "o"
+    first = ResultSet(out)
+    (first.open() / "cameras.json").write_text("before")
+    first.commit()
+    second = ResultSet(out)
+    (second.open() / "cameras.json").write_text("after")
+    real = os.replace
+
+    def busy(a, b):
+        if Path(a) == (out if refused == "moving the results away" else second.staging):
+            raise OSError(errno.EBUSY, "Device or resource busy")
+        return real(a, b)
+
+    with monkeypatch.context() as m:
+        m.setattr(result_set, "_exchange", lambda a, b: False)
+        m.setattr(result_set.os, "replace", busy)
+        with pytest.raises(StereoseedError, match=r"the results could not be moved into place \(Device or resource "
+                                                  r"busy\); they stay in .*\.o\.partial"):
+            second.commit()
+    assert (out / "cameras.json").read_text() == "before"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".o.partial", "o"]  # no empty .o.*.old left
+    again = ResultSet(out)
+    (again.open() / "cameras.json").write_text("again")  # the staging folder is still stereoseed's
+    assert (again.commit() / "cameras.json").read_text() == "again"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
+def test_a_fifo_planted_as_the_checkpoint_is_removed_not_read(tmp_path, caplog):
+    """Issue 48 row 12: --resume opened a FIFO planted as the checkpoint and waited forever for a
+    writer; the staging folder keeps only a regular file (or real folder) of the kept names."""
+    results = ResultSet(tmp_path / "o")
+    staging = results.open()
+    os.mkfifo(staging / pipeline.CHECKPOINT)
+    (staging / "spill").mkdir()
+    (staging / "spill" / "kept.npy").write_bytes(b"x")
+    assert results.open(keep=(pipeline.CHECKPOINT, "spill")) == staging
+    assert sorted(p.name for p in staging.iterdir()) == [STAGING_MARKER, "spill"]
+    assert "not a file or folder stereoseed writes; removed" in caplog.text
+
+
 # --- 5. batch: one folder per sequence, inside the output root --------------------------------------
 def _sequence_list(folder: Path, *outs: str) -> Path:
     path = folder / "sequences.txt"

@@ -188,6 +188,10 @@ def _calibration_file(calib: Any) -> Iterator[str]:
 
 
 # ---------------------------------------------------------------------------------- calibrate
+# the note of the target calibrate writes as it found it: how a later run knows the file is its own
+REFINED_TARGET_NOTE = "the target's faces where the calibration found them (stereoseed calibrate)"
+
+
 @dataclass
 class CalibratedCamera:
     """One camera of the pair as calib.json holds it: P = K [R | t] (3, 4) for undistorted
@@ -237,6 +241,7 @@ class PairCalibration:
         path = Path(path)
         if path.is_dir():
             raise StereoseedError(f"{path}: is a folder; give the calibration file to write, e.g. calib.json")
+        _refuse_non_finite(self.report.get("cameras", []), [f"camera {i}" for i in (1, 2)])
         return write_json(path, self.report)
 
     def write_target(self, path: PathLike) -> Path:
@@ -247,8 +252,7 @@ class PairCalibration:
         if self.calibration is None:
             raise StereoseedError("write_target: this calibration is from typed points; it found no target")
         path = Path(path)
-        return write_json(path, target_json(self.calibration.target, path.parent.resolve(),
-                                            "the target's faces where the calibration found them (stereoseed calibrate)"))
+        return write_json(path, target_json(self.calibration.target, path.parent.resolve(), REFINED_TARGET_NOTE))
 
 
 def calibrate(inputs: Sequence[Any], *, target: PathLike | None = None,
@@ -300,13 +304,48 @@ def _from_points(inputs: Sequence[Any], lens: bool, k3: bool, cfg: CalibrationCo
         if len(pixels) != len(pattern):
             raise StereoseedError(f"{name}: {len(pixels)} image points but {len(pattern)} pattern points "
                                   f"in {pattern_name}; give one pixel per pattern point, same order")
-        if lens:
-            cal = calibrate_lens([(pattern, pixels)], k3=k3, what=[name], max_rms_px=cfg.max_rms_px)
-            entries.append(cal.to_dict())
-            warnings += cal.warnings
-        else:
-            entries.append(calibrate_camera(pattern, pixels, what=name).to_dict())
+        _refuse_degenerate_pixels(pixels, name)
+        try:
+            if lens:
+                cal = calibrate_lens([(pattern, pixels)], k3=k3, what=[name], max_rms_px=cfg.max_rms_px)
+                entries.append(cal.to_dict())
+                warnings += cal.warnings
+            else:
+                entries.append(calibrate_camera(pattern, pixels, what=name).to_dict())
+        except np.linalg.LinAlgError:  # a pattern of 1e-200 m: its normal equations are singular in floating point
+            raise StereoseedError(f"{pattern_name}: its points are too close together to be told apart "
+                                  f"numerically (extent {np.ptp(pattern, axis=0).max():.3g}); give them in "
+                                  f"millimetres or metres") from None
+    names = [str(v) if isinstance(v, (str, Path)) else f"camera {i}'s pixels" for i, v in enumerate(inputs[1:], 1)]
+    _refuse_non_finite(entries, names)
     return PairCalibration([CalibratedCamera.from_entry(e) for e in entries], {"cameras": entries}, warnings)
+
+
+# typed pixels whose spread across their narrowest direction (RMS) is below this lie on one line
+# or at one point within a click's error: no camera follows from them (the DLT's solution is then
+# a rank-deficient P, NaN after its decomposition)
+MIN_PIXEL_SPREAD_PX = 1.0
+
+
+def _refuse_degenerate_pixels(pixels: np.ndarray, name: str) -> None:
+    centred = pixels - pixels.mean(axis=0)
+    narrowest = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(pixels))
+    if not narrowest >= MIN_PIXEL_SPREAD_PX:
+        where = "at one point" if np.ptp(pixels, axis=0).max() < MIN_PIXEL_SPREAD_PX else "on one line"
+        raise StereoseedError(f"{name}: the {len(pixels)} pixels lie {where} (spread {narrowest:.3g} px across it); "
+                              f"no camera follows from them: give each pattern point's own pixel, in the same order")
+
+
+def _refuse_non_finite(entries: list[dict[str, Any]], names: list[str]) -> None:
+    """Refuse a camera with a NaN or infinite number before anything is written (a camera of NaN
+    would be written as a good one, and every later step would fail far from the cause)."""
+    for entry, name in zip(entries, names):
+        for key in ("P", "K", "R", "t", "rms_px", "distortion"):
+            value = entry.get(key)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, np.float64))):
+                raise StereoseedError(f"{name}: the calibration came out with a non-finite {key} (NaN or infinite); "
+                                      f"check that the points are the pattern's, in the same order, and not all "
+                                      f"alike")
 
 
 def _known(value: Any, label: str, size: tuple[int, int] | None):
@@ -359,5 +398,6 @@ def _from_target(inputs: Sequence[Any], target_path: PathLike, lens_images: tupl
     cal = calibrate_cameras(target, detections, rig=rig, rigid_target=rigid_target, k3=k3, known=known, cfg=cfg,
                             pair=True, leave_one_out=rig, labels=labels)
     data = calibration_json(cal)
+    _refuse_non_finite(data["cameras"], labels)
     return PairCalibration([CalibratedCamera.from_entry(e) for e in data["cameras"]], data, list(cal.warnings),
                            list(cal.notes), cal)

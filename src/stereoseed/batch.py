@@ -79,6 +79,9 @@ def read_sequence_list(path: str | Path, out_root: str | Path | None = None,
     sequences: list[Sequence] = []
     seen: dict[Path, int] = {}
     for number, line in enumerate(text.splitlines(), 1):
+        if "\0" in line:  # no path holds one (the OS refuses it): a binary file, or a damaged list
+            raise StereoseedError(f"{path}, line {number}: a NUL byte, which no path can hold; give a text sequence "
+                                  f"list")
         try:
             fields = shlex.split(line, comments=True)
         except ValueError as e:  # an unclosed quote

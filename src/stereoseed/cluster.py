@@ -36,10 +36,7 @@ __all__ = ["JobPool", "executor_for", "CONNECT_TIMEOUT_S"]
 log = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT_S = 10.0  # a scheduler that has not answered by then is taken as unreachable
-# Dask's connect gives up on a refused or unreachable address at the timeout itself; the probe's
-# deadline comes just after, so that running out of it means the connection was made and what
-# listens there never answered the handshake
-_PROBE_SLACK_S = 0.5
+_OTHER_DASK_SERVERS = ("Worker", "Nanny")  # the identity types of Dask's servers that are not a scheduler
 _WATCH_S = 0.2  # how often a local pool's watchdog looks at its workers
 _GRACE_S = 1.0  # a terminated worker that has not gone by then is killed; idle workers stop within it
 _NEEDS_EXTRA = "--scheduler needs the cluster extra: pip install 'stereoseed[cluster]'"
@@ -141,41 +138,38 @@ def _connect(scheduler: str, timeout: float) -> Any:
     """A Dask client of the scheduler at ``scheduler``, with at least one worker that imports
     this stereoseed version."""
     try:
-        import asyncio
-
         from distributed import Client
-        from distributed.comm import connect
     except ImportError:
         raise StereoseedError(_NEEDS_EXTRA) from None
+    from stereoseed.cluster_probe import NotDask, ProbeError, ProbeTimeout, ask_identity
+
     if not scheduler.strip():
         raise StereoseedError("--scheduler: empty address; give the Dask scheduler's address, tcp://HOST:PORT")
-
-    async def identity() -> dict:
-        comm = await connect(scheduler, timeout=timeout)
-        try:
-            await comm.write({"op": "identity", "reply": True})
-            return await comm.read()
-        finally:
-            comm.abort()
-
-    # probe first, with a deadline of its own: Dask's connect bounds the TCP connection but not the
-    # handshake after it, which waits forever on a listener that does not answer (an HTTP server
-    # waiting for a request line, a silent port); and a Client whose connection failed still tries
-    # to close itself when it is garbage-collected, seconds later, with a traceback on stderr
+    # probe first, with a parser of our own (cluster_probe): Dask's would unpickle whatever the
+    # peer sends before we know what it is; and Dask's connect bounds the TCP connection but not
+    # the handshake after it, which waits forever on a listener that does not answer (an HTTP
+    # server waiting for a request line, a silent port)
     try:
-        answer = asyncio.run(asyncio.wait_for(identity(), timeout + _PROBE_SLACK_S))
-    except asyncio.TimeoutError:
+        answer = ask_identity(scheduler, timeout)
+    except ValueError as e:
+        raise StereoseedError(f"--scheduler {scheduler}: {e}; give the Dask scheduler's address, "
+                              f"tcp://HOST:PORT") from None
+    except ProbeTimeout:
         raise StereoseedError(f"{scheduler}: no Dask scheduler answered within {timeout:g} s (something accepted "
                               f"the connection but did not answer Dask's handshake: another service?); check the "
                               f"port: give the address the Dask scheduler prints, tcp://HOST:PORT") from None
-    except Exception as e:  # refused, a bad address, something else answering there
-        raise StereoseedError(f"{scheduler}: no Dask scheduler answered within {timeout:g} s ({_one_line(e)}); "
+    except NotDask as e:
+        raise StereoseedError(f"{scheduler}: that is not a Dask scheduler ({e}); give the scheduler's address "
+                              f"(dask scheduler prints it), tcp://HOST:PORT") from None
+    except ProbeError as e:  # refused, a name that does not resolve, closed on us
+        raise StereoseedError(f"{scheduler}: no Dask scheduler answered within {timeout:g} s ({e}); "
                               f"start one (dask scheduler) and give its address, tcp://HOST:PORT") from None
     kind = answer.get("type") if isinstance(answer, dict) else None
     if kind != "Scheduler":
-        what = f"a Dask {kind}" if isinstance(kind, str) else "not a Dask scheduler"
-        raise StereoseedError(f"{scheduler}: that is {what}, not the scheduler; give the scheduler's address "
-                              f"(dask scheduler prints it), tcp://HOST:PORT")
+        # the peer's own word is not echoed (it could be anything, lines long): only Dask's other servers
+        what = f"a Dask {kind}, not the scheduler" if kind in _OTHER_DASK_SERVERS else "not a Dask scheduler"
+        raise StereoseedError(f"{scheduler}: that is {what}; give the scheduler's address (dask scheduler prints it), "
+                              f"tcp://HOST:PORT")
     client = Client(scheduler, timeout=timeout, set_as_default=False)
     try:
         _check_workers(client, scheduler, timeout)

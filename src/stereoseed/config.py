@@ -127,9 +127,15 @@ class Config:
         import tomllib
 
         path = Path(path)
+        from stereoseed.io.nesting import MAX_NESTING, nesting_depth
+
         raw = _file_bytes(path, "a TOML configuration file (docs/config.md)")
         try:
-            data = tomllib.loads(raw.decode("utf-8"))
+            text = raw.decode("utf-8")
+            if nesting_depth(text) > MAX_NESTING:  # tomllib recurses per level: RecursionError, a traceback
+                raise ConfigError(f"{path}: nested more than {MAX_NESTING} levels deep; give a TOML configuration "
+                                  f"file (docs/config.md: one table per section)")
+            data = tomllib.loads(text)
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not UTF-8 text; give a TOML configuration file (docs/config.md)") from None
         except tomllib.TOMLDecodeError as e:
@@ -243,6 +249,11 @@ def _refused(cls: type, key: str, value: Any) -> bool:
     return False
 
 
+# a whole number in a configuration file fits a C int: OpenCV's and the compiled kernels' integer
+# parameters are C ints (a larger one overflows deep in a run), and no setting needs more
+MAX_SETTING_INT = 2**31 - 1
+
+
 class _WrongType(Exception):
     """A value that is not of its field's type; the message says what the field takes."""
 
@@ -271,9 +282,13 @@ def _typed(hint: Any, value: Any) -> Any:
             return value
     elif hint is int:
         if isinstance(value, int) and not isinstance(value, bool):
+            if abs(value) > MAX_SETTING_INT:
+                raise _WrongType(f"expected a whole number within +-{MAX_SETTING_INT}")
             return int(value)
     elif hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):  # no setting means anything by NaN or infinity
+                raise _WrongType("expected a finite number")
             return float(value)
     elif hint is str:
         if isinstance(value, str):

@@ -158,3 +158,67 @@ def test_calib_json_and_opencv_files_give_the_lens(tmp_path):
     (tmp_path / "bad.yaml").write_text("%YAML:1.0\nfoo: 1\n")
     with pytest.raises(StereoseedError, match="camera_matrix"):
         read_opencv_camera(tmp_path / "bad.yaml")
+
+
+_READ_DEEP = """
+import sys
+from stereoseed.calibration.lens_calibration import read_opencv_camera
+from stereoseed.errors import StereoseedError
+try:
+    read_opencv_camera(sys.argv[1])
+except StereoseedError as e:
+    print(e)
+"""
+
+
+@pytest.mark.parametrize("name, text", [
+    ("flow.yaml", "%YAML:1.0\n---\ncamera_matrix: " + "[" * 100000 + "]" * 100000 + "\n"),
+    ("dashes.yaml", "%YAML:1.0\n---\ncamera_matrix:\n  " + "- " * 100000 + "1\n"),
+    ("deep.xml", '<?xml version="1.0"?>\n<opencv_storage>' + "<a>" * 100000 + "</a>" * 100000 + "</opencv_storage>\n"),
+    ("deep.json", '{"camera_matrix": ' + "[" * 100000 + "]" * 100000 + "}"),
+])
+def test_a_deeply_nested_intrinsics_file_is_refused_not_a_crash(tmp_path, name, text):
+    """Issue 48 row 6: OpenCV's FileStorage recursed into a deeply nested file until the process
+    died of SIGSEGV (in a child process here, so that the old code's crash is a failure)."""
+    import subprocess
+    import sys
+
+    path = tmp_path / name
+    path.write_text(text)
+    done = subprocess.run([sys.executable, "-c", _READ_DEEP, str(path)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-300:]
+    assert done.stdout.startswith(f"{path}: nested ") and "more than any calibration file (64 at most)" in done.stdout
+
+
+@pytest.mark.parametrize("size", [float("inf"), float("nan"), 1e30, 640.5, -640])
+def test_an_image_size_that_is_no_whole_number_of_pixels_is_refused_naming_it(tmp_path, size):
+    """Issue 48 row 11: calib.json's image_size and a YAML's image_width of .inf were an
+    OverflowError traceback; NaN was blamed on the distortion, 1e30 accepted."""
+    views, K, _ = _views(1)
+    cal = calibrate_lens(views, SIZE)
+    entry = cal.to_dict() | {"image_size": [size, 480]}
+    calib = tmp_path / "calib.json"
+    calib.write_text(json.dumps({"cameras": [entry, {"P": cal.P.tolist()}]}))
+    with pytest.raises(StereoseedError, match=r"calib.json: camera 0: image_size: expected the image's width and "
+                                              r"height in pixels, two whole numbers from 1 to 65535"):
+        read_lenses(calib)
+    yaml = tmp_path / "cam.yaml"
+    fs = cv2.FileStorage(str(yaml), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", LENS.reshape(1, 5))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    assert read_opencv_camera(yaml)[2] == (640, 480)
+    text = yaml.read_text().replace("image_width: 640", f"image_width: {'.inf' if size == float('inf') else size}")
+    yaml.write_text(text.replace("image_width: nan", "image_width: .nan"))
+    with pytest.raises(StereoseedError, match="cam.yaml: image_width, image_height: expected the image's width"):
+        read_opencv_camera(yaml)
+    # row 13: a zero K undistorted every image into black, said as "no interest points"
+    calib.write_text(json.dumps({"cameras": [cal.to_dict() | {"K": np.zeros((3, 3)).tolist()}, {"P": cal.P.tolist()}]}))
+    with pytest.raises(StereoseedError, match=r"calib.json: camera 0: K \[\[0.0, 0.0, 0.0\].* is no camera"):
+        read_lenses(calib)
+    # row 13: [640, 480, 3] (a NumPy shape's tail) was taken as 640x480 and blamed on the images
+    calib.write_text(json.dumps({"cameras": [cal.to_dict() | {"image_size": [640, 480, 3]}, {"P": cal.P.tolist()}]}))
+    with pytest.raises(StereoseedError, match=r"image_size: expected .* got \[640, 480, 3\]"):
+        read_lenses(calib)

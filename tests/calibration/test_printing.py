@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from stereoseed.calibration.printing import DPI, PAPER_MM, box_size_mm, pdf_page, png_with_dpi
+from cli_helpers import one_line_error
+from stereoseed.calibration.printing import DPI, PAPER_MM, TARGET_RECORD, box_size_mm, pdf_page, png_with_dpi
 from stereoseed.cli import main
 
 
@@ -82,8 +83,39 @@ def test_target_writes_pages_pdfs_and_says_the_box(tmp_path, capsys):
         assert f"/Width {page.shape[1]} /Height {page.shape[0]}".encode() in objects[5] and DPI == 300
     # a rerun with two faces replaces the three-face target whole: no page 2 left behind
     assert main(["target", "--out", str(out), "--faces", "2"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["assembly.png", "face_0.pdf", "face_0.png", "face_1.pdf",
-                                                     "face_1.png", "target.json"]
+    assert sorted(p.name for p in out.iterdir()) == [TARGET_RECORD, "assembly.png", "face_0.pdf", "face_0.png",
+                                                     "face_1.pdf", "face_1.png", "target.json"]
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_target_never_replaces_or_removes_a_file_it_did_not_write(tmp_path, capsys, force):
+    """Issue 48 row 2: the user's target.json and face_7.png in the folder stay as they are, with
+    or without --force (which writes beside other files, never over them); so does a page
+    stereoseed wrote that the user edited since."""
+    out = tmp_path / "t"
+    out.mkdir()
+    (out / "target.json").write_text("mine")
+    (out / "face_7.png").write_text("x")
+    code = main(["target", "--out", str(out)] + (["--force"] if force else []))
+    err = capsys.readouterr().err
+    assert code == 2 and one_line_error(err) and ("target.json" in err or "face_7.png" in err)
+    assert (out / "target.json").read_text() == "mine" and (out / "face_7.png").read_text() == "x"
+    assert sorted(p.name for p in out.iterdir()) == ["face_7.png", "target.json"]
+
+    fresh = tmp_path / "fresh"
+    assert main(["target", "--out", str(fresh), "--faces", "2"]) == 0
+    (fresh / "face_1.pdf").write_bytes(b"edited")
+    code = main(["target", "--out", str(fresh), "--faces", "2"] + (["--force"] if force else []))
+    err = capsys.readouterr().err
+    assert code == 2 and one_line_error(err) and "face_1.pdf: stereoseed target did not write it" in err
+    assert (fresh / "face_1.pdf").read_bytes() == b"edited"
+    record = tmp_path / "rec" / TARGET_RECORD  # a file of the record's name that is no record: left alone
+    record.parent.mkdir()
+    record.write_text("mine")
+    code = main(["target", "--out", str(record.parent)] + (["--force"] if force else []))
+    err = capsys.readouterr().err
+    assert code == 2 and one_line_error(err) and "is not the record stereoseed target keeps" in err
+    assert record.read_text() == "mine"
 
 
 @pytest.mark.parametrize("force", [False, True])

@@ -197,7 +197,7 @@ def _copy(target3, tmp_path, edit):
     data = json.loads(target3.read_text())
     edit(data)
     path = tmp_path / "target.json"
-    path.write_text(json.dumps(data).replace('"@NaN@"', "NaN"))  # json.dumps writes NaN as NaN too
+    path.write_text(json.dumps(data).replace('"@NaN@"', "NaN").replace('"@Infinity@"', "Infinity"))
     return path
 
 
@@ -248,6 +248,9 @@ def test_a_flat_target_loads_as_planar(target3, tmp_path, flat):
     ("nan", r"faces\[2\]\.origin: expected a list of 3 finite numbers"),
     ("legacy", r"faces\[0\]\.board\.legacy: expected true or false"),
     ("dictionary", r"faces\[0\]\.board\.dictionary: not an ArUco dictionary"),
+    ("deep", r"nested 100001 levels deep, more than any target file \(64 at most\)"),  # issue 48 row 6
+    ("infinite squares", r"faces\[0\]\.board\.squares: expected a whole number >= 3"),  # row 11: OverflowError
+    ("NaN first id", r"faces\[1\]\.board\.first_id: expected a whole number >= 0"),
 ])
 def test_bad_target_json_one_line(target3, tmp_path, bad, message):
     def edit(data):
@@ -264,12 +267,18 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
             faces[2]["origin"][0] = "@NaN@"
         elif bad == "dictionary":
             faces[0]["board"]["dictionary"] = "DICT_NOPE"
+        elif bad == "infinite squares":
+            faces[0]["board"]["squares"][0] = "@Infinity@"
+        elif bad == "NaN first id":
+            faces[1]["board"]["first_id"] = "@NaN@"
 
     path = _copy(target3, tmp_path, edit)
     if bad == "missing image":
         (tmp_path / "face_1.png").unlink()
     elif bad == "malformed":
         path.write_text('{"unit": "mm", "faces": [')
+    elif bad == "deep":  # Python's json raised RecursionError: a traceback
+        path.write_text('{"unit": "mm", "faces": ' + "[" * 100000 + "]" * 100000 + "}")
     with pytest.raises(StereoseedError, match=rf"^{path}: .*{message}") as e:
         load_target(path)
     assert "\n" not in str(e.value)
@@ -279,8 +288,8 @@ def test_bad_target_json_one_line(target3, tmp_path, bad, message):
 def test_cli_target_two_faces(tmp_path, capsys):
     out = tmp_path / "t"
     assert main(["target", "--out", str(out), "--faces", "2", "--size", "letter"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["assembly.png", "face_0.pdf", "face_0.png", "face_1.pdf",
-                                                     "face_1.png", "target.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".stereoseed-target.json", "assembly.png", "face_0.pdf",
+                                                     "face_0.png", "face_1.pdf", "face_1.png", "target.json"]
     assert len(load_target(out / "target.json").faces) == 2
     assert "target.json" in capsys.readouterr().out
     (tmp_path / "file").write_text("x")

@@ -188,3 +188,17 @@ def test_normals_of_points_on_a_line_are_perpendicular_to_it():
     pts = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1e-9, 0.0, 0.0], [1.0, 1.0, 1.0]])
     keys = _voxel_keys(pts, 1e-8)
     assert keys[1] == keys[3] and len(set(keys.tolist())) == 2 + (keys[2] != keys[0])
+
+
+def test_a_fusion_voxel_far_below_a_pixels_footprint_is_refused(monkeypatch):
+    """Issue 48 row 11: fusion_voxel = 1e-9 fused nothing and the support check found no
+    neighbour: a cloud of 0 or 1 points, exit 0. A thousandth of a pixel's footprint is the floor."""
+    from stereoseed.dense import densify as module
+    from stereoseed.errors import StereoseedError
+
+    monkeypatch.setattr(module, "_auto_voxel", lambda recon: 0.002)  # a pixel's footprint of 2 mm
+    assert module._fusion_voxel(None, 0.0) == 0.002 and module._fusion_voxel(None, 0.001) == 0.001
+    with pytest.raises(StereoseedError, match=r"fusion_voxel = 1e-09: below a thousandth of a pixel's footprint"):
+        module._fusion_voxel(None, 1e-9)
+    with pytest.raises(ValueError, match="fusion_voxel must be a finite number >= 0"):
+        Config().replace(dense={"fusion_voxel": float("nan")})

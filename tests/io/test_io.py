@@ -371,3 +371,18 @@ def test_images_read_in_threads_leave_stderr_where_it_was(tmp_path, capfd):
     assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
     os.write(2, b"still here\n")
     assert "still here" in capfd.readouterr().err
+
+
+def test_a_file_name_near_the_file_systems_limit_is_written(tmp_path):
+    """Issue 48 row 12: the temporary name of an atomic write ('.NAME.xxxxxxxx.tmp.png') of an
+    image named near 255 bytes was too long, so the hand-off exports failed after reconstruct
+    had taken the name. Names of 255 bytes (one of two-byte characters) are written."""
+    from stereoseed.io.atomic import NAME_MAX, write_text
+    from stereoseed.io.files import write_image
+
+    for name in ("a" * (NAME_MAX - 4) + ".png", "é" * ((NAME_MAX - 5) // 2) + "x.png"):
+        assert len(name.encode()) == NAME_MAX
+        write_image(tmp_path / name, np.zeros((4, 4, 3), np.uint8))
+        assert (tmp_path / name).stat().st_size > 0
+    write_text(tmp_path / ("t" * NAME_MAX), "text")
+    assert [len(p.name.encode()) for p in tmp_path.iterdir()] == [NAME_MAX] * 3  # no temporary file left

@@ -123,6 +123,27 @@ def test_image_headers_give_the_size_the_decoder_gives(tmp_path):
     assert header_size(tmp_path / "missing.png") is None
 
 
+def test_an_image_too_large_to_decode_is_refused_by_its_header(tmp_path, capsys, monkeypatch):
+    """Issue 48 row 8: a small PNG announcing 20000 x 20000 pixels, given as a pair image or to
+    `match`, was decoded (memory without bound, then a MemoryError traceback); now refused in
+    one line by its header, the decoder never called. A JPEG's frame header counts too."""
+    from cli_helpers import one_line_error
+    from stereoseed.io.files import read_image
+
+    def no_decoding(*args):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", no_decoding)
+    big = _png_header_only(tmp_path / "big.png", 20000, 20000)
+    refused(lambda: read_image(big), f"{big}: 20000x20000 pixels (400 MP), more than the 120 MP", "scale it down")
+    jpeg = tmp_path / "big.jpg"  # SOI, then a baseline frame header of 12000 x 11000
+    jpeg.write_bytes(b"\xff\xd8\xff\xc0" + struct.pack(">HBHH", 11, 8, 11000, 12000) + b"\x03\x01\x11\x00")
+    refused(lambda: read_image(jpeg), f"{jpeg}: 12000x11000 pixels (132 MP)")
+    code = main(["match", str(big), str(jpeg)])
+    err = capsys.readouterr().err
+    assert code == 2 and one_line_error(err) and f"{big}: 20000x20000 pixels" in err
+
+
 def test_an_image_of_another_size_is_skipped_by_its_header_never_decoded(tmp_path, small_box_scene, monkeypatch):
     from stereoseed.pipeline import reconstruct_to_folder
 

@@ -44,6 +44,24 @@ def test_the_fingerprint_reads_the_files_without_decoding_them(files, tmp_path):
     assert ImageSequence([files[0], changed] + list(files[2:])).fingerprint() != key
 
 
+def test_the_fingerprint_never_holds_a_file_whole(files, tmp_path, monkeypatch):
+    """Issue 48 row 12: a 3 GB file the walk skips by its header cost 3.2 GB to fingerprint. The
+    files are hashed a chunk at a time: the same digest as their whole bytes'."""
+    import hashlib
+    from pathlib import Path
+
+    from stereoseed.io import sequence
+
+    big = tmp_path / "big.png"
+    big.write_bytes(Path(files[0]).read_bytes() + bytes(3 * sequence._FINGERPRINT_CHUNK + 5))
+    entries = [big] + list(files[1:])
+    want = hashlib.sha256(b"".join(Path(f).read_bytes() for f in entries)).digest()  # no transform: no key
+    read = []
+    real = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda self: read.append(self) or real(self))
+    assert ImageSequence(entries).fingerprint() == want and read == []
+
+
 def test_an_unreadable_image_of_the_walk_reads_as_empty_and_says_why(files, tmp_path):
     """From the first covered image on, a text file named .png and a truncated PNG do not raise:
     each reads as a black image of its header's size (for the text: the size expected, if any)

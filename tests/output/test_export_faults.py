@@ -64,6 +64,33 @@ def test_a_truncated_tracks_file_is_one_line(copy, tmp_path, capsys):
     assert not (tmp_path / "model").exists()
 
 
+def test_a_zip_bomb_tracks_file_is_refused_before_it_is_decompressed(copy, tmp_path, capsys, monkeypatch):
+    """Issue 48 row 9: a tracks.npz whose point_xyz inflates ~1000-fold (here 96 MiB of zeros behind
+    a valid .npy header; 4.5 GB in the report) was decompressed whole before it was validated."""
+    import zipfile
+
+    with np.load(copy / "tracks.npz") as npz:
+        tracks = {k: npz[k] for k in npz.files}
+    rows = 2**22  # 96 MiB of float64 (x, y, z)
+    with zipfile.ZipFile(copy / "tracks.npz", "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, array in tracks.items():
+            if name != "point_xyz":
+                with zf.open(f"{name}.npy", "w") as f:
+                    np.lib.format.write_array(f, array)
+        with zf.open("point_xyz.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (rows, 3)})
+            zeros = bytes(2**20)
+            for _ in range(rows * 24 // len(zeros)):
+                f.write(zeros)
+    assert (copy / "tracks.npz").stat().st_size < 1_000_000
+    inflated = []
+    real = zipfile.ZipExtFile.read
+    monkeypatch.setattr(zipfile.ZipExtFile, "read", lambda self, n=-1: inflated.append(self.name) or real(self, n))
+    code, err = export(capsys, copy, tmp_path / "out")
+    assert code == 2 and one_line_error(err) and "tracks.npz: its arrays declare" in err
+    assert "point_xyz.npy" not in inflated
+
+
 def test_a_cameras_file_missing_images_is_one_line(copy, tmp_path, capsys):
     edit_cameras(copy, lambda images: images.pop())
     code, err = export(capsys, copy, tmp_path / "model")
@@ -193,3 +220,23 @@ def test_an_export_into_the_result_folder_is_refused(copy, capsys):
     code, err = export(capsys, copy, copy)
     assert code == 2 and one_line_error(err)
     assert sorted(p.name for p in copy.iterdir()) == before
+
+
+def test_a_text_export_over_a_binary_one_leaves_no_stale_bin_files(result, tmp_path, capsys):
+    """Issue 48 row 10: COLMAP reads a folder's .bin model before its .txt one, so the binary
+    export the folder held before would have been read instead of the new text one."""
+    out = tmp_path / "m"
+    assert export(capsys, result, out, "--binary")[0] == 0
+    assert export(capsys, result, out)[0] == 0
+    assert sorted(p.name for p in out.iterdir()) == [".stereoseed-export.json", "cameras.txt", "images.txt",
+                                                     "points3D.txt"]
+    assert sorted(json.loads((out / ".stereoseed-export.json").read_text())["files"]) == [
+        "cameras.txt", "images.txt", "points3D.txt"]
+    assert export(capsys, result, out, "--binary")[0] == 0
+    assert sorted(p.suffix for p in out.iterdir() if p.suffix in (".txt", ".bin")) == [".bin"] * 3
+    theirs = tmp_path / "theirs"  # a binary model the export did not write: never removed, even with --force
+    theirs.mkdir()
+    (theirs / "cameras.bin").write_bytes(b"their model")
+    code, err = export(capsys, result, theirs, "--force")
+    assert code == 2 and one_line_error(err) and "cameras.bin: a COLMAP model stereoseed export did not write" in err
+    assert sorted(p.name for p in theirs.iterdir()) == ["cameras.bin"]

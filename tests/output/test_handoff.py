@@ -329,3 +329,35 @@ def test_export_hands_off_from_the_command_line(lens_run, tmp_path, capsys):
     assert err.count("\n") == 1 and "give --images" in err, err
     assert main(["export", str(folder), "--format", "nvm", "--undistort", "--out", str(tmp_path / "x")]) == 2
     assert "--undistort is for --format colmap" in capsys.readouterr().err
+
+
+def _exif_turned_jpeg(path, image, orientation: int):
+    """``image`` as a JPEG whose EXIF orientation tag says to turn it (3: by 180 degrees)."""
+    import struct
+
+    tiff = b"II*\x00" + struct.pack("<IH", 8, 1) + struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + bytes(4)
+    app1 = b"Exif\x00\x00" + tiff
+    jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    path.write_bytes(jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:])
+    return path
+
+
+def test_a_photo_turned_by_its_exif_is_handed_off_as_it_was_read(tmp_path):
+    """Issue 48 row 13: stereoseed reads an EXIF-turned photo turned (OpenCV applies the tag),
+    but the hand-off copied the raw file: a trainer that ignores EXIF saw it 180 degrees off the
+    camera. The turned pixels are written instead; a photo without the tag is copied as it is."""
+    from stereoseed.io.files import read_image
+    from stereoseed.output.handoff import copy_as_read
+
+    image = np.zeros((30, 40, 3), np.uint8)
+    image[:10, :20] = 255  # a bright top-left corner: turned, it is bottom-right
+    photo = _exif_turned_jpeg(tmp_path / "turned.jpg", image, 3)
+    seen = read_image(photo)
+    assert seen[25, 35].min() > 200 and seen[5, 5].max() < 50  # as the run saw it
+    copy_as_read(photo, tmp_path / "out.jpg")
+    raw = cv2.imdecode(np.fromfile(tmp_path / "out.jpg", np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    assert np.abs(raw.astype(int) - seen).mean() < 2  # what a reader ignoring EXIF sees: the same pixels
+    plain = tmp_path / "plain.jpg"
+    plain.write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
+    copy_as_read(plain, tmp_path / "plain_out.jpg")
+    assert (tmp_path / "plain_out.jpg").read_bytes() == plain.read_bytes()

@@ -23,6 +23,8 @@ from stereoseed.geometry.camera import Camera
 from stereoseed.estimators.calibration import check_correspondences, dlt_projection
 from stereoseed.geometry.projection import compose_projection, depths
 from stereoseed.errors import StereoseedError
+from stereoseed.io.image_header import recorded_image_size
+from stereoseed.io.nesting import read_bounded_text
 from stereoseed.io.files import atomic_path
 from stereoseed.geometry.lens import lens_coefficients, project_distorted
 
@@ -196,15 +198,29 @@ def read_lenses(path: str | Path) -> list[Lens | None]:
             d = np.asarray(d, np.float64).reshape(-1)
             K = np.asarray(cam["K"], np.float64).reshape(3, 3) if "K" in cam else Camera(
                 np.asarray(cam["P"], np.float64)).krt[0]
-            size = tuple(int(v) for v in cam["image_size"]) if "image_size" in cam else None
         except (ValueError, TypeError, KeyError):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' needs 4 or 5 numbers (k1 k2 p1 p2 [k3]) and 'K' "
                                   f"a 3x3 matrix") from None
         if d.size not in (4, 5) or not np.all(np.isfinite(d)) or not np.all(np.isfinite(K)):
             raise StereoseedError(f"{path}: camera {i}: 'distortion' must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3]), "
                                   f"got {d.size}")
+        _refuse_no_camera(K, f"{path}: camera {i}: K")
+        size = recorded_image_size(cam["image_size"], f"{path}: camera {i}: image_size") if "image_size" in cam else None
         lenses.append(Lens(K, lens_coefficients(d), size))
     return lenses + [None] * (2 - len(lenses))
+
+
+# a K decomposed from P holds rounding where an exact one holds zeros: K[1, 0] may be this much of fy
+_K_ROUNDING = 1e-9
+
+
+def _refuse_no_camera(K: np.ndarray, where: str) -> None:
+    """Refuse a K (3, 3) that is no camera's: its images would be undistorted into nothing (a zero
+    K made every image black, later said as "no interest points")."""
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
+            and abs(K[1, 0]) <= _K_ROUNDING * K[1, 1]):
+        raise StereoseedError(f"{where} {np.round(K, 3).tolist()} is no camera (it needs positive finite focal "
+                              f"lengths fx, fy on the diagonal and a last row 0 0 1)")
 
 
 def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
@@ -226,6 +242,10 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
         raise StereoseedError(f"{path}: empty file; {hint}")
     if b"\0" in head or head.startswith(b"\x89PNG"):
         raise StereoseedError(f"{path}: a binary file, not an OpenCV calibration file; {hint}")
+    try:  # bounded before OpenCV's parser, which recurses per level and crashes on a deeply nested file
+        read_bounded_text(path, "calibration file", hint, encoding="latin-1")
+    except OSError as e:
+        raise StereoseedError(f"{path}: cannot be read ({e.strerror}); {hint}") from None
     try:  # OpenCV's parser reports a malformed file as cv2.error, or as a SystemError around it
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         if not fs.isOpened():
@@ -243,16 +263,13 @@ def read_opencv_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[
         raise StereoseedError(f"{path}: needs camera_matrix (3x3) and distortion_coefficients (k1 k2 p1 p2 [k3 ...]); "
                               f"{hint}")
     K, d = np.asarray(K, np.float64), np.asarray(d, np.float64).reshape(-1)
-    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])
-            and K[1, 0] == 0 and np.isfinite(K[0, 1])):
-        raise StereoseedError(f"{path}: camera_matrix {np.round(K, 3).tolist()} is no camera (it needs positive finite "
-                              "focal lengths fx, fy on the diagonal and a last row 0 0 1)")
+    _refuse_no_camera(K, f"{path}: camera_matrix")
     if not np.all(np.isfinite(d)):
         raise StereoseedError(f"{path}: distortion_coefficients hold NaN or infinite values")
     if d.size > 5 and np.any(d[5:] != 0):
         raise StereoseedError(f"{path}: distortion terms beyond k3 (the rational or thin-prism model) are not "
                               f"modelled; calibrate with k1 k2 p1 p2 [k3] only")
-    size = (int(width), int(height)) if width > 0 and height > 0 else None
+    size = None if width == 0 and height == 0 else recorded_image_size((width, height), f"{path}: image_width, image_height")
     return K, lens_coefficients(d[:5]), size
 
 

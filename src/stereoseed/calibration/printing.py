@@ -27,6 +27,7 @@ paper is: the calibration estimates where each face ended up (or measure and edi
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -40,7 +41,8 @@ import numpy as np
 
 from stereoseed.calibration.target import Board, Face, Target, target_json
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import atomic_path, write_json
+from stereoseed.io.atomic import atomic_path, jsonable
+from stereoseed.io.outputs import OwnedFiles
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +63,8 @@ _MIN_MARGIN_PX = round(12 / MM_PER_PX)  # at least 12 mm of paper around the boa
 DICTIONARY = "DICT_5X5_1000"
 # what `target --out` writes: a folder holding anything else is someone else's, refused
 _OURS = re.compile(r"(face_\d+\.(png|pdf)|assembly\.png|target\.json)")
+# the record of the files `target` wrote, with their hashes: only those are ever replaced or removed
+TARGET_RECORD = ".stereoseed-target.json"
 
 
 # ---------------------------------------------------------------- true-scale files
@@ -107,9 +111,11 @@ def pdf_page(grey: np.ndarray, dpi: float) -> bytes:
     return bytes(out)
 
 
-def _write_bytes(path: Path, data: bytes) -> None:
+def _write_bytes(path: Path, data: bytes, owned: OwnedFiles | None = None) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+    if owned is not None:
+        owned.wrote(path.name, data)
 
 
 # ---------------------------------------------------------------- the pages
@@ -168,31 +174,52 @@ def box_size_mm(size: str = "A4", faces: int = 3) -> tuple[float, float, float]:
     return (w, h if faces == 3 else w, h)
 
 
-def _check_out_folder(out: Path, force: bool) -> None:
+def _claim_out_folder(out: Path, force: bool, faces: int) -> OwnedFiles:
+    """Refuse, before any work, a folder that is a file, holds other files (unless ``force``) or
+    holds a file of a name ``target`` writes that ``target`` did not write (even with ``force``:
+    the user's target.json or face_7.png is theirs). Returns the folder's record of its files."""
     if out.exists() and not out.is_dir():
         raise StereoseedError(f"{out}: is a file; give a folder to write the target into")
-    if out.is_dir() and not force:
-        foreign = sorted(p.name for p in out.iterdir() if not _OURS.fullmatch(p.name))
+    owned = OwnedFiles(out, TARGET_RECORD, "stereoseed target")
+    if not out.is_dir():
+        return owned
+    names = sorted(p.name for p in out.iterdir() if p.name != TARGET_RECORD)
+    if not force:
+        foreign = [n for n in names if not _OURS.fullmatch(n)]
         if foreign:
             more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
             raise StereoseedError(f"{out}: holds files stereoseed target did not write ({', '.join(foreign[:3])}{more}); "
                                   "give an empty or new folder, or --force to write beside them")
+    # the names this run writes, and the stale pages of a run with more faces (removed: only ours)
+    owned.refuse_foreign(_written_names(faces) + [n for n in names if _stale_page(n, faces)])
+    return owned
+
+
+def _written_names(faces: int) -> list[str]:
+    return [f"face_{k}.{ext}" for k in range(faces) for ext in ("png", "pdf")] + ["assembly.png", "target.json"]
+
+
+def _stale_page(name: str, faces: int) -> bool:
+    return name.startswith("face_") and _OURS.fullmatch(name) is not None and int(name[5:].split(".")[0]) >= faces
 
 
 def make_target(out_dir: str | os.PathLike, size: str = "A4", faces: int = 3, force: bool = False) -> Path:
     """Write the printable target into ``out_dir``: ``face_<k>.png`` (300 dpi, pHYs),
-    ``face_<k>.pdf`` (true scale), ``assembly.png`` and ``target.json``. A folder holding other
-    files is refused unless ``force``. Returns the path of ``target.json``."""
+    ``face_<k>.pdf`` (true scale), ``assembly.png`` and ``target.json``, and the record of what it
+    wrote (``.stereoseed-target.json``). A folder holding other files is refused unless ``force``;
+    a file of one of those names that this function did not write is refused even then
+    (:class:`stereoseed.io.outputs.OwnedFiles`). Returns the path of ``target.json``."""
     if size not in PAPER_MM:
         raise StereoseedError(f"--size {size}: unknown paper size; give one of {', '.join(PAPER_MM)}")
     if faces not in (2, 3):
         raise StereoseedError(f"--faces {faces}: the target has 2 or 3 faces")
     out = Path(out_dir)
-    _check_out_folder(out, force)
+    owned = _claim_out_folder(out, force, faces)
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("face_*.*"):  # a rerun with fewer faces leaves no stale page behind
-        if _OURS.fullmatch(old.name) and int(old.stem.split("_")[1]) >= faces:
+        if _stale_page(old.name, faces):  # ours: checked by _claim_out_folder
             old.unlink()
+            owned.forget(old.name)
     W, H = _page_px(size)
     face_objs, pages = [], []
     first_id = 0
@@ -201,17 +228,19 @@ def make_target(out_dir: str | os.PathLike, size: str = "A4", faces: int = 3, fo
         first_id += board.n_markers
         origin, u, v, label = _face_geometry(k, W, H)
         pages.append(_face_image(board, W, H, k, faces, label))
-        _write_bytes(out / f"face_{k}.png", png_with_dpi(pages[-1], DPI))
-        _write_bytes(out / f"face_{k}.pdf", pdf_page(pages[-1], DPI))
+        _write_bytes(out / f"face_{k}.png", png_with_dpi(pages[-1], DPI), owned)
+        _write_bytes(out / f"face_{k}.pdf", pdf_page(pages[-1], DPI), owned)
         face_objs.append(Face(k, out / f"face_{k}.png", origin, u, v, board, (W, H)))
-    _write_bytes(out / "assembly.png", png_with_dpi(_assembly_sheet(face_objs, pages, size, W, H), DPI))
+    _write_bytes(out / "assembly.png", png_with_dpi(_assembly_sheet(face_objs, pages, size, W, H), DPI), owned)
     doc = target_json(Target(out / "target.json", face_objs), out,
                       "pixel (u, v) centre of a face image (0, 0 = centre of the top-left pixel) lies at "
                       "origin + u * u_axis + v * v_axis (mm); the printed side faces -(u_axis x v_axis)")
     for entry, label in zip(doc["faces"], ("x = 0", "y = 0", "z = 0, top")):
         entry["plane"] = label
     doc = {"unit": "mm", "paper": size, "dpi": DPI, "box_mm": [round(v, 1) for v in box_size_mm(size, faces)], **doc}
-    path = write_json(out / "target.json", doc)
+    path = out / "target.json"
+    _write_bytes(path, (json.dumps(doc, indent=2, default=jsonable) + "\n").encode("utf-8"), owned)
+    owned.save()
     log.info("wrote a %d-face %s target into %s", faces, size, out)
     return path
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -54,6 +55,7 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
+from stereoseed.io.nesting import read_bounded_text
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +205,8 @@ def _vector(value: Any, n: int, where: str) -> np.ndarray:
 
 
 def _int(value: Any, where: str, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value) or value < low:
+    if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+            or value != int(value) or value < low):
         raise StereoseedError(f"{where}: expected a whole number >= {low}; fix target.json")
     return int(value)
 
@@ -280,7 +283,8 @@ def load_target(path: str | os.PathLike) -> Target:
         raise StereoseedError(f"{path}: target file not found; run stereoseed target --out DIR first, "
                               "or give DIR/target.json")
     try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        data = json.loads(read_bounded_text(path, "target file", "give the target.json written by stereoseed target",
+                                            "utf-8-sig"))
     except (OSError, UnicodeDecodeError, ValueError) as e:
         detail = f" (line {e.lineno})" if isinstance(e, json.JSONDecodeError) else ""
         raise StereoseedError(f"{path}: not a readable JSON target{detail}; give the target.json written by "

@@ -4,7 +4,10 @@ much of that reaches stderr). The streams are looked up when a line is written, 
 swaps ``sys.stdout`` (a test, a notebook) sees the lines."""
 from __future__ import annotations
 
+import errno
+import io
 import logging
+import os
 import sys
 
 __all__ = ["say", "complain", "warn"]
@@ -19,8 +22,31 @@ class _Stream(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         stream = sys.stderr if self.to_stderr else sys.stdout
-        stream.write(record.getMessage() + "\n")
-        stream.flush()
+        if stream is None:  # started with the stream closed (`>&-`): nobody to tell
+            return
+        try:
+            stream.write(record.getMessage() + "\n")
+            stream.flush()
+        except (BrokenPipeError, ValueError):  # the reader went away (`| head -1`), or the stream was closed
+            # what the run wrote stays written: a reader that stopped reading is no error of the run's
+            _to_devnull(stream)
+        except OSError as e:
+            if e.errno != errno.EBADF:  # a full disk under `> file` is one, and says so
+                raise
+            _to_devnull(stream)
+
+
+def _to_devnull(stream) -> None:
+    """Send the rest of ``stream`` (its buffer too, flushed at exit) to the null device, so that
+    neither a later line nor the interpreter's last flush fails on the closed pipe."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, stream.fileno())
+        finally:
+            os.close(null)
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # not a real file (a test's capture)
+        pass
 
 
 def _terminal_logger(name: str, to_stderr: bool) -> logging.Logger:

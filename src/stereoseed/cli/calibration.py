@@ -9,6 +9,7 @@ import numpy as np
 
 from stereoseed.cli._terminal import say, warn
 from stereoseed.errors import StereoseedError
+from stereoseed.io.outputs import refuse_input_as_output, same_file
 
 
 def _config(args: argparse.Namespace):
@@ -24,6 +25,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     if Path(args.output).is_dir():
         raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
+    inputs = _calibrate_inputs(args)
+    refuse_input_as_output(args.output, inputs, "give another -o")
+    if args.target:
+        refined = _refined_target_path(Path(args.output))
+        refuse_input_as_output(refined, inputs, "give another -o (the target as found goes to <stem of -o>_target.json)")
+        if (refined.exists() or refined.is_symlink()) and not _refined_by_calibrate(refined):
+            raise StereoseedError(f"{refined}: exists and is not a target stereoseed calibrate wrote (the target as "
+                                  f"found goes to <stem of -o>_target.json); move it away or give another -o")
     if not args.target:
         pair = calibrate(args.inputs, lens_images=(args.lens_images1 or [], args.lens_images2 or []), rig=args.rig,
                          lens=args.lens, k3=args.k3, cfg=_config(args))
@@ -40,6 +49,33 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _calibrate_inputs(args: argparse.Namespace) -> list:
+    """Every file `calibrate` reads (None: an option not given)."""
+    return [*args.inputs, args.target, *(args.lens_images1 or []), *(args.lens_images2 or []), args.intrinsics1,
+            args.intrinsics2]
+
+
+def _refined_target_path(out: Path) -> Path:
+    """Where `calibrate --target` writes the target as found: beside calib.json."""
+    return out.with_name(f"{out.stem}_target.json")
+
+
+def _refined_by_calibrate(path: Path) -> bool:
+    """Whether ``path`` is a target an earlier `calibrate --target` wrote (its note says so)."""
+    import json
+
+    from stereoseed.api import REFINED_TARGET_NOTE
+    from stereoseed.io.nesting import read_bounded_text
+
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        data = json.loads(read_bounded_text(path, "target file", ""))
+    except (OSError, ValueError, StereoseedError):
+        return False
+    return isinstance(data, dict) and data.get("note") == REFINED_TARGET_NOTE
+
+
 def _detect_all(target, paths: list[str]) -> list:
     """Each image read and its target corners found; a view that cannot be read is the user's
     error (one line), a view without the target is judged later (skipped with its reason)."""
@@ -48,19 +84,21 @@ def _detect_all(target, paths: list[str]) -> list:
     return [detect_target(p, target, what=str(p)) for p in paths]
 
 
-def _unique_png(out: Path, camera: int, image: str, taken: set[str]) -> Path:
-    """calib_cam1_7.png: the check image of camera 1's photo 7.jpg, unique within the run."""
+def _unique_png(out: Path, camera: int, image: str, taken: set[str], inputs: list) -> Path:
+    """calib_cam1_7.png: the check image of camera 1's photo 7.jpg, unique within the run and
+    never one of the run's inputs (a photo named so gets calib_cam1_7_2.png)."""
     base = f"{out.stem}_cam{camera}_{Path(image).stem}"
     name, n = base, 1
-    while name in taken:
+    while name in taken or any(i is not None and same_file(out.with_name(name + ".png"), i) for i in inputs):
         n += 1
         name = f"{base}_{n}"
     taken.add(name)
     return out.with_name(name + ".png")
 
 
-def _report_views(cal, labels: list[str], out: Path | None) -> None:
-    """A line per photo (corners per face, RMS, the check image), a warning per skipped one."""
+def _report_views(cal, labels: list[str], out: Path | None, inputs: list = ()) -> None:
+    """A line per photo (corners per face, RMS, the check image, never written over one of
+    ``inputs``), a warning per skipped one."""
     from stereoseed.io.files import read_image
     from stereoseed.output.visualize import draw_calibration_check
 
@@ -72,7 +110,7 @@ def _report_views(cal, labels: list[str], out: Path | None) -> None:
                 continue
             line = f"{labels[c]}, {v.name}: {v.detection.summary()}, RMS {v.rms_px:.3f} px"
             if out is not None:
-                png = _unique_png(out, c + 1, v.name, taken)
+                png = _unique_png(out, c + 1, v.name, taken, [*inputs, out])
                 draw_calibration_check(read_image(v.name), v.detection.pixels, v.reprojected, png)
                 line += f"; check {png}"
             say(line)
@@ -119,9 +157,9 @@ def _calibrate_from_target(args: argparse.Namespace):
     pair = calibrate(args.inputs, target=args.target, lens_images=(args.lens_images1 or [], args.lens_images2 or []),
                      intrinsics=(args.intrinsics1, args.intrinsics2), rig=args.rig, rigid_target=args.rigid_target,
                      k3=args.k3, cfg=_config(args))
-    _report_views(pair.calibration, labels, out)
+    _report_views(pair.calibration, labels, out, _calibrate_inputs(args))
     _report_cameras(pair.calibration, labels)
-    refined = pair.write_target(out.with_name(f"{out.stem}_target.json"))
+    refined = pair.write_target(_refined_target_path(out))
     say(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
     return pair
 
@@ -146,8 +184,9 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".yaml", ".yml", ".xml", ".json"):
         raise StereoseedError(f"{out}: give a .yaml, .yml, .xml or .json file to write the camera into")
     cfg = _config(args)
-    target = load_target(args.target)
     paths = _image_list(args.images)
+    refuse_input_as_output(out, [args.target, *paths], "give another -o")
+    target = load_target(args.target)
     detections = _detect_all(target, [str(p) for p in paths])
     cal = calibrate_cameras(target, [detections], rigid_target=args.rigid_target, k3=args.k3, cfg=cfg, pair=False,
                             labels=["camera"])

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from stereoseed.cli._terminal import say, warn
 from stereoseed.errors import StereoseedError
+from stereoseed.io.outputs import refuse_input_as_output
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -18,8 +19,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
                                  "has no images); leave it out"))
     if args.images and not (args.undistort or args.format == "nerfstudio"):
         raise StereoseedError("--images is read by --format colmap --undistort and --format nerfstudio only; leave it out")
-    result = load_result(args.result)
     out = Path(args.out)
+    # the result folder itself, a list of photos: what the export reads is never where it writes
+    refuse_input_as_output(out, [args.result, *(args.images or [])], "give another --out")
+    for name in _export_files():
+        refuse_input_as_output(out / name, args.images or [], "give another --out")
+    result = load_result(args.result)
     if args.format == "nerfstudio" or args.undistort:
         return _handoff(result, out, args)
     if args.format == "colmap":
@@ -36,6 +41,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
     say(f"{len(result.registered)} cameras, {len(result.tracks['point_xyz'])} points; wrote "
           + ", ".join(str(p) for p in written))
     return 0
+
+
+def _export_files() -> list[str]:
+    """Every file an export writes at a fixed place in its folder (the hand-offs' images are
+    checked by stereoseed.output.handoff against the photos they read)."""
+    from stereoseed.output.export import colmap_files
+    from stereoseed.output.handoff import NERFSTUDIO_PLY
+
+    model = colmap_files(False) + colmap_files(True)
+    return [*model, *(f"sparse/0/{n}" for n in model), "model.nvm", "bundle.out", "list.txt", "transforms.json",
+            NERFSTUDIO_PLY]
 
 
 def _handoff(result, out: Path, args: argparse.Namespace) -> int:

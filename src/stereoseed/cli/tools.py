@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from stereoseed.cli._terminal import complain, say, warn
+from stereoseed.io.outputs import refuse_input_as_output
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
@@ -16,6 +17,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
 
     if args.output:
         check_image_output(args.output)
+        refuse_input_as_output(args.output, [args.image1, args.image2], "give another -o")
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
@@ -41,6 +43,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
 
     if args.output:
         check_image_output(args.output)
+        refuse_input_as_output(args.output, [args.image1, args.image2, args.calib], "give another -o")
     cfg = Config()
     names = [Path(args.image1).name, Path(args.image2).name]
     img1, img2 = read_image(args.image1), read_image(args.image2)

@@ -3,6 +3,7 @@
 Every default states its source (see :mod:`stereoseed.config`)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from stereoseed.validation import positive, whole
@@ -28,8 +29,9 @@ class DenseConfig:
     def __post_init__(self) -> None:
         positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels")
         whole(self, "workers", minimum=0)
-        if self.fusion_voxel < 0:
-            raise ValueError(f"DenseConfig.fusion_voxel must be >= 0 (0: automatic), got {self.fusion_voxel}")
+        if not 0 <= self.fusion_voxel < math.inf:  # NaN too: it fused every point into one voxel
+            raise ValueError(f"DenseConfig.fusion_voxel must be a finite number >= 0 (0: automatic), "
+                             f"got {self.fusion_voxel}")
 
     def pool_size(self) -> int:
         """How many local processes run the pair jobs: ``workers``, or one per core (at most 8)."""

@@ -25,6 +25,7 @@ from stereoseed.geometry.projection import camera_center, fundamental_from_proje
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
+from stereoseed.errors import StereoseedError
 from stereoseed.matching.config import PropagationConfig
 from stereoseed.io.ply import write_ply
 from stereoseed.matching.propagation.core import propagate
@@ -447,6 +448,21 @@ def _auto_voxel(recon: Reconstruction) -> float:
     return float(np.median(feet))
 
 
+# a fusion voxel below this fraction of a pixel's footprint merges nothing and leaves the support
+# check no neighbour (0 or 1 points came out of 1e-9 m): a unit slip (mm given for m), refused
+MIN_VOXEL_OF_FOOTPRINT = 1e-3
+
+
+def _fusion_voxel(recon: Reconstruction, given: float) -> float:
+    """The fusion voxel: ``given`` (DenseConfig.fusion_voxel), else one pixel's footprint."""
+    footprint = _auto_voxel(recon)
+    if given and given < MIN_VOXEL_OF_FOOTPRINT * footprint:
+        raise StereoseedError(f"DenseConfig.fusion_voxel = {given:g}: below a thousandth of a pixel's footprint "
+                              f"here ({footprint:.3g}, the calibration's unit); give 0 (automatic) or a size "
+                              f"near it")
+    return given or footprint
+
+
 def _run_pair(args: tuple) -> dict[str, Any]:
     return densify_pair(*args)
 
@@ -526,7 +542,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     points = np.vstack(clouds) if clouds else np.zeros((0, 3))
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     sources = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds]) if clouds else np.zeros(0, np.int64)
-    voxel = cfg.dense.fusion_voxel or _auto_voxel(recon)
+    voxel = _fusion_voxel(recon, cfg.dense.fusion_voxel)
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     min_support = cfg.dense.min_pair_support if len(pairs) >= cfg.dense.min_pair_support else 1
     keep = supported(points, sources, cfg.dense.support_cell_voxels * voxel, min_support)

@@ -26,6 +26,7 @@ import numpy as np
 
 from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
+from stereoseed.io.outputs import same_file
 from stereoseed.io.ply import read_dense_ply, write_ply
 
 __all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
@@ -256,7 +257,7 @@ def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = N
         raise StereoseedError(f"{folder}: no dense.ply to mesh; run stereoseed reconstruct --dense --out {folder} first")
     _pymeshlab()  # before any work: the one-line hint, not a half-done run
     target = Path(out) if out is not None else folder / MESH_NAME
-    if target.resolve() == (folder / "dense.ply").resolve():
+    if same_file(target, folder / "dense.ply"):  # a hard link too
         raise StereoseedError(f"{target}: is the cloud being meshed; give another --out")
     if target.is_dir():
         raise StereoseedError(f"{target}: is a folder; give a file name for the mesh (e.g. {target / MESH_NAME})")

@@ -26,6 +26,18 @@ UMASK_AT_IMPORT = _umask()  # read once, before any thread of ours writes (setti
 _FILE_MODE = 0o666 & ~UMASK_AT_IMPORT  # what open() would give: mkstemp's files are 0600
 
 
+NAME_MAX = 255  # bytes of one file name (Linux's and macOS's file systems): the temporary name must fit too
+_RANDOM = 8  # the characters mkstemp puts between the prefix and the suffix
+
+
+def _temporary_prefix(name: str, suffix: str) -> str:
+    """``.NAME.``, NAME cut (at a character) so that the temporary name fits in NAME_MAX bytes:
+    an image name of 250 bytes is a name the file system takes, its temporary one must be too."""
+    room = NAME_MAX - len(os.fsencode(suffix)) - _RANDOM - 2
+    cut = os.fsencode(name)[:max(room, 0)]
+    return "." + cut.decode("utf-8", "ignore") + "."
+
+
 class atomic_path:
     """Context manager yielding a temporary path that replaces ``path`` on success (created with
     the user's umask); on failure the temporary file is removed. Errors name ``path``, never the
@@ -38,8 +50,8 @@ class atomic_path:
     def __enter__(self) -> Path:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix="." + self.path.name + ".", suffix=".tmp" + self.suffix,
-                                       dir=self.path.parent)
+            fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(self.path.name, ".tmp" + self.suffix),
+                                       suffix=".tmp" + self.suffix, dir=self.path.parent)
         except OSError as e:
             raise StereoseedError(f"{self.path}: cannot write ({e.strerror or e})") from None
         os.close(fd)

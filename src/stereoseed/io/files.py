@@ -24,6 +24,7 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import atomic_path, write_json, write_text  # re-exported: the writers' home
+from stereoseed.io.image_header import refuse_huge_image
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -204,6 +205,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise StereoseedError(f"{path}: is a folder, not an image; give an image file" if path.is_dir()
                               else f"{path}: image not found; check the path")
+    refuse_huge_image(path)  # by its header, before its bytes are read and decoded
     data = _read_bytes(path, "image")
     if not data:
         raise StereoseedError(f"{path}: empty file (0 bytes), not an image; give a PNG, JPEG, PPM, BMP, TIFF "

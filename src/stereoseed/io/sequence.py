@@ -14,7 +14,6 @@ their reason instead of the run stopping: one whose header gives another size th
 from __future__ import annotations
 
 import hashlib
-import struct
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -25,8 +24,11 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import read_image
+from stereoseed.io.image_header import header_size  # re-exported: the walk's and the hand-offs' home of it
 
 __all__ = ["ImageSequence", "header_size"]
+
+_FINGERPRINT_CHUNK = 2**20  # bytes of a file hashed at a time (the same digest as the whole file's)
 
 Entry = Union[Path, np.ndarray]  # a file to read, or an image already in memory (a video keyframe)
 Transform = Callable[[int, np.ndarray], np.ndarray]  # (index, image read) -> image the run uses
@@ -159,8 +161,10 @@ class ImageSequence(Sequence):
             if isinstance(entry, np.ndarray):
                 h.update(str(entry.shape).encode())
                 h.update(np.ascontiguousarray(entry).tobytes())
-            else:
-                h.update(Path(entry).read_bytes())
+            else:  # a chunk at a time: a 3 GB file the walk skips by its header is not held whole
+                with open(entry, "rb") as f:
+                    while chunk := f.read(_FINGERPRINT_CHUNK):
+                        h.update(chunk)
         return h.digest()
 
     def source(self, index: int) -> str:
@@ -172,50 +176,3 @@ class ImageSequence(Sequence):
 def _blank(size: tuple[int, int]) -> np.ndarray:
     """A black image of ``size`` (width, height) that takes no memory (a zero-stride view)."""
     return np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (size[1], size[0], 3))
-
-
-def header_size(path: str | Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG's or a JPEG's header, without decoding the image; None for
-    other formats or a header that cannot be read (the decoder then says what is wrong)."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(24)
-            if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-                width, height = struct.unpack(">II", head[16:24])
-                return (width, height) if width and height else None
-            if head[:2] == b"\xff\xd8":
-                fh.seek(2)
-                return _jpeg_size(fh)
-    except (OSError, struct.error):
-        pass
-    return None
-
-
-# the start-of-frame markers (baseline, progressive, lossless, arithmetic) hold the image's size
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-
-
-def _jpeg_size(fh) -> tuple[int, int] | None:
-    """The size in a JPEG's frame header, reading its markers' segments from ``fh`` (after SOI)."""
-    for _ in range(10_000):  # markers before the frame: a bound on a damaged file
-        byte = fh.read(1)
-        while byte == b"\xff":
-            byte = fh.read(1)  # fill bytes
-        if not byte:
-            return None
-        marker = byte[0]
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # no length, no payload
-            continue
-        if marker in (0xD9, 0xDA):  # the end, or the scan before any frame header
-            return None
-        length = struct.unpack(">H", fh.read(2))[0]
-        if marker in _JPEG_SOF:
-            _, height, width = struct.unpack(">BHH", fh.read(5))
-            return (width, height) if width and height else None
-        if length < 2:
-            return None
-        fh.seek(length - 2, 1)
-        nxt = fh.read(1)
-        if nxt != b"\xff":
-            return None
-    return None

@@ -12,6 +12,11 @@ from stereoseed.validation import positive, in_range, one_of
 __all__ = ['MatchingConfig', 'PropagationConfig']
 
 
+# a patch wider than this compares regions, not points (the paper's is 11 x 11), and no corner
+# within half its width of an image's border can be matched: 101 still leaves most of 640 x 480
+MAX_PATCH_SIZE = 101
+
+
 @dataclass(frozen=True)
 class MatchingConfig:
     """Every threshold of the matching stage (:mod:`stereoseed.matching`); see docs/matching.md.
@@ -68,7 +73,8 @@ class MatchingConfig:
 
         for name in ("patch_size", "align_patch_size"):
             v = getattr(self, name)
-            check(isinstance(v, int) and v > 0 and v % 2 == 1, f"{name} must be an odd positive integer, got {v!r}")
+            check(isinstance(v, int) and 0 < v <= MAX_PATCH_SIZE and v % 2 == 1,
+                  f"{name} must be an odd positive integer up to {MAX_PATCH_SIZE}, got {v!r}")
         for name in ("min_zncc", "candidate_min_zncc", "min_aligned_zncc", "relaxed_min_aligned_zncc"):
             v = getattr(self, name)
             check(-1.0 <= v <= 1.0, f"{name} is a ZNCC threshold in [-1, 1], got {v!r}")

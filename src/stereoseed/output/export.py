@@ -34,7 +34,7 @@ from stereoseed.output.reader import Result
 from stereoseed.output.result_set import read_manifest
 
 __all__ = ["write_colmap", "write_nvm", "write_bundler", "colmap_camera", "EXPORT_MANIFEST", "claim_folder",
-           "record_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
+           "record_written", "other_colmap_model", "remove_written", "check_names", "write_colmap_text", "write_colmap_binary", "tracks_by_point",
            "observations_by_point", "flagged_images", "flagged_warnings", "logged", "moved_px", "skew_warning",
            "colmap_files"]
 
@@ -82,9 +82,35 @@ def _ours(entry: Path, folder: Path, ours: set[str]) -> bool:
     return True
 
 
-def record_written(folder: Path, files: list[str]) -> None:
-    """Add ``files`` (paths relative to ``folder``, with ``/``) to the folder's export manifest."""
-    write_json(folder / EXPORT_MANIFEST, {"files": sorted(_written_before(folder) | set(files))})
+def record_written(folder: Path, files: list[str], removed: list[str] = ()) -> None:
+    """Add ``files`` (paths relative to ``folder``, with ``/``) to the folder's export manifest
+    (and take the ``removed`` ones out)."""
+    write_json(folder / EXPORT_MANIFEST, {"files": sorted((_written_before(folder) | set(files)) - set(removed))})
+
+
+def other_colmap_model(folder: Path, model: str, binary: bool) -> list[str]:
+    """The files of the other COLMAP format in ``folder / model`` (paths relative to ``folder``):
+    COLMAP reads a folder's binary model before its text one, so a stale model of the other
+    format would be read instead of this export. Refused (even with ``force``) when the export
+    did not write one of them; the caller removes them once its own model is written
+    (:func:`remove_written`)."""
+    ours = _written_before(folder)
+    stale = [f"{model}/{name}".lstrip("/") for name in colmap_files(not binary)]
+    stale = [rel for rel in stale if (folder / rel).exists() or (folder / rel).is_symlink()]
+    for rel in stale:
+        if rel not in ours:
+            raise StereoseedError(f"{folder / rel}: a COLMAP model stereoseed export did not write; COLMAP would read "
+                                  f"it instead of this {'binary' if binary else 'text'} export; move it away or give "
+                                  f"another --out")
+    return stale
+
+
+def remove_written(folder: Path, files: list[str]) -> None:
+    """Remove ``files`` the export wrote (relative to ``folder``) and take them off its manifest."""
+    for rel in files:
+        (folder / rel).unlink(missing_ok=True)
+    if files:
+        record_written(folder, [], removed=files)
 
 
 def check_names(result: Result, fmt: str, edge_space: bool = False, any_space: bool = False,
@@ -230,6 +256,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", any_space=not binary,
                  space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
     claim_folder(out, force)
+    stale = other_colmap_model(out, "", binary) if out.is_dir() else []
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
     tracks = tracks_by_point(result)
@@ -238,6 +265,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     else:
         write_colmap_text(out, cameras, images, tr, tracks, tuple(result.names[i] for i in flagged_images(result)))
     record_written(out, colmap_files(binary))
+    remove_written(out, stale)
     return logged(result.warnings + warnings + flagged_warnings(result))
 
 

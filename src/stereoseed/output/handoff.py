@@ -62,7 +62,9 @@ from stereoseed.output.export import (
     flagged_warnings,
     logged,
     skew_warning,
+    other_colmap_model,
     record_written,
+    remove_written,
     tracks_by_point,
     write_colmap_binary,
     write_colmap_text,
@@ -315,8 +317,7 @@ def _write_images(result: Result, images: list[PinholeImage], photos: dict[int, 
     for im in images:
         target = folder / result.names[im.index]
         if im.lens is None:
-            with atomic_path(target) as tmp:
-                shutil.copyfile(photos[im.index], tmp)
+            copy_as_read(photos[im.index], target)
         else:
             photo = read_image(photos[im.index])
             _check_size(photos[im.index], photo.shape[1::-1], result.sizes[im.index])
@@ -325,6 +326,27 @@ def _write_images(result: Result, images: list[PinholeImage], photos: dict[int, 
             write_image(target, cv2.remap(photo, *maps[im.camera], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
         written.append(target)
     return written
+
+
+# the EXIF block of a photo sits in its first segments, before any pixel data
+_EXIF_WITHIN_BYTES = 2**16
+
+
+def copy_as_read(photo: Path, target: Path) -> None:
+    """``photo`` copied byte for byte to ``target``, unless its EXIF orientation turns it when it
+    is read (as stereoseed read it, and its cameras are of the turned image): then its turned
+    pixels are written, which a reader that ignores EXIF sees the same way."""
+    with open(photo, "rb") as f:
+        head = f.read(_EXIF_WITHIN_BYTES)
+    if b"Exif" in head:
+        data = np.fromfile(photo, np.uint8)
+        turned = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        raw = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if turned is not None and raw is not None and (turned.shape != raw.shape or not np.array_equal(turned, raw)):
+            write_image(target, turned)
+            return
+    with atomic_path(target) as tmp:
+        shutil.copyfile(photo, tmp)
 
 
 def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cfg: HandoffConfig,
@@ -351,6 +373,7 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
     out = Path(out_dir)
     fmt = "COLMAP's binary model" if binary else "COLMAP's text model"
     images, warnings, photos = _prepare(result, out, fmt, image_sources, force, cfg, any_space=not binary)
+    stale = other_colmap_model(out, "sparse/0", binary) if out.is_dir() else []
     sparse = [f"sparse/0/{name}" for name in colmap_files(binary)]
     record_written(out, [f"images/{result.names[im.index]}" for im in images] + sparse)
     written = _write_images(result, images, photos, out / "images")
@@ -376,6 +399,7 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
         flagged = tuple(result.names[i] for i in flagged_images(result) if image_id[i])
         write_colmap_text(out / "sparse" / "0", cams, rows, tr, tracks, flagged)
     written += [out / p for p in sparse]
+    remove_written(out, stale)
     return Handoff(len(images), len(cameras), len(tr["point_xyz"]), any(im.lens is not None for im in images),
                    written, logged(result.warnings + warnings))
 

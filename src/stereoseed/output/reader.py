@@ -165,12 +165,28 @@ _TRACKS = {"point_xyz": ("f", ("P", 3)), "point_rgb": ("u1", ("P", 3)), "point_e
            "keypoints_xy": ("f", ("K", 2)), "keypoints_offset": ("i", ("N+1",))}
 
 
+# tracks.npz is written compressed, and its coordinates barely compress: its arrays take a few
+# times the archive's size unpacked. One whose members declare more than this many times it is no
+# archive of ours (a zip bomb inflates a thousandfold), refused before anything is decompressed
+MAX_TRACKS_INFLATION = 100
+_ANY_RATIO_BYTES = 64 * 2**20  # unpacked sizes below this are read whatever the ratio: little memory
+
+
+def _refuse_inflation(npz: Any, packed: int) -> None:
+    # the sizes the archive's directory declares: zipfile stops a member's output at its size
+    unpacked = sum(info.file_size for info in npz.zip.infolist())
+    if unpacked > max(_ANY_RATIO_BYTES, MAX_TRACKS_INFLATION * packed):
+        raise _Bad(f"its arrays declare {unpacked} bytes unpacked, {unpacked // max(packed, 1)} times the archive "
+                   f"(one written by stereoseed: a few times)")
+
+
 def _tracks(path: Path, n_images: int, registered: list[bool]) -> dict[str, np.ndarray]:
     """tracks.npz's arrays, each of the dtype and shape docs/formats.md gives, every index in range."""
     try:
         with np.load(path, allow_pickle=False) as npz:
             if not isinstance(npz, np.lib.npyio.NpzFile):
                 raise _Bad("not an .npz archive")
+            _refuse_inflation(npz, path.stat().st_size)  # before a member is decompressed
             tracks = {k: npz[k] for k in npz.files}
     except _Bad:
         raise

@@ -153,8 +153,15 @@ class ResultSet:
     def check(self) -> None:
         """Refuse, before any work: an output path that is a file, a folder holding files
         stereoseed did not write, a place where nothing can be written."""
+        if os.path.islink(self.path):  # realpath stopped at it: a loop of links (a dangling one resolves)
+            raise StereoseedError(f"{self.shown}: is a symbolic link that leads to no folder (a loop of links); "
+                                  f"remove it or give a folder for the results")
         if self.path.exists() and not self.path.is_dir():
             raise StereoseedError(f"{self.shown}: exists and is not a folder; give a folder for the results")
+        if os.path.ismount(self.path):  # the results are renamed into place: a mount point cannot be
+            raise StereoseedError(f"{self.shown}: is a mount point (a volume); the results are swapped in by "
+                                  f"renaming, which a mount point refuses: give a folder inside it, e.g. "
+                                  f"{self.shown / 'results'}")
         if self.path.is_dir():
             foreign = _foreign(self.path, (self._listed() or set()) | {MANIFEST})
             if foreign:
@@ -206,7 +213,9 @@ class ResultSet:
                 write_json(self.staging / STAGING_MARKER, {"stereoseed": "staging folder", "result": str(self.path)})
             else:
                 for entry in self.staging.iterdir():
-                    if entry.name != STAGING_MARKER and entry.name not in keep:
+                    if entry.name != STAGING_MARKER and (entry.name not in keep or not _plain(entry)):
+                        if entry.name in keep:  # reading a FIFO planted as the checkpoint would wait forever
+                            log.warning("%s: not a file or folder stereoseed writes; removed", entry)
                         _remove(entry)
         except OSError as e:
             raise StereoseedError(f"{self.staging}: cannot write ({e.strerror or e}); give a writable folder") from None
@@ -224,21 +233,51 @@ class ResultSet:
         os.chmod(self.staging, 0o777 & ~_read_umask())  # a folder of the user's, as mkdir makes it
         if self.path.exists() and _exchange(self.staging, self.path):
             shutil.rmtree(self.staging)  # the previous result set, swapped out
-        else:
-            old = None
+            return self.path
+        old = None
+        try:
             if self.path.exists():
                 old = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".old", dir=self.path.parent))
                 os.replace(self.path, old)  # onto the empty folder just made: a name nobody else uses
             os.replace(self.staging, self.path)
-            if old is not None:
-                shutil.rmtree(old, ignore_errors=True)
+        except OSError as e:  # the swap refused (a mount point made since check(), a busy folder)
+            self._undo_swap(old)
+            raise StereoseedError(f"{self.shown}: the results could not be moved into place ({e.strerror or e}); "
+                                  f"they stay in {self.staging} (the previous results are untouched); give "
+                                  f"another --out") from None
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
         return self.path
+
+    def _undo_swap(self, old: Path | None) -> None:
+        """After a failed swap: the previous result set back under its name, the empty ``.old``
+        folder gone, the staging folder marked as stereoseed's again (the next run empties it;
+        unmarked it would be refused as the user's)."""
+        try:
+            if old is not None:
+                if not self.path.exists() and any(old.iterdir()):
+                    os.replace(old, self.path)
+                else:
+                    old.rmdir()
+            if self.staging.is_dir():
+                write_json(self.staging / STAGING_MARKER, {"stereoseed": "staging folder", "result": str(self.path)})
+        except (OSError, StereoseedError):
+            log.warning("%s: could not be put back as it was after the failed swap", self.shown, exc_info=True)
 
     def abandon(self) -> None:
         """Forget the staging folder (the result folder is untouched); only a folder that
         stereoseed made is removed."""
         if self._ours():
             shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def _plain(entry: Path) -> bool:
+    """Whether ``entry`` is a regular file or a real folder (not a link, a FIFO, a socket, a device)."""
+    try:
+        mode = os.lstat(entry).st_mode
+    except OSError:
+        return False
+    return stat.S_ISREG(mode) or stat.S_ISDIR(mode)
 
 
 def staging_folder(path: Path) -> Path:
