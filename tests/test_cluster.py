@@ -343,13 +343,13 @@ def test_pool_workers_die_with_their_parent():
     import signal
     import sys
 
-    from stereoseed.cluster import _die_with_parent
+    from stereoseed.cluster import die_with_parent
 
     if not sys.platform.startswith("linux"):
         pytest.skip("PR_SET_PDEATHSIG is Linux-only")
 
     def child(q):
-        _die_with_parent(os.getppid())
+        die_with_parent(os.getppid())
         sig = ctypes.c_int(0)
         ctypes.CDLL(None).prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
         q.put(sig.value)

@@ -492,7 +492,7 @@ def _start_worker(parent_pid: int, cores: int, board: Any = None, claim: Any = N
     pool's board (a pid of 0), where it notes each job it starts."""
     global _board, _place
     limit_chunks(cores)
-    _die_with_parent(parent_pid)
+    die_with_parent(parent_pid)
     if board is None:
         return
     with claim:
@@ -519,7 +519,7 @@ def fork_context():
     return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
 
 
-def _die_with_parent(parent_pid: int) -> None:
+def die_with_parent(parent_pid: int) -> None:
     """Pool initializer: have the kernel SIGKILL this worker when its parent dies (Linux only;
     elsewhere a no-op). The signal follows the thread that started the worker, which is the one
     running the jobs' caller (or, for a pool started after a worker's death, the pool's watchdog)

@@ -293,9 +293,9 @@ class _Claimed:
 def _compile_in_turn(folder: str, names: list[str], parent: int) -> None:
     """A helper process: compile each kernel of ``names`` that no process has claimed, in that
     order, noting the CPU seconds each took; those another process claimed are left to it."""
-    from stereoseed.cluster import _die_with_parent
+    from stereoseed.cluster import die_with_parent
 
-    _die_with_parent(parent)  # as the dense stage's workers: it dies with the run, and leaves Ctrl-C to it
+    die_with_parent(parent)  # as the dense stage's workers: it dies with the run, and leaves Ctrl-C to it
     for name in names:
         fd = _claim(os.path.join(folder, name), wait=False)
         if fd is None:

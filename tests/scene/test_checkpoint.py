@@ -396,3 +396,14 @@ def test_a_resumed_run_keeps_the_flags_its_registrations_raised(plain_box_scene,
     # what placed each camera, which the judgement in hindsight reads, as the reports said
     placed_by = [r.get("registered_by") for r in first["per_image"][2:]]
     assert [v.found_by for v in recon.views[2:]] == placed_by and "motion prior" in placed_by
+
+
+def test_a_fifo_planted_as_the_checkpoint_is_refused_without_waiting(saved, caplog):
+    # opened for reading, a FIFO blocks until someone writes to it: the resume would hang
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this system")
+    saved.path.unlink()
+    os.mkfifo(saved.path, 0o600)
+    with caplog.at_level(logging.WARNING):
+        assert _load(saved) is None
+    assert "not a file" in caplog.text

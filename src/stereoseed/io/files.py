@@ -180,7 +180,7 @@ def captured_stderr():
 _CV_LOG_PREFIX = re.compile(r"^\[\s*\w+:[^\]]*\]\s*(?:global\s+)?\S+:\d+\s+\S+\s+")
 
 
-def _decoder_detail(stderr_text: str, error: Exception | None) -> str:
+def decoder_detail(stderr_text: str, error: Exception | None) -> str:
     """What the decoders said, as a short one-line text ('' when nothing)."""
     said = [_CV_LOG_PREFIX.sub("", ln).strip() for ln in stderr_text.splitlines()]
     if error is not None:
@@ -218,7 +218,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
             image, error = None, e
     if image is None or image.size == 0:
         kind = _image_format(data)
-        detail = _decoder_detail("".join(stderr_text), error)
+        detail = decoder_detail("".join(stderr_text), error)
         what = (f"a damaged or truncated {kind} file" if kind else "not an image format it reads")
         raise StereoseedError(f"{path}: not a readable image (OpenCV cannot decode it: {what}"
                               + (f": {detail}" if detail else "")

@@ -21,7 +21,7 @@ import numpy as np
 
 from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import _decoder_detail, captured_stderr, write_image
+from stereoseed.io.files import decoder_detail, captured_stderr, write_image
 
 __all__ = ["Keyframe", "read_keyframes", "read_rig_keyframes", "sharpness"]
 
@@ -140,9 +140,9 @@ def _read(path: Path, read) -> list[Keyframe]:
     try:
         keyframes, frames, announced = read(path, said)
     except StereoseedError as e:
-        detail = _decoder_detail("".join(said), None)
+        detail = decoder_detail("".join(said), None)
         raise StereoseedError(f"{e}" + (f" (the decoder said: {detail})" if detail else "")) from None
-    detail = _decoder_detail("".join(said), None)
+    detail = decoder_detail("".join(said), None)
     if detail:
         log.debug("%s: the decoder said: %s", path.name, detail)
     if announced > 0 and frames < announced - 1:  # a frame's slack: containers round their count

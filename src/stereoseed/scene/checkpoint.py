@@ -285,7 +285,10 @@ def _checked_members(zf: zipfile.ZipFile) -> dict[str, str]:
 def _read(path: Path, key: str) -> dict[str, np.ndarray]:
     """The checkpoint's arrays once its owner, permissions, container and signature are checked
     (the signature before any of them is interpreted). FileNotFoundError when there is none."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0))
+    # non-blocking: a FIFO planted as the checkpoint would otherwise wait for a writer forever;
+    # a regular file reads as usual (the flag only matters for the open)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0)
+                 | getattr(os, "O_NONBLOCK", 0))
     with os.fdopen(fd, "rb") as fh:
         st = os.fstat(fh.fileno())  # the file opened, not whatever the name points to later
         if not stat.S_ISREG(st.st_mode):

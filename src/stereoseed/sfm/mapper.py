@@ -90,8 +90,11 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
         view.features = source.features(i, view.image)
         view.point_of_feature = np.full(len(view.features), -1, np.int64)
         if len(view.features) == 0:
-            raise StereoseedError(f"{names[i]}: no interest points (a blank or black image?); the calibrated pair "
-                                  f"must show the object")
+            h, w = view.image.shape[:2]
+            border = cfg.features.border
+            why = (f"the features' border of {border} px leaves nothing of a {w}x{h} image; lower [features] border"
+                   if 2 * border >= min(w, h) else "a blank or black image?")
+            raise StereoseedError(f"{names[i]}: no interest points ({why}); the calibrated pair must show the object")
     _check_pair(recon, source, cfg)
     m = _match_known(recon, source, 0, 1)
     _refine(recon, source, 0, 1, m)
