@@ -25,8 +25,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stereoseed.features.config import FeatureConfig
-from stereoseed.matching.config import MatchingConfig, PropagationConfig
-from stereoseed.matching.ordering import OrderingConfig
+from stereoseed.matching.config import MatchingConfig, OrderingConfig, PropagationConfig
 from stereoseed.estimators.config import TriangulationConfig, ResectionConfig, BundleConfig
 from stereoseed.dense.config import DenseConfig, MeshConfig
 from stereoseed.io.config import VideoConfig

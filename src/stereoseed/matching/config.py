@@ -7,9 +7,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from stereoseed.validation import positive, in_range, one_of
+from stereoseed.validation import positive, in_range, one_of, whole
 
-__all__ = ['MatchingConfig', 'PropagationConfig']
+__all__ = ['MatchingConfig', 'PropagationConfig', 'OrderingConfig']
 
 
 # a patch wider than this compares regions, not points (the paper's is 11 x 11), and no corner
@@ -122,3 +122,35 @@ class PropagationConfig:
         in_range(self, "min_zncc", -1.0, 1.0)
         positive(self, "neighbourhood", "epipolar_band_px")
         one_of(self, "subpixel_method", ("affine", "quadratic"))
+
+
+@dataclass(frozen=True)
+class OrderingConfig:
+    # "auto": a folder's photos (their names' order is the file system's) are put in walk order;
+    # a list is run as written (someone wrote that order). "images": any input is. Either way a
+    # given order that the overlaps show to be a walk is kept. "as-given": never reordered.
+    # (Folders only by default: matching every pair costs 1-3 s on a 14-image walk, a third of
+    # the whole run the speed section times.)
+    mode: str = "auto"
+    # thumbnails' long side (px): SIFT needs a few hundred features per view (ORB found too few
+    # on the temple's white plaster); a 24-megapixel photo is matched at a 1/8 of its size
+    thumbnail_px: int = 640
+    features: int = 1500  # SIFT features per thumbnail: about what the sparse matcher keeps per image
+    ratio: float = 0.8  # Lowe's ratio test (IJCV 2004: 0.8 drops 90 % of false matches)
+    ransac_px: float = 2.0  # the robust F's threshold on thumbnails (a pixel and a half of 640 px)
+    # two thumbnails overlap when at least this many matches agree on one F (a robust F of 8 points
+    # with a few more to spare: fewer agree by chance among a thousand matches)
+    min_inliers: int = 20
+    # a given order is replaced only when the recovered walk's total overlap is this many times its
+    # own (or the given order has a step without overlap): a walk in order is not second-guessed
+    replace_factor: float = 1.25
+    # every pair is matched (n^2 / 2): above this many images the order is kept as given
+    max_images: int = 200
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("auto", "images", "as-given"):
+            raise ValueError(f"OrderingConfig.mode must be 'auto', 'images' or 'as-given', got {self.mode!r}")
+        whole(self, "thumbnail_px", "features", "min_inliers", "max_images", minimum=8)
+        positive(self, "ratio", "ransac_px", "replace_factor")
+        if not self.ratio < 1.0:
+            raise ValueError(f"OrderingConfig.ratio must be < 1, got {self.ratio!r}")
