@@ -21,8 +21,9 @@ def _cmd_fetch(args: argparse.Namespace) -> int:
 def _cmd_list(args: argparse.Namespace) -> int:
     from stereoseed.io.sample_data import default_data_dir, offline_mirror, sample_status
 
-    width = max(len(name) for name in (s.name for s in sample_status(args.dir)))
-    for s in sample_status(args.dir):
+    sets = sample_status(args.dir)
+    width = max(len(s.name) for s in sets)
+    for s in sets:
         where = str(s.where) if s.where else ("absent: stereoseed data fetch " + s.name if s.fetchable
                                               else "absent; not fetchable yet (no checksums recorded)")
         say(f"{s.name:<{width}}  {s.about}\n{'':<{width}}  {where}")
