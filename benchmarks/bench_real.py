@@ -20,9 +20,9 @@ from typing import NamedTuple
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.io.files import read_middlebury_par
+from stereoseed.io.sample_data import find_sample, missing_message
 from stereoseed.pipeline import load_sequence, reconstruct
 
 class Walk(NamedTuple):
@@ -65,9 +65,9 @@ def run_set(name: str, cfg: Config = Config()) -> dict:
 def run_walk(walk: Walk, cfg: Config = Config()) -> dict:
     """One walk: per image its status, how it was placed, its flag (when the run gives one)
     and its camera-centre error; the summary over the placed images."""
-    seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
-    if not seq.is_dir():
-        return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
+    seq = find_sample(walk.folder)  # $STEREOSEED_DATA, else ../shared/data, else what data fetch wrote
+    if seq is None:
+        return {"skipped": missing_message(walk.folder)}
     recon, report, seconds = reconstruct_listed([seq / n for n in walk_images(seq, walk)], seq / walk.par, cfg)
     return set_figures(recon, report, read_middlebury_par(seq / walk.par), seconds)
 

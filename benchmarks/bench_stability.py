@@ -36,9 +36,9 @@ import numpy as np
 
 from bench_real import SETS, Walk, walk_images, reconstruct_listed, set_figures
 from stereoseed.config import Config
-from stereoseed.experiments.paper import shared_data_dir
 from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import read_image, read_middlebury_par
+from stereoseed.io.sample_data import find_sample, missing_message
 
 NOISE_SEED = 47
 # a camera is stable when it moves by at most this many of its stated sigmas (issue #47)
@@ -81,9 +81,9 @@ def write_copy(paths: list[Path], folder: Path, encode) -> list[Path]:
 def run_walk(walk: Walk, copies: list[str] | None = None, count: int | None = None, cfg: Config = Config()) -> dict:
     """One walk (its first ``count`` images when given) from its images and from each copy
     (:data:`COPIES`' names): the figures per copy and per camera, the walk's summary."""
-    seq = shared_data_dir() / walk.folder  # $STEREOSEED_DATA, else ../shared/data
-    if not seq.is_dir():
-        return {"skipped": f"{seq} not found (set STEREOSEED_DATA)"}
+    seq = find_sample(walk.folder)  # $STEREOSEED_DATA, else ../shared/data, else what data fetch wrote
+    if seq is None:
+        return {"skipped": missing_message(walk.folder)}
     paths = [seq / n for n in walk_images(seq, walk)[:count]]
     truth = read_middlebury_par(seq / walk.par)
     runs = {}

@@ -7,17 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stereoseed.experiments.paper import noisy_images, shared_data_dir
+from stereoseed.experiments.paper import noisy_images
+from stereoseed.io.sample_data import find_sample, missing_message
 from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene
 
 
 # --- SHARED_DATA ------------------------------------------------------------------------------
 def _sequence_dir(name: str) -> Path:
-    path = shared_data_dir() / name
-    if not path.is_dir():
-        pytest.skip(
-            f"../shared/data/{name} not found; set STEREOSEED_DATA to the folder holding it"
-        )
+    path = find_sample(name)  # $STEREOSEED_DATA, else ../shared/data, else what data fetch wrote
+    if path is None:
+        pytest.skip(missing_message(name))
     return path
 
 

@@ -4,7 +4,6 @@ OpenCV's own, the calibration against OpenCV's on the same corners. Skipped when
 absent ($STEREOSEED_DATA, else ../shared/data beside the repository)."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -17,17 +16,17 @@ from stereoseed.calibration.intrinsics import plane_coordinates, shared_face_boa
 from stereoseed.calibration.rig import calibrate_cameras
 from stereoseed.calibration.target import load_target
 from stereoseed.errors import StereoseedError
+from stereoseed.io.sample_data import find_sample, missing_message
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SHOTS = list(range(0, 24, 2))  # every other shot: all kinds of views (one face, two, three, blurred)
 
 
 def _data(name: str) -> Path:
-    env = os.environ.get("STEREOSEED_DATA")
-    root = Path(env).expanduser() if env else Path(__file__).resolve().parents[3] / "shared" / "data"
-    if not (root / name).is_dir():
-        pytest.skip(f"../shared/data/{name} not found; set STEREOSEED_DATA to the folder holding it")
-    return root / name
+    folder = find_sample(name)  # $STEREOSEED_DATA, else ../shared/data, else what data fetch wrote
+    if folder is None:
+        pytest.skip(missing_message(name))
+    return folder
 
 
 @pytest.fixture(scope="module")

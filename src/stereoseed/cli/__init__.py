@@ -21,7 +21,7 @@ import warnings
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # the commands' modules import NumPy: after the BLAS setting
-from stereoseed.cli import calibration, mesh, reconstruct, results, tools  # noqa: E402
+from stereoseed.cli import calibration, data, mesh, reconstruct, results, tools  # noqa: E402
 from stereoseed.cli._terminal import complain, warn  # noqa: E402
 from stereoseed.errors import StereoseedError  # noqa: E402
 
@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for commands in (calibration, reconstruct, results, tools, mesh):
+    for commands in (calibration, reconstruct, results, tools, mesh, data):
         commands.register(sub)
     parser.epilog = _epilog(set(sub.choices))
     return parser

@@ -117,12 +117,9 @@ SEQUENCE_TITLES = {"box14": "synthetic box, 14-image ring", "box18": "synthetic 
 def shared_data_dir() -> Path:
     """Folder of the real sequences: $STEREOSEED_DATA, else ``shared/data`` beside the checkout
     (src/stereoseed/__init__.py -> the folder holding the repository)."""
-    env = os.environ.get("STEREOSEED_DATA")
-    if env:
-        return Path(env).expanduser().resolve()
-    import stereoseed
+    from stereoseed.io.sample_data import offline_mirror
 
-    return Path(stereoseed.__file__).resolve().parents[3] / "shared" / "data"
+    return offline_mirror()
 
 
 def _progression(n: int) -> tuple[int, ...]:
