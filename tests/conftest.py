@@ -32,6 +32,12 @@ def dino_dir() -> Path:
     return _sequence_dir("dinoSparseRing")
 
 
+@pytest.fixture(scope="session")
+def fountain_dir() -> Path:
+    """Strecha's fountain-P11 folder; skips the test when it is absent."""
+    return _sequence_dir("strechaFountainP11")
+
+
 # --- synthetic scenes, rendered once per session ----------------------------------------------
 @pytest.fixture(scope="session")
 def box_scene() -> SyntheticScene:

@@ -41,9 +41,11 @@ def test_castle_cameras_a_window_period_off_are_registered_again_between_their_n
         assert "repeated structure" in entry[name]["first_registration"]["flag"]
     # every camera more than 1 % of the distance off is flagged; the unflagged median within 0.2 %
     assert _right_or_flagged(r)
-    # all 19 placed and unflagged (the pair's two and 17 estimated): 0018's rival camera, 1.2 m
-    # over, is told apart by the propagated matches' epipolar geometry
-    assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] == 17
+    # all 19 placed (0018's rival camera, 1.2 m over, is told apart by the propagated matches'
+    # epipolar geometry), all unflagged but the last, 0018: the motion prior's, with no camera
+    # after it to confirm it (trust.unconfirmed_cameras; 27 mm, 0.06 % off)
+    assert r["unflagged"]["median_pct"] < 0.2 and r["unflagged"]["count"] == 16
+    assert "no later camera confirms it" in entry["0018.jpg"]["flag"]
 
 
 def test_fountain_is_placed_to_a_tenth_of_a_percent():
@@ -56,7 +58,9 @@ def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
     # dinoRing1-24 every 2nd view (the lens never zoomed): a 1 % zoom taken on the first insertion
     # drifted the walk by 37 mm; zooms of 4-24 % that the view measures to 1-2 % are not taken
     r = _run(bench_real.SETS["dinoRing1-24/2"])
-    assert r["registered"] == 12 and r["unflagged"]["count"] >= 8
+    # (dino0019, the motion prior's, is flagged weak: the two after it are flagged themselves, so
+    # nothing confirms it; 1.3 mm off)
+    assert r["registered"] == 12 and r["unflagged"]["count"] >= 7
     assert r["unflagged"]["median"] < 0.002 and r["unflagged"]["worst"] < 0.005
     third = _run(bench_real.SETS["dinoRing1-24/3"])
     # every 3rd view: 0022, registered on quasi-dense matches 8 mm off, keeps 22 observations of
@@ -67,7 +71,8 @@ def test_weak_texture_zooms_the_window_cannot_measure_are_refused():
 
 def test_dino_sparse_ring_and_temple_keep_their_millimetre(temple_run):
     dino = _run(bench_real.SETS["dinoSparseRing"])
-    assert dino["unflagged"]["count"] >= 12 and dino["unflagged"]["worst"] < 0.005
+    # (dinoSR0006, the motion prior's, the last placed: the two after it fail, nothing confirms it)
+    assert dino["unflagged"]["count"] >= 11 and dino["unflagged"]["worst"] < 0.005
     recon, report, truth = temple_run  # the session's temple walk: the set's own run, as bench_real does it
     temple = bench_real.set_figures(recon, report, {v.name: P for v, P in zip(recon.views, truth)})
     assert temple["registered"] == 16 and temple["unflagged"]["median"] < 0.0015
@@ -94,7 +99,8 @@ def test_a_part_of_the_walk_resting_on_a_flagged_camera_is_flagged():
     r = _run(bench_walks.WALKS["dinoSparseRing backwards from its 12th"])
     entry = _by_image(r)
     for name in ("dinoSR0012.png", "dinoSR0011.png", "dinoSR0010.png", "dinoSR0009.png"):
-        assert "no chain of the cameras the run vouches for" in entry[name].get("flag", ""), entry[name]
+        # weak (not tied to the pair, or too few ties to check) or uncertain: flagged either way
+        assert entry[name].get("flag", "").startswith(("weak: ", "uncertain: ")), entry[name]
     assert _right_or_flagged(r)
     assert r["unflagged"]["count"] >= 5 and r["unflagged"]["worst"] < 0.005
 
@@ -105,7 +111,8 @@ def test_a_view_placed_by_propagated_matches_the_next_cannot_follow_is_withdrawn
     r = _run(bench_walks.WALKS["strechaCastleP19 from 0008"])
     entry = _by_image(r)
     assert entry["0013.jpg"]["status"] == "failed" and "placed by the propagated matches alone" in entry["0013.jpg"]["reason"]
-    assert r["registered"] >= 10 and r["unflagged"]["count"] >= 8
+    # (the last, 0018, the motion prior's with nothing after it, is flagged weak: 0.2 % off)
+    assert r["registered"] >= 10 and r["unflagged"]["count"] >= 7
     assert _right_or_flagged(r)
 
 
@@ -120,6 +127,8 @@ def test_a_camera_its_neighbours_place_elsewhere_is_registered_again():
     assert _right_or_flagged(r)
     assert r["unflagged"]["count"] >= 6
     # without that judgement, nothing said so (TrustConfig.judge_between_neighbours)
+    # without that judgement, the camera is still not vouched for: its σ, counted honestly, puts
+    # 3σ beyond 1 % of its distance (it was flagged by nothing before)
     off = _run(bench_walks.WALKS["strechaCastleP19 from 0010"], Config().replace(trust={"judge_between_neighbours": False}))
     entry = _by_image(off)["0016.jpg"]
-    assert "flag" not in entry and entry["centre_error_pct"] > 5
+    assert entry["centre_error_pct"] > 5 and entry["flag"].startswith("uncertain: 3-sigma position")

@@ -56,11 +56,10 @@ def test_an_order_the_images_cannot_support_end_to_end_is_left_as_given(monkeypa
     assert "show no overlap" in doubt and "list them in the order they were taken" in doubt
 
 
-def test_the_fountain_shuffled_is_put_back_in_walk_order():
+def test_the_fountain_shuffled_is_put_back_in_walk_order(fountain_dir):
     import cv2
-    from conftest import _sequence_dir
 
-    folder = _sequence_dir("strechaFountainP11")
+    folder = fountain_dir
     names = sorted(p.name for p in folder.glob("*.jpg"))
     perm = [0, 1] + random.Random(2).sample(range(2, len(names)), len(names) - 2)
     thumbs = [thumbnail(cv2.imread(str(folder / names[i])), 640) for i in perm]
