@@ -93,3 +93,12 @@ def test_the_words_of_each_verdict():
         "ends not seen together (only 3 points)"
     assert describe_loop({"closed": False, "reason": "old"}) == "not closed (old)"  # a report from before
 
+
+def test_the_report_page_puts_only_a_real_failure_in_bold():
+    from stereoseed.output.report.html import _loop_text
+
+    judged = {"gap": 0.0012, "gap_percent": 0.037, "uncertainty": 0.0005, "gap_sigmas": 3.0, "ends": ["a", "b"]}
+    failed = _loop_text({**judged, "verdict": NOT_CLOSED, "closed": False}, "m")
+    assert failed.startswith("not closed: gap 1.2 mm") and "font-weight:normal" not in failed
+    for verdict in (CLOSED, NOT_A_LOOP):
+        assert "font-weight:normal" in _loop_text({**judged, "verdict": verdict, "closed": verdict == CLOSED}, "m")
