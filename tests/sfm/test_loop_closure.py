@@ -7,7 +7,7 @@ import pytest
 
 from ring_helpers import centre_errors, walked
 from stereoseed.config import Config
-from stereoseed.sfm.loop_closure import CLOSED, NOT_A_LOOP, NOT_CLOSED, describe_loop
+from stereoseed.sfm.loop_closure import CLOSED, NOT_A_LOOP, NOT_CLOSED, NOT_SEEN, describe_loop
 from stereoseed.sfm.mapper import finish
 
 
@@ -72,6 +72,14 @@ def test_a_wrong_last_camera_is_not_a_closed_loop_and_its_gap_is_said(walked_rin
     text = describe_loop(closure)
     assert text.startswith("not closed: gap 0.0") and "% of the loop" in text and "beyond what the cameras measure" in text
     assert "not closed: gap" in caplog.text
+
+
+def test_ends_sharing_too_few_points_are_not_judged(walked_ring):
+    # a ring whose ends share fewer points than a gap needs: neither closed nor a failure
+    recon, _, _, source = copy.deepcopy(walked_ring)
+    closure = finish(recon, Config().replace(loop_closure={"min_gap_points": 10 ** 6}), source)["loop_closure"]
+    assert not closure["closed"] and closure["verdict"] == NOT_SEEN and "gap" not in closure
+    assert describe_loop(closure).startswith("ends not seen together (only 1821 points measured")
 
 
 def test_an_open_walk_is_not_called_closed():
