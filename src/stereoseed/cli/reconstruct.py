@@ -77,8 +77,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     for name, reason in flagged.items():
         say(f"flagged: {name}: {reason}")
     loop = report["final"].get("loop_closure") or {}
-    if loop.get("links") and not loop.get("closed"):
-        say(f"loop closure: {loop.get('reason')}")
+    if loop:
+        from stereoseed.output.report.measure import length_text
+        from stereoseed.sfm.loop_closure import describe_loop
+
+        say(f"loop closure: {describe_loop(loop, lambda x: length_text(x, report.get('unit')))}")
     if "mesh" in report:
         say(f"mesh: {report['mesh'].get('faces')} faces ({Path(args.out) / 'mesh.ply'}, shown in report.html)")
     if "dense" in report:

@@ -153,7 +153,8 @@ class TrackingConfig:
 @dataclass(frozen=True)
 class LoopClosureConfig:
     """Accurate mode: the last views matched against the first ones, tracks linked or merged,
-    then a global BA."""
+    then a global BA; the gap between the two ends measured and judged at the end of the run
+    (:func:`stereoseed.sfm.loop_closure.judge_loop`)."""
 
     span: int = 3  # the last `span` registered views against the first `span`
     min_matches: int = 20  # fewer matches between two views: no evidence of a shared point
@@ -164,10 +165,23 @@ class LoopClosureConfig:
     # a link is accepted within this multiple of ResectionConfig.ransac_threshold_px (the drift
     # has not been adjusted away yet)
     link_threshold_factor: float = 4.0
+    # The loop is closed when the gap measured between its ends is within this many of its
+    # combined 1-sigma (the two end cameras' position sigmas and the gap's own standard error):
+    # the norm of a 3-D Gaussian error exceeds 3 of its sigmas by chance in ~3 % of runs (the
+    # trust module's 3-sigma bound likewise)
+    gap_sigmas: float = 3.0
+    # fewer first/last points measured between two end views: the gap's median rests on a
+    # handful of matches, which a few wrong ones can set; such a pair is not evidence either way
+    min_gap_points: int = 20
+    # a pair of end views is a loop's ends when the walk between them is at least this many times
+    # their straight distance: a ring's ends are one or two steps apart after the whole ring
+    # (16 views: 6-14 times), while no walk along an arc of less than ~260 degrees comes to 3
+    # (a half circle: pi/2; Strecha's fountain, facing one wall: 1.1)
+    min_detour: float = 3.0
 
     def __post_init__(self) -> None:
-        whole(self, "span", "min_matches")
-        positive(self, "merge_distance", "link_threshold_factor")
+        whole(self, "span", "min_matches", "min_gap_points")
+        positive(self, "merge_distance", "link_threshold_factor", "gap_sigmas", "min_detour")
         in_range(self, "max_axis_angle_deg", 0.0, 180.0)
 
 

@@ -15,6 +15,7 @@ from stereoseed.scene.camera_life import Flag
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc
 from stereoseed.sfm.hindsight import contradicted_by_neighbours, register_again
+from stereoseed.sfm.loop_closure import judge_loop
 from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.trust import Verdicts, contradicted_cameras, judge
 
@@ -28,7 +29,8 @@ def finish(recon: Reconstruction, cfg: Config = Config(), source: Correspondence
     global BA, the no-zoom hold; paper: a global BA only with ``ba="final"``); a camera that its
     neighbours place clearly better elsewhere registered again there
     (:func:`stereoseed.sfm.hindsight.register_again`); the cameras left undetermined dropped;
-    then each camera judged (:func:`judge_cameras`). Returns the JSON-able report."""
+    then each camera judged (:func:`judge_cameras`), and the loop with the cameras' uncertainty
+    (:func:`stereoseed.sfm.loop_closure.judge_loop`). Returns the JSON-able report."""
     t = time.perf_counter()
     cfg = cfg.resolve()
     out = mode_of(cfg, recon).finish(recon, cfg, source or HarrisZncc(cfg))
@@ -46,6 +48,8 @@ def finish(recon: Reconstruction, cfg: Config = Config(), source: Correspondence
     if between is None:  # the model moved since the neighbours judged it
         between = contradicted_by_neighbours(recon, cfg, doubted=set(contradicted_cameras(recon, cfg)))
     out["trust"] = _applied(recon, judge(recon, cfg, between), cfg)
+    if isinstance(out.get("loop_closure"), dict):  # judged once every camera has its uncertainty
+        judge_loop(recon, cfg, out["loop_closure"])
     out["seconds"] = time.perf_counter() - t
     return out
 

@@ -36,7 +36,8 @@ from stereoseed.geometry.projection import camera_center
 from stereoseed.io.atomic import jsonable, write_text
 from stereoseed.output.report.figures import (figure_3d, figure_path, figure_reprojection, figure_times,
                              finite_cloud, insertions, finite_number, optional_part, registered_cameras, scene_frame)
-from stereoseed.output.report.measure import MEASURE_SCRIPT, unit_label
+from stereoseed.output.report.measure import MEASURE_SCRIPT, length_text, unit_label
+from stereoseed.sfm.loop_closure import describe_loop
 from stereoseed.output.result_set import result_name
 
 __all__ = ["write_report_html", "render_report_html"]
@@ -136,8 +137,19 @@ def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
     items += _times(report, dense)
     loop = (report.get("final") or {}).get("loop_closure") if isinstance(report.get("final"), dict) else None
     if isinstance(loop, dict):
-        items.append(("loop closure", "closed" if loop.get("closed") else html.escape(f"not closed ({loop.get('reason', '')})")))
+        items.append(("loop closure", _loop_text(loop, report.get("unit") if isinstance(report.get("unit"), str) else None)))
     return "".join(f'<div class="kv"><span>{html.escape(k)}</span><b>{v}</b></div>' for k, v in items)
+
+
+def _loop_text(loop: dict[str, Any], unit: str | None) -> str:
+    """The loop closure's verdict and gap (HTML): "not closed" in bold only when the gap is beyond
+    what the cameras measure (a real failure); the other verdicts say what the run could not show."""
+    try:
+        text = describe_loop(loop, lambda x: length_text(x, unit))
+    except (KeyError, TypeError, ValueError):  # a report.json edited or from another version
+        text = "closed" if loop.get("closed") else f"not closed ({loop.get('reason', '')})"
+    verdict = loop.get("verdict", "closed" if loop.get("closed") else "not closed")
+    return html.escape(text) if verdict == "not closed" else f'<span style="font-weight:normal">{html.escape(text)}</span>'
 
 
 def _times(report: dict[str, Any], dense: dict[str, Any] | None) -> list[tuple[str, str]]:
