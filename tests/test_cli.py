@@ -194,14 +194,19 @@ def test_no_writer_writes_over_its_input(scene_files, tmp_path, capsys):
             (["export", tmp_path, "--format", "colmap", "--out", tmp_path], "is also an input"),
             # the derived name on a file of the user's that is no input: their target, say, copied there
             (["calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json"],
-             f"{target}: exists and is not a target stereoseed calibrate wrote")):
+             f"{target}: exists and stereoseed did not write it")):
         code, _, err = run(capsys, *args)
         assert code == 2 and one_line_error(err) and says in err, (args, err)
     assert _unchanged([points, target, image]) == before
     assert not (tmp_path / "calib.json").exists()
-    from stereoseed.api import REFINED_TARGET_NOTE  # one an earlier calibrate wrote is its to replace
+    from stereoseed.api import REFINED_TARGET_NOTE
+    from stereoseed.io.outputs import record_written_file
 
+    # the refined target's note is no proof: the user's copy of an earlier one, edited, holds it too
     target.write_text(json.dumps({"unit": "mm", "note": REFINED_TARGET_NOTE, "faces": []}))
+    code, _, err = run(capsys, "calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json")
+    assert code == 2 and f"{target}: exists and stereoseed did not write it" in err, err
+    record_written_file(target)  # as an earlier calibrate did once it wrote it: its to replace
     code, _, err = run(capsys, "calibrate", "--target", tmp_path / "t.json", image, image, "-o", tmp_path / "calib.json")
     assert code == 2 and "t.json: target file not found" in err  # past the check: the next refusal
 

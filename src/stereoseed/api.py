@@ -188,7 +188,8 @@ def _calibration_file(calib: Any) -> Iterator[str]:
 
 
 # ---------------------------------------------------------------------------------- calibrate
-# the note of the target calibrate writes as it found it: how a later run knows the file is its own
+# the note of the target calibrate writes as it found it: what the file is, for whoever opens it (a later
+# run knows the file is its own by the record beside it: stereoseed.io.outputs.record_written_file)
 REFINED_TARGET_NOTE = "the target's faces where the calibration found them (stereoseed calibrate)"
 
 

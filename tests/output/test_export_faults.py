@@ -195,14 +195,21 @@ def test_a_camera_that_is_not_finite_is_left_out_with_a_warning(copy, tmp_path, 
 # --- 4. the export's output folder ---------------------------------------------------------------------
 @pytest.mark.parametrize("fmt, mine", [("colmap", "cameras.txt"), ("nvm", "model.nvm"), ("bundler", "list.txt")])
 def test_an_export_never_overwrites_the_users_files(result, tmp_path, capsys, fmt, mine):
+    """Issue 48's rule: --force writes beside the user's files, never over them: a file of one of
+    the export's names that it did not write is refused with it too, byte for byte left."""
     out = tmp_path / "model"
     out.mkdir()
     (out / mine).write_text("my own model")
     code, err = export(capsys, result, out, "--format", fmt)
     assert code == 2 and one_line_error(err) and mine in err and "--force" in err, err
     assert sorted(p.name for p in out.iterdir()) == [mine] and (out / mine).read_text() == "my own model"
+    code, err = export(capsys, result, out, "--format", fmt, "--force")
+    assert code == 2 and one_line_error(err) and f"{out / mine}: stereoseed export did not write it" in err, err
+    assert sorted(p.name for p in out.iterdir()) == [mine] and (out / mine).read_text() == "my own model"
+    (out / mine).rename(out / "notes.txt")  # another name: --force writes beside it
     assert export(capsys, result, out, "--format", fmt, "--force")[0] == 0
-    assert (out / mine).read_text() != "my own model"  # asked for
+    assert (out / "notes.txt").read_text() == "my own model" and (out / mine).is_file()
+    assert export(capsys, result, out, "--format", fmt, "--force")[0] == 0  # its own: replaced
 
 
 def test_an_export_replaces_its_own_files_and_no_others(result, tmp_path, capsys):

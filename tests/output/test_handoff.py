@@ -295,6 +295,14 @@ def test_the_hand_offs_refuse_a_folder_of_other_files_and_missing_photos(lens_ru
             write(result, out, [images_txt])
     write_nerfstudio(result, out, [images_txt], force=True)
     assert (out / "images" / "mine.jpg").read_bytes() == b"not the export's"
+    theirs = tmp_path / "theirs" / "images" / result.names[0]  # an image of the export's names, not its own
+    theirs.parent.mkdir(parents=True)
+    theirs.write_bytes(b"their image")
+    for write in (write_colmap_undistorted, write_nerfstudio):
+        with pytest.raises(StereoseedError, match=rf"{result.names[0]}: stereoseed export did not write it"):
+            write(result, theirs.parent.parent, [images_txt], force=True)
+    assert sorted(p.name for p in theirs.parent.parent.rglob("*")) == ["images", theirs.name]
+    assert theirs.read_bytes() == b"their image"
     with pytest.raises(StereoseedError, match="img_000.png .and 5 more.: no such photo.*--images"):
         write_nerfstudio(result, tmp_path / "none", [])
     small = tmp_path / "small"

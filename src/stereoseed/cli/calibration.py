@@ -9,7 +9,7 @@ import numpy as np
 
 from stereoseed.cli._terminal import say, warn
 from stereoseed.errors import StereoseedError
-from stereoseed.io.outputs import refuse_input_as_output, same_file
+from stereoseed.io.outputs import record_written_file, refuse_foreign_file, refuse_input_as_output, same_file
 
 
 def _config(args: argparse.Namespace):
@@ -27,12 +27,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise StereoseedError(f"{args.output}: is a folder; give the calibration file to write, e.g. calib.json")
     inputs = _calibrate_inputs(args)
     refuse_input_as_output(args.output, inputs, "give another -o")
+    refuse_foreign_file(args.output, "give another -o")
     if args.target:
         refined = _refined_target_path(Path(args.output))
         refuse_input_as_output(refined, inputs, "give another -o (the target as found goes to <stem of -o>_target.json)")
-        if (refined.exists() or refined.is_symlink()) and not _refined_by_calibrate(refined):
-            raise StereoseedError(f"{refined}: exists and is not a target stereoseed calibrate wrote (the target as "
-                                  f"found goes to <stem of -o>_target.json); move it away or give another -o")
+        refuse_foreign_file(refined, "give another -o (the target as found goes to <stem of -o>_target.json)")
+        for png in _check_images(Path(args.output), _photos(args), inputs).values():
+            refuse_foreign_file(png, "give another -o (the check images are <stem of -o>_cam<N>_<photo>.png)")
     if not args.target:
         pair = calibrate(args.inputs, lens_images=(args.lens_images1 or [], args.lens_images2 or []), rig=args.rig,
                          lens=args.lens, k3=args.k3, cfg=_config(args))
@@ -44,7 +45,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             warn(w)
     else:
         pair = _calibrate_from_target(args)
-    pair.write(args.output)
+    record_written_file(pair.write(args.output))
     say(f"wrote {args.output}")
     return 0
 
@@ -55,25 +56,16 @@ def _calibrate_inputs(args: argparse.Namespace) -> list:
             args.intrinsics2]
 
 
+def _photos(args: argparse.Namespace) -> list[list[str]]:
+    """`calibrate --target`'s photos per camera, as its views are named: the pair's photo first,
+    then the lens photos (some of which the calibration may drop or skip)."""
+    return [[str(args.inputs[c]), *map(str, lens or [])] for c, lens in
+            enumerate((args.lens_images1, args.lens_images2)) if c < len(args.inputs)]
+
+
 def _refined_target_path(out: Path) -> Path:
     """Where `calibrate --target` writes the target as found: beside calib.json."""
     return out.with_name(f"{out.stem}_target.json")
-
-
-def _refined_by_calibrate(path: Path) -> bool:
-    """Whether ``path`` is a target an earlier `calibrate --target` wrote (its note says so)."""
-    import json
-
-    from stereoseed.api import REFINED_TARGET_NOTE
-    from stereoseed.io.nesting import read_bounded_text
-
-    if path.is_symlink() or not path.is_file():
-        return False
-    try:
-        data = json.loads(read_bounded_text(path, "target file", ""))
-    except (OSError, ValueError, StereoseedError):
-        return False
-    return isinstance(data, dict) and data.get("note") == REFINED_TARGET_NOTE
 
 
 def _detect_all(target, paths: list[str]) -> list:
@@ -96,22 +88,35 @@ def _unique_png(out: Path, camera: int, image: str, taken: set[str], inputs: lis
     return out.with_name(name + ".png")
 
 
-def _report_views(cal, labels: list[str], out: Path | None, inputs: list = ()) -> None:
-    """A line per photo (corners per face, RMS, the check image, never written over one of
-    ``inputs``), a warning per skipped one."""
+def _check_images(out: Path, photos: list[list[str]], inputs: list) -> dict[tuple[int, str], Path]:
+    """{(camera index, photo): its check image} for every photo of the run, named before the work
+    (so that the writers' rule is applied to all of them before it) and the same whichever views
+    the calibration then skips."""
+    taken: set[str] = set()
+    planned: dict[tuple[int, str], Path] = {}
+    for c, names in enumerate(photos):
+        for name in names:
+            if (c, name) not in planned:
+                planned[c, name] = _unique_png(out, c + 1, name, taken, [*inputs, out])
+    return planned
+
+
+def _report_views(cal, labels: list[str], checks: dict[tuple[int, str], Path] | None = None) -> None:
+    """A line per photo (corners per face, RMS, its check image of ``checks``, where given), a
+    warning per skipped one."""
     from stereoseed.io.files import read_image
     from stereoseed.output.visualize import draw_calibration_check
 
-    taken: set[str] = set()
     for c, cam in enumerate(cal.cameras):
         for v in cam.views:
             if not v.used:
                 warn(f"{labels[c]}, {v.name}: skipped: {v.reason}")
                 continue
             line = f"{labels[c]}, {v.name}: {v.detection.summary()}, RMS {v.rms_px:.3f} px"
-            if out is not None:
-                png = _unique_png(out, c + 1, v.name, taken, [*inputs, out])
+            if checks is not None:
+                png = checks[c, v.name]
                 draw_calibration_check(read_image(v.name), v.detection.pixels, v.reprojected, png)
+                record_written_file(png)
                 line += f"; check {png}"
             say(line)
 
@@ -157,9 +162,10 @@ def _calibrate_from_target(args: argparse.Namespace):
     pair = calibrate(args.inputs, target=args.target, lens_images=(args.lens_images1 or [], args.lens_images2 or []),
                      intrinsics=(args.intrinsics1, args.intrinsics2), rig=args.rig, rigid_target=args.rigid_target,
                      k3=args.k3, cfg=_config(args))
-    _report_views(pair.calibration, labels, out, _calibrate_inputs(args))
+    _report_views(pair.calibration, labels, _check_images(out, _photos(args), _calibrate_inputs(args)))
     _report_cameras(pair.calibration, labels)
     refined = pair.write_target(_refined_target_path(out))
+    record_written_file(refined)
     say(f"wrote {refined} (the target as found: give it with --rigid-target to keep it)")
     return pair
 
@@ -186,15 +192,17 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     cfg = _config(args)
     paths = _image_list(args.images)
     refuse_input_as_output(out, [args.target, *paths], "give another -o")
+    refuse_foreign_file(out, "give another -o")
     target = load_target(args.target)
     detections = _detect_all(target, [str(p) for p in paths])
     cal = calibrate_cameras(target, [detections], rigid_target=args.rigid_target, k3=args.k3, cfg=cfg, pair=False,
                             labels=["camera"])
-    _report_views(cal, ["camera"], None)
+    _report_views(cal, ["camera"])
     _report_cameras(cal, ["camera"])
     cam = cal.cameras[0]
     write_opencv_camera(out, cam.K, cam.lens, cam.image_size, cam.rms_px,
                         [(v.name, v.rms_px) for v in cam.views if v.used])
+    record_written_file(out)
     say(f"wrote {out} (give it to calibrate with --intrinsics1 or --intrinsics2)")
     return 0
 

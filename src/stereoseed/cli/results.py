@@ -110,7 +110,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the photos the run read (folders, list files or images, as given to reconstruct), found by "
                         "name; for --undistort and --format nerfstudio (a video's keyframes are read from RESULT/keyframes)")
     p.add_argument("--force", action="store_true",
-                   help="write into a folder that holds other files (files of the export's names are replaced)")
+                   help="write into a folder that holds other files, beside them: a file of the export's names that "
+                        "it did not write is refused, never replaced")
     p.set_defaults(func=_cmd_export)
 
 

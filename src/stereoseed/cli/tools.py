@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from stereoseed.cli._terminal import complain, say, warn
-from stereoseed.io.outputs import refuse_input_as_output
+from stereoseed.io.outputs import record_written_file, refuse_foreign_file, refuse_input_as_output
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
@@ -18,6 +18,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
     if args.output:
         check_image_output(args.output)
         refuse_input_as_output(args.output, [args.image1, args.image2], "give another -o")
+        refuse_foreign_file(args.output, "give another -o")
     cfg = Config()
     img1, img2 = read_image(args.image1), read_image(args.image2)
     f1, f2 = extract_features(img1, cfg.features), extract_features(img2, cfg.features)
@@ -30,6 +31,7 @@ def _cmd_match(args: argparse.Namespace) -> int:
           + ", ".join(f"{k}: {v}" for k, v in stats.items()))
     if args.output:
         draw_matches(img1, f1.points, img2, f2.points, matches, args.output)
+        record_written_file(args.output)
         say(f"wrote {args.output}")
     return 0
 
@@ -44,6 +46,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     if args.output:
         check_image_output(args.output)
         refuse_input_as_output(args.output, [args.image1, args.image2, args.calib], "give another -o")
+        refuse_foreign_file(args.output, "give another -o")
     cfg = Config()
     names = [Path(args.image1).name, Path(args.image2).name]
     img1, img2 = read_image(args.image1), read_image(args.image2)
@@ -57,6 +60,7 @@ def _cmd_propagate(args: argparse.Namespace) -> int:
     say(f"{len(seeds)} seeds -> {result.n_matches} propagated matches in {result.timings.get('total', 0):.2f} s")
     if args.output:
         save_propagation_png(img1, result, args.output)
+        record_written_file(args.output)
         say(f"wrote {args.output}")
     return 0
 

@@ -1,9 +1,17 @@
 """The rule every writer (``target``, ``calibrate``, ``intrinsics``, ``match``, ``propagate``,
 ``export``, ``mesh``) follows before it writes: an output, given or derived from another name
-(``<stem>_target.json``, a check image), is never one of the command's inputs; and in a folder a
-command shares with the user, a file is replaced or removed only when the command's own record
-says it wrote it, byte for byte (:class:`OwnedFiles`): a file of the same name the user wrote,
-or edited since, is refused even with ``--force``.
+(``<stem>_target.json``, a check image), is never one of the command's inputs; and an existing
+file is replaced or removed only when stereoseed wrote it, byte for byte: a file of the same name
+the user wrote, or edited since, is refused even with ``--force``.
+
+How a file is known to be stereoseed's: a record in its folder of the files written there, each
+with its SHA-256 (:class:`OwnedFiles`): ``target``'s own record of its folder, and for the
+single files (``calibrate -o`` and its ``<stem>_target.json`` and check images, ``intrinsics -o``,
+``match -o``, ``propagate -o``) the record ``WRITTEN_RECORD`` beside them
+(:func:`refuse_foreign_file` before the work, :func:`record_written_file` after each write). A
+hash, not a marker in the file: a user's file cannot carry it by accident (a copy of an earlier
+output edited by hand no longer matches), and it works for every format (PNG, JPEG, YAML, XML).
+``export`` and ``mesh`` keep their own marks (the export's manifest, the mesh's PLY header).
 
 Both refusals come before any work, in one line naming the file and what to do.
 """
@@ -19,9 +27,13 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import write_json
 from stereoseed.io.nesting import read_bounded_text
 
-__all__ = ["same_file", "refuse_input_as_output", "OwnedFiles"]
+__all__ = ["same_file", "refuse_input_as_output", "OwnedFiles", "WRITTEN_RECORD", "refuse_foreign_file",
+           "record_written_file"]
 
 _HASH_CHUNK = 2**20  # files are hashed a chunk at a time: a page PDF is megabytes, none is held whole
+# beside the single files the commands write (calib.json, camera.yaml, check and match images): which
+# of the folder's files stereoseed wrote, with their hashes; hidden, as it is no output to open
+WRITTEN_RECORD = ".stereoseed-written.json"
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
@@ -92,6 +104,14 @@ class OwnedFiles:
                 raise StereoseedError(f"{path}: {self.command} did not write it (or it changed since); it is left "
                                       f"as it is: move it away or give another folder")
 
+    def wrote_file(self, name: str) -> None:
+        """Note that the command wrote the folder's file ``name`` as it is now (saved by :meth:`save`)."""
+        digest = _sha256(self.folder / name)
+        if digest is None:  # not written after all (nothing there, or a link): nothing to claim
+            self.forget(name)
+        else:
+            self._hashes[name] = digest
+
     def wrote(self, name: str, data: bytes) -> None:
         """Note that the command wrote ``data`` as ``name`` (saved by :meth:`save`)."""
         self._hashes[name] = hashlib.sha256(data).hexdigest()
@@ -101,3 +121,33 @@ class OwnedFiles:
 
     def save(self) -> None:
         write_json(self.record, {"written_by": self.command, "files": dict(sorted(self._hashes.items()))})
+
+
+def _single_files(folder: Path) -> OwnedFiles:
+    return OwnedFiles(folder, WRITTEN_RECORD, "stereoseed")
+
+
+def refuse_foreign_file(output: str | os.PathLike, hint: str) -> None:
+    """The writers' rule for one output file, before any work: refuse ``output`` when a file (or
+    a folder, a link) is there that stereoseed did not write, or that changed since; one it wrote
+    is the command's to replace. ``hint`` says what to give instead (e.g. "give another -o").
+    Also refused: a record of that name that is no record (:class:`OwnedFiles`), and the record's
+    own name as an output."""
+    path = Path(output)
+    if path.name == WRITTEN_RECORD:
+        raise StereoseedError(f"{path}: is the name of stereoseed's record of the files it wrote; {hint}")
+    owned = _single_files(path.parent)  # read even for a new file: a record that is none is refused now, not after the work
+    if (path.exists() or path.is_symlink()) and not owned.ours(path.name):
+        raise StereoseedError(f"{path}: exists and stereoseed did not write it (or it changed since); it is left as "
+                              f"it is: {hint}, or remove it yourself")
+
+
+def record_written_file(output: str | os.PathLike) -> None:
+    """Note in the record beside ``output`` that stereoseed wrote it as it is now. The record is
+    read again here, not kept from the check before the work (minutes earlier): another command
+    may have written into the folder meanwhile. Two writing at the same instant may lose one
+    entry; that file is then refused on a later run, never replaced."""
+    path = Path(output)
+    owned = _single_files(path.parent)
+    owned.wrote_file(path.name)
+    owned.save()

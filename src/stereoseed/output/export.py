@@ -4,8 +4,9 @@ hand-offs with undistorted images, for Gaussian-splatting and nerfstudio, are
 :mod:`stereoseed.output.handoff`).
 
 An export writes into a folder of its own: a folder holding files it did not write (its
-manifest ``.stereoseed-export.json`` lists those it wrote) is refused unless ``force``; each file
-is written atomically. An image name a format cannot hold (a line break, a control character; a
+manifest ``.stereoseed-export.json`` lists those it wrote) is refused unless ``force``, and even
+then a file of the export's names that it did not write is refused, never replaced; each file is
+written atomically. An image name a format cannot hold (a line break, a control character; a
 space in COLMAP's text model and NVM, a leading or trailing one in Bundler's list) is refused with
 its name.
 
@@ -53,20 +54,28 @@ def _written_before(folder: Path) -> set[str]:
     return read_manifest(folder / EXPORT_MANIFEST) or set()
 
 
-def claim_folder(folder: Path, force: bool) -> None:
+def claim_folder(folder: Path, force: bool, names: list[str] = ()) -> None:
     """Refuse, before writing, an output folder that holds anything the exports did not write
-    (unless ``force``: files of the export's names are then replaced, the others left). A
-    sub-folder is the export's when every file in it is (``images/``, ``sparse/0/``)."""
+    (unless ``force``: the export then writes beside the other files). Even with ``force``, a
+    file of one of ``names`` (what this export writes, relative to ``folder``) that the exports
+    did not write is refused, never replaced. A sub-folder is the export's when every file in it
+    is (``images/``, ``sparse/0/``)."""
     if folder.exists() and not folder.is_dir():
         raise StereoseedError(f"{folder}: exists and is not a folder; give a folder for the export")
-    if force or not folder.is_dir():
+    if not folder.is_dir():
         return
     ours = _written_before(folder) | {EXPORT_MANIFEST}
+    if force:
+        for rel in names:
+            if ((folder / rel).exists() or (folder / rel).is_symlink()) and rel not in ours:
+                raise StereoseedError(f"{folder / rel}: stereoseed export did not write it, and --force replaces only "
+                                      f"the export's own files; move it away or give another --out")
+        return
     foreign = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir() if not _ours(e, folder, ours))
     if foreign:
         more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
         raise StereoseedError(f"{folder}: holds files stereoseed export did not write ({', '.join(foreign[:3])}{more}); "
-                              f"give an empty or new folder, or --force to replace the export's files there")
+                              f"give an empty or new folder, or --force to write beside them (never over them)")
 
 
 def _ours(entry: Path, folder: Path, ours: set[str]) -> bool:
@@ -255,7 +264,7 @@ def write_colmap(result: Result, out_dir: str | Path, binary: bool = False, forc
     # COLMAP's text reader ends a name at its first space (pycolmap 3.x reads "a b.png" as "a")
     check_names(result, "COLMAP's binary model" if binary else "COLMAP's text model", any_space=not binary,
                  space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
-    claim_folder(out, force)
+    claim_folder(out, force, colmap_files(binary))
     stale = other_colmap_model(out, "", binary) if out.is_dir() else []
     cameras, images, warnings = _colmap_model(result)
     tr = result.tracks
@@ -347,7 +356,7 @@ def write_nvm(result: Result, path: str | Path, force: bool = False) -> list[str
     camera's principal point. Returns the warnings."""
     path = Path(path)
     check_names(result, "NVM", any_space=True)
-    claim_folder(path.parent, force)
+    claim_folder(path.parent, force, [path.name])
     tr = result.tracks
     cams, warnings = _single_focal_cameras(result, "NVM")
     lines = ["NVM_V3", "", str(len(cams))]
@@ -368,7 +377,7 @@ def write_bundler(result: Result, out_dir: str | Path, force: bool = False) -> l
     relative to the principal point with y up. Returns the warnings."""
     out, tr = Path(out_dir), result.tracks
     check_names(result, "Bundler's list.txt", edge_space=True)
-    claim_folder(out, force)
+    claim_folder(out, force, ["bundle.out", "list.txt"])
     cams, warnings = _single_focal_cameras(result, "Bundler")
     flip = np.diag([1.0, -1.0, -1.0])
     lines = ["# Bundle file v0.3", f"{len(cams)} {len(tr['point_xyz'])}"]

@@ -350,9 +350,10 @@ def copy_as_read(photo: Path, target: Path) -> None:
 
 
 def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cfg: HandoffConfig,
-             any_space: bool) -> tuple[list[PinholeImage], list[str], dict[int, Path]]:
+             any_space: bool, files: list[str]) -> tuple[list[PinholeImage], list[str], dict[int, Path]]:
     """What both hand-offs do before writing: the names checked, the images and their cameras,
-    the photos found, the folder claimed (every check before the first file is written)."""
+    the photos found, the folder claimed for the images and ``files`` (every check before the
+    first file is written)."""
     check_names(result, fmt, any_space=any_space,
                 space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
     images, warnings = pinhole_images(result, cfg)
@@ -361,7 +362,7 @@ def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cf
         if (out / "images" / result.names[im.index]).resolve() == photos[im.index].resolve():
             raise StereoseedError(f"{photos[im.index]}: the export would write over the photo it reads; give --out "
                                   f"another folder")
-    claim_folder(out, force)
+    claim_folder(out, force, [f"images/{result.names[im.index]}" for im in images] + files)
     return images, warnings, photos
 
 
@@ -372,9 +373,9 @@ def write_colmap_undistorted(result: Result, out_dir: str | Path, image_sources=
     distinct intrinsics, every 2D point in the new images' pixels (COLMAP's convention, +0.5)."""
     out = Path(out_dir)
     fmt = "COLMAP's binary model" if binary else "COLMAP's text model"
-    images, warnings, photos = _prepare(result, out, fmt, image_sources, force, cfg, any_space=not binary)
-    stale = other_colmap_model(out, "sparse/0", binary) if out.is_dir() else []
     sparse = [f"sparse/0/{name}" for name in colmap_files(binary)]
+    images, warnings, photos = _prepare(result, out, fmt, image_sources, force, cfg, any_space=not binary, files=sparse)
+    stale = other_colmap_model(out, "sparse/0", binary) if out.is_dir() else []
     record_written(out, [f"images/{result.names[im.index]}" for im in images] + sparse)
     written = _write_images(result, images, photos, out / "images")
     cameras: dict[int, tuple] = {}
@@ -423,7 +424,7 @@ def write_nerfstudio(result: Result, out_dir: str | Path, image_sources=(), forc
     COLMAP hand-off writes them) and the sparse cloud with its colours as ``ply_file_path``."""
     out = Path(out_dir)
     images, warnings, photos = _prepare(result, out, "nerfstudio's transforms.json", image_sources, force, cfg,
-                                        any_space=False)
+                                        any_space=False, files=["transforms.json", NERFSTUDIO_PLY])
     record_written(out, [f"images/{result.names[im.index]}" for im in images] + ["transforms.json", NERFSTUDIO_PLY])
     written = _write_images(result, images, photos, out / "images")
     shared = len({im.camera for im in images}) == 1
