@@ -120,7 +120,8 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     if cfg.mode == "as-given" or n <= 3:
         return given, None, None
     if n > cfg.max_images:
-        log.info("%d images: more than OrderingConfig.max_images (%d), kept in the given order", n, cfg.max_images)
+        log.warning("%d images: more than OrderingConfig.max_images (%d) to order by their overlaps; run in the "
+                    "order given", n, cfg.max_images)
         return given, None, None
     overlap = overlaps(thumbnails, cfg)
     found = best_walk(overlap)
