@@ -284,6 +284,10 @@ def _in_walk_order(entries: list[Any], names: list[str], ordering: OrderingConfi
     if (ordering.mode == "as-given" or (ordering.mode == "auto" and not from_folder) or len(entries) <= 3
             or not all(isinstance(e, Path) for e in entries)):
         return entries, names
+    if len(entries) > ordering.max_images:  # (before any thumbnail is read)
+        log.warning("%d images: more than OrderingConfig.max_images (%d) to order by their overlaps; run in the "
+                    "order given", len(entries), ordering.max_images)
+        return entries, names
     size = header_size(entries[1])
     if size is None or any(header_size(e) != size for e in entries[2:]):
         log.info("the images are not all of the second camera's size: kept in the order given")
