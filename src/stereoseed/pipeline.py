@@ -34,6 +34,7 @@ from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.io.sequence import ImageSequence, header_size
 from stereoseed.matching.ordering import OrderingConfig, thumbnail, walk_order
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
+from stereoseed.output.inputs import write_inputs
 from stereoseed.output.report.html import write_report_html
 from stereoseed.output.result_set import ResultSet
 from stereoseed.output.results import write_result
@@ -532,6 +533,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                 stages["mesh"] = time.perf_counter() - t0 - sum(stages.values())
             report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})
             save_outputs(recon, report, staging, cfg, lenses, cloud, mesh=surface)
+            # the photos, so the exports that need them find them (their paths relative to ``out``)
+            write_inputs(staging, out, [images.source(i) for i in range(len(images))], names, rig_right is not None)
             results.commit(drop=(".checkpoint*",))  # this run's checkpoint and any stale one
         except KeyboardInterrupt:
             raise  # the staging folder keeps the checkpoint: resume continues

@@ -2,7 +2,9 @@
 reconstructed with it: pycolmap reads the undistorted workspace, OpenCV's undistortPoints and a
 render of the same scene without the lens are the oracles of the undistortion, plyfile reads
 the cloud."""
+import hashlib
 import json
+import shutil
 from dataclasses import replace
 
 import cv2
@@ -303,8 +305,9 @@ def test_the_hand_offs_refuse_a_folder_of_other_files_and_missing_photos(lens_ru
             write(result, theirs.parent.parent, [images_txt], force=True)
     assert sorted(p.name for p in theirs.parent.parent.rglob("*")) == ["images", theirs.name]
     assert theirs.read_bytes() == b"their image"
+    old = _without_record(folder, tmp_path / "old")  # a result written before runs recorded their inputs
     with pytest.raises(StereoseedError, match="img_000.png .and 5 more.: no such photo.*--images"):
-        write_nerfstudio(result, tmp_path / "none", [])
+        write_nerfstudio(load_result(old), tmp_path / "none", [])
     small = tmp_path / "small"
     small.mkdir()
     for name, image in zip(scene.names, scene.images):
@@ -321,6 +324,13 @@ def test_the_hand_offs_refuse_a_folder_of_other_files_and_missing_photos(lens_ru
     assert all((photos / n).read_bytes() == (images_txt.parent / n).read_bytes() for n in scene.names)
 
 
+def _without_record(folder, to):
+    """A copy of the result ``folder`` at ``to`` as written before runs recorded their inputs."""
+    shutil.copytree(folder, to)
+    (to / "inputs.json").unlink()
+    return to
+
+
 def test_export_hands_off_from_the_command_line(lens_run, tmp_path, capsys):
     _, images_txt, folder = lens_run
     assert main(["export", str(folder), "--format", "colmap", "--undistort", "--images", str(images_txt),
@@ -332,7 +342,8 @@ def test_export_hands_off_from_the_command_line(lens_run, tmp_path, capsys):
     assert main(["export", str(folder), "--format", "nerfstudio", "--images", str(images_txt.parent),
                  "--out", str(tmp_path / "ns")]) == 0
     assert "transforms.json" in capsys.readouterr().out and (tmp_path / "ns" / "sparse_pc.ply").is_file()
-    assert main(["export", str(folder), "--format", "nerfstudio", "--out", str(tmp_path / "bare")]) == 2
+    old = _without_record(folder, tmp_path / "old")
+    assert main(["export", str(old), "--format", "nerfstudio", "--out", str(tmp_path / "bare")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "give --images" in err, err
     assert main(["export", str(folder), "--format", "nvm", "--undistort", "--out", str(tmp_path / "x")]) == 2
@@ -369,3 +380,51 @@ def test_a_photo_turned_by_its_exif_is_handed_off_as_it_was_read(tmp_path):
     plain.write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
     copy_as_read(plain, tmp_path / "plain_out.jpg")
     assert (tmp_path / "plain_out.jpg").read_bytes() == plain.read_bytes()
+
+
+def test_a_result_finds_the_photos_it_read_without_images(lens_run, tmp_path, capsys):
+    scene, images_txt, folder = lens_run
+    record = json.loads((folder / "inputs.json").read_text())["images"]
+    assert [e["name"] for e in record] == scene.names
+    for e in record:  # relative to the result folder, with the file as the run read it
+        photo = images_txt.parent / e["name"]
+        assert e["path"] == f"../scene/{e['name']}" and e["absolute"] == str(photo.resolve())
+        assert e["bytes"] == photo.stat().st_size and e["sha256"] == hashlib.sha256(photo.read_bytes()).hexdigest()
+    assert main(["export", str(folder), "--undistort", "--out", str(tmp_path / "gs")]) == 0
+    assert "6 images undistorted" in capsys.readouterr().out
+    assert main(["export", str(folder), "--format", "nerfstudio", "--out", str(tmp_path / "ns")]) == 0
+    assert main(["export", str(folder), "--format", "nerfstudio", "--images", str(images_txt),
+                 "--out", str(tmp_path / "told")]) == 0
+    for name in scene.names:  # the same photos as --images finds
+        assert (tmp_path / "ns" / "images" / name).read_bytes() == (tmp_path / "told" / "images" / name).read_bytes()
+        assert (tmp_path / "gs" / "images" / name).is_file()
+
+
+def test_a_moved_result_finds_the_photos_beside_it_and_refuses_a_changed_one(lens_run, tmp_path, capsys):
+    scene, images_txt, folder = lens_run
+    moved = tmp_path / "moved"
+    shutil.copytree(images_txt.parent, moved / "scene")
+    shutil.copytree(folder, moved / "result")
+    inputs = moved / "result" / "inputs.json"
+    record = json.loads(inputs.read_text())
+    for e in record["images"]:  # the photos' old place is gone: only the relative path leads to them
+        e["absolute"] = str(tmp_path / "gone" / e["name"])
+    inputs.write_text(json.dumps(record))
+    assert main(["export", str(moved / "result"), "--format", "nerfstudio", "--out", str(tmp_path / "ns")]) == 0
+    capsys.readouterr()
+    changed = moved / "scene" / scene.names[2]
+    image = cv2.imread(str(changed))
+    image[0, 0] = 255 - image[0, 0]
+    cv2.imwrite(str(changed), image)
+    assert main(["export", str(moved / "result"), "--undistort", "--out", str(tmp_path / "gs")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{scene.names[2]}: the photo at {changed} has changed" in err, err
+    assert "give --images" in err and not (tmp_path / "gs").exists()
+    (moved / "scene" / scene.names[4]).unlink()
+    changed.write_bytes((images_txt.parent / scene.names[2]).read_bytes())
+    assert main(["export", str(moved / "result"), "--undistort", "--out", str(tmp_path / "gs")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{scene.names[4]}: its photo is not at" in err and "give --images" in err, err
+    # --images overrides the record
+    assert main(["export", str(moved / "result"), "--undistort", "--images", str(images_txt),
+                 "--out", str(tmp_path / "gs")]) == 0

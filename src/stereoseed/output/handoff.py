@@ -23,8 +23,10 @@ as :func:`stereoseed.output.export.colmap_camera` does).
 vouch for (``reliable`` false) is left out, with a warning, unless the run kept its observations
 (``reconstruct --keep-flagged``): then it is handed off with the COLMAP export's warning.
 
-The photos are found by name in the folders or lists the run read (``image_sources``) and in
-the result's ``keyframes/``. Each file is written atomically; the export's manifest lists them
+The photos are found through the result's record of its inputs (``inputs.json``,
+:mod:`stereoseed.output.inputs`: each checked to be the file the run read) or, when
+``image_sources`` are given (``--images``: they override the record) or the result has no record,
+by name in those folders or lists and in the result's ``keyframes/``. Each file is written atomically; the export's manifest lists them
 before they are written, so an interrupted export leaves a folder the next one accepts.
 """
 from __future__ import annotations
@@ -69,6 +71,7 @@ from stereoseed.output.export import (
     write_colmap_binary,
     write_colmap_text,
 )
+from stereoseed.output.inputs import recorded_photos
 from stereoseed.output.reader import Result
 from stereoseed.validation import positive
 
@@ -357,7 +360,10 @@ def _prepare(result: Result, out: Path, fmt: str, image_sources, force: bool, cf
     check_names(result, fmt, any_space=any_space,
                 space_hint="export with --binary (COLMAP's binary model holds it), or rename the image")
     images, warnings = pinhole_images(result, cfg)
-    photos = _photos(result, list(image_sources or []), images)
+    # --images overrides the run's record of its photos; a result without one needs --images
+    photos = None if image_sources else recorded_photos(result.folder, result.names, [im.index for im in images])
+    if photos is None:
+        photos = _photos(result, list(image_sources or []), images)
     for im in images:  # --force replaces the export's files: never the photos it reads
         if (out / "images" / result.names[im.index]).resolve() == photos[im.index].resolve():
             raise StereoseedError(f"{photos[im.index]}: the export would write over the photo it reads; give --out "
