@@ -109,6 +109,21 @@ def test_reconstruct_rig_writes_each_image_with_its_station_and_side(rig_scene, 
     # both sides name their images alike: each name gets its folder's in front
     assert [c["name"] for c in cams[:2]] == ["left_000.png", "right_000.png"]
     assert all(c["registered"] for c in cams)
+    # the result records each image's photo, side and own name: the hand-offs find left_000.png's
+    inputs = json.loads((tmp_path / "out" / "inputs.json").read_text())["images"]
+    assert [(e["name"], e["side"], e["original_name"], e["path"]) for e in inputs[:2]] == [
+        ("left_000.png", "left", "000.png", "../walk/left/000.png"),
+        ("right_000.png", "right", "000.png", "../walk/right/000.png")]
+    assert main(["export", str(tmp_path / "out"), "--format", "nerfstudio", "--out", str(tmp_path / "ns")]) == 0
+    frames = json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"]
+    assert sorted(f["file_path"] for f in frames) == sorted(f"images/{c['name']}" for c in cams)
+    assert (tmp_path / "ns" / "images" / "right_002.png").read_bytes() == (right / "002.png").read_bytes()
+    # --images as given to reconstruct --rig: both folders hold a 002.png, the record tells them apart
+    assert main(["export", str(tmp_path / "out"), "--format", "nerfstudio", "--images", str(left), str(right),
+                 "--out", str(tmp_path / "told")]) == 0
+    for c in cams:
+        assert (tmp_path / "told" / "images" / c["name"]).read_bytes() == (
+            tmp_path / "ns" / "images" / c["name"]).read_bytes()
 
 
 def test_a_rig_of_unequal_sides_is_refused_in_one_line(rig_scene, tmp_path, capsys):

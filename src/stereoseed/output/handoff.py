@@ -71,7 +71,7 @@ from stereoseed.output.export import (
     write_colmap_binary,
     write_colmap_text,
 )
-from stereoseed.output.inputs import recorded_photos
+from stereoseed.output.inputs import recorded_photos, renamed_photos
 from stereoseed.output.reader import Result
 from stereoseed.validation import positive
 
@@ -284,14 +284,20 @@ def _photos(result: Result, sources: list[str | Path], images: list[PinholeImage
     as reconstruct takes them; a video's keyframes are in the result's keyframes/), its size
     checked where its header tells it."""
     found: dict[str, Path] = {}
+    every: list[Path] = []
     keyframes = result.folder / "keyframes"
     for source in [*map(Path, sources), *([keyframes] if keyframes.is_dir() else [])]:
         suffix = source.suffix.lower()
         if source.is_file() and suffix in VIDEO_EXTENSIONS:
             continue  # its keyframes are the result's
         paths = [source] if source.is_file() and suffix in IMAGE_EXTENSIONS else list_images(source)
+        every.extend(paths)
         for p in paths:
             found.setdefault(p.name, p)
+    unnamed = [im.index for im in images if result.names[im.index] not in found]
+    if unnamed:  # a rig's images are renamed by the run (cam0/7.jpg is cam0_7.jpg): the record knows them
+        found.update((result.names[i], p) for i, p in renamed_photos(result.folder, result.names, unnamed,
+                                                                     every).items())
     missing = [result.names[im.index] for im in images if result.names[im.index] not in found]
     if missing:
         more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""

@@ -22,7 +22,7 @@ from pathlib import Path
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import write_json
 
-__all__ = ["INPUTS_FILE", "INPUTS_VERSION", "write_inputs", "recorded_photos", "file_digest"]
+__all__ = ["INPUTS_FILE", "INPUTS_VERSION", "write_inputs", "recorded_photos", "renamed_photos", "file_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -121,4 +121,29 @@ def recorded_photos(folder: str | Path, names: list[str], indices: list[int]) ->
                                   f"{_AGAIN}")
         photos[i] = path
     log.debug("found %d photos through %s", len(photos), folder / INPUTS_FILE)
+    return photos
+
+
+def renamed_photos(folder: str | Path, names: list[str], indices: list[int], paths: list[Path]) -> dict[int, Path]:
+    """Among ``paths`` (the photos --images gives), the photo of each image of ``indices`` that
+    the run renamed (a rig's ``cam0/7.jpg`` is ``cam0_7.jpg``): the file of its recorded
+    ``original_name`` whose byte size and SHA-256 are the recorded ones (both sides may hold a
+    ``7.jpg``: the content tells them apart). Images the record does not rename, or whose photo
+    is not among ``paths``, are left out; so is every image of a folder without a record."""
+    images = _read(Path(folder), names)
+    if images is None:
+        return {}
+    by_name: dict[str, list[Path]] = {}
+    for p in paths:
+        by_name.setdefault(p.name, []).append(p)
+    digests: dict[Path, tuple[int, str]] = {}
+    photos = {}
+    for i in indices:
+        entry = images[i]
+        for p in by_name.get(entry.get("original_name") or "", []):
+            if p not in digests:
+                digests[p] = file_digest(p)
+            if digests[p] == (entry.get("bytes"), entry.get("sha256")):
+                photos[i] = p
+                break
     return photos
