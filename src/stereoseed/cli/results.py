@@ -108,7 +108,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "image_undistorter leaves them (what Gaussian-splatting trainers read)")
     p.add_argument("--images", nargs="+", metavar="SOURCE",
                    help="the photos the run read (folders, list files or images, as given to reconstruct), found by "
-                        "name; for --undistort and --format nerfstudio (a video's keyframes are read from RESULT/keyframes)")
+                        "name; for --undistort and --format nerfstudio. Default: those RESULT/inputs.json records "
+                        "(a result written before it existed needs --images; a video's keyframes are read from "
+                        "RESULT/keyframes)")
     p.add_argument("--force", action="store_true",
                    help="write into a folder that holds other files, beside them: a file of the export's names that "
                         "it did not write is refused, never replaced")
