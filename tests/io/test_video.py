@@ -115,3 +115,7 @@ def test_reconstruct_takes_the_pair_then_the_video(walk, tmp_path, capsys):
     assert keyframes == [k.name for k in read_keyframes(video)]  # kept with the result that names them
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["registered"] == report["images"] == 2 + len(keyframes)
+    # the result records its keyframes as its own files, the pair beside it (what the hand-offs read)
+    inputs = json.loads((tmp_path / "out" / "inputs.json").read_text())["images"]
+    assert [e["path"] for e in inputs] == ["../pair0.png", "../pair1.png", *(f"keyframes/{k}" for k in keyframes)]
+    assert inputs[2]["absolute"] == str((tmp_path / "out" / "keyframes" / keyframes[0]).resolve())
