@@ -425,6 +425,11 @@ def test_a_moved_result_finds_the_photos_beside_it_and_refuses_a_changed_one(len
     assert main(["export", str(moved / "result"), "--undistort", "--out", str(tmp_path / "gs")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{scene.names[4]}: its photo is not at" in err and "give --images" in err, err
+    record["images"][1]["path"] = 7  # not a record stereoseed writes
+    inputs.write_text(json.dumps(record))
+    assert main(["export", str(moved / "result"), "--undistort", "--out", str(tmp_path / "gs")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "inputs.json: not the record of this result's images" in err, err
     # --images overrides the record
     assert main(["export", str(moved / "result"), "--undistort", "--images", str(images_txt),
                  "--out", str(tmp_path / "gs")]) == 0

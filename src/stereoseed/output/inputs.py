@@ -57,7 +57,11 @@ def _entry(source: str, name: str, staging: Path, final: Path) -> dict:
             relative = Path(os.path.relpath(path, final)).as_posix()
         except ValueError:  # no relative path between them (another drive on Windows)
             relative = None
-    size, digest = file_digest(path)
+    try:
+        size, digest = file_digest(path)
+    except OSError as e:  # a photo the run skipped as unreadable: recorded, never found as the one read
+        log.warning("%s: not hashed for %s (%s)", path, INPUTS_FILE, e.strerror or e)
+        size, digest = None, None
     return {"name": name, "path": relative, "absolute": str(absolute), "bytes": size, "sha256": digest}
 
 
@@ -86,12 +90,14 @@ def _read(folder: Path, names: list[str]) -> list[dict] | None:
         return None
     try:
         images = json.loads(path.read_text(encoding="utf-8"))["images"]
-        ok = isinstance(images, list) and all(isinstance(e, dict) for e in images)
+        ok = isinstance(images, list) and all(isinstance(e, dict) and all(
+            isinstance(e.get(k), (str, type(None))) for k in ("path", "absolute", "sha256", "original_name"))
+            and isinstance(e.get("bytes"), (int, type(None))) for e in images)
     except (OSError, ValueError, KeyError, TypeError):
         ok = False
     if not ok or [e.get("name") for e in images] != names:
-        raise StereoseedError(f"{path}: not the record of this result's images (cameras.json names others); "
-                              f"{_AGAIN}")
+        raise StereoseedError(f"{path}: not the record of this result's images (malformed, or naming others than "
+                              f"cameras.json); {_AGAIN}")
     return images
 
 
