@@ -26,8 +26,10 @@ vouch for (``reliable`` false) is left out, with a warning, unless the run kept 
 The photos are found through the result's record of its inputs (``inputs.json``,
 :mod:`stereoseed.output.inputs`: each checked to be the file the run read) or, when
 ``image_sources`` are given (``--images``: they override the record) or the result has no record,
-by name in those folders or lists and in the result's ``keyframes/``. Each file is written atomically; the export's manifest lists them
-before they are written, so an interrupted export leaves a folder the next one accepts.
+by name in those folders or lists and in the result's ``keyframes/`` (a rig's renamed images by
+their recorded original name and content). Each file is written atomically; the export's
+manifest lists them before they are written, so an interrupted export leaves a folder the next
+one accepts.
 """
 from __future__ import annotations
 
