@@ -122,6 +122,9 @@ def test_calibrate_from_typed_points_gives_the_true_cameras_and_a_calib_json(rin
             assert np.linalg.norm(cam.centre - camera_center(P)) < 0.005
             assert cam.distortion is None and cam.rms_px < 0.5 and cam.n_points == len(pattern)
             np.testing.assert_allclose(cam.P, cam.K @ np.hstack([cam.R, cam.t[:, None]]), atol=1e-9 * np.abs(cam.P).max())
+    # print(pair) shows its figures in a line, not 340 KB of arrays (issue #49)
+    shown = repr(from_files)
+    assert len(shown) < 400 and shown.count("CalibratedCamera(f=") == 2 and "rms=" in shown
     written = from_files.write(tmp_path / "calib.json")
     for P, cam in zip(read_calibration(written), from_files.cameras):
         np.testing.assert_allclose(P, cam.P)

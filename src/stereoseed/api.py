@@ -213,6 +213,12 @@ class CalibratedCamera:
     def centre(self) -> np.ndarray:
         return -self.R.T @ self.t
 
+    def __repr__(self) -> str:  # the figures a reader looks for, not the matrices
+        size = "" if self.image_size is None else f" {self.image_size[0]}x{self.image_size[1]}"
+        return (f"CalibratedCamera(f={self.K[0, 0]:.1f} px{size}, centre={np.round(self.centre, 4).tolist()}, "
+                f"rms={self.rms_px:.3f} px over {self.n_points} points"
+                f"{', with a lens' if self.distortion is not None else ''})")
+
     @classmethod
     def from_entry(cls, entry: dict[str, Any]) -> "CalibratedCamera":
         d = entry.get("distortion")
@@ -236,6 +242,10 @@ class PairCalibration:
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     calibration: Any = None
+
+    def __repr__(self) -> str:  # print(pair) in a notebook: its figures, not its arrays (issue #49)
+        cams = ", ".join(repr(c) for c in self.cameras)
+        return f"PairCalibration([{cams}], {len(self.warnings)} warning(s), {len(self.notes)} note(s))"
 
     def write(self, path: PathLike) -> Path:
         """Write calib.json (atomically) to ``path``: what ``reconstruct --calib`` reads."""
