@@ -32,7 +32,7 @@ from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.io.sequence import ImageSequence, header_size
-from stereoseed.matching.ordering import OrderingConfig, thumbnail, walk_order
+from stereoseed.matching.ordering import OrderingConfig, thumbnail, too_many_to_order, walk_order
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.inputs import write_inputs
 from stereoseed.output.report.html import write_report_html
@@ -125,13 +125,12 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             spill = Path(spill_holder.name)
         for k in range(len(per_image), n):
             rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
-            per_image = recon.reports()  # a withdrawal changes an earlier view's
             release_old_views(recon, cfg, spill)
             saver.save(recon)
             if progress:
                 progress(k + 1, n, f"{names[k]}: {rep['status']}")
-            if after_insertion:
-                after_insertion(recon, per_image)
+            if after_insertion:  # the reports so far, rendered only for whoever reads them
+                after_insertion(recon, recon.reports())
     report = _finished(recon, cfg, t0, source)
     if offset is not None:
         for v in recon.registered_views:
@@ -285,9 +284,7 @@ def _in_walk_order(entries: list[Any], names: list[str], ordering: OrderingConfi
     if (ordering.mode == "as-given" or (ordering.mode == "auto" and not from_folder) or len(entries) <= 3
             or not all(isinstance(e, Path) for e in entries)):
         return entries, names
-    if len(entries) > ordering.max_images:  # (before any thumbnail is read)
-        log.warning("%d images: more than OrderingConfig.max_images (%d) to order by their overlaps; run in the "
-                    "order given", len(entries), ordering.max_images)
+    if too_many_to_order(len(entries), ordering):  # (before any thumbnail is read)
         return entries, names
     size = header_size(entries[1])
     if size is None or any(header_size(e) != size for e in entries[2:]):

@@ -20,7 +20,7 @@ import numpy as np
 
 from stereoseed.matching.config import OrderingConfig
 
-__all__ = ["OrderingConfig", "thumbnail", "overlaps", "best_walk", "walk_order", "walk_strength"]
+__all__ = ["OrderingConfig", "thumbnail", "overlaps", "best_walk", "too_many_to_order", "walk_order", "walk_strength"]
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,16 @@ def best_walk(overlap: np.ndarray) -> list[int]:
     return order
 
 
+def too_many_to_order(n: int, cfg: OrderingConfig) -> bool:
+    """Whether ``n`` images are more than every pair of them can be matched for
+    (``OrderingConfig.max_images``); then says so: they run in the order given."""
+    if n <= cfg.max_images:
+        return False
+    log.warning("%d images: more than OrderingConfig.max_images (%d) to order by their overlaps; run in the "
+                "order given", n, cfg.max_images)
+    return True
+
+
 def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig()
                ) -> tuple[list[int], str | None, str | None]:
     """The order to run the images of ``thumbnails`` in (their index list, 0 and 1 first), why
@@ -119,9 +129,7 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     given = list(range(n))
     if cfg.mode == "as-given" or n <= 3:
         return given, None, None
-    if n > cfg.max_images:
-        log.warning("%d images: more than OrderingConfig.max_images (%d) to order by their overlaps; run in the "
-                    "order given", n, cfg.max_images)
+    if too_many_to_order(n, cfg):
         return given, None, None
     overlap = overlaps(thumbnails, cfg)
     found = best_walk(overlap)

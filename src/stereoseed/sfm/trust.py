@@ -105,6 +105,16 @@ def tied_observation_limit(cfg: Config) -> int:
     return trusted_chain_inliers(cfg)
 
 
+def _shared_points(recon: Reconstruction, observations: np.ndarray) -> sparse.csr_matrix:
+    """(views, views) sparse: how many points two views both observe among ``observations`` (O,)
+    bool (a long walk's views see few others: sparse)."""
+    seen = sparse.csr_matrix((np.ones(int(observations.sum())),
+                              (recon.obs_view[observations], recon.obs_point[observations])),
+                             shape=(len(recon.views), len(recon.points)))
+    seen.data[:] = 1.0  # a view observing a point twice shares it once
+    return (seen @ seen.T).tocsr()
+
+
 def _tied(recon: Reconstruction, vouched: set[int]) -> np.ndarray:
     """(O,) bool: the observations by ``vouched`` views of live points that three of them see."""
     live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
@@ -140,12 +150,7 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
     four cameras after a flagged one, 15-34 mm off, each well tied to the others of its part). A
     rig's station is one body: its two images are linked."""
     need = cfg.resection.min_inliers
-    tied = _tied(recon, vouched)
-    n = len(recon.views)
-    seen = sparse.csr_matrix((np.ones(int(tied.sum())), (recon.obs_view[tied], recon.obs_point[tied])),
-                             shape=(n, len(recon.points)))
-    seen.data[:] = 1.0  # a view observing a point twice shares it once
-    shared = (seen @ seen.T).tocsr()  # (views, views), sparse: a long walk's views see few others
+    shared = _shared_points(recon, _tied(recon, vouched))
     reached, frontier = set(CALIBRATED), list(CALIBRATED)
     while frontier:
         u = frontier.pop()
@@ -173,11 +178,7 @@ def unconfirmed_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
     stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
     need = cfg.resection.min_inliers
-    live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
-    seen = sparse.csr_matrix((np.ones(int(live.sum())), (recon.obs_view[live], recon.obs_point[live])),
-                             shape=(len(recon.views), len(recon.points)))
-    seen.data[:] = 1.0  # a view observing a point twice shares it once
-    shared = (seen @ seen.T).tocsr()
+    shared = _shared_points(recon, recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched)))
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
         found_by = recon.views[v].found_by
