@@ -77,6 +77,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolve()
+    options = cfg.mapper_options()  # each of the mapper's components is handed its own sections
     key = inputs_key(images, names, P_pair, cfg, rig) if checkpoint is not None else ""
     # a world frame far from the cameras (UTM-sized coordinates) is moved next to them for the
     # run and put back at the end: float64 keeps ~16 digits, and 1e7 m of offset leaves a BA
@@ -85,7 +86,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if offset is not None:
         P_pair = [np.asarray(P, np.float64) @ _shift(offset) for P in P_pair]
         log.info("world frame %s from the pair's cameras: the run works %s nearer", offset.tolist(), offset.tolist())
-    source = source or HarrisZncc(cfg)
+    source = source or HarrisZncc.of(options)
     state = None
     if checkpoint is not None and resume:
         state = load_checkpoint(checkpoint, images, names, key)
@@ -105,7 +106,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
-            recon, _ = initialise(images, names, P_pair, cfg, prefetching, rig=rig)
+            recon, _ = initialise(images, names, P_pair, options, prefetching, rig=rig)
             per_image = recon.reports()
             saver.save(recon)
             if after_insertion:
@@ -124,7 +125,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             spill_holder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(spill_holder.name)
         for k in range(len(per_image), n):
-            rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
+            rep = _unreadable(recon, images, k) or insert_view(recon, k, options, prefetching)
             release_old_views(recon, cfg, spill)
             saver.save(recon)
             if progress:
@@ -216,7 +217,7 @@ def _finished(recon: Reconstruction, cfg: Config, t0: float, source: Corresponde
     """The finishing step (:func:`stereoseed.sfm.finishing.finish`) on ``recon``, and the run's
     report (``per_image`` rendered from the views' histories: a view the finishing step registered
     again or could not keep says so)."""
-    final = finish(recon, cfg, source)
+    final = finish(recon, cfg.mapper_options(), source)
     per_image = recon.reports()
     pc = cfg.pipeline
     return {
@@ -463,7 +464,7 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
     (default :class:`HarrisZncc`); mesh: the :class:`~stereoseed.dense.mesh.Mesh` of the dense
     cloud, shown in report.html (the caller writes mesh.ply)."""
     written = write_result(recon, report, out_dir, cfg, lenses)
-    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc(cfg.resolve()),
+    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc.of(cfg),
                                                mesh=mesh)
     return written
 

@@ -42,7 +42,7 @@ def run(box_scene):
 @pytest.fixture(scope="module")
 def written(run, tmp_path_factory):
     out = tmp_path_factory.mktemp("result")
-    path = write_report_html(*run, out, source=HarrisZncc(Config()))  # what redraws the weakest insertion
+    path = write_report_html(*run, out, source=HarrisZncc.of(Config()))  # what redraws the weakest insertion
     return path, path.read_text(encoding="utf-8")
 
 
@@ -154,7 +154,7 @@ def test_a_failing_part_is_logged_and_left_out(run, tmp_path, monkeypatch, caplo
     monkeypatch.setattr(report_html, "_weakest_insertion", broken)
     monkeypatch.setattr(report_html, "figure_times", broken)
     with caplog.at_level(logging.WARNING, logger="stereoseed.output.report.html"):
-        text = write_report_html(*run, tmp_path, source=HarrisZncc(Config())).read_text(encoding="utf-8")
+        text = write_report_html(*run, tmp_path, source=HarrisZncc.of(Config())).read_text(encoding="utf-8")
     assert "Matches of the weakest insertion" not in text and 'id="times"' not in text
     assert 'id="view3d"' in text and "blank.png" in text
     assert any("weakest insertion" in r.getMessage() and "boom" in r.getMessage() for r in caplog.records)
