@@ -17,6 +17,8 @@ from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc
 from stereoseed.sfm.hindsight import contradicted_by_neighbours, register_again
 from stereoseed.sfm.loop_closure import judge_loop
+from stereoseed.sfm.pair_consistency import pair_consistency
+from stereoseed.sfm.refinement import CALIBRATED
 from stereoseed.sfm.options import Configuration, MapperOptions, options_of
 from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.trust import Verdicts, contradicted_cameras, judge
@@ -33,7 +35,9 @@ def finish(recon: Reconstruction, options: MapperOptions | Configuration,
     neighbours place clearly better elsewhere registered again there
     (:func:`stereoseed.sfm.hindsight.register_again`); the cameras left undetermined dropped;
     then each camera judged (:func:`judge_cameras`), and the loop with the cameras' uncertainty
-    (:func:`stereoseed.sfm.loop_closure.judge_loop`). ``options``: the mapper's (a plain
+    (:func:`stereoseed.sfm.loop_closure.judge_loop`); how well the calibrated pair agrees with
+    the walk placed from it (:func:`stereoseed.sfm.pair_consistency.pair_consistency`, not a
+    rig walk's). ``options``: the mapper's (a plain
     :class:`~stereoseed.config.Config` gives its own). Returns the JSON-able report."""
     t = time.perf_counter()
     options = options_of(options)
@@ -55,6 +59,10 @@ def finish(recon: Reconstruction, options: MapperOptions | Configuration,
     out["trust"] = _applied(recon, _verdicts(recon, options, between), tc)
     if isinstance(out.get("loop_closure"), dict):  # judged once every camera has its uncertainty
         judge_loop(recon, options.loop_closure, out["loop_closure"])
+    if recon.rig is None:  # a rig walk's pair is its first station, adjusted with the rig
+        # the pairs the BA would keep (OutlierConfig.max_px), counted as its covariance counts them
+        out["pair_consistency"] = pair_consistency(recon, CALIBRATED, tc.independent_cell_px or 1.0,
+                                                   options.outliers.max_px)
     out["seconds"] = time.perf_counter() - t
     return out
 
