@@ -1,0 +1,121 @@
+"""``stereoseed live``'s loop: look at the watched folder, insert each photo as it comes, push
+the state to the page, and on stop (Ctrl-C, ``until`` photos, or ``stop`` set) finish the run
+as ``reconstruct`` would (:class:`stereoseed.live.session.LiveRun`)."""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from stereoseed.config import Config
+from stereoseed.live.config import LiveConfig
+from stereoseed.live.page import LivePage
+from stereoseed.live.session import LiveRun
+from stereoseed.live.status import page_state
+from stereoseed.live.watch import FolderWatch
+from stereoseed.output.result_set import result_name
+
+__all__ = ["run_live"]
+
+log = logging.getLogger(__name__)
+
+
+def _photo_line(name: str, report: dict[str, Any] | None, run: LiveRun) -> tuple[str, str]:
+    """(the line said of a photo just inserted, its level)."""
+    if report is None:
+        return f"{name}: the pair's first photo; waiting for its second", "info"
+    status = report.get("status", "")
+    if status == "failed":
+        return f"{name}: skipped: {report.get('reason')}", "warning"
+    k = run.names.index(name)
+    flag = run.recon.views[k].flag_reason if run.recon is not None and k < len(run.recon.views) else None
+    if flag:
+        return f"{name}: {status}, flagged: {flag}", "warning"
+    return f"{name}: {status} ({report.get('new_points', 0)} new points)", "info"
+
+
+def run_live(watch: str | Path, calib: str | Path, out: str | Path, cfg: Config = Config(),
+             live: LiveConfig = LiveConfig(), until: int | None = None, port: int = 0, resume: bool = False,
+             on_start: Callable[[str], None] | None = None, on_line: Callable[[str], None] | None = None,
+             stop: threading.Event | None = None, timings: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Watch ``watch`` for photos and reconstruct them live into the result folder ``out``
+    (``calib``: the pair's calibration, as for ``reconstruct``), the page on ``port`` of
+    127.0.0.1 (0: a free one). Stops on Ctrl-C, once ``until`` photos are taken, or when
+    ``stop`` is set; then finishes and writes the result folder. Returns the run's report.
+    on_start(url): once the page is served; on_line(text): each line of the page's log.
+    timings: when given, a dict per photo (name, settled_at, shown_at: monotonic seconds; the
+    latter when a browser got the first state showing it, else None)."""
+    run = LiveRun(calib, out, cfg, resume)
+    try:
+        page = LivePage(port, live, title=f"{result_name(out)} — stereoseed live")
+    except BaseException:
+        run.close()
+        raise
+    published: dict[str, int] = {}  # photo -> the version that first showed it
+    with page:
+        def say(line: str, level: str = "info") -> None:
+            (log.warning if level == "warning" else log.info)("%s", line)
+            page.event(line, level)
+            if on_line is not None:
+                on_line(line)
+
+        last_publish = [0.0]
+
+        def publish(force: bool = False) -> None:
+            if not force and time.monotonic() - last_publish[0] < 1.0 / live.max_updates_per_s:
+                return
+            version = page.publish(page_state(run.recon, run.names, run.unit))
+            last_publish[0] = time.monotonic()
+            for name in run.names:
+                published.setdefault(name, version)
+
+        try:
+            watcher = FolderWatch(watch, live, taken=tuple(run.names))
+            if run.resumed:
+                say(f"resumed: {len(run.resumed)} photos from the interrupted run")
+            publish(force=True)
+            if on_start is not None:
+                on_start(page.url)
+            say(f"watching {watcher.folder} for photos")
+            while until is None or len(run.names) < until:
+                if stop is not None and stop.is_set():
+                    break
+                look = watcher.look(time.monotonic())
+                for note in look.notes:
+                    say(note, "warning")
+                for arrival in look.arrivals:
+                    if until is not None and len(run.names) >= until:
+                        watcher.taken.discard(arrival.name)  # not this run's
+                        continue
+                    report = run.add(arrival)
+                    say(*_photo_line(arrival.name, report, run))
+                    publish()
+                publish(force=bool(look.arrivals))
+                if not look.arrivals:
+                    if stop is not None:
+                        stop.wait(live.poll_s)
+                    else:
+                        time.sleep(live.poll_s)
+        except KeyboardInterrupt:
+            say("stopping (Ctrl-C)")
+        except BaseException:
+            run.close()
+            raise
+        say(f"finishing {len(run.names)} photos as reconstruct would (the final adjustment, the loop closure, "
+            f"the judgement of each camera)")
+        publish(force=True)
+        try:
+            report = run.finish()
+        except BaseException as e:
+            say(f"the run did not finish ({type(e).__name__}: {e}); run the same command with --resume", "warning")
+            raise
+        say(f"wrote {out}: {report['registered']} of {report['images']} photos placed, {report['points']} points")
+        if timings is not None:
+            for name, settled in zip(run.names, run.arrived):
+                version = published.get(name)
+                shown = min((t for v, t in page.delivered.items() if version is not None and v >= version),
+                            default=None)
+                timings.append({"name": name, "settled_at": settled, "shown_at": shown})
+    return report
