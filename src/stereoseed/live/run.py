@@ -47,6 +47,7 @@ def run_live(watch: str | Path, calib: str | Path, out: str | Path, cfg: Config 
     on_start(url): once the page is served; on_line(text): each line of the page's log.
     timings: when given, a dict per photo (name, settled_at, shown_at: monotonic seconds; the
     latter when a browser got the first state showing it, else None)."""
+    FolderWatch(watch, live)  # a folder that is not there: refused before the result folder is touched
     run = LiveRun(calib, out, cfg, resume)
     try:
         page = LivePage(port, live, title=f"{result_name(out)} — stereoseed live")

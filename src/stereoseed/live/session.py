@@ -220,8 +220,10 @@ class LiveRun:
 
     def close(self) -> None:
         """Leave without finishing: the staging folder keeps the checkpoint, the photos and their
-        order for ``resume``."""
+        order for ``resume`` (a run that took no photo leaves nothing behind)."""
         try:
             self.saver.__exit__(None, None, None)
+            if not self.names:
+                self.results.abandon()
         finally:
             self.results.unlock()
