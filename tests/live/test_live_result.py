@@ -111,3 +111,22 @@ def test_stopping_before_the_pair_keeps_the_photo_and_says_why(photos, tmp_path)
     again = LiveRun(calib, tmp_path / "live", resume=True)
     assert again.names == [order[0].name]
     again.close()
+
+
+def test_a_view_added_after_a_doubted_insertion_is_in_the_model_kept_before_it(tmp_path):
+    """The model kept before a doubted insertion (what withdrawing that view restores) gets the
+    views added since, as if they had been there from the start: the checkpoint reads back."""
+    from stereoseed.scene.checkpoint import load_checkpoint, save_checkpoint
+    from stereoseed.scene.reconstruction import Reconstruction, View
+
+    images = [np.full((8, 8, 3), i, np.uint8) for i in range(4)]
+    recon = Reconstruction([View(n, image=im) for n, im in zip("abc", images)])
+    for i in (0, 1):  # the calibrated pair, reached
+        recon.calibrate(i, np.hstack([np.eye(3), [[i], [0], [0]]]))
+    recon.record(0, {"image": "a", "status": "calibrated"})
+    recon.record(1, {"image": "b", "status": "calibrated pair"})
+    recon.insertion_undo = (2, recon.checkpoint())
+    recon.add_view(View("d", image=images[3]))
+    assert len(recon.insertion_undo[1].views) == len(recon.views) == 4
+    save_checkpoint(tmp_path / "c.npz", recon, "key")
+    assert load_checkpoint(tmp_path / "c.npz", images, list("abcd"), "key") is not None

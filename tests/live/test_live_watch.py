@@ -43,13 +43,14 @@ def test_a_photo_is_taken_once_its_size_has_settled_and_it_decodes(tmp_path, png
     assert not watch.look(2.0).arrivals  # taken once
 
 
-def test_photos_settled_together_come_in_name_order(tmp_path, png):
+def test_photos_settled_together_come_in_the_order_they_were_written(tmp_path, png):
     watch = FolderWatch(tmp_path, CFG)
-    for name in ("b.png", "a.png", "c.jpg.part"):
+    for i, name in enumerate(("d.png", "b.png", "a.png", "c.jpg.part")):
         (tmp_path / name).write_bytes(png)
+        os.utime(tmp_path / name, ns=(1, (10 + min(i, 1)) * 10**9))  # b.png and a.png written in the same second
     first = watch.look(0.0)
     look = watch.look(1.0)
-    assert [a.name for a in look.arrivals] == ["a.png", "b.png"]
+    assert [a.name for a in look.arrivals] == ["d.png", "a.png", "b.png"]
     assert first.notes == ["c.jpg.part: not an image by its extension; not taken"] and not look.notes  # said once
 
 

@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "on 127.0.0.1 (docs/live.md)")
     p.add_argument("--watch", required=True, metavar="DIR",
                    help="the folder the photos arrive in (synced from a phone, a tethered camera); the first two are "
-                        "the calibrated pair; photos already there are taken first, in name order")
+                        "the calibrated pair; photos already there are taken first, in the order they were written")
     p.add_argument("--calib", required=True, help="the pair's calibration, as for reconstruct")
     p.add_argument("--out", required=True, help="result folder, written as reconstruct writes it when the run stops")
     p.add_argument("--until", type=_count, metavar="N", help="stop after N photos (default: Ctrl-C)")

@@ -105,7 +105,7 @@ class LiveRun:
         if self.recon is not None:
             for k in range(len(self.recon.views), len(self.names)):
                 self.seq.append(self.images_dir / self.names[k])
-                self.recon.views.append(view_of_input(self.names[k], self.seq, k))
+                self.recon.add_view(view_of_input(self.names[k], self.seq, k))
                 report = insert_next(self.recon, self.seq, k, self.cfg, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
         self.last = report

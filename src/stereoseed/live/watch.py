@@ -1,6 +1,7 @@
 """A folder watched for photos (``stereoseed live --watch DIR``): a photo is taken once it is
 complete, each once, in the order it became complete (photos completed in the same look at the
-folder: by name).
+folder, e.g. while an insertion ran: in the order they were written, by modification time, then
+name).
 
 A file counts as complete when its size and modification time have stayed the same for
 ``LiveConfig.stable_s`` and its bytes decode as an image; the bytes that were checked are the
@@ -32,13 +33,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Arrival:
-    """A complete photo: its path, name, bytes, whether they decode, and when (monotonic
-    seconds) the file was first seen with its final size and time."""
+    """A complete photo: its path, name, bytes, whether they decode, when (monotonic seconds)
+    the file was first seen with its final size and time, and that time (ns)."""
     path: Path
     name: str
     data: bytes
     decodes: bool
     settled_at: float
+    modified_ns: int = 0
 
 
 @dataclass
@@ -138,6 +140,7 @@ class FolderWatch:
                 self.taken.add(name)
                 self._present_taken.add(name)
                 found.arrivals.append(arrival)
+        found.arrivals.sort(key=lambda a: (a.modified_ns, a.name))  # a walk's order is the order of writing
         return found
 
     def _settled(self, name: str, signature: tuple[int, int], now: float, found: Look) -> Arrival | None:
@@ -172,4 +175,4 @@ class FolderWatch:
                 pending.said_undecodable = True
             return None
         del self._pending[name]
-        return Arrival(self.folder / name, name, data, decodes, pending.since)
+        return Arrival(self.folder / name, name, data, decodes, pending.since, signature[1])
