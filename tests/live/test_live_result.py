@@ -19,13 +19,13 @@ from stereoseed.pipeline import reconstruct_to_folder
 
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory, small_box_scene):
-    """Six photos of the small ring with a blank one as the fifth (it does not register): paths
+    """Five photos of the small ring with a blank one as the fourth (it does not register): paths
     in arrival order, and calib.json."""
     folder = tmp_path_factory.mktemp("photos")
-    paths, calib = scene_on_disk(small_box_scene.prefix(6), folder, images=folder / "src")
+    paths, calib = scene_on_disk(small_box_scene.prefix(5), folder, images=folder / "src")
     blank = write_image(folder / "src" / "blank.png", np.zeros_like(small_box_scene.images[0]))
     order = list(paths["images"])
-    order.insert(4, blank)
+    order.insert(3, blank)
     return order, calib
 
 
@@ -65,13 +65,13 @@ def test_the_live_result_is_reconstructs_on_the_same_photos(photos, reference, t
     run = LiveRun(calib, tmp_path / "live")
     reports = [run.add(_arrival(p)) for p in order]
     assert reports[0] is None and reports[1]["status"] == "calibrated pair"
-    assert reports[4]["status"] == "failed" and reports[4]["reason"]  # the blank photo, with its reason
-    assert reports[2]["status"] == reports[3]["status"] == "registered"  # each placed on arrival
+    assert reports[3]["status"] == "failed" and reports[3]["reason"]  # the blank photo, with its reason
+    assert reports[2]["status"] == reports[4]["status"] == "registered"  # each placed on arrival
     report = run.finish()
     live = _cameras(tmp_path / "live")
     _same(live, reference)
     assert not live["blank.png"]["registered"]
-    assert report["live"]["photos"] == 7 and "resumed_images" not in report
+    assert report["live"]["photos"] == 6 and "resumed_images" not in report
     # the result folder is reconstruct's, with the run's copies of the photos that inputs.json names
     folder = tmp_path / "live"
     files = json.loads((folder / MANIFEST).read_text())["files"]
@@ -85,7 +85,7 @@ def test_the_live_result_is_reconstructs_on_the_same_photos(photos, reference, t
 def test_an_interrupted_live_run_resumes_to_the_same_result(photos, reference, tmp_path):
     order, calib = photos
     run = LiveRun(calib, tmp_path / "live")
-    for p in order[:4]:
+    for p in order[:3]:
         run.add(_arrival(p))
     run.close()  # stopped without finishing (a crash, a second Ctrl-C)
     assert not (tmp_path / "live").exists()
@@ -94,12 +94,12 @@ def test_an_interrupted_live_run_resumes_to_the_same_result(photos, reference, t
         LiveRun(calib, tmp_path / "live", resume=True)
     again.close()
     resumed = LiveRun(calib, tmp_path / "live", resume=True)
-    assert resumed.resumed == [p.name for p in order[:4]]
-    for p in order[4:]:
+    assert resumed.resumed == [p.name for p in order[:3]]
+    for p in order[3:]:
         resumed.add(_arrival(p))
     report = resumed.finish()
     _same(_cameras(tmp_path / "live"), reference)
-    assert report["live"]["resumed_photos"] == [p.name for p in order[:4]]
+    assert report["live"]["resumed_photos"] == [p.name for p in order[:3]]
 
 
 def test_stopping_before_the_pair_keeps_the_photo_and_says_why(photos, tmp_path):
