@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stereoseed.validation import positive
+from stereoseed.validation import positive, whole
 
 __all__ = ["LiveConfig"]
 
@@ -30,5 +30,17 @@ class LiveConfig:
     # kB); photos that arrive faster are shown together in the next update.
     max_updates_per_s: float = 4.0
 
+    # --video: keyframes waiting for the run at most (each a full-size frame, ~1 MB at 640 x 480):
+    # a few keep the run busy through a fast stretch of the walk; past them the reader waits
+    # and then drops frames rather than holding the stream in memory.
+    video_queue: int = 4
+    # --video: a frame this late (s) against the stream's pace is dropped (grabbed, not decoded
+    # nor tracked) until the reader is back on time; two frames at 25 fps absorb a slow decode.
+    video_late_s: float = 0.08
+    # --video: the frame rate assumed when the container does not give one (the usual camera's)
+    video_fps: float = 25.0
+
     def __post_init__(self) -> None:
-        positive(self, "poll_s", "stable_s", "unreadable_after_s", "heartbeat_s", "max_updates_per_s")
+        positive(self, "poll_s", "stable_s", "unreadable_after_s", "heartbeat_s", "max_updates_per_s",
+                 "video_late_s", "video_fps")
+        whole(self, "video_queue")

@@ -77,7 +77,7 @@ class FolderWatch:
             raise StereoseedError(f"{self.folder}: not a folder; give the folder the photos arrive in")
         self.cfg = cfg
         self.taken: set[str] = set(taken)
-        self._present_taken: set[str] = set(taken)  # taken names whose file is still there
+        self.present: set[str] = set(taken)  # taken names whose file is still there
         self._pending: dict[str, _Pending] = {}
         self._said: set[str] = set()  # names refused once (a video, a bad name, taken twice)
 
@@ -107,15 +107,15 @@ class FolderWatch:
         if listing is None:
             found.notes.append(f"{self.folder}: cannot be listed; waiting for it to come back")
             return found
-        for name in sorted(self._present_taken - listing.keys()):
-            self._present_taken.discard(name)
+        for name in sorted(self.present - listing.keys()):
+            self.present.discard(name)
             found.notes.append(f"{name}: deleted from {self.folder} after it was taken; the run keeps its copy")
         for name in sorted(self._pending.keys() - listing.keys()):
             del self._pending[name]
             found.notes.append(f"{name}: deleted before it was complete; not taken")
         for name in sorted(listing):
             if name in self.taken:
-                if name not in self._present_taken and name not in self._said:
+                if name not in self.present and name not in self._said:
                     self._said.add(name)
                     found.notes.append(f"{name}: a photo of this name was taken already (and deleted since); "
                                        f"rename this one to add it")
@@ -138,7 +138,7 @@ class FolderWatch:
             arrival = self._settled(name, listing[name], now, found)
             if arrival is not None:
                 self.taken.add(name)
-                self._present_taken.add(name)
+                self.present.add(name)
                 found.arrivals.append(arrival)
         found.arrivals.sort(key=lambda a: (a.modified_ns, a.name))  # a walk's order is the order of writing
         return found
