@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from cli_helpers import one_line_error, run as run_cli
+from cli_helpers import cli_command, one_line_error, run as run_cli
 from scene_helpers import scene_on_disk
 from stereoseed.live import LiveConfig, LivePage, run_live
 
@@ -184,3 +184,31 @@ def test_the_command_stops_after_n_photos_and_refuses_bad_input(photos, tmp_path
                              tmp_path / "r2")
     assert code == 2 and one_line_error(err) and "not a folder" in err
     assert not (tmp_path / ".r2.partial").exists()
+
+
+def test_ctrl_c_stops_the_command_and_writes_the_result(photos, tmp_path):
+    import signal
+    import subprocess
+
+    paths, calib = photos
+    watch = tmp_path / "watch"
+    watch.mkdir()
+    for p in paths[:3]:
+        _put(p, watch)
+    log = tmp_path / "out.txt"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cli_command("live", "--watch", watch, "--calib", calib, "--out", tmp_path / "r",
+                                            "--port", 0), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while paths[2].name + ": registered" not in log.read_text() and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(60) == 0, log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text()
+    assert "stopping (Ctrl-C)" in text and "3/3 photos placed" in text and "Traceback" not in text
+    assert (tmp_path / "r" / "cameras.json").is_file() and not (tmp_path / ".r.partial").exists()
