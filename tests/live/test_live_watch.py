@@ -91,3 +91,4 @@ def test_a_video_or_a_folder_that_is_not_there(tmp_path):
 def test_the_settings_are_checked_when_built():
     with pytest.raises(ValueError, match="LiveConfig.stable_s"):
         LiveConfig(stable_s=0)
+

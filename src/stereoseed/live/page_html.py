@@ -22,7 +22,8 @@ section h2{font-size:15px;margin:2px 0 6px}
 #hints li{margin:4px 0}
 #events{font-size:12px;max-height:260px;overflow-y:auto;margin:0;padding-left:18px}
 #events li.warning{color:#8a5a00}
-table{border-collapse:collapse;font-size:12px;width:100%}
+table{border-collapse:collapse;font-size:12px;width:100%;table-layout:fixed}
+td{overflow-wrap:anywhere}
 td,th{border-bottom:1px solid #e3e6ec;padding:3px 5px;text-align:left;vertical-align:top}
 tr.failed td{background:#fde8e8;color:#8a1c1c}tr.flagged td{background:#fff1cc}
 .note{color:#667;font-size:13px}

@@ -62,7 +62,7 @@ def _hints(rows: list[dict[str, Any]], cams: list, frame: dict[str, Any] | None)
     hints = []
     last = reached[-1] if reached else None
     if last is not None and last["status"] == "failed":
-        row = len(reached) - next(i for i, r in enumerate(reversed(reached)) if r["status"] != "failed")
+        row = next((i for i, r in enumerate(reversed(reached)) if r["status"] != "failed"), len(reached))
         back = good[-1] if good else rows[0]["image"]
         if row >= FAILURES_IN_A_ROW:
             hints.append(f"{row} photos in a row did not register: the walk has left what the model knows. Go back to "

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, name_trouble
+from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, captured_stderr, name_trouble
 from stereoseed.live.config import LiveConfig
 
 __all__ = ["Arrival", "Look", "FolderWatch"]
@@ -60,10 +60,11 @@ class _Pending:
 
 
 def _decodes(data: bytes) -> bool:
-    try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    except cv2.error:
-        return False
+    with captured_stderr():  # what the decoders print of a half-written file stays off the terminal
+        try:
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        except cv2.error:
+            return False
     return image is not None and image.size > 0
 
 
