@@ -187,7 +187,7 @@ def test_the_command_stops_after_n_photos_and_refuses_bad_input(photos, tmp_path
     assert not (tmp_path / ".r2.partial").exists()
 
 
-def test_ctrl_c_stops_the_command_and_writes_the_result(photos, tmp_path):
+def test_ctrl_c_stops_the_command_and_writes_the_result_with_its_dense_cloud(photos, tmp_path):
     import signal
     import subprocess
 
@@ -199,7 +199,7 @@ def test_ctrl_c_stops_the_command_and_writes_the_result(photos, tmp_path):
     log = tmp_path / "out.txt"
     with open(log, "w") as out:
         proc = subprocess.Popen(cli_command("live", "--watch", watch, "--calib", calib, "--out", tmp_path / "r",
-                                            "--port", 0), stdout=out, stderr=subprocess.STDOUT)
+                                            "--port", 0, "--dense"), stdout=out, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 60
         while paths[2].name + ": registered" not in log.read_text() and time.monotonic() < deadline:
@@ -213,3 +213,4 @@ def test_ctrl_c_stops_the_command_and_writes_the_result(photos, tmp_path):
     text = log.read_text()
     assert "stopping (Ctrl-C)" in text and "3/3 photos placed" in text and "Traceback" not in text
     assert (tmp_path / "r" / "cameras.json").is_file() and not (tmp_path / ".r.partial").exists()
+    assert (tmp_path / "r" / "dense.ply").stat().st_size > 1000  # --dense: the dense stage once stopped

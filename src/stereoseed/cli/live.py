@@ -15,7 +15,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     if args.video is not None and args.pair is None:
         raise StereoseedError("--video needs the calibrated pair's two photos first: --pair PAIR1.png PAIR2.png")
     report = run_live(args.watch, args.calib, args.out, cfg, until=args.until, port=args.port, resume=args.resume,
-                      video=args.video, pair=args.pair,
+                      video=args.video, pair=args.pair, dense=args.dense,
                       on_start=lambda url: say(f"live page: {url}  (Ctrl-C: stop and write {args.out})"),
                       on_line=None if args.quiet else say)
     say(f"{report['registered']}/{report['images']} photos placed, {report['points']} points; wrote {args.out}")
@@ -60,6 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--until", type=_count, metavar="N", help="stop after N photos (default: Ctrl-C)")
     p.add_argument("--port", type=_port, default=8765,
                    help="the page's port on 127.0.0.1 (default: %(default)s; 0: a free one, printed)")
+    p.add_argument("--dense", action="store_true",
+                   help="once stopped, the quasi-dense stage as reconstruct --dense runs it (dense.ply)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted live run into the same --out")
     p.add_argument("--config", metavar="FILE", help="the run's settings: a TOML file (docs/config.md)")
     p.add_argument("--quiet", action="store_true", help="print only the page's address, errors and the summary")

@@ -55,7 +55,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
              on_start: Callable[[str], None] | None = None, on_line: Callable[[str], None] | None = None,
              stop: threading.Event | None = None, timings: list[dict[str, Any]] | None = None,
              video: str | Path | None = None, pair: list[str | Path] | None = None,
-             realtime: bool = True) -> dict[str, Any]:
+             realtime: bool = True, dense: bool = False) -> dict[str, Any]:
     """Watch ``watch`` for photos (or read the ``video`` after the ``pair``'s two photos) and
     reconstruct them live into the result folder ``out`` (``calib``: the pair's calibration, as
     for ``reconstruct``), the page on ``port`` of 127.0.0.1 (0: a free one). Stops on Ctrl-C,
@@ -64,7 +64,8 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
     on_start(url): once the page is served; on_line(text): each line of the page's log.
     timings: when given, a dict per photo (name, settled_at, shown_at: monotonic seconds; the
     latter when a browser got the first state showing it, else None). realtime: a video read
-    at its frame rate (False: as fast as the run takes its keyframes)."""
+    at its frame rate (False: as fast as the run takes its keyframes). dense: the dense stage
+    once stopped, as ``reconstruct --dense`` runs it."""
     if (watch is None) == (video is None):
         raise StereoseedError("give one source: --watch DIR or --video FILE")
     if video is not None:
@@ -151,7 +152,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
             f"the judgement of each camera)")
         publish(force=True)
         try:
-            report = run.finish()
+            report = run.finish(dense)
         except BaseException as e:
             say(f"the run did not finish ({type(e).__name__}: {e}); run the same command with --resume", "warning")
             raise

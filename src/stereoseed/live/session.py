@@ -190,11 +190,11 @@ class LiveRun:
         return count, key
 
     # ------------------------------------------------------------------ stopping
-    def finish(self) -> dict[str, Any]:
+    def finish(self, dense: bool = False) -> dict[str, Any]:
         """Stop: the run's last checkpoint signed for ``reconstruct`` on the photos taken, in
-        their order, which resumes from it (its finishing step), then the result folder written
-        as ``reconstruct`` writes it and swapped in whole. Returns the report. Interrupted, the
-        staging folder keeps everything for ``resume``."""
+        their order, which resumes from it (its finishing step), then (``dense``) its dense
+        stage, and the result folder written as ``reconstruct`` writes it and swapped in whole.
+        Returns the report. Interrupted, the staging folder keeps everything for ``resume``."""
         try:
             self.saver.__exit__(None, None, None)  # the last checkpoint written
             if self.recon is None:
@@ -208,10 +208,15 @@ class LiveRun:
                                         resume=True)
             report.pop("resumed_images", None)  # this run inserted them; a resumed live run says so below
             report["live"] = {"photos": len(self.names), "resumed_photos": self.resumed}
+            cloud = None
+            if dense:  # on the final cameras, as reconstruct --dense: its pairs on local processes
+                from stereoseed.dense.densify import densify
+
+                cloud, report["dense"] = densify(recon, self.cfg, self.staging)
             report.update(unit=self.unit, timing={"total_s": time.perf_counter() - self.t0,
                                                   "stages_s": {"live": live_s,
                                                                "finishing": time.perf_counter() - self.t0 - live_s}})
-            save_outputs(recon, report, self.staging, self.cfg, self.lenses)
+            save_outputs(recon, report, self.staging, self.cfg, self.lenses, cloud)
             write_inputs(self.staging, self.out, [self.seq.source(i) for i in range(len(self.seq))], self.names)
             self.results.commit(drop=(".checkpoint*", ARRIVALS))
             return report
