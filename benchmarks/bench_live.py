@@ -2,7 +2,10 @@
 photos put into a watched folder one at a time at a fixed rate (in ring_order.txt's order, each
 written beside and renamed in, as a sync tool does), the page followed by a client of its event
 stream. Per photo: the latency from the file's arrival to the first pushed state that shows it
-(median, p95), and the process's memory (peak and after each photo).
+(median, p95), and the process's memory (peak and after each photo). Then ``walk``: a 300-photo
+synthetic ring (320 x 240, 1.2 degrees apart) taken by a live run as fast as it inserts them,
+the page's state built after each as the page would: the memory along the walk and the
+insertion's time.
 
     python benchmarks/bench_live.py [SECONDS_BETWEEN_PHOTOS]
 """
@@ -34,7 +37,49 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
+def walk(n: int = 300) -> dict:
+    from stereoseed.io.files import write_image, write_json
+    from stereoseed.live.session import LiveRun
+    from stereoseed.live.status import page_state
+    from stereoseed.live.watch import Arrival
+    from stereoseed.synthetic.scene import SceneConfig, render_scene
+
+    scene = render_scene(SceneConfig(n_images=n, step_deg=1.2, width=320, height=240, focal_px=400.0,
+                                     focal0_px=390.0, supersample=1))
+    rss, seconds = {}, []
+    with tempfile.TemporaryDirectory(prefix="bench-live-walk-") as tmp:
+        calib = write_json(Path(tmp) / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
+        paths = [write_image(Path(tmp) / name, image) for name, image in zip(scene.names, scene.images)]
+        del scene
+        run = LiveRun(calib, Path(tmp) / "result")
+        mapper, state = [], []
+        for i, path in enumerate(paths, 1):
+            t = time.perf_counter()
+            report = run.add(Arrival(path, path.name, path.read_bytes(), True, time.monotonic()))
+            t1 = time.perf_counter()
+            page_state(run.recon, run.names, run.unit)
+            seconds.append(time.perf_counter() - t)
+            state.append(time.perf_counter() - t1)
+            mapper.append((report or {}).get("seconds", {}).get("total", 0.0))
+            if i in (30, 60, 100, 150, 200, 250, 300) or i == n:
+                rss[i] = _rss_mb()
+        t = time.perf_counter()
+        report = run.finish()
+        finishing = time.perf_counter() - t
+    return {"photos": n, "registered": report["registered"], "rss_mb_after_photo": rss,
+            "photo_s": {"photos_10_19": float(np.median(seconds[9:19])), "last_ten": float(np.median(seconds[-10:]))},
+            # of which the mapper's insertion (its report's seconds) and the page's state
+            "insertion_s": {"photos_10_19": float(np.median(mapper[9:19])), "last_ten": float(np.median(mapper[-10:]))},
+            "page_state_s": {"photos_10_19": float(np.median(state[9:19])), "last_ten": float(np.median(state[-10:]))},
+            "live_s": float(sum(seconds)), "finishing_s": finishing,
+            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3}
+
+
 def run(rate_s: float = RATE_S) -> dict:
+    return {"capture": capture(rate_s), "walk": walk()}
+
+
+def capture(rate_s: float = RATE_S) -> dict:
     folder = find_sample(SET)
     if folder is None:
         return {"skipped": missing_message(SET)}
@@ -86,4 +131,4 @@ def run(rate_s: float = RATE_S) -> dict:
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(*(float(a) for a in sys.argv[1:])), indent=1))
+    print(json.dumps(capture(*(float(a) for a in sys.argv[1:])) if sys.argv[1:] else run(), indent=1))

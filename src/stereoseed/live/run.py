@@ -91,6 +91,10 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
         last_publish = [0.0]
 
         def publish(force: bool = False) -> None:
+            """The state pushed when a photo is not shown yet: at once when ``force``d, else at
+            most ``max_updates_per_s`` times a second."""
+            if len(published) == len(run.names) and published:
+                return  # nothing new to show
             if not force and time.monotonic() - last_publish[0] < 1.0 / live.max_updates_per_s:
                 return
             version = page.publish(page_state(run.recon, run.names, run.unit))
@@ -150,7 +154,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 source.close()
         say(f"finishing {len(run.names)} photos as reconstruct would (the final adjustment, the loop closure, "
             f"the judgement of each camera)")
-        publish(force=True)
+        publish(force=True)  # the photos not shown yet
         try:
             report = run.finish(dense)
         except BaseException as e:
