@@ -98,6 +98,7 @@ def test_the_page_grows_while_photos_arrive_and_says_what_went_wrong(photos, tmp
                     _put(path, watch)
                     photos_shown(k + 1)
                 page.wait_for_selector("#view3d canvas", timeout=10_000)  # the 3D view, drawn
+                assert page.locator("#last-photo").get_attribute("src").startswith("data:image/jpeg;base64,")
                 # a photo still being written: taken once whole
                 partial = watch / paths[3].name
                 data = paths[3].read_bytes()

@@ -19,7 +19,7 @@ section{background:#fff;border-radius:6px;box-shadow:0 1px 3px rgba(0,0,0,.12);p
 section h2{font-size:15px;margin:2px 0 6px}
 #view3d{width:100%;height:560px}
 #last.failed{color:#8a1c1c;font-weight:600}#last.flagged{color:#8a5a00;font-weight:600}
-#hints li{margin:4px 0}
+#hints li{margin:4px 0}#last-photo{max-width:100%;height:auto;border:1px solid #ccd}
 #events{font-size:12px;max-height:260px;overflow-y:auto;margin:0;padding-left:18px}
 #events li.warning{color:#8a5a00}
 table{border-collapse:collapse;font-size:12px;width:100%;table-layout:fixed}
@@ -36,7 +36,9 @@ tr.failed td{background:#fde8e8;color:#8a1c1c}tr.flagged td{background:#fff1cc}
 <div><span>flagged</span><b id="count-flagged">0</b></div>
 <div id="connection">connecting…</div></div></header>
 <main><div>
-<section><h2>Last photo</h2><p id="last" class="note">waiting for the first photo</p></section>
+<section><h2>Last photo</h2><p id="last" class="note">waiting for the first photo</p>
+<img id="last-photo" alt="the last photo" hidden>
+<p class="note">Green: its points that match the model; grey: the others.</p></section>
 <section><h2>3D view</h2><div id="view3d"><p class="note">the model appears once the calibrated pair is in</p></div>
 <p class="note">Orange: the calibrated pair; red: the cameras placed since. Drag to rotate, scroll to zoom.</p></section>
 </div><div>
@@ -67,6 +69,8 @@ tr.failed td{background:#fde8e8;color:#8a1c1c}tr.flagged td{background:#fff1cc}
       last.textContent = s.last.image + ': ' + s.last.status + why;
       last.className = s.last.status === 'failed' ? 'failed' : (s.last.flag ? 'flagged' : '');
     }
+    var photo = document.getElementById('last-photo');
+    if (s.last_photo) { photo.src = s.last_photo; photo.hidden = false; } else { photo.hidden = true; }
     var hints = document.getElementById('hints'); hints.innerHTML = '';
     (s.hints || []).forEach(function(h){ var li = document.createElement('li'); li.textContent = h; hints.appendChild(li); });
     var body = document.getElementById('photos'); body.innerHTML = '';

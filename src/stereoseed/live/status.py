@@ -3,15 +3,17 @@ skipped, its flag), the last photo's status, what to do next, and the 3D view bu
 report.html's own figure code (:func:`stereoseed.output.report.figures.figure_3d`)."""
 from __future__ import annotations
 
+import base64
 import logging
 from typing import Any
 
+import cv2
 import numpy as np
 
 from stereoseed.geometry.projection import camera_center
 from stereoseed.output.report.figures import figure_3d, finite_cloud, optional_part, registered_cameras, scene_frame
 
-__all__ = ["page_state", "COVERAGE_GAP_DEG", "FAILURES_IN_A_ROW"]
+__all__ = ["page_state", "last_photo", "COVERAGE_GAP_DEG", "FAILURES_IN_A_ROW", "LAST_PHOTO_WIDTH"]
 
 log = logging.getLogger(__name__)
 
@@ -20,6 +22,9 @@ log = logging.getLogger(__name__)
 # textured object still matches (the 36-image ring: 10 degrees), beyond 45 the walk has a side
 # left to photograph.
 COVERAGE_GAP_DEG = 45.0
+# The last photo is shown this wide (px): enough to see what it shows and where its points are,
+# a JPEG of a few tens of kB pushed with each state.
+LAST_PHOTO_WIDTH = 480
 # This many photos in a row that did not register: the walk has left what the model knows
 # (a photo or two may be blurred; three are a lost track).
 FAILURES_IN_A_ROW = 3
@@ -82,6 +87,31 @@ def _hints(rows: list[dict[str, Any]], cams: list, frame: dict[str, Any] | None)
     return hints
 
 
+def last_photo(recon: Any) -> str | None:
+    """The last photo reached, small, as a JPEG data URI: its interest points that observe a
+    point of the model drawn green (its matches with the model), the others grey; None before
+    the pair."""
+    if recon is None:
+        return None
+    k = len(recon.reports()) - 1
+    view = recon.views[k]
+    image = view.image
+    if image is None or image.size == 0 or 0 in image.strides:  # (an unreadable photo reads as a blank of no memory)
+        return None
+    scale = min(1.0, LAST_PHOTO_WIDTH / image.shape[1])
+    small = (cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1.0
+             else np.array(image))  # a copy to draw on: the sequence's images are shared, read-only
+    features = view.features
+    if features is not None and len(features.points):
+        linked = np.asarray(view.point_of_feature) >= 0
+        for points, colour, radius in ((features.points[~linked], (150, 150, 150), 1),
+                                       (features.points[linked], (60, 220, 60), 3)):
+            for x, y in np.round(points * scale).astype(int):
+                cv2.circle(small, (int(x), int(y)), radius, colour, -1, cv2.LINE_AA)
+    ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    return "data:image/jpeg;base64," + base64.b64encode(jpeg.tobytes()).decode("ascii") if ok else None
+
+
 def page_state(recon: Any, names: list[str], unit: str | None = None, with_figure: bool = True) -> dict[str, Any]:
     """The page's state (JSON-able): counts, a row per photo, the last photo's row, the hints,
     and the 3D view's Plotly figure (None before the pair, or when it cannot be built)."""
@@ -103,4 +133,5 @@ def page_state(recon: Any, names: list[str], unit: str | None = None, with_figur
             "flagged": sum(1 for r in rows if r.get("flag")),
             "skipped": sum(1 for r in rows if r["status"] == "failed"),
             "last": reached[-1] if reached else (rows[-1] if rows else None),
-            "rows": rows, "hints": _hints(rows, cams, frame), "figure": figure}
+            "rows": rows, "hints": _hints(rows, cams, frame), "figure": figure,
+            "last_photo": optional_part("the last photo", lambda: last_photo(recon)) if with_figure else None}
