@@ -76,15 +76,30 @@ def walk(n: int = 300) -> dict:
 
 
 def run(rate_s: float = RATE_S) -> dict:
-    return {"capture": capture(rate_s), "walk": walk()}
+    return {"capture": capture(rate_s), "ring36": ring36(rate_s), "walk": walk()}
+
+
+def ring36(rate_s: float = RATE_S) -> dict:
+    """The capture of bench_speed's 36-image synthetic ring (640 x 480, 10 degrees apart, its
+    true pair as the calibration)."""
+    from stereoseed.io.files import write_json
+    from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
+
+    with tempfile.TemporaryDirectory(prefix="bench-live-ring-") as tmp:
+        scene = render_scene(SceneConfig(n_images=36, step_deg=10.0, seed=1))
+        photos = write_scene(scene, Path(tmp) / "ring")["images"]
+        calib = write_json(Path(tmp) / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
+        return {"set": "synthetic ring, 36 images at 10 degrees", **_capture(photos, calib, rate_s)}
 
 
 def capture(rate_s: float = RATE_S) -> dict:
     folder = find_sample(SET)
     if folder is None:
         return {"skipped": missing_message(SET)}
-    photos = list_images(folder / "ring_order.txt")
-    calib = folder / "templeSR_par.txt"
+    return {"set": SET, **_capture(list_images(folder / "ring_order.txt"), folder / "templeSR_par.txt", rate_s)}
+
+
+def _capture(photos: list[Path], calib: Path, rate_s: float) -> dict:
     written: dict[str, float] = {}
     rss: list[float] = []
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
@@ -121,7 +136,7 @@ def capture(rate_s: float = RATE_S) -> dict:
                           on_start=lambda url: (urls.append(url), started.set()), timings=timings)
         total = time.perf_counter() - t0
     latency = [t["shown_at"] - written[t["name"]] for t in timings if t["shown_at"] is not None]
-    return {"set": SET, "photos": len(photos), "seconds_between_photos": rate_s,
+    return {"photos": len(photos), "seconds_between_photos": rate_s,
             "registered": report["registered"], "points": report["points"],
             "latency_s": {"median": float(np.median(latency)), "p95": float(np.percentile(latency, 95)),
                           "max": float(np.max(latency)), "shown": len(latency)},
