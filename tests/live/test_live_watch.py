@@ -88,6 +88,19 @@ def test_a_video_or_a_folder_that_is_not_there(tmp_path):
         FolderWatch(tmp_path / "nowhere", CFG)
 
 
+def test_a_watched_folder_that_goes_away_is_said_once(tmp_path, png):
+    folder = tmp_path / "w"
+    folder.mkdir()
+    watch = FolderWatch(folder, CFG)
+    folder.rmdir()
+    notes = watch.look(0.0).notes + watch.look(0.2).notes
+    assert len(notes) == 1 and "cannot be listed" in notes[0]
+    folder.mkdir()
+    (folder / "a.png").write_bytes(png)
+    assert watch.look(0.4).notes == [f"{folder}: can be listed again"]
+    assert [a.name for a in watch.look(1.0).arrivals] == ["a.png"]
+
+
 def test_the_settings_are_checked_when_built():
     with pytest.raises(ValueError, match="LiveConfig.stable_s"):
         LiveConfig(stable_s=0)

@@ -81,6 +81,8 @@ class FolderWatch:
         self.present: set[str] = set(taken)  # taken names whose file is still there
         self._pending: dict[str, _Pending] = {}
         self._said: set[str] = set()  # names refused once (a video, a bad name, taken twice)
+        self._unlisted = False  # the folder could not be listed at the last look
+        self._why_unlisted = ""
 
     def _listing(self) -> dict[str, tuple[int, int]] | None:
         """{name: (size, mtime_ns)} of the regular files in the folder, None when it cannot be listed."""
@@ -97,7 +99,7 @@ class FolderWatch:
                     if stat.S_ISREG(st.st_mode):
                         out[entry.name] = (st.st_size, st.st_mtime_ns)
         except OSError as e:
-            log.warning("%s: cannot be listed (%s)", self.folder, e.strerror or e)
+            self._why_unlisted = e.strerror or str(e)
             return None
         return out
 
@@ -106,8 +108,14 @@ class FolderWatch:
         found = Look()
         listing = self._listing()
         if listing is None:
-            found.notes.append(f"{self.folder}: cannot be listed; waiting for it to come back")
+            if not self._unlisted:  # said once, not at every look
+                found.notes.append(f"{self.folder}: cannot be listed ({self._why_unlisted}); waiting for it to "
+                                   f"come back")
+            self._unlisted = True
             return found
+        if self._unlisted:
+            found.notes.append(f"{self.folder}: can be listed again")
+            self._unlisted = False
         for name in sorted(self.present - listing.keys()):
             self.present.discard(name)
             found.notes.append(f"{name}: deleted from {self.folder} after it was taken; the run keeps its copy")
