@@ -15,14 +15,12 @@ from pathlib import Path
 
 import pytest
 
+from browser_helpers import CHROMIUM_ARGS, playwright_chromium
+
 from cli_helpers import cli_command, one_line_error, run as run_cli
 from scene_helpers import scene_on_disk
 from stereoseed.live import LiveConfig, LivePage, run_live
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 FAST = LiveConfig(poll_s=0.05, stable_s=0.1, unreadable_after_s=0.4, heartbeat_s=0.3)
 
 
@@ -34,14 +32,6 @@ def photos(tmp_path_factory, small_box_scene):
     return list(paths["images"]), calib
 
 
-def _browser():
-    if not Path(CHROMIUM).exists() and shutil.which("chromium") is None:
-        pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("no playwright (pip install -e '.[test]')")
-    return sync_playwright, Path(CHROMIUM) if Path(CHROMIUM).exists() else Path(shutil.which("chromium"))
 
 
 def _put(path: Path, folder: Path, name: str | None = None) -> Path:
@@ -73,7 +63,7 @@ def _live(watch: Path, calib: Path, out: Path, **kw):
 
 
 def test_the_page_grows_while_photos_arrive_and_says_what_went_wrong(photos, tmp_path, caplog):
-    sync_playwright, chromium = _browser()
+    sync_playwright, chromium = playwright_chromium()
     paths, calib = photos
     watch = tmp_path / "watch"
     watch.mkdir()

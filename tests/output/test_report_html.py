@@ -6,11 +6,12 @@ import html
 import html.parser
 import logging
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from browser_helpers import CHROMIUM_ARGS, playwright_chromium
 
 from stereoseed.errors import StereoseedError
 
@@ -21,11 +22,6 @@ from stereoseed.pipeline import reconstruct
 from stereoseed.sfm.correspondence import HarrisZncc
 from stereoseed.output.report.html import write_report_html
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 # WebGL in software (SwiftShader): without a GPU, newer Chromium builds offer it only on request
-                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 
 
 @pytest.fixture(scope="module")
@@ -190,20 +186,12 @@ def test_view_without_report_is_a_one_line_error(tmp_path, capsys):
 
 
 # ---------------------------------------------------------------- in a real browser
-def _browser():
-    if not Path(CHROMIUM).exists() and shutil.which("chromium") is None:
-        pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("no playwright (pip install -e '.[test]')")
-    return sync_playwright, Path(CHROMIUM) if Path(CHROMIUM).exists() else Path(shutil.which("chromium"))
 
 
 def test_report_renders_in_headless_chromium(written, tmp_path):
     import cv2
 
-    sync_playwright, chromium = _browser()
+    sync_playwright, chromium = playwright_chromium()
     path, _ = written
     problems: list[str] = []
     with sync_playwright() as p:
@@ -285,7 +273,7 @@ def test_the_scale_bar_the_distance_readout_and_the_toolbars_in_chromium(run, tm
 
     from stereoseed.output.report.measure import length_text
 
-    sync_playwright, chromium = _browser()
+    sync_playwright, chromium = playwright_chromium()
     recon, report = run
     path = write_report_html(recon, {**report, "unit": "m"}, tmp_path)  # the synthetic box is in metres
     figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>',
