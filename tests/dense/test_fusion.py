@@ -86,3 +86,27 @@ def test_dense_config_refuses_a_support_without_a_check():
         DenseConfig(min_confidence=1.0)
     with pytest.raises(ValueError, match="match_noise_px"):
         DenseConfig(match_noise_px=0.0)
+
+
+def test_dense_resolution_propagates_on_smaller_images(box_scene):
+    """--dense-resolution: the pairs propagated on images brought down to 320 px (half the
+    render's 640): a quarter of the pixels, the same surface, the cameras and seeds in the
+    resized frame (a slip of the pixel map would put the points off the surface)."""
+    from stereoseed.config import Config
+    from stereoseed.dense.densify import densify, dense_scale
+    from stereoseed.experiments.evaluation import TrueCorrespondences, surface_distance
+    from stereoseed.pipeline import reconstruct
+
+    scene = box_scene.prefix(3)
+    cfg = Config()
+    recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], cfg, source=TrueCorrespondences(scene))
+    full, full_report = densify(recon, cfg)
+    half, report = densify(recon, cfg.replace(dense={"resolution": 320}))
+    assert dense_scale(recon.views[0].image_size, 320) == 0.5 and report["resolution_scale"] == 0.5
+    assert report["fusion_voxel_m"] == pytest.approx(2 * full_report["fusion_voxel_m"])
+    assert 0.15 < report["points_before_fusion"] / full_report["points_before_fusion"] < 0.35
+    d_full, d_half = surface_distance(full.points), surface_distance(half.points)
+    assert np.median(d_half) < 2.5 * np.median(d_full) and np.median(d_half) < 0.001  # half the pixels' precision
+    assert report["peak_memory_mb"]["process"] > 0
+    with pytest.raises(ValueError, match="resolution"):
+        DenseConfig(resolution=-1)

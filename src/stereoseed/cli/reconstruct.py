@@ -31,8 +31,9 @@ def _config(args: argparse.Namespace):
             changes["pipeline"]["refine_rig"] = True
         if getattr(args, "order", None) is not None:
             changes["ordering"] = {"mode": args.order}
-        if getattr(args, "min_support", None) is not None:
-            changes["dense"] = {"min_support": args.min_support}
+        dense = {"min_support": getattr(args, "min_support", None), "resolution": getattr(args, "dense_resolution", None)}
+        if any(v is not None for v in dense.values()):
+            changes["dense"] = {k: v for k, v in dense.items() if v is not None}
         return cfg.replace(**changes)
     except ValueError as e:
         raise StereoseedError(str(e)) from None
@@ -162,6 +163,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="keep a dense point other views can judge only when this many views agree on it, its pair's "
                         "two included (default: 3, one other pair confirms it; 2: no check); dense.ply gives each "
                         "point's support, angle and confidence (docs/dense.md)")
+    p.add_argument("--dense-resolution", type=int, default=None, metavar="PX",
+                   help="propagate on images whose longer side is at most PX pixels (default: the images' own "
+                        "size); bounds the dense stage's memory and time on large photos")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
                         "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "

@@ -43,13 +43,18 @@ class DenseConfig:
     # (agree + 1) / (agree + violate + 2) below this. 0.6: confirmed at least 1.5 times as often as
     # contradicted (0.5 let 1 % of the fountain's judged points lie beyond 1 % of the distance, docs/dense.md).
     min_confidence: float = 0.6
+    # The propagation's images: their longer side brought down to this many pixels (0: as
+    # given). Memory and time grow with the pixels (a 3072 x 2048 pair's match maps and
+    # windows are 16 times a 768 x 512 one's); the points' accuracy with the resolution
+    # (docs/dense.md has the fountain at both).
+    resolution: int = 0
     # local processes for the pair jobs; 0: one per core this process may use, at most 8 (each
     # holds a pair's images and match maps, ~100 MB at 640 x 480)
     workers: int = 0
 
     def __post_init__(self) -> None:
         positive(self, "max_reprojection_px", "match_noise_px", "agreement_sigmas")
-        whole(self, "workers", "lookup_px", minimum=0)
+        whole(self, "workers", "lookup_px", "resolution", minimum=0)
         whole(self, "min_support", minimum=2)
         if not 0 <= self.min_confidence < 1:
             raise ValueError(f"DenseConfig.min_confidence must be in [0, 1) (0: off), got {self.min_confidence}")

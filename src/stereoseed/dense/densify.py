@@ -389,9 +389,10 @@ def _auto_voxel(recon: Reconstruction) -> float:
 MIN_VOXEL_OF_FOOTPRINT = 1e-3
 
 
-def _fusion_voxel(recon: Reconstruction, given: float) -> float:
-    """The fusion voxel: ``given`` (DenseConfig.fusion_voxel), else one pixel's footprint."""
-    footprint = _auto_voxel(recon)
+def _fusion_voxel(recon: Reconstruction, given: float, scale: float = 1.0) -> float:
+    """The fusion voxel: ``given`` (DenseConfig.fusion_voxel), else one pixel's footprint in
+    images resized by ``scale``."""
+    footprint = _auto_voxel(recon) / scale
     if given and given < MIN_VOXEL_OF_FOOTPRINT * footprint:
         raise StereoseedError(f"DenseConfig.fusion_voxel = {given:g}: below a thousandth of a pixel's footprint "
                               f"here ({footprint:.3g}, the calibration's unit); give 0 (automatic) or a size "
@@ -426,11 +427,48 @@ def dense_pairs(recon: Reconstruction, cfg: Config) -> list[tuple[int, int]]:
     return own + [(first_of[a], first_of[b]) for a, b in zip(stations[:-1], stations[1:])]
 
 
-def _pair_jobs(recon: Reconstruction, pairs: list[tuple[int, int]], cfg: Config) -> Iterator[tuple]:
+def dense_scale(size: tuple[int, int], resolution: int) -> float:
+    """The factor (<= 1) an image of size (width, height) is resized by for the propagation:
+    its longer side brought down to ``resolution`` pixels (0: kept)."""
+    return min(1.0, resolution / max(size)) if resolution else 1.0
+
+
+def _scaling(scale: float) -> np.ndarray:
+    """The pixel map (3, 3) of an image resized by ``scale``, pixel (0, 0) the centre of the
+    top-left pixel in both: x' = (x + 0.5) scale - 0.5."""
+    shift = 0.5 * scale - 0.5
+    return np.array([[scale, 0.0, shift], [0.0, scale, shift], [0.0, 0.0, 1.0]])
+
+
+def _dense_frames(recon: Reconstruction, cfg: Config) -> tuple[list[float], list[np.ndarray], list[tuple[int, int]]]:
+    """Per view: the propagation's scale (DenseConfig.resolution), its camera and image size in
+    that frame (a view without a camera: the identity's, never paired)."""
+    scales, cameras, sizes = [], [], []
+    for v in recon.views:
+        size = v.image_size or (1, 1)
+        s = dense_scale(size, cfg.dense.resolution)
+        scales.append(s)
+        cameras.append(_scaling(s) @ v.P if v.P is not None else np.eye(3, 4))
+        sizes.append((int(round(size[0] * s)), int(round(size[1] * s))) if s < 1 else tuple(size))
+    return scales, cameras, sizes
+
+
+def _resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    if (image.shape[1], image.shape[0]) == tuple(size):
+        return image
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)  # area: no aliasing on the way down
+
+
+def _pair_jobs(recon: Reconstruction, pairs: list[tuple[int, int]], cfg: Config,
+               frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> Iterator[tuple]:
+    scales, cameras, sizes = frames
     for a, b in pairs:
         seeds = recon.shared_pixels(a, b)
-        yield (recon.views[a].image, recon.views[b].image, recon.views[a].P, recon.views[b].P, seeds,
-               cfg.propagation, cfg.dense)
+        seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
+        yield (_resized(recon.views[a].image, sizes[a]), _resized(recon.views[b].image, sizes[b]), cameras[a],
+               cameras[b], seeds, cfg.propagation, cfg.dense)
 
 
 @dataclass(frozen=True)
@@ -464,6 +502,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     (total: the pairs) and once more when the fusion starts."""
     t0 = time.perf_counter()
     pairs = dense_pairs(recon, cfg)
+    frames = _dense_frames(recon, cfg)
     clouds: list[PairCloud] = []
     cols, per_pair = [], []
 
@@ -474,7 +513,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
 
     local = executor_for(None, min(cfg.dense.pool_size(), len(pairs))) if pool is None else nullcontext(pool)
     with local as jobs:
-        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, pairs, cfg)))):
+        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, pairs, cfg, frames)))):
             collect(pair, done.result())
             if progress:
                 progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
@@ -484,9 +523,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
     sources = np.repeat(np.arange(len(clouds)), [len(c.points) for c in clouds]) if clouds else np.zeros(0, np.int64)
     dc = cfg.dense
-    cameras = [recon.views[v].P if recon.views[v].P is not None else np.eye(3, 4) for v in range(len(recon.views))]
-    sizes = [recon.views[v].image_size or (1, 1) for v in range(len(recon.views))]
-    checks = check_views(clouds, cameras, sizes, dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px)
+    checks = check_views(clouds, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px)
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
     # a point no other pair could judge (none matched near its image in their views: the walk's
@@ -495,7 +532,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     if dc.keep_unjudged:
         keep |= checks.judged == 0
     kept = np.flatnonzero(keep)  # take() by index: 3x faster than a boolean mask on rows
-    voxel = _fusion_voxel(recon, dc.fusion_voxel)
+    # one pixel's footprint at the propagation's resolution
+    voxel = _fusion_voxel(recon, dc.fusion_voxel, float(np.median([frames[0][v] for v in dense_views(recon, cfg)] or [1.0])))
     attributes = {"support": checks.support.take(kept), "angle": checks.angle.take(kept),
                   "confidence": checks.confidence.take(kept)}
     fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, checks.points.take(kept, axis=0),
@@ -505,8 +543,9 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
               "points_supported": int(keep.sum()), "points_unjudged": int(np.sum(checks.judged == 0)),
               "points": int(len(fused)),
               "support_histogram": np.bincount(checks.support, minlength=2).tolist()[2:] if len(checks.support) else [],
-              "min_support": dc.min_support, "fusion_voxel_m": voxel,
-              "seconds": time.perf_counter() - t0, "fusion_seconds": time.perf_counter() - t_fusion}
+              "min_support": dc.min_support, "fusion_voxel_m": voxel, "resolution_scale": min(frames[0], default=1.0),
+              "seconds": time.perf_counter() - t0, "fusion_seconds": time.perf_counter() - t_fusion,
+              "peak_memory_mb": _peak_memory_mb()}
     if alone and pairs:
         report["note"] = (f"{len(pairs)} image pair: no other pair can confirm a point (--min-support "
                           f"{dc.min_support} is off), so wrong matches are not removed")
@@ -518,6 +557,18 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
                    "angle": merged["angle"].astype(np.float32),
                    "confidence": merged["confidence"].astype(np.float32)})
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
+
+
+def _peak_memory_mb() -> dict[str, float] | None:
+    """The peak resident memory (MB) of this process and of its largest finished child (the
+    local pair workers) so far; None where the platform does not say (no ``resource``)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    unit = 1024 if os.uname().sysname != "Darwin" else 1024 * 1024  # ru_maxrss: KB on Linux, bytes on macOS
+    return {"process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / unit,
+            "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / unit}
 
 
 def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], points: np.ndarray, colors: np.ndarray,
