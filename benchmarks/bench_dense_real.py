@@ -46,6 +46,7 @@ REF_SIFT_CONTRAST = 0.01  # OpenCV: 0.04; the originals are soft at full size: 4
 REF_MAX_GAP = 3  # views matched at most this far apart in the walk (wider: little overlap)
 REF_REPROJECTION_PX = 1.0  # full-resolution pixels, every view of the track
 JUDGE_PX = 1.0  # 768-pixel units: a dense point judged against a reference point this near in an image
+FULL_DENSE_RESOLUTION = 1536  # the originals' longer side halved: the dense stage's memory within 3 GB
 REF_VERSION = 2  # bump when the reference's recipe changes (the cache is rebuilt)
 
 
@@ -184,12 +185,12 @@ def judge(points: np.ndarray, normals: np.ndarray, ref: dict[str, np.ndarray], P
             "median_distance_m": float(np.median(ref_dist))}
 
 
-def published_run(folder: Path, cfg: Config):
+def published_run(folder: Path, cfg: Config, par_name: str = f"{SET}_par.txt"):
     """The sparse run of the walk (the pair's published cameras), every registered camera then
     replaced by its published one: the dense stage judged alone, not the camera estimates."""
-    images, names, P_pair = load_sequence(str(folder / "ring_order.txt"), str(folder / f"{SET}_par.txt"))
+    images, names, P_pair = load_sequence(str(folder / "ring_order.txt"), str(folder / par_name))
     recon, _ = reconstruct(images, names, P_pair, cfg)
-    par = read_middlebury_par(folder / f"{SET}_par.txt")
+    par = read_middlebury_par(folder / par_name)
     for v in recon.registered_views:
         recon.views[v].P = par[recon.views[v].name]
     return recon
@@ -223,6 +224,17 @@ def run() -> dict:
                       "points_unjudged": report["points_unjudged"],
                       **judge(cloud.points, cloud.normals, ref, Ps, size)}
     out["peak_rss_mb"] = _peak_mb()
+    # the 3072 x 2048 originals: the sparse run on them, the dense stage at --dense-resolution
+    # FULL_DENSE_RESOLUTION (full resolution's memory is not bounded yet: docs/dense.md)
+    full = published_run(folder / "full", cfg, f"{SET}_full_par.txt")
+    del recon
+    c = cfg.replace(dense={"resolution": FULL_DENSE_RESOLUTION})
+    t = time.perf_counter()
+    cloud, report = densify(full, c)
+    out[f"3072x2048_at_{FULL_DENSE_RESOLUTION}"] = {
+        "seconds": time.perf_counter() - t, "fusion_seconds": report["fusion_seconds"],
+        "points_before_fusion": report["points_before_fusion"], "peak_memory_mb": report["peak_memory_mb"],
+        **judge(cloud.points, cloud.normals, ref, Ps, size)}
     return out
 
 
