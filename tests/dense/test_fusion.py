@@ -110,3 +110,15 @@ def test_dense_resolution_propagates_on_smaller_images(box_scene):
     assert report["peak_memory_mb"]["process"] > 0
     with pytest.raises(ValueError, match="resolution"):
         DenseConfig(resolution=-1)
+
+
+@pytest.mark.parametrize("options, says", [(["--min-support", "1"], "DenseConfig.min_support must be a whole number >= 2"),
+                                           (["--dense-resolution", "-5"], "DenseConfig.resolution must be a whole number >= 0")])
+def test_dense_options_out_of_range_are_one_line_before_any_work(options, says, tmp_path, capsys):
+    from stereoseed.cli import main
+
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(tmp_path), "--calib", str(tmp_path / "c.json"), "--out", str(out), "--dense",
+                 *options]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and not out.exists()
