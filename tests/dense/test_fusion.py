@@ -93,7 +93,8 @@ def test_dense_resolution_propagates_on_smaller_images(box_scene):
     render's 640): a quarter of the pixels, the same surface, the cameras and seeds in the
     resized frame (a slip of the pixel map would put the points off the surface)."""
     from stereoseed.config import Config
-    from stereoseed.dense.densify import densify, dense_scale
+    from stereoseed.dense.densify import densify
+    from stereoseed.dense.frames import dense_scale
     from stereoseed.experiments.evaluation import TrueCorrespondences, surface_distance
     from stereoseed.pipeline import reconstruct
 
@@ -122,3 +123,21 @@ def test_dense_options_out_of_range_are_one_line_before_any_work(options, says, 
                  *options]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and says in err and not out.exists()
+
+
+def test_max_points_grows_the_voxel_until_the_cloud_fits(box_scene):
+    from stereoseed.config import Config
+    from stereoseed.dense.densify import densify
+    from stereoseed.experiments.evaluation import TrueCorrespondences, surface_distance
+    from stereoseed.pipeline import reconstruct
+
+    scene = box_scene.prefix(3)
+    cfg = Config()
+    recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], cfg, source=TrueCorrespondences(scene))
+    full, full_report = densify(recon, cfg)
+    limit = len(full) // 5
+    small, report = densify(recon, cfg.replace(dense={"max_points": limit}))
+    # within the limit, not far below it (the voxel grown by the square root of the excess)
+    assert 0.7 * limit < len(small) <= limit
+    assert report["fusion_voxel_m"] > 2 * full_report["fusion_voxel_m"]
+    assert np.median(surface_distance(small.points)) < 0.001

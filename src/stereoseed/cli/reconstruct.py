@@ -31,7 +31,8 @@ def _config(args: argparse.Namespace):
             changes["pipeline"]["refine_rig"] = True
         if getattr(args, "order", None) is not None:
             changes["ordering"] = {"mode": args.order}
-        dense = {"min_support": getattr(args, "min_support", None), "resolution": getattr(args, "dense_resolution", None)}
+        dense = {"min_support": getattr(args, "min_support", None), "resolution": getattr(args, "dense_resolution", None),
+                 "max_points": getattr(args, "max_points", None)}
         if any(v is not None for v in dense.values()):
             changes["dense"] = {k: v for k, v in dense.items() if v is not None}
         return cfg.replace(**changes)
@@ -166,6 +167,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dense-resolution", type=int, default=None, metavar="PX",
                    help="propagate on images whose longer side is at most PX pixels (default: the images' own "
                         "size); bounds the dense stage's memory and time on large photos")
+    p.add_argument("--max-points", type=int, default=None, metavar="N",
+                   help="at most N points in dense.ply: the fusion voxel grown until the cloud fits (default: no "
+                        "limit, one point per pixel's footprint)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
                         "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "

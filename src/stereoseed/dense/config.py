@@ -48,13 +48,16 @@ class DenseConfig:
     # windows are 16 times a 768 x 512 one's); the points' accuracy with the resolution
     # (docs/dense.md has the fountain at both).
     resolution: int = 0
+    # At most this many points in dense.ply (0: no limit): the fusion voxel grown until the
+    # cloud fits (a 24-megapixel walk's full-resolution cloud is tens of millions of points).
+    max_points: int = 0
     # local processes for the pair jobs; 0: one per core this process may use, at most 8 (each
     # holds a pair's images and match maps, ~100 MB at 640 x 480)
     workers: int = 0
 
     def __post_init__(self) -> None:
         positive(self, "max_reprojection_px", "match_noise_px", "agreement_sigmas")
-        whole(self, "workers", "lookup_px", "resolution", minimum=0)
+        whole(self, "workers", "lookup_px", "resolution", "max_points", minimum=0)
         whole(self, "min_support", minimum=2)
         if not 0 <= self.min_confidence < 1:
             raise ValueError(f"DenseConfig.min_confidence must be in [0, 1) (0: off), got {self.min_confidence}")

@@ -25,6 +25,7 @@ from stereoseed.geometry.projection import camera_center, fundamental_from_proje
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
+from stereoseed.dense.frames import dense_frames, resized
 from stereoseed.dense.fusion import PairCloud, check_views
 from stereoseed.dense.normals import pca_normals
 from stereoseed.errors import StereoseedError
@@ -427,47 +428,13 @@ def dense_pairs(recon: Reconstruction, cfg: Config) -> list[tuple[int, int]]:
     return own + [(first_of[a], first_of[b]) for a, b in zip(stations[:-1], stations[1:])]
 
 
-def dense_scale(size: tuple[int, int], resolution: int) -> float:
-    """The factor (<= 1) an image of size (width, height) is resized by for the propagation:
-    its longer side brought down to ``resolution`` pixels (0: kept)."""
-    return min(1.0, resolution / max(size)) if resolution else 1.0
-
-
-def _scaling(scale: float) -> np.ndarray:
-    """The pixel map (3, 3) of an image resized by ``scale``, pixel (0, 0) the centre of the
-    top-left pixel in both: x' = (x + 0.5) scale - 0.5."""
-    shift = 0.5 * scale - 0.5
-    return np.array([[scale, 0.0, shift], [0.0, scale, shift], [0.0, 0.0, 1.0]])
-
-
-def _dense_frames(recon: Reconstruction, cfg: Config) -> tuple[list[float], list[np.ndarray], list[tuple[int, int]]]:
-    """Per view: the propagation's scale (DenseConfig.resolution), its camera and image size in
-    that frame (a view without a camera: the identity's, never paired)."""
-    scales, cameras, sizes = [], [], []
-    for v in recon.views:
-        size = v.image_size or (1, 1)
-        s = dense_scale(size, cfg.dense.resolution)
-        scales.append(s)
-        cameras.append(_scaling(s) @ v.P if v.P is not None else np.eye(3, 4))
-        sizes.append((int(round(size[0] * s)), int(round(size[1] * s))) if s < 1 else tuple(size))
-    return scales, cameras, sizes
-
-
-def _resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
-    if (image.shape[1], image.shape[0]) == tuple(size):
-        return image
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)  # area: no aliasing on the way down
-
-
 def _pair_jobs(recon: Reconstruction, pairs: list[tuple[int, int]], cfg: Config,
                frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> Iterator[tuple]:
     scales, cameras, sizes = frames
     for a, b in pairs:
         seeds = recon.shared_pixels(a, b)
         seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
-        yield (_resized(recon.views[a].image, sizes[a]), _resized(recon.views[b].image, sizes[b]), cameras[a],
+        yield (resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
                cameras[b], seeds, cfg.propagation, cfg.dense)
 
 
@@ -502,7 +469,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     (total: the pairs) and once more when the fusion starts."""
     t0 = time.perf_counter()
     pairs = dense_pairs(recon, cfg)
-    frames = _dense_frames(recon, cfg)
+    frames = dense_frames(recon.views, cfg.dense.resolution)
     clouds: list[PairCloud] = []
     cols, per_pair = [], []
 
@@ -536,9 +503,10 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     voxel = _fusion_voxel(recon, dc.fusion_voxel, float(np.median([frames[0][v] for v in dense_views(recon, cfg)] or [1.0])))
     attributes = {"support": checks.support.take(kept), "angle": checks.angle.take(kept),
                   "confidence": checks.confidence.take(kept)}
-    fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, checks.points.take(kept, axis=0),
-                                                              colors.take(kept, axis=0), sources.take(kept), voxel,
-                                                              attributes)
+    kept_points = checks.points.take(kept, axis=0)
+    voxel = _voxel_for_at_most(kept_points, voxel, dc.max_points)
+    fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, kept_points, colors.take(kept, axis=0),
+                                                              sources.take(kept), voxel, attributes)
     report = {"pairs": per_pair, "points_before_fusion": int(len(checks.points)),
               "points_supported": int(keep.sum()), "points_unjudged": int(np.sum(checks.judged == 0)),
               "points": int(len(fused)),
@@ -557,6 +525,25 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
                    "angle": merged["angle"].astype(np.float32),
                    "confidence": merged["confidence"].astype(np.float32)})
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
+
+
+def _voxel_for_at_most(points: np.ndarray, voxel: float, max_points: int) -> float:
+    """The fusion voxel, grown until the points (N, 3) fill at most ``max_points`` voxels (0: as
+    given). A surface's voxel count goes as 1 / voxel**2: each try scales the voxel by the
+    square root of the excess (and 2 % more, so a count right at the limit does not repeat)."""
+    if not max_points:
+        return voxel
+    for _ in range(_VOXEL_TRIES):
+        count = len(np.unique(_voxel_keys(points, voxel))) if len(points) else 0
+        if count <= max_points:
+            return voxel
+        voxel *= 1.02 * np.sqrt(count / max_points)
+    return voxel
+
+
+# how many voxel sizes --max-points tries (a surface's count falls by the factor asked each time,
+# within a few per cent; a cloud of scattered points, as 1 / voxel**3, faster)
+_VOXEL_TRIES = 8
 
 
 def _peak_memory_mb() -> dict[str, float] | None:
