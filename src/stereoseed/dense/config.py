@@ -36,12 +36,13 @@ class DenseConfig:
     # A point no other pair could judge (none matched near its image in their first views: the
     # surface only a walk's end pair sees) is kept, with support 2 and confidence 0.5: nothing
     # contradicts it. On fountain-P11 they are 3 % of the points and leave the share beyond 1 %
-    # of the distance at 0.4 %; dropping them cost the 5-image box a fifth of its ground
-    # (docs/dense.md). False: only confirmed points.
+    # of the distance at 0.4 %; dropping them took the 5-image box's ground completeness at
+    # 0.5 cm from 0.70 to 0.45 (docs/dense.md). False: only confirmed points.
     keep_unjudged: bool = True
     # Points the other pairs contradict more than they confirm are dropped: confidence =
     # (agree + 1) / (agree + violate + 2) below this. 0.6: confirmed at least 1.5 times as often as
-    # contradicted (0.5 let 1 % of the fountain's judged points lie beyond 1 % of the distance, docs/dense.md).
+    # contradicted (measured on the fountain while the lookup still took the depth nearest X's:
+    # 1.07 % of the judged points beyond 1 % of the distance at 0.5, 0.70 % at 0.6).
     min_confidence: float = 0.6
     # The propagation's images: their longer side brought down to this many pixels (0: as
     # given). Memory and time grow with the pixels (a 3072 x 2048 pair's match maps and
