@@ -106,7 +106,7 @@ def test_dense_on_the_pair_alone_keeps_its_points_and_says_so(seq, tmp_path, cap
     code, out, _ = run(capsys, *reconstruct_args({"images_txt": listing}, calib, tmp_path / "o", "--dense"))
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert code == 0 and report["dense"]["points"] > 10_000 and "off" in report["dense"]["note"]
-    assert "check that 2 pairs agree" in out
+    assert "no other pair can confirm a point" in out
 
 
 # --- tracebacks that became one line --------------------------------------------------------

@@ -36,14 +36,15 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
     whole, _ = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=tmp_path / "whole.npz")
 
     checkpoint = tmp_path / "run.npz"
-    insert = pipeline.insert_view
+    from stereoseed.sfm import steps  # the insertion reconstruct and the live run share
+    insert = steps.insert_view
 
     def interrupted(recon, k, cfg, source):
         if k == 11:
             raise KeyboardInterrupt
         return insert(recon, k, cfg, source)
 
-    monkeypatch.setattr(pipeline, "insert_view", interrupted)
+    monkeypatch.setattr(steps, "insert_view", interrupted)
     images, names, P_pair = pipeline.load_sequence(images_txt, calib)
     with pytest.raises(KeyboardInterrupt):
         pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=checkpoint)
@@ -54,7 +55,7 @@ def test_an_interrupted_run_resumes_from_spilled_descriptors_to_the_same_cameras
     assert spilled == [3, 4, 5]
     assert all((spill_folder(checkpoint) / views[i]["desc_file"]).is_file() for i in spilled)
 
-    monkeypatch.setattr(pipeline, "insert_view", insert)
+    monkeypatch.setattr(steps, "insert_view", insert)
     images, names, P_pair = pipeline.load_sequence(images_txt, calib)
     resumed, report = pipeline.reconstruct(images, names, P_pair, cfg, checkpoint=checkpoint, resume=True)
     assert report["resumed_images"] == names[:11]

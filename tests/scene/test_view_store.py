@@ -50,7 +50,9 @@ def test_a_long_run_spills_old_views_and_finds_the_same_cameras(monkeypatch, sma
     scene = small_box_scene.prefix(12)
     spilled, _ = pipeline.reconstruct(scene.images, scene.names, scene.P[:2], Config())
     assert sum(isinstance(v.features.desc, np.memmap) for v in spilled.views) >= 2
-    monkeypatch.setattr(pipeline, "release_old_views", lambda recon, cfg, folder: None)
+    from stereoseed.sfm import steps  # the insertion step reconstruct and the live run share
+
+    monkeypatch.setattr(steps, "release_old_views", lambda recon, options, folder: None)
     kept, _ = pipeline.reconstruct(scene.images, scene.names, scene.P[:2], Config())
     assert not any(isinstance(v.features.desc, np.memmap) for v in kept.views)
     for a, b in zip(spilled.views, kept.views):
