@@ -69,16 +69,19 @@ class _Corners(Group):
     refined: np.ndarray | None = None  # (N,) bool: the corner's sub-pixel fit succeeded
 
 
-def _set_sigmas(problem: Problem, errors: list[np.ndarray] | None) -> None:
+def _set_sigmas(problem: Problem, errors: list[np.ndarray] | None, cfg: CalibrationConfig) -> None:
     """Each corner's error scale: 1 for a fitted corner; for one left at OpenCV's position, how
     much larger its errors are (the robust sigmas of the two kinds' errors, both from the same
-    fit), so that blurred corners count for what they are worth, on any camera."""
+    fit), so that blurred corners count for what they are worth, on any camera. Too few of
+    either kind to measure that: cfg.unrefined_sigma_ratio."""
     ratio = 1.0
     if errors is not None:
         fitted = np.concatenate([e[g.refined] for g, e in zip(problem.groups, errors)])
         other = np.concatenate([e[~g.refined] for g, e in zip(problem.groups, errors)])
         if len(other) >= _MIN_CLASS_CORNERS and len(fitted) >= _MIN_CLASS_CORNERS:
             ratio = max(1.0, float(np.median(other)) / max(float(np.median(fitted)), 1e-12))
+        else:
+            ratio = cfg.unrefined_sigma_ratio
     for g in problem.groups:
         g.sigma = np.where(g.refined, 1.0, ratio)
 
@@ -90,9 +93,9 @@ _MIN_CLASS_CORNERS = 20
 def _robust_solve(problem: Problem, state: State, cfg: CalibrationConfig) -> Solution:
     """Solved twice: with every corner alike and Huber's threshold from the start's errors, then
     with each kind of corner at its own scale and the threshold from the first answer's errors."""
-    _set_sigmas(problem, None)
+    _set_sigmas(problem, None, cfg)
     sol = solve(problem, state, _huber(residuals(problem, state), cfg), cfg.max_iterations)
-    _set_sigmas(problem, sol.errors)
+    _set_sigmas(problem, sol.errors, cfg)
     return solve(problem, sol.state, _huber([e / g.scale() for g, e in zip(problem.groups, sol.errors)], cfg),
                  cfg.max_iterations)
 
