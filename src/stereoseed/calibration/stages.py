@@ -23,7 +23,7 @@ from stereoseed.errors import StereoseedError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewResult", "flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
+__all__ = ["ViewResult", "blur_first", "flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
 
 
 @dataclass
@@ -41,6 +41,15 @@ class ViewResult:
     @property
     def used(self) -> bool:
         return self.reason is None
+
+
+def blur_first(view: ViewResult, causes: str) -> str:
+    """Why a view reprojects badly: out of focus first where its detection saw blurred faces
+    (corners left at OpenCV's position, detection.py), else ``causes``."""
+    blurred = sum(view.detection.unrefined)
+    if blurred:
+        return f"out of focus ({blurred} of its {len(view.detection)} corners blurred: retake it sharp), or {causes}"
+    return causes
 
 
 _VIEWS = 100000  # views per camera the keys leave room for
@@ -187,8 +196,8 @@ def flat_stage(target: Target, views: list[ViewResult], known: tuple | None, k3:
     if bad:
         for i in bad:
             views[i].reason = (f"its corners reproject at {view_rms[i]:.1f} px while the camera's views reproject at "
-                               f"{median:.2f} px (median): another camera's image, a moved lens or a wrongly detected "
-                               "target")
+                               f"{median:.2f} px (median): "
+                               + blur_first(views[i], "another camera's image, a moved lens or a wrongly detected target"))
         return flat_stage(target, views, known, k3, cfg, what, keep_first)
     return state.K[0], state.lens[0], {k: state.shots[s] for s, k in enumerate(keys)}, \
         intrinsics_covariance(problem, sol, 0), problem.n_lens, problem, sol
