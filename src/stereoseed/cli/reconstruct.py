@@ -73,9 +73,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         say("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
     for r in failed:
         say(f"skipped: {r['reason']}")
+    # each flagged image's reason was logged (stderr) when it was flagged; the summary line names them
     flagged = (report["final"].get("trust") or {}).get("flagged") or {}
-    for name, reason in flagged.items():
-        say(f"flagged: {name}: {reason}")
     loop = report["final"].get("loop_closure") or {}
     if loop:
         from stereoseed.output.report.measure import length_text
