@@ -14,7 +14,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SECTIONS = ["speed", "calibration", "lens", "matching", "reconstruction", "propagation", "dense", "real", "walks", "realcal", "mesh", "rig", "firstrun", "stability"]
+SECTIONS = ["speed", "calibration", "lens", "matching", "reconstruction", "propagation", "dense", "dense_real", "real", "walks", "realcal", "mesh", "rig", "firstrun", "stability", "live"]
 
 
 def main() -> int:

@@ -1,6 +1,7 @@
 """Shared fixtures: the data folder of real sequences and the rendered synthetic box scenes."""
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,6 +11,18 @@ import pytest
 from stereoseed.experiments.paper import noisy_images
 from stereoseed.io.sample_data import find_sample, missing_message
 from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene
+
+
+@pytest.fixture(autouse=True)
+def _library_logging_as_found():
+    """The library's logger as the test found it: a CLI test run in-process (``main([... --quiet])``)
+    sets its level to ERROR and adds a handler, and a later test's caplog would see nothing."""
+    logger = logging.getLogger("stereoseed")
+    level, handlers = logger.level, list(logger.handlers)
+    yield
+    logger.setLevel(level)
+    for h in [h for h in logger.handlers if h not in handlers]:
+        logger.removeHandler(h)
 
 
 # --- SHARED_DATA ------------------------------------------------------------------------------

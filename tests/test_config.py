@@ -58,6 +58,24 @@ def test_the_resolved_config_fills_in_the_mode_defaults():
     assert (mine.window, mine.ba) == (2, "final")
 
 
+def test_the_mapper_options_are_the_resolved_sections_each_component_is_handed():
+    import dataclasses
+
+    from stereoseed.sfm.options import MapperOptions, options_of
+
+    cfg = Config(pipeline=PipelineConfig(mode="paper"), outliers=OutlierConfig(max_px=3.0))
+    options, resolved = cfg.mapper_options(), cfg.resolve()
+    assert all(getattr(options, f.name) == getattr(resolved, f.name) for f in dataclasses.fields(MapperOptions))
+    assert options.pipeline.camera_model == "free" and options.outliers.factor == 0.0  # the paper mode's
+    # held(): what the BA holding the intrinsics ran on before (the resolved configuration's replace)
+    held = resolved.replace(pipeline={"camera_model": "fixed"})
+    assert options.held().pipeline == held.pipeline and options.held().bundle is options.bundle
+    assert options.registering.camera_model == "free" and options.registering.trust is options.trust
+    assert options_of(cfg) == options and options_of(options) is options  # a plain Config gives its own
+    with pytest.raises(ValueError, match="resolved"):  # the mode's defaults left at None
+        MapperOptions(**{f.name: getattr(Config(), f.name) for f in dataclasses.fields(MapperOptions)})
+
+
 def test_the_config_dict_is_the_resolved_one_and_json_able():
     d = json.loads(json.dumps(Config(pipeline=PipelineConfig(mode="paper")).to_dict()))
     assert d["pipeline"]["camera_model"] == "free" and d["pipeline"]["window"] == 1

@@ -325,7 +325,8 @@ def test_global_adjust_leaves_a_lone_pair_alone():
     ids = recon.add_points(X, np.zeros((len(X), 3)))
     for i in range(2):
         recon.add_observations(i, np.arange(len(X)), ids)
-    ba, removed = global_adjust(recon, Config(pipeline=PipelineConfig(mode="accurate")))
+    opts = Config(pipeline=PipelineConfig(mode="accurate")).mapper_options()
+    ba, removed = global_adjust(recon, opts.bundle, opts.outliers, opts.pipeline.camera_model)
     assert ba.get("skipped") and removed == 0
     assert len(recon.obs_point) == 200 and recon.alive.all()
 
@@ -353,7 +354,8 @@ def test_global_adjust_drops_outliers_and_adjusts_again():
     for v in views[2:]:  # drifted cameras: 1-2 cm off
         v.P = ring_camera(float(np.degrees(np.arctan2(*camera_center(v.P)[1::-1]))) + 0.6, distance=1.41)[3]
     cfg = Config(pipeline=PipelineConfig(mode="accurate"))
-    ba, removed = global_adjust(recon, cfg)
+    opts = cfg.mapper_options()
+    ba, removed = global_adjust(recon, opts.bundle, opts.outliers, opts.pipeline.camera_model)
     assert ba["rounds"] >= 2 and removed > 0
     wrong = np.linalg.norm(recon.observation_xy() - np.concatenate(
         [project(cams[v], X[recon.obs_point[recon.obs_view == v]]) for v in range(len(cams))]), axis=1) > 3

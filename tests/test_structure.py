@@ -1,6 +1,7 @@
 """The code's structure holds: no import cycle between the package's modules (imports inside
 functions included: a cycle hidden in a function is still a cycle), no module importing another
-module's private name, no module over 600 lines."""
+module's private name, no module over 600 lines, no module of ``sfm/`` reading the whole
+configuration (each component takes its own sections)."""
 import ast
 from pathlib import Path
 
@@ -74,3 +75,21 @@ def test_no_module_over_600_lines():
     long = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
     assert not long, long
+
+
+def test_no_sfm_module_reads_the_whole_config():
+    # the mapper's components take their own sections, resolved once at the top (sfm/options.py):
+    # none imports stereoseed.config (wherever the import stands) or resolves a configuration
+    modules = _modules()
+    found = []
+    for m, p in modules.items():
+        if not m.startswith("stereoseed.sfm"):
+            continue
+        where = p.relative_to(PACKAGE.parent)
+        found += [f"{where}:{line} imports {target}" for target, _, line in _imports(p, m, modules)
+                  if target == "stereoseed.config"]
+        tree = ast.parse(p.read_text(encoding="utf-8"))
+        found += [f"{where}:{node.lineno} calls .resolve()" for node in ast.walk(tree)
+                  if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                  and node.func.attr == "resolve"]
+    assert not found, "\n".join(found)

@@ -33,6 +33,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.output.config import ExportConfig
 from stereoseed.sfm.config import (LoopClosureConfig, MotionPriorConfig, OutlierConfig, PairCheckConfig, PipelineConfig,
                                   QuasiDenseConfig, RegistrationConfig, TrackingConfig, TrustConfig)
+from stereoseed.sfm.options import MapperOptions
 
 __all__ = ["Config", "ResolvedConfig", "ConfigError", "NONE", "FeatureConfig", "MatchingConfig", "PropagationConfig", "TriangulationConfig",
            "ResectionConfig", "BundleConfig", "DenseConfig", "VideoConfig", "QuasiDenseConfig", "MotionPriorConfig",
@@ -85,6 +86,12 @@ class Config:
             if getattr(sections[section], name) is None:
                 sections[section] = dataclasses.replace(sections[section], **{name: getattr(defaults, default)})
         return ResolvedConfig(**sections)
+
+    def mapper_options(self) -> MapperOptions:
+        """The sections the mapper hands its components (:mod:`stereoseed.sfm.options`),
+        resolved: built once at the top of a run."""
+        resolved = self.resolve()
+        return MapperOptions(**{f.name: getattr(resolved, f.name) for f in dataclasses.fields(MapperOptions)})
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved configuration as a JSON-able dict (what report.json records)."""

@@ -17,20 +17,19 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from stereoseed.scene.view_store import release_old_views, working_set
+from stereoseed.scene.view_store import working_set
 from stereoseed.scene.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
 from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, Prefetching
 from stereoseed.errors import StereoseedError
-from stereoseed.geometry.projection import camera_center
 from stereoseed.io.files import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_image_name, list_images, read_calibration,
                                  read_calibration_unit, read_image)
 from stereoseed.geometry.lens import lens_index, undistort_image, undistortion_maps
 from stereoseed.calibration.lens_calibration import read_lenses
-from stereoseed.sfm.mapper import finish, initialise, insert_view, pair_rig
+from stereoseed.sfm.mapper import finish, initialise, pair_rig
+from stereoseed.sfm.steps import frame_offset, insert_next, shift
 from stereoseed.scene.reconstruction import Reconstruction
-from stereoseed.sfm.registration.base import FailureKind
 from stereoseed.io.sequence import ImageSequence, header_size
 from stereoseed.matching.ordering import OrderingConfig, thumbnail, too_many_to_order, walk_order
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
@@ -77,15 +76,16 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     if n < 2:
         raise StereoseedError("a sequence needs at least the two images of the calibrated pair")
     cfg = cfg.resolve()
+    options = cfg.mapper_options()  # each of the mapper's components is handed its own sections
     key = inputs_key(images, names, P_pair, cfg, rig) if checkpoint is not None else ""
     # a world frame far from the cameras (UTM-sized coordinates) is moved next to them for the
     # run and put back at the end: float64 keeps ~16 digits, and 1e7 m of offset leaves a BA
     # centimetres of resolution
-    offset = _frame_offset(P_pair)
+    offset = frame_offset(P_pair)
     if offset is not None:
-        P_pair = [np.asarray(P, np.float64) @ _shift(offset) for P in P_pair]
+        P_pair = [np.asarray(P, np.float64) @ shift(offset) for P in P_pair]
         log.info("world frame %s from the pair's cameras: the run works %s nearer", offset.tolist(), offset.tolist())
-    source = source or HarrisZncc(cfg)
+    source = source or HarrisZncc.of(options)
     state = None
     if checkpoint is not None and resume:
         state = load_checkpoint(checkpoint, images, names, key)
@@ -105,7 +105,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
                 recon.views[i].restore_gray()
             log.info("resuming after %s (%d of %d images done)", names[len(per_image) - 1], len(per_image), n)
         else:
-            recon, _ = initialise(images, names, P_pair, cfg, prefetching, rig=rig)
+            recon, _ = initialise(images, names, P_pair, options, prefetching, rig=rig)
             per_image = recon.reports()
             saver.save(recon)
             if after_insertion:
@@ -124,9 +124,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             spill_holder = tempfile.TemporaryDirectory(prefix="stereoseed-spill-", ignore_cleanup_errors=True)
             spill = Path(spill_holder.name)
         for k in range(len(per_image), n):
-            rep = _unreadable(recon, images, k) or insert_view(recon, k, cfg, prefetching)
-            release_old_views(recon, cfg, spill)
-            saver.save(recon)
+            rep = insert_next(recon, images, k, options, prefetching, spill, saver)
             if progress:
                 progress(k + 1, n, f"{names[k]}: {rep['status']}")
             if after_insertion:  # the reports so far, rendered only for whoever reads them
@@ -134,37 +132,13 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
     report = _finished(recon, cfg, t0, source)
     if offset is not None:
         for v in recon.registered_views:
-            recon.views[v].P = recon.views[v].P @ _shift(-offset)
+            recon.views[v].P = recon.views[v].P @ shift(-offset)
         recon.points[:] += offset
         report["frame_offset"] = offset.tolist()
     if resumed:
         report["resumed_images"] = resumed
     log.info("registered %d/%d images, %d points", report["registered"], n, report["points"])
     return recon, report
-
-
-# The world frame is moved next to the cameras when the pair's centre lies farther from its origin
-# than this many baselines: at 1e4 baselines float64 still resolves a micron of a metre-sized
-# scene; at 1e7 (UTM coordinates) the BA moved cameras by 1-2 cm.
-RECENTRE_ABOVE_BASELINES = 1e3
-
-
-def _frame_offset(P_pair: list[np.ndarray]) -> np.ndarray | None:
-    """The point (3,) the run's frame is moved to (the middle of the pair's centres, rounded to a
-    whole baseline), or None when the world frame is near enough."""
-    c0, c1 = (camera_center(np.asarray(P, np.float64)) for P in P_pair)
-    baseline = float(np.linalg.norm(c1 - c0))
-    middle = 0.5 * (c0 + c1)
-    if not (np.all(np.isfinite(middle)) and baseline > 0) or np.linalg.norm(middle) <= RECENTRE_ABOVE_BASELINES * baseline:
-        return None
-    return np.round(middle / baseline) * baseline
-
-
-def _shift(offset: np.ndarray) -> np.ndarray:
-    """(4, 4): homogeneous world point X_local to X_local + offset, so P @ _shift(o) sees X - o."""
-    T = np.eye(4)
-    T[:3, 3] = offset
-    return T
 
 
 def _forget_checkpoint(checkpoint: str | Path) -> None:
@@ -200,23 +174,11 @@ def _prefetched_image(images: Sequence[np.ndarray]) -> Callable[[int], np.ndarra
     return image_of
 
 
-def _unreadable(recon: Reconstruction, images: Sequence[np.ndarray], k: int) -> dict[str, Any] | None:
-    """The report of image k skipped because its file cannot be decoded (as the mapper skips an
-    image of another size: reported with the reason, the run goes on), or None."""
-    reason = images.unreadable(k) if isinstance(images, ImageSequence) else None
-    if reason is None:
-        return None
-    log.info("%s", reason)
-    report = {"image": recon.views[k].name, "status": "failed", "reason": reason, "failure": FailureKind.UNREADABLE}
-    recon.fail(k, reason, report)
-    return report
-
-
 def _finished(recon: Reconstruction, cfg: Config, t0: float, source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """The finishing step (:func:`stereoseed.sfm.finishing.finish`) on ``recon``, and the run's
     report (``per_image`` rendered from the views' histories: a view the finishing step registered
     again or could not keep says so)."""
-    final = finish(recon, cfg, source)
+    final = finish(recon, cfg.mapper_options(), source)
     per_image = recon.reports()
     pc = cfg.pipeline
     return {
@@ -463,7 +425,7 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
     (default :class:`HarrisZncc`); mesh: the :class:`~stereoseed.dense.mesh.Mesh` of the dense
     cloud, shown in report.html (the caller writes mesh.ply)."""
     written = write_result(recon, report, out_dir, cfg, lenses)
-    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc(cfg.resolve()),
+    written["report_html"] = write_report_html(recon, report, out_dir, dense, source or HarrisZncc.of(cfg),
                                                mesh=mesh)
     return written
 

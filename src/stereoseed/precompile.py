@@ -128,8 +128,6 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                   "float64[::1]")),
     "cell_keys": ("stereoseed.dense.densify", "_cell_keys", "float64[:, ::1], float64"),
     "grid_origin": ("stereoseed.dense.densify", "_grid_origin", "float64[:, ::1]"),
-    "keep_supported": ("stereoseed.dense.densify", "_keep_supported",
-                       "int64[::1], int64[::1], int64[::1], int64, int64, boolean[::1], int64, int64"),
     "voxel_means": ("stereoseed.dense.densify", "_voxel_means",
                     ("int64[::1], int64[::1], float64[:, ::1], uint8[:, ::1], int64[::1], float64[:, ::1], "
                      "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], int64, int64")),
@@ -137,8 +135,12 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "grid_neighbours": ("stereoseed.dense.densify", "_grid_neighbours",
                         ("float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
                          "int64, int64, int64[:, ::1]")),
-    "pca_normals": ("stereoseed.dense.densify", "_pca_normals",
+    "pca_normals": ("stereoseed.dense.normals", "pca_normals",
                     "float64[:, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
+    "view_checks": ("stereoseed.dense.fusion", "_check",
+                    ("float64[:, ::1], int64[:, ::1], float64[::1], int64[::1], int64[:, ::1], int32[:, :, ::1], "
+                     "float64[:, :, ::1], float64[:, ::1], float64[::1], float64, float64, int64, "
+                     "int64, float64[:, ::1], int64[::1], float64[::1], int64[::1], int64[::1], int64[::1], int64, int64")),
 }
 
 # CPU seconds each kernel takes to compile alone in a fresh process on the reference machine (an
@@ -151,8 +153,8 @@ COST_S: dict[str, float] = {
     "observation_errors": 0.2, "normal_equations": 0.9, "eliminate_points": 0.6, "add_point_pairs": 0.3,
     "mirror_upper": 0.1, "back_substitute": 0.4, "candidate_mask": 0.4, "window_stats": 0.4, "zncc_points": 0.8,
     "propagate": 2.7, "refine_affine": 1.8, "refine_quadratic": 1.0, "two_view": 3.0, "cell_keys": 0.6,
-    "grid_origin": 0.2, "keep_supported": 0.3, "voxel_means": 0.4, "cells": 0.4, "grid_neighbours": 0.6,
-    "pca_normals": 0.4,
+    "grid_origin": 0.2, "voxel_means": 0.4, "cells": 0.4, "grid_neighbours": 0.6,
+    "pca_normals": 0.4, "view_checks": 1.8,
 }
 
 _FEATURES = ("junctions", "sample_patches", "edge_corners", "repeats", "candidate_pairs", "pair_scores", "best_of_pairs", "align",
@@ -160,7 +162,7 @@ _FEATURES = ("junctions", "sample_patches", "edge_corners", "repeats", "candidat
 _BUNDLE = ("tracks_lm", "observation_errors", "normal_equations", "eliminate_points", "add_point_pairs",
            "mirror_upper", "back_substitute")
 _PROPAGATION = ("window_stats", "zncc_points", "propagate", "refine_affine", "refine_quadratic")
-_FUSION = ("cell_keys", "grid_origin", "keep_supported", "voxel_means", "cells", "grid_neighbours", "pca_normals")
+_FUSION = ("view_checks", "cell_keys", "grid_origin", "voxel_means", "cells", "grid_neighbours", "pca_normals")
 
 # the kernels each kind of run calls, in the order it first calls them (the helpers compile them
 # in that order, so the run finds the next one ready): "sparse" and "dense" are `stereoseed

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from stereoseed.config import Config
-from stereoseed.dense.densify import densify, fuse, supported
+from stereoseed.dense.densify import densify, fuse
 from stereoseed.experiments.evaluation import TrueCorrespondences, surface_distance, surface_normal
 from stereoseed.io.ply import read_ply, read_ply_vertices
 from stereoseed.pipeline import reconstruct
@@ -46,7 +46,9 @@ def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):
     calls = []
     cloud, report = densify(recon, cfg, tmp_path, progress=lambda *call: calls.append(call))
     pts, cols = read_ply(tmp_path / "dense.ply")
-    assert len(pts) == len(cloud) == report["points"] > 200_000
+    # measured 209 k, of 244 k fused without the multi-view check: the rest lies where the walk's
+    # end pairs see a surface the other pairs cover only at their edges, unconfirmed
+    assert len(pts) == len(cloud) == report["points"] > 150_000
     # the returned cloud is the file's (float32 in the file), the reconstruction untouched
     np.testing.assert_allclose(cloud.points, pts, atol=1e-6)
     assert len(cloud.normals) == len(cloud.support) == len(cloud) and not hasattr(recon, "dense_points")
@@ -64,21 +66,17 @@ def test_dense_cloud_lies_on_the_true_surface(short_ring, tmp_path):
     vertex = read_ply_vertices(tmp_path / "dense.ply")
     normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
-    assert vertex["support"].min() >= 1 and vertex["support"].max() <= len(report["pairs"])
+    # support: views agreeing (the pair's two and the other pairs' that confirm it): at least
+    # min_support, or 2 with confidence 0.5 where no other pair could judge the point
+    support, confidence = vertex["support"], vertex["confidence"]
+    assert support.max() <= len(report["pairs"]) + 1 and support.min() >= 2
+    assert np.all((support >= cfg.dense.min_support) | (confidence == 0.5))
+    assert np.mean(support >= cfg.dense.min_support) > 0.75  # measured 0.79 (four views: two end pairs)
+    assert np.all((vertex["confidence"] > 0) & (vertex["confidence"] < 1)) and vertex["angle"].min() >= cfg.dense.min_angle_deg
     on_surface = d < 0.001  # measured: points farther off are the propagation's few wrong matches
     cos = np.einsum("ij,ij->i", normals, surface_normal(pts))[on_surface]
     assert np.mean(cos > 0) >= 0.99, np.mean(cos > 0)  # measured 99.3 %
     assert np.degrees(np.arccos(np.median(cos))) < 8.0  # measured 3.8 degrees
-
-
-def test_support_keeps_surfaces_and_drops_isolated_points():
-    rng = np.random.default_rng(1)
-    surface = np.c_[rng.uniform(0, 0.1, (3000, 2)), np.zeros(3000)]
-    pts = np.vstack([surface, surface + rng.normal(0, 1e-4, surface.shape), rng.uniform(0, 0.1, (300, 3))])
-    sources = np.r_[np.zeros(3000), np.ones(3000), np.full(300, 2)].astype(int)
-    keep = supported(pts, sources, size=2e-3, min_sources=2)
-    assert keep[:6000].mean() > 0.97  # the surface seen by two pairs stays
-    assert keep[6000:].mean() < 0.05  # points only one pair claims go
 
 
 def test_temple_dense_cloud_stays_inside_the_object_box(temple_run, tmp_path):
@@ -160,8 +158,6 @@ def test_support_and_fusion_are_the_numpy_sums():
     keys = _voxel_keys(pts, 0.004)
     cells, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
     distinct = np.bincount(np.unique(inverse * 7 + sources) // 7, minlength=len(cells))
-    np.testing.assert_array_equal(supported(pts, sources, 0.004, 3), distinct[inverse] >= 3)
-    np.testing.assert_array_equal(supported(pts, sources - 5, 0.004, 3), distinct[inverse] >= 3)  # any labels
 
     def mean(values):
         return np.stack([np.bincount(inverse, weights=v, minlength=len(counts)) for v in values.T.astype(np.float64)],

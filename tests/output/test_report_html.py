@@ -6,11 +6,12 @@ import html
 import html.parser
 import logging
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from browser_helpers import CHROMIUM_ARGS, playwright_chromium
 
 from stereoseed.errors import StereoseedError
 
@@ -21,11 +22,6 @@ from stereoseed.pipeline import reconstruct
 from stereoseed.sfm.correspondence import HarrisZncc
 from stereoseed.output.report.html import write_report_html
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 # WebGL in software (SwiftShader): without a GPU, newer Chromium builds offer it only on request
-                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +38,7 @@ def run(box_scene):
 @pytest.fixture(scope="module")
 def written(run, tmp_path_factory):
     out = tmp_path_factory.mktemp("result")
-    path = write_report_html(*run, out, source=HarrisZncc(Config()))  # what redraws the weakest insertion
+    path = write_report_html(*run, out, source=HarrisZncc.of(Config()))  # what redraws the weakest insertion
     return path, path.read_text(encoding="utf-8")
 
 
@@ -154,7 +150,7 @@ def test_a_failing_part_is_logged_and_left_out(run, tmp_path, monkeypatch, caplo
     monkeypatch.setattr(report_html, "_weakest_insertion", broken)
     monkeypatch.setattr(report_html, "figure_times", broken)
     with caplog.at_level(logging.WARNING, logger="stereoseed.output.report.html"):
-        text = write_report_html(*run, tmp_path, source=HarrisZncc(Config())).read_text(encoding="utf-8")
+        text = write_report_html(*run, tmp_path, source=HarrisZncc.of(Config())).read_text(encoding="utf-8")
     assert "Matches of the weakest insertion" not in text and 'id="times"' not in text
     assert 'id="view3d"' in text and "blank.png" in text
     assert any("weakest insertion" in r.getMessage() and "boom" in r.getMessage() for r in caplog.records)
@@ -190,20 +186,12 @@ def test_view_without_report_is_a_one_line_error(tmp_path, capsys):
 
 
 # ---------------------------------------------------------------- in a real browser
-def _browser():
-    if not Path(CHROMIUM).exists() and shutil.which("chromium") is None:
-        pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("no playwright (pip install -e '.[test]')")
-    return sync_playwright, Path(CHROMIUM) if Path(CHROMIUM).exists() else Path(shutil.which("chromium"))
 
 
 def test_report_renders_in_headless_chromium(written, tmp_path):
     import cv2
 
-    sync_playwright, chromium = _browser()
+    sync_playwright, chromium = playwright_chromium()
     path, _ = written
     problems: list[str] = []
     with sync_playwright() as p:
@@ -285,7 +273,7 @@ def test_the_scale_bar_the_distance_readout_and_the_toolbars_in_chromium(run, tm
 
     from stereoseed.output.report.measure import length_text
 
-    sync_playwright, chromium = _browser()
+    sync_playwright, chromium = playwright_chromium()
     recon, report = run
     path = write_report_html(recon, {**report, "unit": "m"}, tmp_path)  # the synthetic box is in metres
     figures = json.loads(re.search(r'<script type="application/json" id="figures">(.*?)</script>',

@@ -113,8 +113,8 @@ def test_a_part_of_the_walk_tied_to_the_pair_only_through_a_flagged_camera_is_cu
             recon.add_observations(v, np.arange(used[v], used[v] + 30), ids)
             used[v] += 30
     everyone = set(range(8))
-    assert cut_off_cameras(recon, Config(), everyone) == {}
-    cut = cut_off_cameras(recon, Config(), everyone - {4})
+    assert cut_off_cameras(recon, Config().resection, everyone) == {}
+    cut = cut_off_cameras(recon, Config().resection, everyone - {4})
     assert sorted(cut) == [5, 6, 7]
     assert cut[5].reason.startswith("weak: no chain of the cameras the run vouches for ties it to the calibrated pair: it "
                              "shares at most 0 points")
@@ -124,7 +124,7 @@ def test_a_part_of_the_walk_tied_to_the_pair_only_through_a_flagged_camera_is_cu
         for v in (2, 3, 5):
             recon.add_observations(v, np.arange(used[v], used[v] + n), ids)
             used[v] += n
-        assert (cut_off_cameras(recon, Config(), everyone - {4}) == {}) == tied
+        assert (cut_off_cameras(recon, Config().resection, everyone - {4}) == {}) == tied
         recon.remove_points(ids)
 
 
@@ -136,7 +136,7 @@ def test_a_rival_camera_a_period_away_makes_the_motion_prior_ambiguous():
     shifted = ring_camera(30.0 + 4 * 20.0 + 6.0, height=0.7)[3]  # ~15 cm along the ring: a period over
     close = ring_camera(30.0 + 4 * 20.0 + 0.1, height=0.7)[3]  # 2.4 mm: the same camera
     def flag(cameras, counts):  # the winner: the first
-        return ambiguity_flag(ambiguous_rivals(recon, 3, recent, cameras, counts, 0, cfg), counts, 0)
+        return ambiguity_flag(ambiguous_rivals(recon, 3, recent, cameras, counts, 0, cfg.trust), counts, 0)
 
     why = flag([near, shifted], np.array([100, 80]))
     assert why is not None and "explains 80" in why.reason
@@ -243,9 +243,9 @@ def test_a_predicted_camera_its_neighbours_place_elsewhere_is_contradicted(place
     cfg = Config()
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     as_if_placed_by(recon, 4, placed_by)
-    assert contradicted_by_neighbours(recon, cfg) == {}  # sound cameras: nothing to say
+    assert contradicted_by_neighbours(recon, cfg.mapper_options().registering) == {}  # sound cameras: nothing to say
     _misplaced_4(recon, P_wrong, placed_by)
-    found = contradicted_by_neighbours(recon, cfg)
+    found = contradicted_by_neighbours(recon, cfg.mapper_options().registering)
     if placed_by == "epipolar chain":
         assert found == {}
         return
@@ -264,14 +264,15 @@ def test_a_camera_its_neighbours_place_elsewhere_is_registered_again_there(flagg
 
     cfg = Config()
     recon, Ps, P_wrong = _finished_ring_and_a_wrong_4(cfg)
-    assert register_again(recon, cfg) == Hindsight({}, {})  # sound cameras: nothing to do, nothing to say
+    # sound cameras: nothing to do, nothing to say
+    assert register_again(recon, cfg.mapper_options()) == Hindsight({}, {})
     view = _misplaced_4(recon, P_wrong)
     view.zoomed = True  # as if its first camera had claimed a zoom: no evidence for the one found again
     if flagged:
         recon.flag(4, Flag.parse("ambiguous: repeated structure (as if)"))
     assert np.linalg.norm(camera_center(view.P) - camera_center(Ps[4])) > 0.09
     seen = set(recon.obs_point[recon.obs_view == 4])
-    found = register_again(recon, cfg)
+    found = register_again(recon, cfg.mapper_options())
     again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert list(again) == [4] and "found between v3.png and v5.png" in again[4]
     # the verdicts on the model as it was (a camera flagged when placed is not judged again)
@@ -296,7 +297,7 @@ def test_a_rival_chosen_on_a_margin_is_not_registered_again(monkeypatch):
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
     monkeypatch.setattr(hindsight, "ambiguity_flag", lambda *a: "ambiguous: repeated structure (as if)")
-    found = hindsight.register_again(recon, cfg)
+    found = hindsight.register_again(recon, cfg.mapper_options())
     again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert again == {} and ba is None and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
 
@@ -315,7 +316,7 @@ def test_a_rival_that_does_not_fit_leaves_the_model_as_it_was(monkeypatch):
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
     before = recon.checkpoint()
-    found = register_again(recon, cfg)
+    found = register_again(recon, cfg.mapper_options())
     again, contradicted, ba = found.registered_again, found.contradicted, found.ba
     assert again == {} and ba is None
     assert list(contradicted) == [4] and contradicted[4].reason.startswith("contradicted by the other cameras")
@@ -335,7 +336,7 @@ def test_the_paper_mode_only_judges_a_camera_its_neighbours_place_elsewhere():
     cfg = Config().replace(pipeline={"mode": "paper"}, trust={"keep_flagged": True})
     recon, _, P_wrong = _finished_ring_and_a_wrong_4(cfg)
     view = _misplaced_4(recon, P_wrong)
-    found = register_again(recon, cfg)
+    found = register_again(recon, cfg.mapper_options())
     again, contradicted = found.registered_again, found.contradicted
     assert again == {} and list(contradicted) == [4] and np.array_equal(view.P, P_wrong)
 
@@ -348,15 +349,16 @@ def test_a_prediction_no_later_camera_confirms_is_flagged_weak():
     recon, _, _, source = walked(8)
     finish(recon, Config(), source)
     everyone = set(recon.registered_views)
-    assert unconfirmed_cameras(recon, Config(), everyone) == {}  # the epipolar chain's: confirmed or not, not predicted
+    # the epipolar chain's: confirmed or not, not predicted
+    assert unconfirmed_cameras(recon, Config().resection, everyone) == {}
     # the box's top is seen from everywhere: the end of this walk sees the pair's points, which
     # confirm it as a closed loop would; taken out here, as a walk that ends far from its start
     of_pair = np.isin(recon.obs_point, recon.obs_point[np.isin(recon.obs_view, [0, 1])])
     recon.remove_observations(of_pair & np.isin(recon.obs_view, [6, 7]))
     for v in (6, 7):
         as_if_placed_by(recon, v, "motion prior")
-    found = unconfirmed_cameras(recon, Config(), everyone)
+    found = unconfirmed_cameras(recon, Config().resection, everyone)
     assert list(found) == [7] and found[7].reason.startswith("weak: placed by the motion prior alone, and no later")
-    assert list(unconfirmed_cameras(recon, Config(), everyone - {7})) == [6]  # 7 flagged: it confirms nothing
+    assert list(unconfirmed_cameras(recon, Config().resection, everyone - {7})) == [6]  # 7 flagged: it confirms nothing
     out = assess(recon, Config().replace(trust={"keep_flagged": True}))
     assert list(out["flagged"]) == [recon.views[7].name]  # one unconfirmed prediction does not unconfirm the one before

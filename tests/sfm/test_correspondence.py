@@ -15,7 +15,7 @@ class _Counting(HarrisZncc):
     """HarrisZncc recording the thread of each match call."""
 
     def __init__(self, cfg):
-        super().__init__(cfg)
+        super().__init__(cfg.features, cfg.matching, cfg.tracking)
         self.match_threads: list[str] = []
 
     def match(self, *args):
@@ -45,7 +45,7 @@ def test_the_next_insertion_s_match_is_computed_ahead_and_is_the_direct_match(bo
     with _view_0_final(box_scene) as (source, prefetching, f0, f1, width):
         got = prefetching.match(0, 1, f0, f1, None, width)
     assert source.match_threads == ["stereoseed-matching_0"]  # computed ahead, once
-    direct = HarrisZncc(Config()).match(0, 1, f0, f1, None, width)
+    direct = HarrisZncc.of(Config()).match(0, 1, f0, f1, None, width)
     assert len(got) > 50 and _same(got, direct)
 
 
@@ -56,8 +56,8 @@ def test_a_match_it_did_not_foresee_is_computed_when_asked(box_scene, monkeypatc
         with_f = prefetching.match(0, 1, f0, f1, F, width)  # known F: not the speculated call
         again = prefetching.match(0, 1, f0, f1, None, width)  # the speculation was handed over once
     assert source.match_threads == ["stereoseed-matching_0", "MainThread", "MainThread"]
-    assert _same(again, HarrisZncc(Config()).match(0, 1, f0, f1, None, width))
-    assert _same(with_f, HarrisZncc(Config()).match(0, 1, f0, f1, F, width))
+    assert _same(again, HarrisZncc.of(Config()).match(0, 1, f0, f1, None, width))
+    assert _same(with_f, HarrisZncc.of(Config()).match(0, 1, f0, f1, F, width))
 
 
 def test_one_core_matches_only_when_asked(box_scene, monkeypatch):
@@ -70,7 +70,7 @@ class _HeldMatch(HarrisZncc):
     """HarrisZncc whose match waits (at most 5 s) until released, recording when it ran."""
 
     def __init__(self, cfg, events: list[str]):
-        super().__init__(cfg)
+        super().__init__(cfg.features, cfg.matching, cfg.tracking)
         self.events = events
         self.release = threading.Event()
 
@@ -89,14 +89,14 @@ def test_tracking_runs_beside_the_speculative_match(box_scene, monkeypatch):
     with Prefetching(source, lambda i: images[i], len(images), first=0) as prefetching:
         f0, f1 = prefetching.features(0, images[0]), prefetching.features(1, images[1])
         prefetching.expect_match(1, f1, width)  # view 1 with view 2, held
-        m = HarrisZncc(Config()).match(0, 1, f0, f1, None, width)  # where view 1's points are in view 0
+        m = HarrisZncc.of(Config()).match(0, 1, f0, f1, None, width)  # where view 1's points are in view 0
         idx, predicted = m.idx2, f0.points[m.idx1]
         xy, ok = prefetching.track(1, 0, f1, idx, f0, predicted, 2.0)
         events.append("tracked")
         source.release.set()
         prefetching.match(1, 2, f1, prefetching.features(2, images[2]), None, width)
     assert events == ["tracked", "match"]  # tracking did not wait for the held match
-    xy_direct, ok_direct = HarrisZncc(Config()).track(1, 0, f1, idx, f0, predicted, 2.0)
+    xy_direct, ok_direct = HarrisZncc.of(Config()).track(1, 0, f1, idx, f0, predicted, 2.0)
     assert ok.sum() > 50 and np.array_equal(ok, ok_direct) and np.array_equal(xy, xy_direct)
 
 
@@ -120,5 +120,5 @@ def test_a_rig_s_next_station_match_is_computed_ahead(box_scene, monkeypatch):
         got = prefetching.match(1, 3, f1, f3, None, width)
         other = prefetching.match(1, 2, f1, f2, None, width)  # not the speculated pair: asked directly
     assert source.match_threads == ["stereoseed-matching_0", "MainThread"]
-    assert _same(got, HarrisZncc(Config()).match(1, 3, f1, f3, None, width))
-    assert _same(other, HarrisZncc(Config()).match(1, 2, f1, f2, None, width))
+    assert _same(got, HarrisZncc.of(Config()).match(1, 3, f1, f3, None, width))
+    assert _same(other, HarrisZncc.of(Config()).match(1, 2, f1, f2, None, width))

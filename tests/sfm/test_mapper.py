@@ -70,12 +70,12 @@ def test_a_view_left_without_enough_observations_is_dropped_at_the_end(small_box
     scene = small_box_scene.prefix(5)
     cfg = Config().replace(trust={"keep_flagged": True})  # a flagged view keeps its observations here
     recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], cfg)
-    assert _drop_undetermined_views(recon, cfg) == {}  # a sound run keeps every view
+    assert _drop_undetermined_views(recon, cfg.resection) == {}  # a sound run keeps every view
     seen = np.flatnonzero(recon.obs_view == 3)
     cut = np.zeros(len(recon.obs_view), bool)
     cut[seen[5:]] = True  # view 3 keeps 5 observations
     recon.remove_observations(cut)
-    dropped = _drop_undetermined_views(recon, cfg)
+    dropped = _drop_undetermined_views(recon, cfg.resection)
     assert list(dropped) == [scene.names[3]] and "5 observations" in dropped[scene.names[3]]
     assert recon.views[3].P is None and recon.views[3].status.startswith("failed")
     assert all(recon.views[k].P is not None for k in (0, 1, 2, 4))

@@ -28,19 +28,19 @@ def test_local_ba_holds_the_calibrated_intrinsics_until_a_zoom_is_found():
     from stereoseed.sfm.strategy import mode_of
     from stereoseed.scene.reconstruction import Reconstruction, View
 
-    def _unzoomed_held(recon, cfg):  # the BA configuration the mode gives after an insertion
-        return mode_of(cfg).adjustment_config(recon, cfg)
+    def _unzoomed_held(recon, options):  # the BA options the mode gives after an insertion
+        return mode_of(options.pipeline).adjustment_options(recon, options)
 
     P = np.hstack([np.eye(3), np.zeros((3, 1))])
     recon = Reconstruction([View(name=f"v{i}", P=P) for i in range(4)])
-    cfg = Config().resolve()
+    cfg = Config().mapper_options()
     assert _unzoomed_held(recon, cfg).pipeline.camera_model == "fixed"
     recon.views[3].zoomed = True
     assert _unzoomed_held(recon, cfg) is cfg
     recon.views[3].zoomed = False
-    paper = Config(pipeline=PipelineConfig(mode="paper")).resolve()
+    paper = Config(pipeline=PipelineConfig(mode="paper")).mapper_options()
     assert _unzoomed_held(recon, paper) is paper
-    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).resolve()
+    no_hold = Config(pipeline=PipelineConfig(hold_unzoomed=False)).mapper_options()
     assert _unzoomed_held(recon, no_hold) is no_hold
 
 
@@ -50,7 +50,7 @@ def test_each_mode_owns_the_defaults_the_resolved_config_takes():
 
     for mode, cls in (("paper", PaperMode), ("accurate", AccurateMode)):
         cfg = Config(pipeline=PipelineConfig(mode=mode)).resolve()
-        strategy = mode_of(cfg)
+        strategy = mode_of(cfg.pipeline)
         assert isinstance(strategy, cls) and strategy.name == mode
         d = strategy.defaults
         assert (cfg.pipeline.camera_model, cfg.pipeline.window, cfg.pipeline.ba) == (d.camera_model, d.window, d.ba)

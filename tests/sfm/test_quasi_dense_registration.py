@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from stereoseed.sfm import mapper
-from stereoseed.config import Config
+from stereoseed.config import Config, QuasiDenseConfig
 from stereoseed.experiments.evaluation import camera_errors
 from stereoseed.estimators.rig_resection import Rig
 from stereoseed.geometry.camera import Camera
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.pipeline import load_sequence, reconstruct
+from stereoseed.sfm.correspondence import HarrisZncc
 from stereoseed.sfm.registration.base import FoundBy
 from stereoseed.sfm.registration.ambiguity import judge_ambiguity
 from stereoseed.sfm.registration.quasi_dense import grid_best, weak_chain_limit
@@ -31,8 +32,9 @@ def test_grid_best_keeps_the_best_match_of_each_cell():
 
 def test_weak_chain_limit_follows_the_trusted_chain():
     cfg = Config()
-    assert weak_chain_limit(cfg) == 2 * cfg.resection.min_inliers  # MotionPriorConfig.trusted_chain_factor 2
-    assert weak_chain_limit(cfg.replace(quasi_dense={"weak_chain_inliers": 40})) == 40
+    # MotionPriorConfig.trusted_chain_factor 2
+    assert weak_chain_limit(cfg.quasi_dense, cfg.motion_prior, cfg.resection) == 2 * cfg.resection.min_inliers
+    assert weak_chain_limit(QuasiDenseConfig(weak_chain_inliers=40), cfg.motion_prior, cfg.resection) == 40
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +48,7 @@ def test_faint_texture_registers_every_image_and_quasi_dense_where_the_chain_is_
     recon, report = reconstruct(scene.images, scene.names, scene.P[:2], Config())
     assert report["registered"] == scene.config.n_images
     per = report["per_image"][2:]
-    limit = weak_chain_limit(Config())
+    limit = weak_chain_limit(Config().quasi_dense, Config().motion_prior, Config().resection)
     for r in per:  # the path follows the rule: quasi-dense only after a weak sparse chain
         assert (r["registered_by"] == FoundBy.QUASI_DENSE) == ("sparse_weak" in r and "quasi_dense_failed" not in r
                                                        and r["resection_inliers"] >= limit)
@@ -57,10 +59,10 @@ def test_faint_texture_registers_every_image_and_quasi_dense_where_the_chain_is_
 
 def test_reconsider_changes_nothing(faint_scene):
     scene = faint_scene
-    cfg = Config().resolve()
+    cfg = Config().mapper_options()
     recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], cfg)
     before = recon.checkpoint()
-    found = reconsider(recon, 2, register_view(recon, 2, cfg), cfg)
+    found = reconsider(recon, 2, register_view(recon, 2, cfg.registering, HarrisZncc.of(cfg)), cfg.registering)
     after = recon.checkpoint()
     assert np.array_equal(before.points, after.points)
     assert all(np.array_equal(a, b) for a, b in zip(before.observations, after.observations))
@@ -78,9 +80,10 @@ def _moved(P: np.ndarray, along_x: float) -> np.ndarray:
 
 def test_an_ambiguous_choice_is_lifted_only_when_the_propagated_matches_tell_the_rivals_apart(faint_scene):
     scene = faint_scene
-    cfg = Config().resolve()
-    recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], cfg)
-    found = register_view(recon, 2, cfg)
+    options = Config().mapper_options()
+    recon, _ = mapper.initialise(scene.images, scene.names, scene.P[:2], options)
+    cfg = options.registering
+    found = register_view(recon, 2, cfg, HarrisZncc.of(options))
     assert not isinstance(found, RegistrationFailure)
     flag = Flag.parse("ambiguous: repeated structure (as if a rival explained nearly as much)")
     # a rival one 'period' (5 cm, 3.5 % of the 1.4 m distance) along the walk: the matches

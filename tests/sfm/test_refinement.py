@@ -58,10 +58,12 @@ def test_global_adjust_on_a_track_subset_stays_close_to_the_full_one():
     # the calibrated intrinsics held (a focal length per view trades against the depth here)
     cfg = Config(pipeline=PipelineConfig(mode="accurate", camera_model="fixed"))
     full, cams, _ = _ring(np.random.default_rng(2))
-    ba_full, _ = global_adjust(full, cfg)
+    opts = cfg.mapper_options()
+    ba_full, _ = global_adjust(full, opts.bundle, opts.outliers, opts.pipeline.camera_model)
     subset, _, X = _ring(np.random.default_rng(2))
     drift = _centre_errors(subset, cams).max()
-    ba, _ = global_adjust(subset, cfg.replace(bundle={"subset_above": 1.0, "subset_cells": 8}))
+    subset_bundle = cfg.replace(bundle={"subset_above": 1.0, "subset_cells": 8}).bundle
+    ba, _ = global_adjust(subset, subset_bundle, opts.outliers, opts.pipeline.camera_model)
     assert "subset_points" not in ba_full
     assert ba["subset_points"] < 0.3 * len(X) and ba["subset_points"] + ba["other_points"] == len(X)
     err_full, err_subset = _centre_errors(full, cams).max(), _centre_errors(subset, cams).max()

@@ -14,7 +14,7 @@ from stereoseed.scene.camera_life import Flag
 def test_registration_finds_the_camera_and_changes_nothing(started):
     recon, Ps, cfg, source = started
     before = state(recon)
-    found = register_view(recon, 4, cfg.resolve(), source)
+    found = register_view(recon, 4, cfg.mapper_options().registering, source)
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # resection alone, before any BA: the focal length trades against the depth (measured 2.7 mm)
     assert np.linalg.norm(camera_center(found.P) - camera_center(Ps[4])) < 0.006
@@ -31,7 +31,7 @@ def test_an_image_that_cannot_be_registered_leaves_no_trace():
     before = state(recon)
     report = insert_view(recon, 3, cfg, source)
     assert report["status"] == "failed" and "v3.png" in report["reason"]
-    assert isinstance(register_view(recon, 3, cfg.resolve(), source), RegistrationFailure)
+    assert isinstance(register_view(recon, 3, cfg.mapper_options().registering, source), RegistrationFailure)
     assert_same_state(before, state(recon))
     assert recon.views[3].status.startswith("failed: ")
     # the walk goes on from the last registered view, two steps away
@@ -57,20 +57,21 @@ def test_the_registrars_are_tried_in_the_mappers_order_and_each_changes_nothing(
     from stereoseed.sfm.registration.reconsider import QuasiDenseRegistrar
 
     recon, Ps, cfg, source = started
-    cfg = cfg.resolve()
-    order = registrars(cfg)
+    options = cfg.mapper_options()
+    settings = options.registering
+    order = registrars()
     assert [type(r) for r in order] == [SparseRegistrar, AmbiguityJudge, QuasiDenseRegistrar]
     before = state(recon)
     found = None
     for registrar in order:
-        found = registrar.register(recon, source, 4, found, cfg)
+        found = registrar.register(recon, source, 4, found, settings)
         assert_same_state(before, state(recon))
     assert isinstance(found, Registration) and found.found_by == FoundBy.EPIPOLAR_CHAIN
     # the resection's camera carries its model: the run's, or "fixed" where the previous zoom was kept
-    assert found.camera.model == found.resection.info["model"] in (cfg.pipeline.camera_model, "fixed")
+    assert found.camera.model == found.resection.info["model"] in (options.pipeline.camera_model, "fixed")
     for later in (AmbiguityJudge(), QuasiDenseRegistrar()):
         with pytest.raises(ValueError, match="cannot come first"):
-            later.register(recon, source, 4, None, cfg)
+            later.register(recon, source, 4, None, settings)
 
 
 def test_a_failure_says_its_kind():
@@ -82,11 +83,11 @@ def test_a_failure_says_its_kind():
     insert_view(recon, 2, cfg, source)
     report = insert_view(recon, 3, cfg, source)  # sees nothing: no match with the model's points
     assert report["failure"] == FailureKind.TOO_FEW_MATCHES == "too few matches"
-    found = register_view(recon, 3, cfg.resolve(), source)
+    found = register_view(recon, 3, cfg.mapper_options().registering, source)
     assert isinstance(found, RegistrationFailure) and found.kind is FailureKind.TOO_FEW_MATCHES
     # an image of another size than the moving camera's
     recon.views[4]._size = (100, 80)
-    assert register_view(recon, 4, cfg.resolve(), source).kind is FailureKind.IMAGE_SIZE
+    assert register_view(recon, 4, cfg.mapper_options().registering, source).kind is FailureKind.IMAGE_SIZE
 
 
 def test_a_chain_split_between_copies_of_a_pattern_is_not_trusted():
@@ -97,7 +98,7 @@ def test_a_chain_split_between_copies_of_a_pattern_is_not_trusted():
     def chain(inliers, pairs):
         return np.arange(pairs) < inliers
 
-    cfg = Config()
+    cfg = Config().mapper_options().registering
     assert _trusted_chain(chain(176, 179), cfg)
     assert not _trusted_chain(chain(24, 43), cfg)  # the castle walked backwards: 0007, 4.7 m off
     assert not _trusted_chain(chain(20, 20), cfg)  # too few, however consistent

@@ -34,7 +34,7 @@ def test_two_view_points_lie_on_the_truth_and_link_as_asked():
     _, ia, ib = np.intersect1d(source.ids[a], source.ids[b], return_indices=True)
     m = Matches(ia, ib, np.ones(len(ia)))
     before, stood_for = len(recon.points), recon.views[a].point_of_feature.copy()
-    ids = add_two_view_points(recon, a, b, m, cfg, colour_view=b, link_a=False)
+    ids = add_two_view_points(recon, a, b, m, cfg.triangulation, colour_view=b, link_a=False)
     assert len(ids) > 0.8 * len(m) and np.array_equal(ids, np.arange(before, before + len(ids)))
     X_true = source.points[source.ids[b][recon.obs_feature[(recon.obs_view == b) & (recon.obs_point >= before)]]]
     assert np.max(np.linalg.norm(recon.points[ids] - X_true, axis=1)) < 0.003  # 0.1 px noise, 40 degrees apart
@@ -49,7 +49,7 @@ def test_retriangulation_brings_a_displaced_point_back_and_leaves_a_hopeless_one
     long = np.flatnonzero(recon.alive & (recon.track_lengths() >= 3))[:50]
     X_true = _truth(recon, source)[long]
     recon.points[long] += 0.02  # 2 cm off: every observation disagrees
-    retriangulate(recon, np.sort(long), cfg)
+    retriangulate(recon, np.sort(long), cfg.triangulation)
     assert np.max(np.linalg.norm(recon.points[long] - X_true, axis=1)) < 0.003
     # a point whose observations cannot agree keeps its position
     p = long[0]
@@ -57,7 +57,7 @@ def test_retriangulation_brings_a_displaced_point_back_and_leaves_a_hopeless_one
     v0 = recon.views[recon.obs_view[obs[0]]]
     v0.features.points[recon.obs_feature[obs[0]]] += 40.0  # one observation 40 px off
     kept = recon.points[p].copy()
-    retriangulate(recon, np.array([p]), cfg)
+    retriangulate(recon, np.array([p]), cfg.triangulation)
     np.testing.assert_array_equal(recon.points[p], kept)
 
 
@@ -73,4 +73,4 @@ def test_a_source_that_cannot_track_tracks_nothing():
     recon, source, cfg = _started(4)
     assert not hasattr(source, "track")  # the exact source declares no tracking
     n_obs = len(recon.obs_point)
-    assert len(track_by_projection(recon, 3, [2, 1], cfg, source)) == 0 and len(recon.obs_point) == n_obs
+    assert len(track_by_projection(recon, 3, [2, 1], cfg.tracking, source)) == 0 and len(recon.obs_point) == n_obs

@@ -21,7 +21,7 @@ import warnings
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # the commands' modules import NumPy: after the BLAS setting
-from stereoseed.cli import calibration, data, mesh, reconstruct, results, tools  # noqa: E402
+from stereoseed.cli import calibration, data, live, mesh, reconstruct, results, tools  # noqa: E402
 from stereoseed.cli._terminal import LibraryLines, complain, warn  # noqa: E402
 from stereoseed.errors import StereoseedError  # noqa: E402
 
@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for commands in (calibration, reconstruct, results, tools, mesh, data):
+    for commands in (calibration, reconstruct, live, results, tools, mesh, data):
         commands.register(sub)
     parser.epilog = _epilog(set(sub.choices))
     return parser
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         complain(f"stereoseed: error: {e}")
         return 2
     except KeyboardInterrupt:
-        hint = "; run the same command with --resume to continue" if args.command == "reconstruct" else ""
+        hint = "; run the same command with --resume to continue" if args.command in ("reconstruct", "live") else ""
         complain(f"stereoseed: interrupted{hint}")
         return 130
     except OSError as e:  # e.g. an output folder that cannot be created

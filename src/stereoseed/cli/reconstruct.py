@@ -31,6 +31,10 @@ def _config(args: argparse.Namespace):
             changes["pipeline"]["refine_rig"] = True
         if getattr(args, "order", None) is not None:
             changes["ordering"] = {"mode": args.order}
+        dense = {"min_support": getattr(args, "min_support", None), "resolution": getattr(args, "dense_resolution", None),
+                 "max_points": getattr(args, "max_points", None)}
+        if any(v is not None for v in dense.values()):
+            changes["dense"] = {k: v for k, v in dense.items() if v is not None}
         return cfg.replace(**changes)
     except ValueError as e:
         raise StereoseedError(str(e)) from None
@@ -158,6 +162,16 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     """The options of a run, shared by reconstruct and batch."""
     _add_config_options(p)
     p.add_argument("--dense", action="store_true", help="add the quasi-dense stage (dense.ply)")
+    p.add_argument("--min-support", type=int, default=None, metavar="VIEWS",
+                   help="keep a dense point other views can judge only when this many views agree on it, its pair's "
+                        "two included (default: 3, one other pair confirms it; 2: no check); dense.ply gives each "
+                        "point's support, angle and confidence (docs/dense.md)")
+    p.add_argument("--dense-resolution", type=int, default=None, metavar="PX",
+                   help="propagate on images whose longer side is at most PX pixels (default: the images' own "
+                        "size); bounds the dense stage's memory and time on large photos")
+    p.add_argument("--max-points", type=int, default=None, metavar="N",
+                   help="at most N points in dense.ply: the fusion voxel grown until the cloud fits (default: no "
+                        "limit, one point per pixel's footprint)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the jobs (reconstruct: the dense stage's image pairs; batch: the sequences) on the Dask "
                         "cluster of this scheduler (pip install 'stereoseed[cluster]'; the workers must see the same "

@@ -16,19 +16,52 @@ class DenseConfig:
     max_reprojection_px: float = 1.5  # paper.md: "drop points whose reprojection error exceeds ~1.5 px"
     min_angle_deg: float = 2.0  # drop points with a tiny triangulation angle
     fusion_voxel: float = 0.0  # metres; 0 = automatic (about one pixel footprint)
-    # Multi-pair support (ours): keep a dense point when a cell of support_cell_voxels fusion
-    # voxels around it holds points from >= min_pair_support pairs (1 = off). Removes the
-    # propagation's wrong matches (random depths along the epipolar line); docs/benchmarks.md
-    # has the share of templeSparseRing's points inside the object's box with and without it.
-    min_pair_support: int = 2
-    support_cell_voxels: float = 4.0
+    # Multi-view fusion (stereoseed.dense.fusion, docs/dense.md): a point is kept when at least
+    # min_support views agree on it, its own pair's two included (2 = no check). 3: one other
+    # pair confirms it; a wrong propagated match lands at a random depth along its epipolar
+    # line, where no other pair puts a point (fountain-P11: docs/dense.md).
+    min_support: int = 3
+    # The propagation's matching noise (pixels, one standard deviation of a match's position
+    # along the epipolar line): what the depth tolerance of the views' agreement is derived from
+    # (a point's depth noise = distance x noise / (focal x sin(angle))). Integer-pixel ZNCC
+    # matches refined by a local affine fit or a parabola: a few tenths of a pixel; docs/dense.md
+    # has the spread of the agreeing depths measured on fountain-P11 against this.
+    match_noise_px: float = 0.3
+    # Two points agree within this many standard deviations of their combined noise (3: about
+    # 0.3 % of true agreements refused if the noise is Gaussian).
+    agreement_sigmas: float = 3.0
+    # A point is looked up in another pair's depth map within this many pixels of its image
+    # (the other pair's matches are on whole pixels of its own first view, with gaps).
+    lookup_px: int = 1
+    # A point no other pair could judge (none matched near its image in their first views: the
+    # surface only a walk's end pair sees) is kept, with support 2 and confidence 0.5: nothing
+    # contradicts it. On fountain-P11 they are 3 % of the points and leave the share beyond 1 %
+    # of the distance at 0.4 %; dropping them took the 5-image box's ground completeness at
+    # 0.5 cm from 0.70 to 0.45 (docs/dense.md). False: only confirmed points.
+    keep_unjudged: bool = True
+    # Points the other pairs contradict more than they confirm are dropped: confidence =
+    # (agree + 1) / (agree + violate + 2) below this. 0.6: confirmed at least 1.5 times as often as
+    # contradicted (measured on the fountain while the lookup still took the depth nearest X's:
+    # 1.07 % of the judged points beyond 1 % of the distance at 0.5, 0.70 % at 0.6).
+    min_confidence: float = 0.6
+    # The propagation's images: their longer side brought down to this many pixels (0: as
+    # given). Memory and time grow with the pixels (a 3072 x 2048 pair's match maps and
+    # windows are 16 times a 768 x 512 one's); the points' accuracy with the resolution
+    # (docs/dense.md has the fountain at both).
+    resolution: int = 0
+    # At most this many points in dense.ply (0: no limit): the fusion voxel grown until the
+    # cloud fits (a 24-megapixel walk's full-resolution cloud is tens of millions of points).
+    max_points: int = 0
     # local processes for the pair jobs; 0: one per core this process may use, at most 8 (each
     # holds a pair's images and match maps, ~100 MB at 640 x 480)
     workers: int = 0
 
     def __post_init__(self) -> None:
-        positive(self, "max_reprojection_px", "min_pair_support", "support_cell_voxels")
-        whole(self, "workers", minimum=0)
+        positive(self, "max_reprojection_px", "match_noise_px", "agreement_sigmas")
+        whole(self, "workers", "lookup_px", "resolution", "max_points", minimum=0)
+        whole(self, "min_support", minimum=2)
+        if not 0 <= self.min_confidence < 1:
+            raise ValueError(f"DenseConfig.min_confidence must be in [0, 1) (0: off), got {self.min_confidence}")
         if not 0 <= self.fusion_voxel < math.inf:  # NaN too: it fused every point into one voxel
             raise ValueError(f"DenseConfig.fusion_voxel must be a finite number >= 0 (0: automatic), "
                              f"got {self.fusion_voxel}")

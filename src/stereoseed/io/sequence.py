@@ -109,6 +109,13 @@ class ImageSequence(Sequence):
     def __len__(self) -> int:
         return len(self._entries)
 
+    def append(self, entry: Entry) -> int:
+        """One more image at the end (a live run learns its images one at a time); it is
+        checked and skipped as the others from their ``first`` on. Returns its index."""
+        with self._lock:
+            self._entries.append(entry)
+            return len(self._entries) - 1
+
     def __getitem__(self, index):  # type: ignore[override]
         if isinstance(index, slice):
             subset = list(range(len(self)))[index]

@@ -23,7 +23,7 @@ from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.files import decoder_detail, captured_stderr, write_image
 
-__all__ = ["Keyframe", "read_keyframes", "read_rig_keyframes", "sharpness"]
+__all__ = ["Keyframe", "KeyframePicker", "read_keyframes", "read_rig_keyframes", "sharpness"]
 
 log = logging.getLogger(__name__)
 
@@ -218,50 +218,81 @@ def _frames_at(path: Path, indices: list[int], save_to: str | Path | None, said:
     return kept, index + 1, 0
 
 
+class KeyframePicker:
+    """The keyframe choice of :func:`read_keyframes`, one frame at a time (a live run reads the
+    video at its own pace, :mod:`stereoseed.live`): :meth:`push` each frame in order (the first
+    starts the tracking, a keyframe only with ``first``), then :meth:`end`; each returns the
+    keyframes chosen by then (their frames' indices in the video), named as ``reconstruct``
+    names them."""
+
+    def __init__(self, path: str | Path, cfg: VideoConfig = VideoConfig(), save_to: str | Path | None = None,
+                 first: bool = False, prefix: str = ""):
+        self.path, self.cfg, self.save_to, self.first, self.prefix = Path(path), cfg, save_to, first, prefix
+        self.kept = 0  # keyframes chosen so far
+        self.frames = 0  # frames pushed so far
+        self._tracker: _Tracker | None = None
+        self._candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
+
+    def _small_gray(self, image: np.ndarray) -> np.ndarray:
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return gray if self._scale == 1.0 else cv2.resize(gray, None, fx=self._scale, fy=self._scale,
+                                                         interpolation=cv2.INTER_AREA)
+
+    def _sharpest(self) -> Keyframe:
+        _, best_index, best = max(self._candidates, key=lambda c: c[0])
+        self._candidates = []
+        self.kept += 1
+        return _kept(self.path, best_index, best, self.save_to, self.prefix)
+
+    def push(self, index: int, frame: np.ndarray) -> list[Keyframe]:
+        """Frame ``index`` of the video (uint8 BGR); the keyframes it completes."""
+        self.frames += 1
+        if self._tracker is None:
+            self._scale = min(1.0, self.cfg.tracking_width / frame.shape[1])
+            self._threshold = self.cfg.keyframe_motion * frame.shape[1] * self._scale
+            self._tracker = _Tracker(self._small_gray(frame), self.cfg)
+            if self.first:
+                self.kept += 1
+                return [_kept(self.path, index, frame, self.save_to, self.prefix)]
+            return []
+        gray = self._small_gray(frame)
+        motion, followed = self._tracker.follow(gray)
+        if motion >= 0.75 * self._threshold:
+            self._candidates.append((sharpness(gray), index, frame))
+        if motion >= self._threshold or followed < self.cfg.min_tracked_fraction or \
+                len(self._candidates) >= self.cfg.sharpest_of:
+            if not self._candidates:  # lost before 3/4 of the motion: this frame, as it is
+                self._candidates.append((sharpness(gray), index, frame))
+            self._tracker.restart(gray)
+            return [self._sharpest()]
+        return []
+
+    def end(self) -> list[Keyframe]:
+        """The last keyframe when the walk ended past 3/4 of a step."""
+        return [self._sharpest()] if self._candidates else []
+
+
 def _keyframes(path: Path, cfg: VideoConfig, save_to: str | Path | None, said: list[str], first: bool = False,
                prefix: str = "") -> tuple[list[Keyframe], int, int]:
     """(the keyframes, the number of frames decoded, the number the container announces (0:
     unknown)); what the decoder said is added to ``said``."""
     capture = _opened(path, said)
+    picker = KeyframePicker(path, cfg, save_to, first, prefix)
     keyframes: list[Keyframe] = []
     announced = _frame_count(capture)
     try:
         ok, frame = capture.read()
         if not ok:
             raise StereoseedError(f"{path}: no frame could be decoded; is the file complete?")
-        scale = min(1.0, cfg.tracking_width / frame.shape[1])
-        threshold = cfg.keyframe_motion * frame.shape[1] * scale
-
-        def small_gray(image: np.ndarray) -> np.ndarray:
-            gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-            return gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-
-        def keep_sharpest(candidates: list[tuple[float, int, np.ndarray]]) -> None:
-            _, best_index, best = max(candidates, key=lambda c: c[0])
-            keyframes.append(_kept(path, best_index, best, save_to, prefix))
-
-        if first:
-            keyframes.append(_kept(path, 0, frame, save_to, prefix))
-        tracker = _Tracker(small_gray(frame), cfg)
-        candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
         index = 0
+        keyframes += picker.push(index, frame)
         while True:
             ok, frame = capture.read()
             if not ok:
                 break
             index += 1
-            gray = small_gray(frame)
-            motion, followed = tracker.follow(gray)
-            if motion >= 0.75 * threshold:
-                candidates.append((sharpness(gray), index, frame))
-            if motion >= threshold or followed < cfg.min_tracked_fraction or len(candidates) >= cfg.sharpest_of:
-                if not candidates:  # lost before 3/4 of the motion: this frame, as it is
-                    candidates.append((sharpness(gray), index, frame))
-                keep_sharpest(candidates)
-                candidates = []
-                tracker.restart(gray)
-        if candidates:  # the end of the walk, past 3/4 of a step
-            keep_sharpest(candidates)
+            keyframes += picker.push(index, frame)
+        keyframes += picker.end()
     finally:
         capture.release()
     if len(keyframes) <= first:

@@ -22,7 +22,7 @@ It is also the only code that changes a camera's state (:mod:`stereoseed.scene.c
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Iterator
 
 import numpy as np
@@ -132,6 +132,17 @@ class Reconstruction:
         # (flagged when placed, or placed by the propagated matches alone): what withdrawing k
         # puts back (stereoseed.sfm.mapper); None otherwise
         self.insertion_undo: tuple[int, Checkpoint] | None = None
+
+    def add_view(self, view: View) -> int:
+        """One more view at the end, not reached yet (a live run learns its images one at a
+        time): the model is then what it would be had the view been there from the start, the
+        state kept before a doubted insertion (:attr:`insertion_undo`) included. Its index."""
+        self.views.append(view)
+        if self.insertion_undo is not None:
+            k, before = self.insertion_undo
+            fresh = tuple(v._state() for v in self.views[len(before.views):])
+            self.insertion_undo = (k, replace(before, views=before.views + fresh))
+        return len(self.views) - 1
 
     # ------------------------------------------------------------ arrays (views, read them)
     points = property(lambda self: self._points.data, doc="(M, 3) float64; rows may be adjusted in place")

@@ -15,11 +15,13 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from stereoseed.config import Config
+from stereoseed.features.config import FeatureConfig
 from stereoseed.features.harris import Features, describe, extract_features
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.matching.alignment import PairCache, align_matches, refine_features
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.pair import match_pair
+from stereoseed.sfm.config import TrackingConfig
 from stereoseed.threads import may_overlap
 
 __all__ = ["CorrespondenceSource", "OPTIONAL", "optional", "HarrisZncc", "Prefetching"]
@@ -59,9 +61,15 @@ class HarrisZncc:
 
     turns_images = True  # ZNCC is not rotation invariant
 
-    def __init__(self, cfg: Config):
-        self.cfg = cfg
+    def __init__(self, features: FeatureConfig, matching: MatchingConfig, tracking: TrackingConfig):
+        self.feature_config, self.matching, self.tracking = features, matching, tracking
         self._pair_caches: list[PairCache] = []
+
+    @classmethod
+    def of(cls, sections: Any) -> "HarrisZncc":
+        """The source of a configuration's sections ``features``, ``matching`` and ``tracking``
+        (a :class:`stereoseed.config.Config`, a :class:`stereoseed.sfm.options.MapperOptions`)."""
+        return cls(sections.features, sections.matching, sections.tracking)
 
     def pair_cache(self, fa: Features, fb: Features) -> PairCache:
         """The cache of the pair (fa, fb): an insertion matches its pair up to four times and
@@ -75,13 +83,13 @@ class HarrisZncc:
         return self._pair_caches[-1]
 
     def features(self, index: int, image: np.ndarray) -> Features:
-        return extract_features(image, self.cfg.features, patch_size=self.cfg.matching.patch_size)
+        return extract_features(image, self.feature_config, patch_size=self.matching.patch_size)
 
     def match(self, a: int, b: int, fa: Features, fb: Features, F: np.ndarray | None, image_width: int) -> Matches:
         """Strict localisation check first; a pair that keeps fewer than ``relax_below`` matches
         (real images: plaster, lighting, strong foreshortening) is matched again with the
         relaxed check and robust estimation takes care of the extra outliers."""
-        mc = self.cfg.matching
+        mc = self.matching
         cache = self.pair_cache(fa, fb)
         m = match_pair(fa, fb, mc, F=F, image_width=image_width, cache=cache).matches
         if len(m) < mc.relax_below:
@@ -94,7 +102,7 @@ class HarrisZncc:
         """fb with its matched points moved onto their partners in fa (sub-pixel affine
         alignment): a track followed pair after pair then carries one physical point, not
         detector noise."""
-        return refine_features(fa, fb, m, self.cfg.matching, cache=self.pair_cache(fa, fb))
+        return refine_features(fa, fb, m, self.matching, cache=self.pair_cache(fa, fb))
 
     def track(self, ref: int, target: int, f_ref: Features, ref_idx: np.ndarray, f_target: Features,
               predicted: np.ndarray, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -107,14 +115,14 @@ class HarrisZncc:
         # the ~20x dearer alignment
         desc, valid = describe(f_target.gray, predicted, f_target.patch_size)
         look = np.flatnonzero(valid & f_ref.valid[ref_idx]
-                              & (np.einsum("ij,ij->i", desc, f_ref.desc[ref_idx]) >= self.cfg.tracking.first_look_zncc))
+                              & (np.einsum("ij,ij->i", desc, f_ref.desc[ref_idx]) >= self.tracking.first_look_zncc))
         xy, ok = predicted.copy(), np.zeros(len(predicted), bool)
         probe = Features(predicted[look], desc[look], valid[look], np.zeros(len(look)), f_target.image_shape, f_target.gray)
         m = Matches(ref_idx[look], np.arange(len(look)), np.ones(len(look)))
-        al = align_matches(f_ref, probe, m, self.cfg.matching)
+        al = align_matches(f_ref, probe, m, self.matching)
         xy[look] = al.x2
         ok[look] = (al.converged & (al.shift(probe, m) <= max_shift_px)
-                    & (al.zncc > self.cfg.tracking.min_aligned_zncc))
+                    & (al.zncc > self.tracking.min_aligned_zncc))
         return xy, ok
 
 

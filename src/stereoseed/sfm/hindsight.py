@@ -29,14 +29,16 @@ from typing import Any, Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from stereoseed.config import Config
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.sfm.modes import adjust_globally
+from stereoseed.sfm.options import MapperOptions
 from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.motion_prior import described_points, explained_points, explaining_matches, hypotheses_near
 from stereoseed.scene.reconstruction import Reconstruction
-from stereoseed.sfm.refinement import CALIBRATED, adjust, global_adjust
+from stereoseed.sfm.refinement import CALIBRATED, adjust
 from stereoseed.sfm.registration.base import Candidate, FoundBy, Resector, ambiguous_rivals, ambiguity_flag
+from stereoseed.sfm.registration.settings import RegistrationSettings
 
 __all__ = ["contradicted_by_neighbours", "register_again", "Hindsight", "between", "Rival"]
 
@@ -86,22 +88,22 @@ class Rival:
         return Flag(FlagKind.CONTRADICTED, self.where(recon))
 
 
-def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival | None:
+def _rival(recon: Reconstruction, settings: RegistrationSettings, k: int, a: int, b: int) -> Rival | None:
     """The rival of view k's camera between views a < k < b (the module's rule), or None."""
-    mp, tc = cfg.motion_prior, cfg.trust
+    mp, tc = settings.motion_prior, settings.trust
     view = recon.views[k]
     # their points, each described by its patch at its first observation in a or b
     pids, desc = described_points(recon, np.flatnonzero(np.isin(recon.obs_view, [a, b])
                                                          & recon.alive[recon.obs_point]), a)
-    if len(pids) < cfg.resection.min_points:
+    if len(pids) < settings.resection.min_points:
         return None
     # the resection reads only the image's size: no pixels read again
     size_only = np.broadcast_to(np.zeros((), np.uint8), view.image_size[::-1])
     cand = Candidate(k, view.name, size_only, view.features, view.rotated_180)
-    resect = Resector(recon, a, cand, cfg)
+    resect = Resector(recon, a, cand, settings)
     cameras = [view.P]
     for hypotheses in hypotheses_near(recon, between(recon.views[a].P, recon.views[b].P, view.K, (k - a) / (b - a)),
-                                      view.features, cfg, (pids, desc)):
+                                      view.features, mp, settings.resection, (pids, desc)):
         cameras += [res.P for (res, _), _ in resect.each(hypotheses)[0]]
     counts = explained_points(view.features, cameras, recon.points[pids], desc, mp.explain_px, mp.min_zncc)
     depth = float(np.median(depths(view.P, recon.points[pids])))
@@ -109,16 +111,18 @@ def _rival(recon: Reconstruction, cfg: Config, k: int, a: int, b: int) -> Rival 
     rivals = [(int(n), float(np.linalg.norm(camera_center(P) - centre)), i)
               for i, (n, P) in enumerate(zip(counts[1:], cameras[1:]), start=1)]
     # clearly more, and at least a resection's worth (a count of 0 against 0 says nothing)
-    rivals = [(n, d, i) for n, d, i in rivals if n >= max(mp.wider_search_margin * counts[0], cfg.resection.min_inliers)
+    rivals = [(n, d, i) for n, d, i in rivals
+              if n >= max(mp.wider_search_margin * counts[0], settings.resection.min_inliers)
               and d > tc.ambiguity_shift * depth]
     if not rivals:
         return None
     n, d, i = max(rivals)
-    margin = ambiguity_flag(ambiguous_rivals(recon, a, pids, cameras, counts, i, cfg), counts, i)
+    margin = ambiguity_flag(ambiguous_rivals(recon, a, pids, cameras, counts, i, tc), counts, i)
     return Rival(a, b, cameras[i], n, int(counts[0]), d, depth, pids, desc, margin)
 
 
-def _rivals_between(recon: Reconstruction, cfg: Config, sound: list[int], views: list[int]) -> Iterator[tuple[int, Rival]]:
+def _rivals_between(recon: Reconstruction, settings: RegistrationSettings, sound: list[int],
+                    views: list[int]) -> Iterator[tuple[int, Rival]]:
     """(k, its rival) for each view k of ``views`` after the pair that is judged again and has a
     rival (:func:`_rival`): not placed by the epipolar chain (its own two-view geometry placed it,
     where the others were predicted; a split chain competes with the motion prior at
@@ -134,7 +138,7 @@ def _rivals_between(recon: Reconstruction, cfg: Config, sound: list[int], views:
                 or view.image_size is None):
             judged.append((k, a, b))
     for k, a, b in judged:
-        rival = _rival(recon, cfg, k, a, b)
+        rival = _rival(recon, settings, k, a, b)
         if rival is not None:
             yield k, rival
 
@@ -143,16 +147,16 @@ def _sound(recon: Reconstruction, doubted: set[int]) -> list[int]:
     return [v for v in recon.registered_views if not recon.views[v].placement_flag and v not in doubted]
 
 
-def contradicted_by_neighbours(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> dict[int, Flag]:
+def contradicted_by_neighbours(recon: Reconstruction, settings: RegistrationSettings,
+                               doubted: set[int] = frozenset()) -> dict[int, Flag]:
     """{view: flag} of the registered views after the pair, not flagged at their registration
     nor in ``doubted``, whose camera a rival predicted from their neighbours contradicts (the
     module's rule; :func:`_rivals_between` says which views). Not on a rig walk (a station's two
     images are one body; their neighbours are each other)."""
-    cfg = cfg.resolve()
     if recon.rig is not None:
         return {}
     sound = _sound(recon, doubted)
-    return {k: rival.contradiction(recon) for k, rival in _rivals_between(recon, cfg, sound, sound)}
+    return {k: rival.contradiction(recon) for k, rival in _rivals_between(recon, settings, sound, sound)}
 
 
 @dataclass(frozen=True)
@@ -167,7 +171,7 @@ class Hindsight:
     ba: dict[str, Any] | None = None
 
 
-def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = frozenset()) -> Hindsight:
+def register_again(recon: Reconstruction, options: MapperOptions, doubted: set[int] = frozenset()) -> Hindsight:
     """Put the rival a view's neighbours find (:func:`_rival`) in that view's place, flagged
     views included, when the rival is no choice on a margin itself (no camera found there, the
     view's own included, explains ``TrustConfig.ambiguity_ratio`` of its points a period away:
@@ -178,16 +182,15 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
     is recorded (:meth:`Reconstruction.register_again`). After any, the model is globally adjusted
     (its outlier rounds included). Not on a rig; the paper's mode (there to reproduce its
     experiments) and a run without a final global BA (``ba="local"``) only judge."""
-    cfg = cfg.resolve()
     if recon.rig is not None:
         return Hindsight({}, {})
-    mp, rc = cfg.motion_prior, cfg.resection
+    mp, rc = options.motion_prior, options.resection
     sound = _sound(recon, doubted)
-    mode = mode_of(cfg, recon)
-    retry = mode.name != "paper" and cfg.pipeline.ba != "local"
-    adjustment = mode.adjustment_config(recon, cfg)
+    mode = mode_of(options.pipeline, recon)
+    retry = mode.name != "paper" and options.pipeline.ba != "local"
+    adjustment = mode.adjustment_options(recon, options)
     again, contradicted = {}, {}
-    for k, rival in _rivals_between(recon, cfg, sound, recon.registered_views if retry else sound):
+    for k, rival in _rivals_between(recon, options.registering, sound, recon.registered_views if retry else sound):
         if k in sound:
             contradicted[k] = rival.contradiction(recon)
         view = recon.views[k]
@@ -204,7 +207,8 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
         live = recon.alive[rival.points[rows]]
         view.P = rival.P
         recon.add_observations(k, features[live], rival.points[rows[live]])
-        adjust(recon, adjustment, free_views=[k], free_points=np.zeros(0, np.int64))
+        adjust(recon, adjustment.bundle, adjustment.pipeline.camera_model, free_views=[k],
+               free_points=np.zeros(0, np.int64))
         err = recon.observation_errors(recon.obs_view == k)
         fits = int(np.sum(err <= rc.ransac_threshold_px))
         if fits < rc.min_inliers or not np.sqrt(np.mean(err ** 2)) <= rc.max_rms_px:
@@ -218,5 +222,5 @@ def register_again(recon: Reconstruction, cfg: Config, doubted: set[int] = froze
         log.warning("%s: registered again between its neighbours: %s", view.name, again[k])
     if not again:
         return Hindsight(again, contradicted)
-    ba, _ = global_adjust(recon, mode.adjustment_config(recon, cfg))  # the zooms may have changed
+    ba, _ = adjust_globally(recon, mode.adjustment_options(recon, options))  # the zooms may have changed
     return Hindsight(again, contradicted, ba)

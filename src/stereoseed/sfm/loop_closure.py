@@ -10,10 +10,10 @@ from typing import Any, Callable
 import numpy as np
 
 from stereoseed.geometry.projection import fundamental_from_projections, project
-from stereoseed.config import Config
+from stereoseed.estimators.config import ResectionConfig
+from stereoseed.sfm.config import LoopClosureConfig
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.scene.reconstruction import Reconstruction
-from stereoseed.sfm.refinement import global_adjust
 
 __all__ = ["close_loop", "judge_loop", "describe_loop", "CLOSED", "NOT_CLOSED", "NOT_A_LOOP", "NOT_SEEN", "TOO_SHORT"]
 
@@ -25,18 +25,18 @@ CLOSED, NOT_CLOSED, NOT_A_LOOP, NOT_SEEN, TOO_SHORT = (
 log = logging.getLogger(__name__)
 
 
-def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource,
-               adjust: Callable[[Reconstruction, Config], tuple[dict[str, Any], int]] = global_adjust
+def close_loop(recon: Reconstruction, loop_closure: LoopClosureConfig, resection: ResectionConfig,
+               source: CorrespondenceSource, adjust: Callable[[Reconstruction], tuple[dict[str, Any], int]]
                ) -> tuple[bool, dict[str, Any]]:
     """Match each of the last ``LoopClosureConfig.span`` registered views against the first
     ``span`` (those looking within ``max_axis_angle_deg`` of each other), measure the gap between
     the two ends on those matches (:func:`_end_gap`, under "pairs"), merge the points
     reconstructed twice, link the observations a view lacks, then ``adjust`` the whole model
-    (:func:`global_adjust`; a rig walk's holds the rig: (report, observations removed)).
+    (:func:`stereoseed.sfm.refinement.global_adjust`; a rig walk's holds the rig: (report,
+    observations removed)).
     Returns (whether the global BA ran, a JSON-able report). Whether the loop is closed needs
     the cameras' uncertainty, known only at the end of the run: :func:`judge_loop` decides it."""
-    cfg = cfg.resolve()
-    lc = cfg.loop_closure
+    lc = loop_closure
     reg = recon.registered_views
     if len(reg) < 2 * lc.span + 1:
         return False, {"closed": False, "verdict": TOO_SHORT, "reason": "sequence too short"}
@@ -57,13 +57,13 @@ def close_loop(recon: Reconstruction, cfg: Config, source: CorrespondenceSource,
     for a, b, m in matched:
         va, vb = recon.views[a], recon.views[b]
         pb, pa = vb.point_of_feature[m.idx1], va.point_of_feature[m.idx2]
-        merges += _merge_twins(recon, b, pb, pa, cfg)
+        merges += _merge_twins(recon, b, pb, pa, loop_closure)
         for pid, view, feats, other in ((pb, a, m.idx2, pa), (pa, b, m.idx1, pb)):
-            links += _link(recon, view, pid, feats, other, cfg)
+            links += _link(recon, view, pid, feats, other, loop_closure, resection)
     if links + merges == 0:
         return False, {"closed": False, "verdict": NOT_SEEN, "reason": "no shared points between the last and first views",
                        "matches": tried, "pairs": pairs}
-    ba, removed = adjust(recon, cfg)
+    ba, removed = adjust(recon)
     return True, {"closed": False, "links": links, "merges": merges, "ba": ba, "removed_observations": removed,
                   "pairs": pairs}
 
@@ -105,7 +105,7 @@ def _off_ray(view: Any, X: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return v - along[:, None] * d
 
 
-def judge_loop(recon: Reconstruction, cfg: Config, report: dict[str, Any]) -> None:
+def judge_loop(recon: Reconstruction, loop_closure: LoopClosureConfig, report: dict[str, Any]) -> None:
     """Decide, in ``report`` (:func:`close_loop`'s), whether the loop closed, once every camera
     has its uncertainty (``View.uncertainty``, set at the end of the run): for each pair of end
     views measured on ``LoopClosureConfig.min_gap_points`` points or more, its gap against its
@@ -119,7 +119,7 @@ def judge_loop(recon: Reconstruction, cfg: Config, report: dict[str, Any]) -> No
     pairs = report.get("pairs")
     if pairs is None:  # too short to try
         return
-    lc = cfg.resolve().loop_closure
+    lc = loop_closure
     walk = _walk(recon)
     report["loop_length"] = length = float(walk[-1][1]) if walk else 0.0
     along = dict(walk)
@@ -224,7 +224,7 @@ def _position_sigma(recon: Reconstruction, v: int) -> float | None:
     return None if u is None else float(np.linalg.norm(u.position_sigma))
 
 
-def _merge_twins(recon: Reconstruction, b: int, pb: np.ndarray, pa: np.ndarray, cfg: Config) -> int:
+def _merge_twins(recon: Reconstruction, b: int, pb: np.ndarray, pa: np.ndarray, loop_closure: LoopClosureConfig) -> int:
     """Merge the matched points (pb[i], pa[i]) that are one physical point reconstructed twice:
     close in space after the drift (within ``merge_distance`` of their depth in view b)."""
     both = (pa >= 0) & (pb >= 0) & (pa != pb)
@@ -232,11 +232,12 @@ def _merge_twins(recon: Reconstruction, b: int, pb: np.ndarray, pa: np.ndarray, 
         return 0
     d = np.linalg.norm(recon.points[pa[both]] - recon.points[pb[both]], axis=1)
     depth = np.linalg.norm(recon.points[pb[both]] - recon.views[b].center, axis=1)
-    close = d < cfg.loop_closure.merge_distance * depth
+    close = d < loop_closure.merge_distance * depth
     return recon.merge_points(pb[both][close], pa[both][close])
 
 
-def _link(recon: Reconstruction, view: int, pid: np.ndarray, feats: np.ndarray, other: np.ndarray, cfg: Config) -> int:
+def _link(recon: Reconstruction, view: int, pid: np.ndarray, feats: np.ndarray, other: np.ndarray,
+          loop_closure: LoopClosureConfig, resection: ResectionConfig) -> int:
     """Observations in ``view`` (its interest points ``feats``, standing for no point: ``other``
     < 0) of the points ``pid`` matched there, when they reproject close enough and the view
     does not see the point yet. Returns how many were added."""
@@ -245,7 +246,7 @@ def _link(recon: Reconstruction, view: int, pid: np.ndarray, feats: np.ndarray, 
         return 0
     v = recon.views[view]
     err = np.linalg.norm(project(v.P, recon.points[pid[cand]]) - v.features.points[feats[cand]], axis=1)
-    limit = cfg.loop_closure.link_threshold_factor * cfg.resection.ransac_threshold_px
+    limit = loop_closure.link_threshold_factor * resection.ransac_threshold_px
     ok = (err <= limit) & ~np.isin(pid[cand], recon.obs_point[recon.obs_view == view])
     pid_ok, f_ok = pid[cand][ok], feats[cand][ok]
     _, first = np.unique(pid_ok, return_index=True)

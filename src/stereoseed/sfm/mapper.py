@@ -1,8 +1,12 @@
 """The incremental mapper (paper §4.1-4.3): estimate, validate, then commit.
 
-    recon, report = initialise(images, names, P_pair, cfg, source)   # match I1-I2, triangulate
-    for k in 2 .. n-1: insert_view(recon, k, cfg, source)           # register, grow, adjust
-    finish(recon, cfg, source)                                      # loop closure, final BA, hindsight, trust
+    recon, report = initialise(images, names, P_pair, options, source)   # match I1-I2, triangulate
+    for k in 2 .. n-1: insert_view(recon, k, options, source)           # register, grow, adjust
+    finish(recon, options, source)                                      # loop closure, final BA, hindsight, trust
+
+``options``: the :class:`~stereoseed.sfm.options.MapperOptions` built once at the top
+(:meth:`stereoseed.config.Config.mapper_options`; a plain ``Config`` is taken too and gives its
+own); the mapper hands each component its own sections.
 
 The reconstruction is data; ``source`` (a :class:`~stereoseed.sfm.correspondence.CorrespondenceSource`,
 default :class:`~stereoseed.sfm.correspondence.HarrisZncc`) is where its correspondences come from.
@@ -26,12 +30,15 @@ from typing import Any
 import numpy as np
 
 from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
-from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.containers import Matches
 from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.sfm.config import PairCheckConfig
+from stereoseed.estimators.config import BundleConfig
+from stereoseed.matching.config import MatchingConfig
 from stereoseed.sfm.modes import Mode, holds_intrinsics
+from stereoseed.sfm.options import Configuration, MapperOptions, options_of
 from stereoseed.sfm.strategy import mode_of, registrars
 from stereoseed.sfm.finishing import finish
 from stereoseed.scene.reconstruction import Reconstruction, View
@@ -70,20 +77,22 @@ def pair_rig(P_pair: list[np.ndarray], rig: bool) -> Rig | None:
     return Rig.from_projections(*P_pair[:2]) if rig else None
 
 
-def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray], cfg: Config = Config(),
-               source: CorrespondenceSource | None = None, rig: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
+def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarray],
+               options: MapperOptions | Configuration, source: CorrespondenceSource | None = None,
+               rig: bool = False) -> tuple[Reconstruction, dict[str, Any]]:
     """Paper §4.1: the calibrated pair. Harris + ZNCC matches under the known epipolar geometry,
     linear + LM triangulation, filtered by reprojection error, cheirality and angle.
 
     images: the sequence (uint8 BGR); P_pair: the pair's two (3, 4) cameras; source: where
     correspondences come from (default :class:`HarrisZncc`; give the same one to every later
     step). rig: the images are a stereo rig's stations (left, right, left, ...; the pair is the
-    first station, :mod:`stereoseed.sfm.rig`). Raises :class:`StereoseedError` when the pair
+    first station, :mod:`stereoseed.sfm.rig`). options: the mapper's (module docstring).
+    Raises :class:`StereoseedError` when the pair
     gives too few points (the calibration does not belong to these images)."""
     t0 = time.perf_counter()
-    cfg = cfg.resolve()
+    options = options_of(options)
     recon = Reconstruction([view_of_input(n, images, i) for i, n in enumerate(names)], pair_rig(P_pair, rig))
-    source = source or HarrisZncc(cfg)
+    source = source or HarrisZncc.of(options)
     for i in (0, 1):
         view = recon.views[i]
         recon.calibrate(i, P_pair[i])
@@ -91,15 +100,15 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
         view.point_of_feature = np.full(len(view.features), -1, np.int64)
         if len(view.features) == 0:
             h, w = view.image.shape[:2]
-            border = cfg.features.border
+            border = options.features.border
             why = (f"the features' border of {border} px leaves nothing of a {w}x{h} image; lower [features] border"
                    if 2 * border >= min(w, h) else "a blank or black image?")
             raise StereoseedError(f"{names[i]}: no interest points ({why}); the calibrated pair must show the object")
-    _check_pair(recon, source, cfg)
+    _check_pair(recon, source, options.pair_check, options.matching)
     m = _match_known(recon, source, 0, 1)
     _refine(recon, source, 0, 1, m)
-    ids = add_two_view_points(recon, 0, 1, m, cfg, colour_view=0)
-    if len(ids) < cfg.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
+    ids = add_two_view_points(recon, 0, 1, m, options.triangulation, colour_view=0)
+    if len(ids) < options.resection.min_inliers:  # a fresh model: nothing to undo but the model itself
         raise StereoseedError(f"{names[0]}, {names[1]}: only {len(ids)} points triangulated from the calibrated pair "
                               f"({len(m)} matches); check the calibration belongs to these two images")
     report = {"image": names[1], "status": "calibrated pair", "matches": len(m), "new_points": len(ids),
@@ -109,7 +118,8 @@ def initialise(images: list[np.ndarray], names: list[str], P_pair: list[np.ndarr
     return recon, report
 
 
-def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config) -> None:
+def _check_pair(recon: Reconstruction, source: CorrespondenceSource, pair_check: PairCheckConfig,
+                matching: MatchingConfig) -> None:
     """The calibration must fit its two images: their matches found without it (robust F) must
     lie on its epipolar lines (``PairCheckConfig.min_consistent``), or, when they do not,
     matching under the calibration's epipolar geometry must find more of them. Raises
@@ -119,12 +129,12 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
         raise StereoseedError(f"{v0.name}, {v1.name}: the calibrated pair is the same image twice; give the two "
                               f"images the two calibrated cameras took")
     m = source.match(0, 1, v0.features, v1.features, None, v0.image.shape[1])
-    if len(m) < cfg.pair_check.min_matches:
+    if len(m) < pair_check.min_matches:
         return  # repeated patterns or little texture: no robust F to judge by
     x0, x1 = m.points(v0.features, v1.features)
     d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
-    consistent = float(np.mean(d <= cfg.matching.epipolar_band_px))
-    if consistent < cfg.pair_check.min_consistent and len(_match_known(recon, source, 0, 1)) < len(m):
+    consistent = float(np.mean(d <= matching.epipolar_band_px))
+    if consistent < pair_check.min_consistent and len(_match_known(recon, source, 0, 1)) < len(m):
         # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
         # then the calibration's own epipolar geometry still matches more than that F does,
         # while a calibration of other images matches only what falls in its bands by chance.
@@ -136,30 +146,31 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, cfg: Config
             f"with more of the scene in view.)")
 
 
-def insert_view(recon: Reconstruction, k: int, cfg: Config = Config(),
+def insert_view(recon: Reconstruction, k: int, options: MapperOptions | Configuration,
                 source: CorrespondenceSource | None = None) -> dict[str, Any]:
     """Paper §4.2-4.3: register view k from the last registered view, add its points, adjust.
-    source: the correspondences :func:`initialise` was given (default :class:`HarrisZncc`).
+    source: the correspondences :func:`initialise` was given (default :class:`HarrisZncc`);
+    options: the mapper's (module docstring).
 
     Returns a JSON-able report (also the view's, in its history): "status" is "registered" or
     "failed" (with "reason"); a failed view leaves ``recon`` as it was (only the view's history
     records why). "withdrawn" ({name: reason}, when present): k was placed only once the view
     before it, doubted when placed (:func:`_doubted_when_placed`), was taken out of the model
     (:func:`_without_doubted_previous`; that view's history says so)."""
-    cfg = cfg.resolve()
-    source = source or HarrisZncc(cfg)
+    options = options_of(options)
+    source = source or HarrisZncc.of(options)
     view = recon.views[k]
-    found = _registered(recon, source, k, cfg)
+    found = _registered(recon, source, k, options)
     withdrawn = {}
     if isinstance(found, RegistrationFailure):
-        retried = _without_doubted_previous(recon, source, k, found, cfg)
+        retried = _without_doubted_previous(recon, source, k, found, options)
         if isinstance(retried, RegistrationFailure):
             return _failed(recon, k, retried.reason, retried)
         found, withdrawn, state, state_without = retried
     else:
         state = state_without = recon.checkpoint()  # the model before this insertion
     try:
-        report = _commit_and_grow(recon, source, k, found, cfg)
+        report = _commit_and_grow(recon, source, k, found, options)
     except np.linalg.LinAlgError as e:
         recon.restore(state)
         why = f"; placed only without {', '.join(withdrawn)}, which stays" if withdrawn else ""
@@ -182,12 +193,13 @@ _CHAIN_FAILURES = (FailureKind.TOO_FEW_MATCHES, FailureKind.NO_CAMERA, FailureKi
 
 
 def _registered(recon: Reconstruction, source: CorrespondenceSource, k: int,
-                cfg: Config) -> Registration | RegistrationFailure:
+                options: MapperOptions) -> Registration | RegistrationFailure:
     """View k's camera from the registrars (:func:`stereoseed.sfm.strategy.registrars`), the
     model unchanged."""
     found = None
-    for registrar in registrars(cfg, recon):
-        found = registrar.register(recon, source, k, found, cfg)
+    settings = options.registering
+    for registrar in registrars(recon):
+        found = registrar.register(recon, source, k, found, settings)
     return found
 
 
@@ -201,7 +213,8 @@ def _doubted_when_placed(view: View) -> str | None:
 
 
 def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSource, k: int, failure: RegistrationFailure,
-                              cfg: Config) -> tuple[Registration, dict[str, str], Any, Any] | RegistrationFailure:
+                              options: MapperOptions
+                              ) -> tuple[Registration, dict[str, str], Any, Any] | RegistrationFailure:
     """View k could not be placed after a view whose registration is weak evidence
     (:func:`_doubted_when_placed`: flagged at its registration, or placed by the propagated
     matches alone): that failure is evidence against that camera, whose points are what k was
@@ -229,7 +242,7 @@ def _without_doubted_previous(recon: Reconstruction, source: CorrespondenceSourc
               f"was placed only without it")
     # tried without p: the model as before p's insertion where the run kept it
     recon.withdraw(p, reason, kept[1] if kept is not None and kept[0] == p else None)
-    found = _registered(recon, source, k, cfg)
+    found = _registered(recon, source, k, options)
     if isinstance(found, RegistrationFailure):
         recon.restore(state)
         return dataclasses.replace(failure, notes={**failure.notes, "without_flagged_previous": found.reason})
@@ -256,10 +269,10 @@ def _commit(recon: Reconstruction, k: int, reg: Registration) -> None:
 
 
 def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int, reg: Registration,
-                     cfg: Config) -> dict[str, Any]:
+                     options: MapperOptions) -> dict[str, Any]:
     """Commit view k's camera, then: re-match under the now-known epipolar geometry, extend the
     chained tracks, triangulate the new points, grow the tracks, adjust, drop outliers."""
-    mode = mode_of(cfg, recon)
+    mode = mode_of(options.pipeline, recon)
     view = recon.views[k]
     prev = recon.registered_before(k, 1)[0]
     _commit(recon, k, reg)
@@ -283,17 +296,20 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
     m = _match_known(recon, source, prev, k)
     _refine(recon, source, prev, k, m)
     # the chained observations consistent with the camera just estimated
-    pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
+    pid, chained, consistent = consistent_chain(recon, prev, k, m, options.resection.ransac_threshold_px)
     chain_points = pid[consistent]
-    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
-    if reg.quasi_dense is not None and cfg.quasi_dense.keep_tracks:  # the propagated matches' tracks
-        more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode, cfg)
+    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, options.triangulation)
+    if reg.quasi_dense is not None and options.quasi_dense.keep_tracks:  # the propagated matches' tracks
+        more, more_chained, report["quasi_dense_tracks"] = grow_quasi_dense(recon, prev, k, reg, mode,
+                                                                            options.quasi_dense, options.resection,
+                                                                            options.triangulation)
         ids, chain_points = np.concatenate([ids, more]), np.concatenate([chain_points, more_chained])
     if reg.found_by == FoundBy.MOTION_PRIOR:
         # repeated patterns defeated two-view matching: let a third view decide
         before = recon.registered_before(prev, 1)
         if before:
-            more = new_points_three_view(recon, prev, k, before[0], cfg)
+            more = new_points_three_view(recon, prev, k, before[0], options.tracking, options.matching,
+                                         options.triangulation)
             ids = np.concatenate([ids, more])
             report["three_view_points"] = int(len(more))
     expect_match = optional(source, "expect_match")
@@ -303,38 +319,40 @@ def _commit_and_grow(recon: Reconstruction, source: CorrespondenceSource, k: int
         if expect_match is not None and partner is not None:
             expect_match(k, view.features, view.image_size[0], partner)
 
-    report.update(mode.grow_tracks(recon, source, k, chain_points, cfg, features_final))
+    report.update(mode.grow_tracks(recon, source, k, chain_points, options, features_final))
     timing["triangulation"] = time.perf_counter() - t
     report.update(matches_guided=len(m), chained_observations=int(len(chain_points)), new_points=int(len(ids)))
 
     t = time.perf_counter()
-    ba_cfg = mode.adjustment_config(recon, cfg)
-    if ba_cfg is not cfg:
+    ba_options = mode.adjustment_options(recon, options)
+    if ba_options is not options:
         report["ba_intrinsics"] = "calibrated (no zoom found yet)"
-    if cfg.pipeline.ba == "global":
-        ba = ba_report(adjust(recon, ba_cfg, free_views=recon.registered_views))
-    elif _lens_in_question(recon, k, cfg):
-        ba, report["zoom_evidence"] = _lens_judged_by_the_window(recon, mode, prev, k, ids, chain_points, cfg)
+    if options.pipeline.ba == "global":
+        ba = ba_report(adjust(recon, ba_options.bundle, ba_options.pipeline.camera_model,
+                              free_views=recon.registered_views))
+    elif _lens_in_question(recon, k, options):
+        ba, report["zoom_evidence"] = _lens_judged_by_the_window(recon, mode, prev, k, ids, chain_points, options)
         if not view.zoomed:
             report["ba_intrinsics"] = "calibrated (the window's BA did not take the resection's zoom)"
     else:
-        ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_cfg)
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, ba_options)
     timing["bundle"] = time.perf_counter() - t
-    removed = drop_outliers(recon, cfg)
+    removed = drop_outliers(recon, options.outliers)
     report.update(ba=ba, removed_observations=removed, seconds=timing, status="registered")
     report["seconds"]["total"] = float(sum(timing.values()))
     return report
 
 
-def _lens_in_question(recon: Reconstruction, k: int, cfg: Config) -> bool:
+def _lens_in_question(recon: Reconstruction, k: int, options: MapperOptions) -> bool:
     """Whether view k is the first whose resection took a zoom while the run holds the calibrated
     intrinsics (the "focal" model with ``hold_unzoomed``): the window's BA judges it
     (:func:`_lens_judged_by_the_window`)."""
-    return recon.views[k].zoomed and holds_intrinsics(recon, cfg, besides=k)
+    return recon.views[k].zoomed and holds_intrinsics(recon, options.pipeline, besides=k)
 
 
 def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,
-                               chain_points: np.ndarray, cfg: Config) -> tuple[dict[str, Any], dict[str, Any]]:
+                               chain_points: np.ndarray, options: MapperOptions
+                               ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Whether view k's resection found the walk's first zoom, or the calibrated lens setting
     holds: the window's BA under each (k's focal length free, or held), compared by BIC over the
     window's observations (one parameter more) with the resections' margin
@@ -347,19 +365,19 @@ def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: 
     measure is not, and the view is flagged uncertain. The model is left with the BA chosen
     (``view.zoomed`` says which). -> (that BA's report, the evidence)."""
     view = recon.views[k]
-    window = recon.registered_views[-cfg.pipeline.window:]
+    window = recon.registered_views[-options.pipeline.window:]
     sel = np.isin(recon.obs_view, window)
     start = recon.checkpoint()
     seen = recon.points[recon.points_seen_by(k)]
-    held_cfg = cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
+    held = options.held()
     runs = {}
     for zoomed in (False, True):
         recon.restore(start)
         view.zoomed = zoomed
         if not zoomed:  # the calibrated focal length, the points at the same image size
             view.camera = _refocused(view.camera, recon.reference_K(k)[0, 0], seen)
-        ba = mode.local_adjust(recon, prev, k, ids, chain_points, cfg if zoomed else held_cfg)
-        runs[zoomed] = (ba, _window_cost(recon, sel, cfg), recon.checkpoint(), view.camera.focal)
+        ba = mode.local_adjust(recon, prev, k, ids, chain_points, options if zoomed else held)
+        runs[zoomed] = (ba, _window_cost(recon, sel, options.bundle), recon.checkpoint(), view.camera.focal)
     n = 2 * int(np.sum(sel & recon.alive[recon.obs_point]))
     (_, cost_same, _, f_same), (_, cost_new, _, f_new) = runs[False], runs[True]
     # the likelihood-ratio statistic, about (zoom / its 1-sigma)^2 (Wilks): the profile of the
@@ -368,8 +386,8 @@ def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: 
     evidence = ratio - np.log(n) if n else -np.inf
     zoom = abs(f_new / f_same - 1.0)
     sigma = zoom / np.sqrt(ratio) if ratio > 0 else np.inf
-    asked = bool(evidence > cfg.resection.zoom_evidence_bic)
-    rc = cfg.registration
+    asked = bool(evidence > options.resection.zoom_evidence_bic)
+    rc = options.registration
     measured = sigma <= rc.max_focal_sigma or zoom >= rc.zoom_certain_sigmas * sigma
     # a camera chosen on a margin (a repeated pattern) does not decide the lens of the whole walk
     kept = bool(asked and measured and not view.placement_flag)
@@ -399,6 +417,6 @@ def _refocused(camera: Camera, focal: float, points: np.ndarray) -> Camera:
     return Camera.from_krt(K, camera.R, -camera.R @ C, camera.model, camera.lens)
 
 
-def _window_cost(recon: Reconstruction, sel: np.ndarray, cfg: Config) -> float:
+def _window_cost(recon: Reconstruction, sel: np.ndarray, bundle: BundleConfig) -> float:
     err = recon.observation_errors(sel & recon.alive[recon.obs_point])
-    return 2.0 * huber_cost_of_norms(err[np.isfinite(err)], cfg.bundle.huber_px)
+    return 2.0 * huber_cost_of_norms(err[np.isfinite(err)], bundle.huber_px)

@@ -16,7 +16,6 @@ import numpy as np
 from stereoseed.geometry.camera import Camera
 from stereoseed.arrays import unique
 from stereoseed.geometry.projection import project
-from stereoseed.config import Config
 from stereoseed.estimators.config import ResectionConfig
 from stereoseed.sfm.config import MotionPriorConfig
 from stereoseed.features.harris import Features
@@ -67,11 +66,11 @@ def predict_camera(P_before: np.ndarray, P_last: np.ndarray, steps: int = 1) -> 
     return K @ predict_pose(pose_matrix(R_before, t_before), pose_matrix(R_last, t_last), steps)[:3]
 
 
-def trusted_chain_inliers(cfg: Config) -> int:
+def trusted_chain_inliers(motion_prior: MotionPriorConfig, resection: ResectionConfig) -> int:
     """Resection inliers an epipolar chain needs to be trusted without the motion prior
     (``MotionPriorConfig.trusted_chain_factor`` x ``ResectionConfig.min_inliers``, rounded up):
     fewer, and the quasi-dense attempt runs; fewer ties after the final BA, and a camera is weak."""
-    return int(np.ceil(cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers))
+    return int(np.ceil(motion_prior.trusted_chain_factor * resection.min_inliers))
 
 
 def recent_points(recon: Reconstruction, prev: int, n_views: int) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +93,8 @@ def described_points(recon: Reconstruction, rows: np.ndarray, view: int) -> tupl
     return pids, desc
 
 
-def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, features: Features, cfg: Config,
+def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, features: Features,
+                               motion_prior: MotionPriorConfig, resection: ResectionConfig,
                                recent: tuple[np.ndarray, np.ndarray]) -> list[list[Hypothesis]]:
     """Correspondences for view k (its interest points ``features``) from the predicted camera.
 
@@ -110,25 +110,25 @@ def hypotheses_by_motion_prior(recon: Reconstruction, prev: int, k: int, feature
     Returns one list of hypotheses per search radius; empty lists without a motion to
     extrapolate (no registered view before ``prev``) or with fewer than 4 recent points.
     """
-    mp: MotionPriorConfig = cfg.motion_prior
+    mp = motion_prior
     before = recon.registered_before(prev, 1)
     if not before:
         return [[] for _ in mp.radius_fractions]
     # images skipped since (failed insertions) count as steps of the same motion
     steps = max(1, round((k - prev) / max(prev - before[0], 1)))
     return hypotheses_near(recon, predict_camera(recon.views[before[0]].P, recon.views[prev].P, steps), features,
-                           cfg, recent)
+                           motion_prior, resection, recent)
 
 
-def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Features, cfg: Config,
-                    recent: tuple[np.ndarray, np.ndarray]) -> list[list[Hypothesis]]:
+def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Features, motion_prior: MotionPriorConfig,
+                    resection: ResectionConfig, recent: tuple[np.ndarray, np.ndarray]) -> list[list[Hypothesis]]:
     """:func:`hypotheses_by_motion_prior`'s search around the projections of the ``recent``
     points by a predicted camera ``P_pred`` (3, 4): one list of hypotheses per search radius
     (empty lists with fewer than a resection's points)."""
-    mp: MotionPriorConfig = cfg.motion_prior
+    mp = motion_prior
     none: list[list[Hypothesis]] = [[] for _ in mp.radius_fractions]
     pids, desc = recent
-    if len(pids) < cfg.resection.min_points or len(features) == 0:
+    if len(pids) < resection.min_points or len(features) == 0:
         return none
     pred = project(P_pred, recon.points[pids])
     width = features.image_shape[1]
@@ -153,7 +153,7 @@ def hypotheses_near(recon: Reconstruction, P_pred: np.ndarray, features: Feature
             rows = np.repeat(np.arange(len(pids)), min(depth, ranked.shape[1]))
             cols = ranked[:, :depth].ravel()
             ok = zncc[rows, cols] >= mp.min_zncc
-            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, cfg.resection, width)
+            found = _similarities(pred, features.points, rows[ok], cols[ok], zncc, mp, resection, width)
             hypotheses += [Hypothesis(recon.points[pids[r]], x, z, radius_fraction, depth) for r, x, z in found]
         out.append(hypotheses)
     return out

@@ -12,7 +12,9 @@ import numpy as np
 
 from stereoseed.arrays import unique
 from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
-from stereoseed.config import Config
+from stereoseed.estimators.config import BundleConfig
+from stereoseed.geometry.camera_model import CameraModel
+from stereoseed.sfm.config import OutlierConfig
 from stereoseed.scene.reconstruction import Reconstruction, eq14
 
 __all__ = ["adjust", "ba_report", "bundle_problem", "drop_outliers", "global_adjust", "select_tracks"]
@@ -25,11 +27,12 @@ def ba_report(result: dict[str, Any] | None) -> dict[str, Any]:
     return {"skipped": True} if result is None else result
 
 
-def bundle_problem(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
-                   views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None
-                   ) -> tuple[BundleProblem, np.ndarray, np.ndarray] | None:
-    """The bundle adjustment problem of :func:`adjust` (same arguments), with the views and the
-    points it involves ((C,), (M,) ids); None when no observation is involved."""
+def bundle_problem(recon: Reconstruction, model: CameraModel, free_views: list[int],
+                   free_points: np.ndarray | None = None, views_in_cost: list[int] | None = None,
+                   points_in_cost: np.ndarray | None = None) -> tuple[BundleProblem, np.ndarray, np.ndarray] | None:
+    """The bundle adjustment problem of :func:`adjust` (same arguments; ``model``: the run's camera
+    model, ``PipelineConfig.camera_model`` resolved, or "fixed" when the BA holds the intrinsics),
+    with the views and the points it involves ((C,), (M,) ids); None when no observation is involved."""
     free_views = [v for v in free_views if v not in CALIBRATED]
     in_free_views = np.isin(recon.obs_view, free_views)
     if free_points is None:
@@ -45,7 +48,7 @@ def bundle_problem(recon: Reconstruction, cfg: Config, free_views: list[int], fr
     # One model for every free camera of a BA: a view that needed a constrained model (its
     # 11-DOF camera was refused) is adjusted with it when it is free alone, and held fixed when
     # it is free together with cameras of the run's model.
-    run_model = cfg.pipeline.resolved_model()
+    run_model = model
     model_of = {v: recon.views[v].camera_model or run_model for v in free_views}
     models = set(model_of.values())
     model = models.pop() if len(models) == 1 else run_model
@@ -67,17 +70,18 @@ def bundle_problem(recon: Reconstruction, cfg: Config, free_views: list[int], fr
     return problem, cams, pts
 
 
-def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_points: np.ndarray | None = None,
-           views_in_cost: list[int] | None = None, points_in_cost: np.ndarray | None = None) -> dict[str, Any] | None:
+def adjust(recon: Reconstruction, bundle: BundleConfig, model: CameraModel, free_views: list[int],
+           free_points: np.ndarray | None = None, views_in_cost: list[int] | None = None,
+           points_in_cost: np.ndarray | None = None) -> dict[str, Any] | None:
     """Bundle-adjust with ``free_views`` free; points free = ``free_points`` or, by default,
     every point those views observe; the cost holds every observation of the involved points
     (in ``views_in_cost`` only, and of ``points_in_cost`` only, if given). Returns a JSON-able
     report, or None when there is nothing to adjust (no observation involved)."""
-    built = bundle_problem(recon, cfg, free_views, free_points, views_in_cost, points_in_cost)
+    built = bundle_problem(recon, model, free_views, free_points, views_in_cost, points_in_cost)
     if built is None:
         return None
     problem, cams, pts = built
-    result = bundle_adjust(problem, cfg.bundle)
+    result = bundle_adjust(problem, bundle)
     for i, v in enumerate(cams):
         if problem.free_cameras[i]:
             recon.views[v].P = result.Ps[i]
@@ -91,7 +95,7 @@ def adjust(recon: Reconstruction, cfg: Config, free_views: list[int], free_point
             "eq14_after": eq14(rms_a ** 2 * o, len(cams), len(pts))}
 
 
-def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
+def drop_outliers(recon: Reconstruction, outliers: OutlierConfig) -> int:
     """Remove the observations reprojecting beyond ``OutlierConfig.max_px`` and, with an
     outlier factor (``OutlierConfig.factor``), beyond that factor times the median
     error (never below ``OutlierConfig.floor_px``); then the points seen fewer than twice. Long
@@ -100,17 +104,17 @@ def drop_outliers(recon: Reconstruction, cfg: Config) -> int:
     if len(recon.obs_view) == 0:
         return 0
     err = recon.observation_errors()
-    threshold = cfg.outliers.max_px
-    factor = cfg.resolve().outliers.active_factor()
+    threshold = outliers.max_px
+    factor = outliers.active_factor()
     counted = np.isfinite(err) & recon.alive[recon.obs_point]
     if factor is not None and counted.any():
-        relative = max(cfg.outliers.floor_px, factor * float(np.median(err[counted])))
+        relative = max(outliers.floor_px, factor * float(np.median(err[counted])))
         threshold = min(threshold, relative)
     return recon.filter_observations(err > threshold)
 
 
-def global_adjust(recon: Reconstruction, cfg: Config,
-                  adjust_everything: Callable[[Reconstruction, Config, int], dict[str, Any] | None] | None = None
+def global_adjust(recon: Reconstruction, bundle: BundleConfig, outliers: OutlierConfig, model: CameraModel,
+                  adjust_everything: Callable[[Reconstruction, int], dict[str, Any] | None] | None = None
                   ) -> tuple[dict[str, Any], int]:
     """Bundle-adjust every registered view (the pair fixed), drop the outliers, and again while
     the last round removed more than ``BundleConfig.negligible_drop`` of the observations (at
@@ -119,39 +123,39 @@ def global_adjust(recon: Reconstruction, cfg: Config,
     ``BundleConfig.subset_above`` track-length² blocks) adjusts its cameras on the points of
     :func:`select_tracks` and then every other point with the cameras fixed. Returns (the last
     round's BA report with "rounds", "removed_per_round" and the first round's starting RMS
-    added, observations removed). adjust_everything(recon, cfg, round): one round's BA (its
+    added, observations removed). adjust_everything(recon, round): one round's BA (its
     report with "observations", None when there is nothing to adjust); a rig walk's holds the rig
     (:func:`stereoseed.sfm.rig.global_rig_adjust`)."""
-    adjust_everything = adjust_everything or (lambda r, c, _: _adjust_everything(r, c))
+    adjust_everything = adjust_everything or (lambda r, _: _adjust_everything(r, bundle, model))
     removed_per_round: list[int] = []
     rms_first = None
     while True:
-        ba = adjust_everything(recon, cfg, len(removed_per_round))
+        ba = adjust_everything(recon, len(removed_per_round))
         if ba is None:  # nothing registered past the pair: no BA, so nothing to judge by
             return ba_report(None), 0
-        removed = drop_outliers(recon, cfg)
+        removed = drop_outliers(recon, outliers)
         removed_per_round.append(removed)
         rms_first = ba.get("rms_before_px") if rms_first is None else rms_first
-        if (removed <= cfg.bundle.negligible_drop * ba["observations"]
-                or len(removed_per_round) >= cfg.bundle.global_rounds):
+        if (removed <= bundle.negligible_drop * ba["observations"]
+                or len(removed_per_round) >= bundle.global_rounds):
             break
     ba.update(rounds=len(removed_per_round), removed_per_round=removed_per_round, rms_first_round_before_px=rms_first)
     return ba, sum(removed_per_round)
 
 
-def _adjust_everything(recon: Reconstruction, cfg: Config) -> dict[str, Any] | None:
+def _adjust_everything(recon: Reconstruction, bundle: BundleConfig, model: CameraModel) -> dict[str, Any] | None:
     """One BA of every registered view and point; on a subset of the points when the whole is
     large (see :func:`global_adjust`)."""
     views = recon.registered_views
     length = np.bincount(recon.obs_point[np.isin(recon.obs_view, views)], minlength=len(recon.points))
-    if float(np.sum(length[recon.alive].astype(np.float64) ** 2)) <= cfg.bundle.subset_above:
-        return adjust(recon, cfg, free_views=views)
-    kept = select_tracks(recon, cfg.bundle.subset_cells)
-    ba = adjust(recon, cfg, free_views=views, free_points=kept, points_in_cost=kept)
+    if float(np.sum(length[recon.alive].astype(np.float64) ** 2)) <= bundle.subset_above:
+        return adjust(recon, bundle, model, free_views=views)
+    kept = select_tracks(recon, bundle.subset_cells)
+    ba = adjust(recon, bundle, model, free_views=views, free_points=kept, points_in_cost=kept)
     if ba is None:
         return None
     others = np.setdiff1d(np.flatnonzero(recon.alive & (length > 0)), kept)
-    points_ba = adjust(recon, cfg, free_views=[], free_points=others)  # cameras fixed: one 3x3 system a point
+    points_ba = adjust(recon, bundle, model, free_views=[], free_points=others)  # cameras fixed: one 3x3 system a point
     # the report's RMS and eq. 14 are the camera adjustment's, on the subset's observations
     ba.update(subset_points=len(kept), other_points=len(others),
               other_points_rms_after_px=points_ba["rms_after_px"] if points_ba else None,

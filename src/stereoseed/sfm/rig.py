@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from stereoseed.arrays import unique
-from stereoseed.config import Config
+from stereoseed.estimators.config import BundleConfig, ResectionConfig
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.estimators.rig_bundle import RigBundleProblem, rig_bundle_adjust
 from stereoseed.estimators.rig_resection import Rig, resect_rig, rig_reprojection_errors
@@ -36,12 +36,15 @@ from stereoseed.geometry.projection import rotation_angle_deg
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.sfm.loop_closure import close_loop
 from stereoseed.sfm.modes import AccurateMode
+from stereoseed.sfm.config import OutlierConfig, RegistrationConfig
+from stereoseed.sfm.options import MapperOptions
 from stereoseed.sfm.motion_prior import explained_points, hypotheses_near, pose_matrix, predict_pose, recent_points
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.refinement import global_adjust
 from stereoseed.sfm.registration.base import (Candidate, FailureKind, FoundBy, Registration, RegistrationFailure,
                                               ambiguous_rivals, ambiguity_flag, chained_points)
 from stereoseed.sfm.registration.ambiguity import judge_ambiguity
+from stereoseed.sfm.registration.settings import RegistrationSettings
 
 __all__ = ["RigMode", "RigRegistrar", "global_rig_adjust", "rig_adjust", "station_of", "side_of"]
 
@@ -97,7 +100,8 @@ class RigRegistrar:
     from the left one through the rig."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+                 found: Registration | RegistrationFailure | None,
+                 settings: RegistrationSettings) -> Registration | RegistrationFailure:
         rig = recon.rig
         view = recon.views[k]
         t0 = time.perf_counter()
@@ -125,7 +129,7 @@ class RigRegistrar:
         # predicted motion finds around the projections of the recent points (wider steps: the
         # matcher's search radius is a quarter of the image). The pose explaining the most recent
         # points in both images wins, as the single camera's motion prior decides.
-        recent = recent_points(recon, previous[-1], cfg.motion_prior.recent_views)
+        recent = recent_points(recon, previous[-1], settings.motion_prior.recent_views)
         pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (X, x, side) per set
         matches = 0
         chained_sets = []
@@ -142,35 +146,37 @@ class RigRegistrar:
                                  np.full(int(chained.sum()), sd)))
         pairs.append(tuple(np.concatenate(a) for a in zip(*chained_sets)))
         predicted = _predicted_station(recon, rig, s)
-        trusted = cfg.motion_prior.trusted_chain_factor * cfg.resection.min_inliers * len(cands)
+        trusted = settings.motion_prior.trusted_chain_factor * settings.resection.min_inliers * len(cands)
         if predicted is not None and len(pairs[0][0]) < trusted:  # a strong chain needs no prediction
             P_predicted = rig.projections(*predicted)
             for sd, c in cands.items():
-                for hyps in hypotheses_near(recon, P_predicted[sd], c.features, cfg, recent):
+                for hyps in hypotheses_near(recon, P_predicted[sd], c.features, settings.motion_prior,
+                                            settings.resection, recent):
                     pairs += [(h.points3d, h.points2d, np.full(len(h), sd)) for h in hyps]
         # a pose per set: the robust-F set from both images at once, each predicted set by P3P in its image
         poses = []
-        if len(pairs[0][0]) >= cfg.registration.min_chained_points:
+        if len(pairs[0][0]) >= settings.registration.min_chained_points:
             first = resect_rig(rig, *pairs[0], what=f"station {s} ({view.name})")
             if first.success:
                 poses.append((first.R, first.t))
-        poses += [pose for ps in pairs[1:] if (pose := _pose_from_one_image(rig, *ps, cfg)) is not None]
+        poses += [pose for ps in pairs[1:]
+                  if (pose := _pose_from_one_image(rig, *ps, settings.registration, settings.resection)) is not None]
         n_pairs = sum(len(ps[0]) for ps in pairs)
         if not poses:
             return RegistrationFailure(f"{view.name}: station {s}: no pose from its images' {n_pairs} matches with "
                                        f"reconstructed points", matches, n_pairs, kind=FailureKind.NO_CAMERA)
-        mp = cfg.motion_prior
+        mp = settings.motion_prior
         counts = np.zeros(len(poses), np.int64)
         cameras = [rig.projections(*pose) for pose in poses]  # each pose's (P_left, P_right)
         for sd, c in cands.items():
             counts += explained_points(c.features, [P[sd] for P in cameras],
                                        recon.points[recent[0]], recent[1], mp.explain_px, mp.min_zncc)
         best = int(np.argmax(counts))
-        rivals = ambiguous_rivals(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, cfg)
+        rivals = ambiguous_rivals(recon, previous[-1], recent[0], [P[0] for P in cameras], counts, best, settings.trust)
         # the winner refitted on every pair of both images it explains, from all sets
         X, x, side = (np.concatenate(a) for a in zip(*pairs))
         err, in_front = rig_reprojection_errors(rig, *poses[best], X, x, side)
-        agree = (err <= 2 * cfg.resection.ransac_threshold_px) & in_front
+        agree = (err <= 2 * settings.resection.ransac_threshold_px) & in_front
         res = resect_rig(rig, X[agree], x[agree], side[agree], what=f"station {s} ({view.name})")
         if not res.success:
             return RegistrationFailure(f"{view.name}: station {s}: {res.reason}", matches, n_pairs,
@@ -180,23 +186,24 @@ class RigRegistrar:
             # judged as a single camera's choice is, on this image and the previous station's of its side
             reg = dataclasses.replace(reg, flag=ambiguity_flag(rivals, counts, best),
                                       rivals=tuple(cameras[j][side_of(k)] for j, _, _ in rivals))
-            reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, cfg, source)
+            reg = judge_ambiguity(recon, matched[side_of(k)][0], reg, settings, source)
         return reg
 
 
 def _pose_from_one_image(rig: Rig, X: np.ndarray, x: np.ndarray, side: np.ndarray,
-                         cfg: Config) -> tuple[np.ndarray, np.ndarray] | None:
+                         registration: RegistrationConfig, resection: ResectionConfig
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
     """The station pose (R, t of its left camera) from 2D-3D pairs X (N, 3), x (N, 2) of one of its
     images (``side`` (N,), all alike): P3P in RANSAC (OpenCV) with that camera's calibrated K,
     carried to the left camera through the rig; None when too few pairs agree."""
-    if len(X) < max(cfg.registration.min_chained_points, 4):
+    if len(X) < max(registration.min_chained_points, 4):
         return None
     sd = int(side[0])
     # OpenCV's RANSAC registrator seeds its own generator: deterministic without cv2.setRNGSeed
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, rig.Ks[sd], None, iterationsCount=int(cfg.resection.ransac_max_iters),
-                                             reprojectionError=2 * cfg.resection.ransac_threshold_px,
-                                             confidence=cfg.resection.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
-    if not ok or inl is None or len(inl) < cfg.resection.min_inliers:
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, rig.Ks[sd], None, iterationsCount=int(resection.ransac_max_iters),
+                                             reprojectionError=2 * resection.ransac_threshold_px,
+                                             confidence=resection.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
+    if not ok or inl is None or len(inl) < resection.min_inliers:
         return None
     return rig.left_pose(sd, cv2.Rodrigues(rvec)[0], tvec.ravel())
 
@@ -217,8 +224,7 @@ def _registration(cand: Candidate, P: np.ndarray, resected, t0: float) -> Regist
     return Registration(cand, result, FoundBy.RIG, matches, chained, seconds={"total": time.perf_counter() - t0})
 
 
-def rig_adjust(recon: Reconstruction, free_stations: list[int], cfg: Config, refine: bool = False
-               ) -> dict[str, Any] | None:
+def rig_adjust(recon: Reconstruction, free_stations: list[int], refine: bool = False) -> dict[str, Any] | None:
     """Bundle-adjust the stations ``free_stations`` (station 0, the calibration, never moves) and
     every point their images see, with the rig held: one pose per station, its two cameras the
     rig's. Observations of those points in other stations' images pin them. Writes the registered
@@ -265,40 +271,46 @@ class RigMode(AccurateMode):
     name = "rig"
 
     def local_adjust(self, recon: Reconstruction, prev: int, k: int, new_points: np.ndarray,
-                     chain_points: np.ndarray, cfg: Config) -> dict[str, Any]:
+                     chain_points: np.ndarray, options: MapperOptions) -> dict[str, Any]:
         """After a station's last image: the last ``window`` stations (the local BA's window
         counted in stations). A left image whose right one comes next waits for it: one BA per
         station."""
         if side_of(k) == 0 and k + 1 < len(recon.views) and recon.views[k + 1].status == "pending":
             return {"skipped": True, "reason": "the station's right image comes next"}
         placed = sorted({station_of(v) for v in recon.registered_views})
-        report = rig_adjust(recon, placed[-cfg.pipeline.window:], cfg)
+        report = rig_adjust(recon, placed[-options.pipeline.window:])
         return {"skipped": True} if report is None else report
 
-    def adjustment_config(self, recon: Reconstruction, cfg: Config) -> Config:
+    def adjustment_options(self, recon: Reconstruction, options: MapperOptions) -> MapperOptions:
         """The rig's calibrated intrinsics: the "fixed" model (what the cameras' uncertainty uses)."""
-        return cfg.replace(pipeline={"camera_model": CameraModel.FIXED})
+        return options.held()
 
     def next_match(self, k: int) -> int | None:
         """A right image: the next station's right one (:class:`RigRegistrar` asks for that match
         first). A left image's interest points still grow when its right one is tracked back."""
         return k + 2 if side_of(k) == 1 else None
 
-    def finish(self, recon: Reconstruction, cfg: Config, source: CorrespondenceSource) -> dict[str, Any]:
+    def finish(self, recon: Reconstruction, options: MapperOptions, source: CorrespondenceSource) -> dict[str, Any]:
         """The loop closed as the accurate mode closes it (the last stations' images matched
         against the first ones', points merged and linked), then a global rig BA
         (:func:`global_rig_adjust`) unless closing the loop ran one."""
         out: dict[str, Any] = {}
         adjusted = False
-        if cfg.pipeline.loop_closure:
-            adjusted, out["loop_closure"] = close_loop(recon, cfg, source, adjust=global_rig_adjust)
+        def adjust(r: Reconstruction) -> tuple[dict[str, Any], int]:
+            return global_rig_adjust(r, options.bundle, options.outliers, options.pipeline.refine_rig)
+
+        if options.pipeline.loop_closure:
+            adjusted, out["loop_closure"] = close_loop(recon, options.loop_closure, options.resection, source, adjust)
         if not adjusted:
-            out["final_ba"] = global_rig_adjust(recon, cfg)[0]
+            out["final_ba"] = adjust(recon)[0]
         return out
 
 
-def global_rig_adjust(recon: Reconstruction, cfg: Config) -> tuple[dict[str, Any], int]:
+def global_rig_adjust(recon: Reconstruction, bundle: BundleConfig, outliers: OutlierConfig,
+                      refine_rig: bool) -> tuple[dict[str, Any], int]:
     """:func:`stereoseed.sfm.refinement.global_adjust`'s rounds with every station adjusted with
     the rig held (the rig refined in the first round with ``PipelineConfig.refine_rig``)."""
     stations = sorted({station_of(v) for v in recon.registered_views})
-    return global_adjust(recon, cfg, lambda r, c, i: rig_adjust(r, stations, c, refine=c.pipeline.refine_rig and i == 0))
+    # (the camera model: the rig's calibrated intrinsics; rig_adjust holds them whatever it is)
+    return global_adjust(recon, bundle, outliers, CameraModel.FIXED,
+                         lambda r, i: rig_adjust(r, stations, refine=refine_rig and i == 0))

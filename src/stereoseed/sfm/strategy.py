@@ -3,7 +3,7 @@ walk, the rig's (:mod:`stereoseed.sfm.rig`), and the registrars that place its v
 Above both modules, so that neither imports the other."""
 from __future__ import annotations
 
-from stereoseed.config import Config
+from stereoseed.sfm.config import PipelineConfig
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.modes import AccurateMode, Mode, PaperMode
 from stereoseed.sfm.registration.ambiguity import AmbiguityJudge
@@ -14,15 +14,15 @@ from stereoseed.sfm.rig import RigMode, RigRegistrar
 __all__ = ["mode_of", "registrars"]
 
 
-def mode_of(cfg: Config, recon: Reconstruction | None = None) -> Mode:
-    """The strategy of ``cfg.pipeline.mode``; a rig walk's (``recon.rig``) its own
+def mode_of(pipeline: PipelineConfig, recon: Reconstruction | None = None) -> Mode:
+    """The strategy of ``pipeline.mode``; a rig walk's (``recon.rig``) its own
     (:class:`stereoseed.sfm.rig.RigMode`)."""
     if recon is not None and recon.rig is not None:
         return RigMode()
-    return PaperMode() if cfg.pipeline.mode == "paper" else AccurateMode()
+    return PaperMode() if pipeline.mode == "paper" else AccurateMode()
 
 
-def registrars(cfg: Config, recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
+def registrars(recon: Reconstruction | None = None) -> tuple[Registrar, ...]:
     """The registrars tried for each view, in order: the sparse matches (epipolar chain against the
     motion prior), the judge of an ambiguous choice, then the quasi-dense matches where the
     sparse outcome is weak (a registrar that does not apply returns the outcome it was given). A

@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from stereoseed.geometry.projection import fundamental_from_projections, project, project_homogeneous, project_per_observation
-from stereoseed.config import Config
+from stereoseed.estimators.config import TriangulationConfig
+from stereoseed.matching.config import MatchingConfig
+from stereoseed.sfm.config import TrackingConfig
 from stereoseed.features.harris import Features, describe
 from stereoseed.matching.containers import Matches
 from stereoseed.matching.two_view import epipolar_band_mask
@@ -28,23 +30,25 @@ def colors_at(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return image[v, u][:, ::-1] if image.ndim == 3 else np.repeat(image[v, u][:, None], 3, axis=1)
 
 
-def triangulate_matches(recon: Reconstruction, a: int, b: int, m: Matches, cfg: Config) -> tuple[np.ndarray, Matches]:
+def triangulate_matches(recon: Reconstruction, a: int, b: int, m: Matches,
+                        triangulation: TriangulationConfig) -> tuple[np.ndarray, Matches]:
     """Triangulate matches between registered views a, b (linear + LM); keep those within the
     reprojection threshold, in front of both cameras and wide enough. -> (points (K, 3), matches)."""
     va, vb = recon.views[a], recon.views[b]
     x1, x2 = m.points(va.features, vb.features)
-    tc = cfg.triangulation
+    tc = triangulation
     res = triangulate(np.stack([va.P, vb.P]), np.stack([x1, x2]), iterations=tc.lm_iterations)
     ok = res.valid(tc.max_reprojection_px, tc.min_angle_deg)
     return res.points[ok], m.subset(ok)
 
 
-def add_two_view_points(recon: Reconstruction, a: int, b: int, m: Matches, cfg: Config, colour_view: int,
+def add_two_view_points(recon: Reconstruction, a: int, b: int, m: Matches, triangulation: TriangulationConfig,
+                        colour_view: int,
                         link_a: bool = True) -> np.ndarray:
     """New points from matches ``m`` between registered views a and b (:func:`triangulate_matches`),
     coloured from ``colour_view`` (a or b), observed in both; ``link_a`` False keeps a's interest
     points standing for what they stood for (the paper mode). Returns the new point ids."""
-    X, kept = triangulate_matches(recon, a, b, m, cfg)
+    X, kept = triangulate_matches(recon, a, b, m, triangulation)
     view = recon.views[colour_view]
     ids = recon.add_points(X, colors_at(view.image, view.features.points[kept.idx1 if colour_view == a
                                                                          else kept.idx2]))
@@ -53,14 +57,15 @@ def add_two_view_points(recon: Reconstruction, a: int, b: int, m: Matches, cfg: 
     return ids
 
 
-def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Config) -> np.ndarray:
+def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, tracking: TrackingConfig,
+                          matching: MatchingConfig, triangulation: TriangulationConfig) -> np.ndarray:
     """New points from the interest points of views a, b that stand for none yet, when ZNCC
     cannot choose between repeated patterns: every pair within the epipolar band with ZNCC >=
     ``TrackingConfig.three_view_min_zncc`` is triangulated, and kept when a third registered
     view c has an interest point within ``three_view_max_px`` of its projection whose patch
     matches too; each interest point is used once (best score first). Returns the new point ids
     (observed in a, b and c)."""
-    tc = cfg.tracking
+    tc = tracking
     va, vb, vc = recon.views[a], recon.views[b], recon.views[c]
     fa = np.flatnonzero((va.point_of_feature < 0) & va.features.valid)
     fb = np.flatnonzero((vb.point_of_feature < 0) & vb.features.valid)
@@ -69,12 +74,12 @@ def new_points_three_view(recon: Reconstruction, a: int, b: int, c: int, cfg: Co
     if min(len(fa), len(fb), len(fc)) == 0:
         return none
     band = epipolar_band_mask(fundamental_from_projections(va.P, vb.P), va.features.points[fa],
-                              vb.features.points[fb], cfg.matching.epipolar_band_px)
+                              vb.features.points[fb], matching.epipolar_band_px)
     zab = va.features.desc[fa] @ vb.features.desc[fb].T
     ia, ib = np.nonzero(band & (zab >= tc.three_view_min_zncc))
     if len(ia) == 0:
         return none
-    X, kept = triangulate_matches(recon, a, b, Matches(fa[ia], fb[ib], np.zeros(len(ia))), cfg)
+    X, kept = triangulate_matches(recon, a, b, Matches(fa[ia], fb[ib], np.zeros(len(ia))), triangulation)
     ia, ib = kept.idx1, kept.idx2
     if len(ia) == 0:
         return none
@@ -125,7 +130,7 @@ def _clear_of_linked(view: View, xy: np.ndarray, radius: float) -> np.ndarray:
     return np.isinf(nearest_within(linked, xy, radius)[0])
 
 
-def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg: Config,
+def track_by_projection(recon: Reconstruction, target: int, refs: list[int], tracking: TrackingConfig,
                         source: CorrespondenceSource | None = None) -> np.ndarray:
     """Give view ``target`` its observations of the live points seen in views ``refs`` (nearest
     first) but not yet in ``target``: project each point with the target's camera and align the
@@ -137,7 +142,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
     vt = recon.views[target]
     if track is None or vt.features is None:
         return np.zeros(0, np.int64)
-    thr = cfg.tracking.max_shift_px
+    thr = tracking.max_shift_px
     h, w = vt.features.image_shape
     margin = vt.features.patch_size
     taken = np.zeros(len(recon.points), bool)  # the points the target sees
@@ -159,7 +164,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
         if len(pids) == 0:
             continue
         found, ok = track(j, target, recon.views[j].features, feats, vt.features, xy, thr)
-        ok &= _clear_of_linked(vt, found, cfg.tracking.min_distance_to_other_px)
+        ok &= _clear_of_linked(vt, found, tracking.min_distance_to_other_px)
         if not ok.any():
             continue
         idx = vt.append_features(_tracked_features(vt, found[ok]))
@@ -169,7 +174,7 @@ def track_by_projection(recon: Reconstruction, target: int, refs: list[int], cfg
     return np.concatenate(grown) if grown else np.zeros(0, np.int64)
 
 
-def retriangulate(recon: Reconstruction, point_ids: np.ndarray, cfg: Config) -> None:
+def retriangulate(recon: Reconstruction, point_ids: np.ndarray, triangulation: TriangulationConfig) -> None:
     """Re-triangulate points (K,) sorted ids from all their observations; a point takes the new
     position when it reprojects within the threshold, in front of every camera."""
     sel = np.isin(recon.obs_point, point_ids)
@@ -177,11 +182,11 @@ def retriangulate(recon: Reconstruction, point_ids: np.ndarray, cfg: Config) -> 
     views, of_view = np.unique(recon.obs_view[sel], return_inverse=True)
     P_obs = np.stack([recon.views[v].P for v in views])[of_view]  # composed once per view, not per observation
     xy = recon.observation_xy(sel)
-    X = triangulate_tracks(P_obs, xy, local, len(point_ids), cfg.triangulation.lm_iterations)
+    X = triangulate_tracks(P_obs, xy, local, len(point_ids), triangulation.lm_iterations)
     h, uv = project_per_observation(P_obs, X[local])
     err = np.linalg.norm(uv - xy, axis=1)
     worst = np.full(len(point_ids), -np.inf)  # a point without an observation stays -inf: not finite, not taken
     with np.errstate(invalid="ignore"):
         np.maximum.at(worst, local, np.where(h[:, 2] > 0, err, np.inf))
-    ok = np.isfinite(worst) & (worst <= cfg.triangulation.max_reprojection_px)
+    ok = np.isfinite(worst) & (worst <= triangulation.max_reprojection_px)
     recon.points[point_ids[ok]] = X[ok]

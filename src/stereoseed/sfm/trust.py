@@ -25,11 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
-from stereoseed.config import Config
+from stereoseed.estimators.config import ResectionConfig
+from stereoseed.geometry.camera_model import CameraModel
+from stereoseed.sfm.config import MotionPriorConfig, TrustConfig
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
 from stereoseed.geometry.projection import depths
 from stereoseed.scene.camera_life import Flag, FlagKind
-from stereoseed.sfm.strategy import mode_of
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of, station_partner
@@ -41,18 +42,19 @@ __all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras"
 
 
 
-def camera_uncertainties(recon: Reconstruction, cfg: Config) -> dict[int, CameraUncertainty]:
+def camera_uncertainties(recon: Reconstruction, model: CameraModel, trust: TrustConfig) -> dict[int, CameraUncertainty]:
     """{view: its uncertainty} for every registered view after the pair, from the normal
     equations of all registered views (the pair fixed) and every live point, each camera's
     observations counted once per ``TrustConfig.independent_cell_px`` cell of its image; a rig
-    walk's with one pose per station (the rig held, as its bundle adjustment holds it)."""
-    # the model the final BA used (the accurate mode holds the calibrated intrinsics when no image zoomed)
-    built = bundle_problem(recon, mode_of(cfg, recon).adjustment_config(recon, cfg), recon.registered_views)
+    walk's with one pose per station (the rig held, as its bundle adjustment holds it). model: the
+    camera model the final BA used (the accurate mode holds the calibrated intrinsics when no
+    image zoomed: the mode's ``adjustment_options``)."""
+    built = bundle_problem(recon, model, recon.registered_views)
     if built is None:
         return {}
     problem, cams, _ = built
     found = camera_uncertainty(problem, groups=None if recon.rig is None else _stations(recon, cams),
-                               independent_cell_px=cfg.trust.independent_cell_px)
+                               independent_cell_px=trust.independent_cell_px)
     return {int(v): u for v, u in zip(cams, found) if u is not None}
 
 
@@ -73,10 +75,10 @@ def _median_depth(recon: Reconstruction, view: int) -> float:
     return float(np.median(depths(recon.views[view].P, pts))) if len(pts) else float("nan")
 
 
-def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, Flag]:
+def contradicted_cameras(recon: Reconstruction, trust: TrustConfig) -> dict[int, Flag]:
     """{view: flag} of the registered views after the pair whose observations reproject worse
     than ``TrustConfig.residual_factor`` x the median camera's RMS (and the floor)."""
-    tc = cfg.trust
+    tc = trust
     views = [v for v in recon.registered_views if v not in CALIBRATED]
     live = recon.alive[recon.obs_point]
     if not views or not live.any():
@@ -97,12 +99,11 @@ def contradicted_cameras(recon: Reconstruction, cfg: Config) -> dict[int, Flag]:
             for v in views if v in rms and rms[v] > limit}
 
 
-def tied_observation_limit(cfg: Config) -> int:
+def tied_observation_limit(trust: TrustConfig, motion_prior: MotionPriorConfig, resection: ResectionConfig) -> int:
     """Observations of multi-view points a camera needs for the final BA to check it."""
-    tc = cfg.trust
-    if tc.min_tied_observations is not None:
-        return tc.min_tied_observations
-    return trusted_chain_inliers(cfg)
+    if trust.min_tied_observations is not None:
+        return trust.min_tied_observations
+    return trusted_chain_inliers(motion_prior, resection)
 
 
 def _shared_points(recon: Reconstruction, observations: np.ndarray) -> sparse.csr_matrix:
@@ -122,9 +123,9 @@ def _tied(recon: Reconstruction, vouched: set[int]) -> np.ndarray:
     return live & (observers[recon.obs_point] >= 3)
 
 
-def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, Flag]:
+def weakly_tied_cameras(recon: Reconstruction, need: int, vouched: set[int]) -> dict[int, Flag]:
     """{view: flag} of the registered views after the pair with fewer than
-    :func:`tied_observation_limit` observations of live points that two other cameras also see.
+    ``need`` (:func:`tied_observation_limit`) observations of live points that two other cameras also see.
     A rig's station counts its two images' observations together (the rig holds them).
     vouched: the views the run vouches for: only their observations tie, and only they are
     judged (a flagged camera's observations leave the model; it vouches for nothing)."""
@@ -134,14 +135,13 @@ def weakly_tied_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     per_group: dict[int, int] = {}
     for v in recon.registered_views:
         per_group[group(v)] = per_group.get(group(v), 0) + int(per_view[v])
-    need = tied_observation_limit(cfg)
     return {v: Flag(FlagKind.WEAK, f"only {per_group[group(v)]} of its observations are of points two other cameras "
                                    f"also see; the final BA cannot check its place with fewer than {need}")
             for v in recon.registered_views
             if v not in CALIBRATED and v in vouched and per_group[group(v)] < need}
 
 
-def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, Flag]:
+def cut_off_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: set[int]) -> dict[int, Flag]:
     """{view: flag} of the ``vouched`` views after the pair that no chain of vouched views links
     to the calibrated pair with at least ``ResectionConfig.min_inliers`` shared points (points
     three vouched cameras see, which carry the pair's frame and scale from camera to camera) at
@@ -149,7 +149,7 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
     that camera's observations leave the model (dinoSparseRing walked back from its 12th image:
     four cameras after a flagged one, 15-34 mm off, each well tied to the others of its part). A
     rig's station is one body: its two images are linked."""
-    need = cfg.resection.min_inliers
+    need = resection.min_inliers
     shared = _shared_points(recon, _tied(recon, vouched))
     reached, frontier = set(CALIBRATED), list(CALIBRATED)
     while frontier:
@@ -169,7 +169,7 @@ def cut_off_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> di
             for v in sorted(vouched) if v not in reached}
 
 
-def unconfirmed_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -> dict[int, Flag]:
+def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: set[int]) -> dict[int, Flag]:
     """{view: flag} of the ``vouched`` views placed on the weakest evidence (the motion prior's
     prediction, or the propagated matches alone) that no later vouched camera confirms: none
     shares ``ResectionConfig.min_inliers`` live points with it (a later camera placed from it
@@ -177,7 +177,7 @@ def unconfirmed_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     tied to the start). A prediction nothing after it checks is the walk's last word on it: on
     dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
     stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
-    need = cfg.resection.min_inliers
+    need = resection.min_inliers
     shared = _shared_points(recon, recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched)))
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
@@ -192,14 +192,14 @@ def unconfirmed_cameras(recon: Reconstruction, cfg: Config, vouched: set[int]) -
     return out
 
 
-def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, cfg: Config) -> Flag | None:
+def _uncertain(recon: Reconstruction, view: int, u: CameraUncertainty, trust: TrustConfig) -> Flag | None:
     if not u.determined:
         return Flag(FlagKind.UNCERTAIN, u.reason)
     depth = _median_depth(recon, view)
     worst = float(np.max(u.position_sigma))
-    if np.isfinite(depth) and worst > cfg.trust.max_position_sigma * depth:
+    if np.isfinite(depth) and worst > trust.max_position_sigma * depth:
         return Flag(FlagKind.UNCERTAIN, f"3-sigma position {3 * worst:.3g} ({300 * worst / depth:.1f} % of its distance "
-                                        f"to the scene, limit {300 * cfg.trust.max_position_sigma:.1f} %)")
+                                        f"to the scene, limit {300 * trust.max_position_sigma:.1f} %)")
     return None
 
 
@@ -222,29 +222,32 @@ class Verdicts:
     uncertainties: dict[int, CameraUncertainty]
 
 
-def judge(recon: Reconstruction, cfg: Config, between_neighbours: dict[int, Flag]) -> Verdicts:
+def judge(recon: Reconstruction, between_neighbours: dict[int, Flag], *, trust: TrustConfig,
+          resection: ResectionConfig, motion_prior: MotionPriorConfig, model: CameraModel) -> Verdicts:
     """Judge every registered camera (the module's rules); changes nothing. A flag raised while
     the camera was placed (an ambiguous choice) stays; else its residuals, the verdicts of its
     neighbours (``between_neighbours``: :func:`stereoseed.sfm.hindsight.contradicted_by_neighbours`
-    on this very model, or {}), its uncertainty and its ties decide."""
-    contradicted = contradicted_cameras(recon, cfg)
+    on this very model, or {}), its uncertainty (under ``model``: :func:`camera_uncertainties`)
+    and its ties decide."""
+    contradicted = contradicted_cameras(recon, trust)
     contradicted.update(between_neighbours)
-    uncertainties = camera_uncertainties(recon, cfg)
+    uncertainties = camera_uncertainties(recon, model, trust)
     flags: dict[int, Flag | None] = {}
     for v in recon.registered_views:
         u = uncertainties.get(v)
         flags[v] = None if v in CALIBRATED else (recon.views[v].placement_flag or contradicted.get(v)
-                                                 or (None if u is None else _uncertain(recon, v, u, cfg)))
+                                                 or (None if u is None else _uncertain(recon, v, u, trust)))
     if recon.rig is None:  # (a rig's stations are placed by the rig, from both their images)
         # judged among the cameras vouched for so far: one unconfirmed prediction does not
         # unconfirm the one before it, which it observed again
-        unconfirmed = unconfirmed_cameras(recon, cfg, {v for v, flag in flags.items() if flag is None})
+        unconfirmed = unconfirmed_cameras(recon, resection, {v for v, flag in flags.items() if flag is None})
         flags.update(unconfirmed)
     _flag_stations(recon, flags)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
     # (a station's two images are judged together: both or neither)
     # (and a flag may cut a part of the walk off the pair)
-    while weak := (weakly_tied_cameras(recon, cfg, vouched := {v for v, flag in flags.items() if flag is None})
-                   or cut_off_cameras(recon, cfg, vouched)):
+    need = tied_observation_limit(trust, motion_prior, resection)
+    while weak := (weakly_tied_cameras(recon, need, vouched := {v for v, flag in flags.items() if flag is None})
+                   or cut_off_cameras(recon, resection, vouched)):
         flags.update(weak)
     return Verdicts(flags, uncertainties)

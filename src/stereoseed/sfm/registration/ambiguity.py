@@ -11,10 +11,10 @@ import logging
 
 import numpy as np
 
-from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.registration.base import Registration, RegistrationFailure
+from stereoseed.sfm.registration.settings import RegistrationSettings
 from stereoseed.sfm.registration.quasi_dense import (propagated_to_candidate, camera_epipolar_limit,
                                                      epipolar_agreement, robust_f_agreement)
 
@@ -28,15 +28,16 @@ class AmbiguityJudge:
     outcome passed on as it is."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+                 found: Registration | RegistrationFailure | None,
+                 settings: RegistrationSettings) -> Registration | RegistrationFailure:
         if found is None:
             raise ValueError("the ambiguity judge judges a sparse attempt; it cannot come first")
         if not (isinstance(found, Registration) and found.rivals):  # rivals: the choice is flagged
             return found
-        return judge_ambiguity(recon, recon.registered_before(k, 1)[0], found, cfg, source)
+        return judge_ambiguity(recon, recon.registered_before(k, 1)[0], found, settings, source)
 
 
-def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: Config,
+def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, settings: RegistrationSettings,
                     source: CorrespondenceSource | None = None) -> Registration:
     """The ambiguous choice ``found`` (its ``flag`` and ``rivals``) judged by more evidence:
     the matches propagated between the previous view and this one, which cover the whole
@@ -48,8 +49,8 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     walk that carries an offset keeps it between consecutive views; on a rig, either image of
     its station) cannot lift a flag. Without rivals, or with the propagation off
     (``QuasiDenseConfig.enabled``), ``found`` is returned as it is."""
-    cfg = cfg.resolve()
-    if not found.rivals or not cfg.quasi_dense.enabled:
+    qc = settings.quasi_dense
+    if not found.rivals or not qc.enabled:
         return found
     # a rig's station is one body: its flag sits on the image it was resected from (views 2s, 2s+1)
     station = (prev, prev ^ 1) if recon.rig is not None and (prev ^ 1) < len(recon.views) else (prev,)
@@ -59,7 +60,8 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
                                                  f"{flagged}, is flagged itself"})
     try:
         # only the grid's matches are read (the robust F and the agreement): only they are refined
-        qd = propagated_to_candidate(recon, source, prev, found.candidate, cfg, lambda: np.zeros((0, 2)))
+        qd = propagated_to_candidate(recon, source, prev, found.candidate, qc, settings.propagation,
+                                     settings.matching, lambda: np.zeros((0, 2)))
     except np.linalg.LinAlgError as e:  # a degenerate configuration: no evidence, the flag stays
         return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: numerical failure ({e})"})
     if qd.F is None:
@@ -70,7 +72,7 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, cfg: 
     rival = min(epipolar_agreement(P_prev, P, qd) for P in found.rivals)
     evidence = (f"the propagated matches lie {winner:.2f} px from its epipolar lines, {rival:.2f} px from the "
                 f"nearest rival's (the robust F's own {floor:.2f} px)")
-    if winner <= camera_epipolar_limit(floor, cfg) and rival >= cfg.quasi_dense.camera_epipolar_factor * winner:
+    if winner <= camera_epipolar_limit(floor, qc) and rival >= qc.camera_epipolar_factor * winner:
         log.info("%s: the repeated structure's ambiguity is resolved: %s", found.candidate.name, evidence)
         return dataclasses.replace(found, flag=None, notes={**found.notes, "ambiguity_resolved": evidence})
     return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: {evidence}"})

@@ -19,7 +19,6 @@ import numpy as np
 
 from stereoseed.geometry.camera import Camera
 from stereoseed.geometry.projection import camera_center, depths, project
-from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.features.harris import Features
 from stereoseed.matching.containers import Matches
@@ -27,7 +26,9 @@ from stereoseed.scene.camera_life import HINDSIGHT, WITHDRAWN_FAILURE, Flag, Fla
 from stereoseed.sfm.motion_prior import (Hypothesis, explained_points, hypotheses_by_motion_prior, recent_points,
                                         trusted_chain_inliers)
 from stereoseed.scene.reconstruction import Reconstruction, View, intrinsics_in_frame
-from stereoseed.sfm.correspondence import CorrespondenceSource, HarrisZncc, optional
+from stereoseed.sfm.config import TrustConfig
+from stereoseed.sfm.correspondence import CorrespondenceSource, optional
+from stereoseed.sfm.registration.settings import RegistrationSettings
 from stereoseed.estimators.resection import ResectionResult, implausible_intrinsics, resect
 from stereoseed.geometry.models import CameraModel
 
@@ -158,7 +159,8 @@ class Registrar(Protocol):
     nothing in ``recon`` (the mapper commits). The mapper owns the order (:func:`stereoseed.sfm.strategy.registrars`)."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure: ...
+                 found: Registration | RegistrationFailure | None,
+                 settings: RegistrationSettings) -> Registration | RegistrationFailure: ...
 
 
 class SparseRegistrar:
@@ -166,9 +168,10 @@ class SparseRegistrar:
     the motion prior's hypotheses (the camera explaining the most recent points wins)."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+                 found: Registration | RegistrationFailure | None,
+                 settings: RegistrationSettings) -> Registration | RegistrationFailure:
         try:
-            return register_view(recon, k, cfg, source)
+            return register_view(recon, k, settings, source)
         except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
             return RegistrationFailure(f"{recon.views[k].name}: numerical failure ({e}); skipped",
                                        kind=FailureKind.NUMERICAL)
@@ -197,12 +200,12 @@ class _Resected:
 
 
 def ambiguous_rivals(recon: Reconstruction, prev: int, recent: np.ndarray, cameras: list[np.ndarray], counts: np.ndarray,
-            best: int, cfg: Config) -> list[tuple[int, float, float]]:
+            best: int, trust: TrustConfig) -> list[tuple[int, float, float]]:
     """The cameras that make the winner ``best`` of competing cameras (3, 4) ambiguous, as
     (index, distance from the winner, the recent points' depth): each explains at least
     ``TrustConfig.ambiguity_ratio`` of its recent points (``counts``) while its centre stands
     farther than ``ambiguity_shift`` x that depth from it."""
-    tc = cfg.trust
+    tc = trust
     if counts[best] == 0:
         return []
     depth = float(np.median(depths(recon.views[prev].P, recon.points[recent]))) if len(recent) else np.inf
@@ -272,10 +275,11 @@ class Resector:
     """Resection of one candidate under the run's camera model, each result validated (a
     plausible motion; an 11-DOF camera must be a physical one, else the focal-only model)."""
 
-    def __init__(self, recon: Reconstruction, prev: int, cand: Candidate, cfg: Config, may_zoom: bool = True):
-        self.cfg, self.cand, self.prev = cfg, cand, recon.views[prev]
+    def __init__(self, recon: Reconstruction, prev: int, cand: Candidate, settings: RegistrationSettings,
+                 may_zoom: bool = True):
+        self.settings, self.cand, self.prev = settings, cand, recon.views[prev]
         self.steps = cand.index - prev
-        self.model = cfg.pipeline.camera_model
+        self.model = settings.camera_model
         self.ref_K = cand.in_frame(recon.views[1].K, recon.views[1])
         self.fallback_K = cand.in_frame(self.prev.K, self.prev) if self.model != CameraModel.FREE else None
         # may_zoom False: a "focal" camera keeps the previous image's intrinsics (the "fixed"
@@ -290,11 +294,11 @@ class Resector:
         if model == CameraModel.FOCAL and not self.may_zoom and fallback_K is not None:
             model, reference_K, fallback_K = CameraModel.FIXED, fallback_K, None
         try:
-            res = resect(X3, x2, self.cfg.resection, scores=scores, image_size=self.cand.image_size, model=model,
+            res = resect(X3, x2, self.settings.resection, scores=scores, image_size=self.cand.image_size, model=model,
                          reference_K=reference_K, what=name, fallback_K=fallback_K)
-            why = implausible_motion(res.P, self.prev, X3, self.steps, self.cfg.registration.max_zoom_step)
+            why = implausible_motion(res.P, self.prev, X3, self.steps, self.settings.registration.max_zoom_step)
             if not why and model == CameraModel.FREE:
-                why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.cfg.resection)
+                why = implausible_intrinsics(res.P, self.ref_K, self.cand.image_size, self.settings.resection)
                 why = why and f"the 11-DOF camera is ill-conditioned ({why})"
         except StereoseedError as e:
             return str(e)
@@ -309,7 +313,7 @@ class Resector:
         the last failure's reason or None)."""
         found, error = [], None
         for hyp in hypotheses:
-            if len(hyp) < self.cfg.registration.min_chained_points:
+            if len(hyp) < self.settings.registration.min_chained_points:
                 continue
             res = self(hyp.points3d, hyp.points2d, hyp.scores)
             if isinstance(res, str):
@@ -338,13 +342,10 @@ def _turned(source, cand: Candidate) -> Candidate:
     return Candidate(cand.index, cand.name, image, source.features(cand.index, image), not cand.rotated_180)
 
 
-def register_view(recon: Reconstruction, k: int, cfg: Config,
-                  source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
+def register_view(recon: Reconstruction, k: int, settings: RegistrationSettings,
+                  source: CorrespondenceSource) -> Registration | RegistrationFailure:
     """A camera for view k from the last registered view before it, from the correspondences of
-    ``source`` (default :class:`~stereoseed.sfm.correspondence.HarrisZncc`). Changes nothing in
-    ``recon``."""
-    cfg = cfg.resolve()
-    source = source or HarrisZncc(cfg)
+    ``source`` (the mapper's). Changes nothing in ``recon``."""
     prev = recon.registered_before(k, 1)[0]
     vp, view = recon.views[prev], recon.views[k]
     moving = recon.views[1]
@@ -361,7 +362,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
     width = vp.image_size[0]
     m = source.match(prev, k, vp.features, cand.features, None, width)
     pid, chained = chained_points(recon, prev, m)
-    if chained.sum() < cfg.resection.min_inliers and optional(source, "turns_images"):
+    if chained.sum() < settings.resection.min_inliers and optional(source, "turns_images"):
         # a camera turned upside down since the previous image (a ring walked over the top of
         # an object) matches only once its image is turned back
         turned = _turned(source, cand)
@@ -372,7 +373,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
     seconds["matching"] = time.perf_counter() - t
     t = time.perf_counter()
     found = _resect(recon, prev, cand, recon.points[pid[chained]], cand.features.points[m.idx2[chained]],
-                    m.score[chained], cfg)
+                    m.score[chained], settings)
     seconds["resection"] = time.perf_counter() - t
     n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, _Failed):
@@ -381,7 +382,7 @@ def register_view(recon: Reconstruction, k: int, cfg: Config,
                         seconds, flag=found.flag, rivals=found.rivals)
 
 
-def _trusted_chain(inliers: np.ndarray, cfg: Config) -> bool:
+def _trusted_chain(inliers: np.ndarray, settings: RegistrationSettings) -> bool:
     """Whether the epipolar chain's camera, with ``inliers`` (N,) bool over its 3D-2D pairs, is
     taken without consulting the motion prior: enough inliers (``trusted_chain_factor`` x a
     resection's), and too few outliers to hold a rival that explains nearly as much
@@ -389,11 +390,12 @@ def _trusted_chain(inliers: np.ndarray, cfg: Config) -> bool:
     matched one period over splits the chain between the copies (the castle walked backwards:
     24 of 43 pairs agreed on a camera 4.7 m off)."""
     n_in = int(inliers.sum())
-    return n_in >= trusted_chain_inliers(cfg) and len(inliers) - n_in < cfg.trust.ambiguity_ratio * n_in
+    return (n_in >= trusted_chain_inliers(settings.motion_prior, settings.resection)
+            and len(inliers) - n_in < settings.trust.ambiguity_ratio * n_in)
 
 
 def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x2: np.ndarray, scores: np.ndarray,
-            cfg: Config) -> _Resected | _Failed:
+            settings: RegistrationSettings) -> _Resected | _Failed:
     """The camera of ``cand`` from its chained 3D-2D correspondences (points3d (N, 3),
     points2d (N, 2), ZNCC scores (N,)), or the reason there is none.
 
@@ -403,19 +405,20 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
     points wins; the wide search's camera replaces the near one's only when it explains
     clearly more (more candidates also mean more chances for a slightly worse camera to win
     by a point or two)."""
-    mp = cfg.motion_prior
-    resect_with = Resector(recon, prev, cand, cfg)
+    mp = settings.motion_prior
+    resect_with = Resector(recon, prev, cand, settings)
     chain, error = None, None
-    if len(X3) >= cfg.resection.min_inliers:
+    if len(X3) >= settings.resection.min_inliers:
         chain = resect_with(X3, x2, scores)
         if isinstance(chain, str):
             chain, error = None, chain
         prior_exists = bool(recon.registered_before(prev, 1))
-        if chain is not None and (not prior_exists or _trusted_chain(chain[0].inliers, cfg)):
+        if chain is not None and (not prior_exists or _trusted_chain(chain[0].inliers, settings)):
             return _Resected(*chain, FoundBy.EPIPOLAR_CHAIN)
     recent = recent_points(recon, prev, mp.recent_views)
     chosen, explained, flag, rivals = None, 0, None, ()
-    for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, cfg, recent):
+    for hypotheses in hypotheses_by_motion_prior(recon, prev, cand.index, cand.features, mp, settings.resection,
+                                                  recent):
         # (camera, its hypothesis; None for the epipolar chain's, which competes in the first search)
         cameras = [(chain, None)] if chain is not None and chosen is None else []
         found, failed = resect_with.each(hypotheses)
@@ -431,7 +434,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
             # a repeated pattern: another camera, a period away, explains nearly as much. The best
             # is kept (the walk goes on from it) but flagged: nothing is vouched for on a margin
             Ps = [c[0][0].P for c in cameras]
-            ambiguous = ambiguous_rivals(recon, prev, recent[0], Ps, counts, best, cfg)
+            ambiguous = ambiguous_rivals(recon, prev, recent[0], Ps, counts, best, settings.trust)
             flag, rivals = ambiguity_flag(ambiguous, counts, best), tuple(Ps[j] for j, _, _ in ambiguous)
     if chosen is not None:
         found_by = FoundBy.EPIPOLAR_CHAIN if chosen[1] is None else FoundBy.MOTION_PRIOR
@@ -439,5 +442,5 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
     if error:
         return _Failed(error, FailureKind.NO_CAMERA)
     return _Failed(f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
-                   f"{cfg.registration.min_chained_points}); the view is too far from {recon.views[prev].name} or too "
-                   f"poorly textured", FailureKind.TOO_FEW_MATCHES)
+                   f"{settings.registration.min_chained_points}); the view is too far from {recon.views[prev].name} "
+                   f"or too poorly textured", FailureKind.TOO_FEW_MATCHES)

@@ -40,7 +40,10 @@ import cv2
 import numpy as np
 
 from stereoseed.geometry.projection import epipolar_distances, fundamental_from_projections
-from stereoseed.config import Config
+from stereoseed.estimators.config import ResectionConfig, TriangulationConfig
+from stereoseed.matching.config import MatchingConfig, PropagationConfig
+from stereoseed.sfm.config import MotionPriorConfig, QuasiDenseConfig
+from stereoseed.sfm.registration.settings import RegistrationSettings
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.features.harris import Features, describe
 from stereoseed.matching.alignment import PairCache, filter_localization
@@ -114,12 +117,12 @@ class QuasiDenseMatches:
         return idx, self.matches[row[idx], 2:], self.scores[row[idx]]
 
 
-def weak_chain_limit(cfg: Config) -> int:
+def weak_chain_limit(quasi_dense: QuasiDenseConfig, motion_prior: MotionPriorConfig, resection: ResectionConfig) -> int:
     """Resection inliers below which the sparse chain is weak and the quasi-dense attempt runs."""
-    qc = cfg.quasi_dense
+    qc = quasi_dense
     if qc.weak_chain_inliers is not None:
         return qc.weak_chain_inliers
-    return trusted_chain_inliers(cfg)
+    return trusted_chain_inliers(motion_prior, resection)
 
 
 def _grey_u8(image: np.ndarray) -> np.ndarray:
@@ -181,7 +184,8 @@ def _grid_and_f(res: Any, qc: Any, grid: np.ndarray | None = None) -> tuple[np.n
     return q, sc, grid, F, inlier
 
 
-def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg: Config,
+def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quasi_dense: QuasiDenseConfig,
+                   propagation: PropagationConfig,
                    chained_pixels: Callable[[], np.ndarray] | None = None) -> QuasiDenseMatches:
     """Steps 2-3: propagation from seeds (S, 4) without F, the grid resampling, a robust F.
 
@@ -189,7 +193,7 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
     once the whole-pixel matches are known (it may wait for a result computed meanwhile): only
     those matches and the grid's get a sub-pixel position, the others keep whole pixels (a
     weak insertion reads a few thousand of 40-60 thousand). None: every match is refined."""
-    qc = cfg.quasi_dense
+    qc = quasi_dense
     t = time.perf_counter()
     img_a, img_b = _foreground(img_a, qc.background_grey), _foreground(img_b, qc.background_grey)
 
@@ -206,13 +210,13 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, cfg:
         chained = _rows_at(known["row_of_pixel"], chained_pixels())
         return np.union1d(grid_rows(q, sc), chained[chained >= 0])
 
-    res = propagate(img_a, img_b, seeds, None, cfg.propagation,
+    res = propagate(img_a, img_b, seeds, None, propagation,
                     refine_rows=None if chained_pixels is None else grid_rows if qc.second_pass else read_rows)
     q, sc, grid, F, inlier = _grid_and_f(res, qc, known.get("grid"))
     if qc.second_pass and F is not None:
         known.clear()
         res = propagate(img_a, img_b, q[grid[inlier]], F,
-                        dataclasses.replace(cfg.propagation, epipolar_band_px=qc.chain_epipolar_px),
+                        dataclasses.replace(propagation, epipolar_band_px=qc.chain_epipolar_px),
                         refine_rows=None if chained_pixels is None else read_rows)
         q, sc, grid, F2, inlier = _grid_and_f(res, qc, known.get("grid"))
         F = F2 if F2 is not None else F
@@ -269,16 +273,17 @@ def _cell_keys(xy: np.ndarray, cell: int) -> np.ndarray:
     return (xy[:, 1] // cell).astype(np.int64) * 1_000_000 + (xy[:, 0] // cell).astype(np.int64)
 
 
-def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoints:
+def previous_pair_points(recon: Reconstruction, a: int, quasi_dense: QuasiDenseConfig, propagation: PropagationConfig,
+                         triangulation: TriangulationConfig) -> PairPoints:
     """The previous pair's quasi-dense matches (view a and the registered view before it),
     propagated from the points both observe under their known F and triangulated; only grid
     cells of a where a observes no point yet (the sparse points chain on their own)."""
     before = recon.registered_before(a, 1)
     if not before:
         return PairPoints.none()
-    b, cell = before[0], cfg.quasi_dense.grid_cell_px
+    b, cell = before[0], quasi_dense.grid_cell_px
     va, vb = recon.views[a], recon.views[b]
-    bg = cfg.quasi_dense.background_grey
+    bg = quasi_dense.background_grey
     observed = _cell_keys(recon.observation_xy(recon.obs_view == a), cell)  # an observation's point is alive
 
     def free_grid(q: np.ndarray, scores: np.ndarray) -> np.ndarray:  # the rows kept (and refined)
@@ -286,23 +291,24 @@ def previous_pair_points(recon: Reconstruction, a: int, cfg: Config) -> PairPoin
         return free[grid_best(q[free, :2], scores[free].astype(np.float64), cell)]
 
     res = propagate(_foreground(va.image, bg), _foreground(vb.image, bg), recon.shared_pixels(a, b),
-                    fundamental_from_projections(va.P, vb.P), cfg.propagation, refine_rows=free_grid)
+                    fundamental_from_projections(va.P, vb.P), propagation, refine_rows=free_grid)
     rows = free_grid(res.matches, res.scores)
     q, sc = res.matches[rows], res.scores[rows].astype(np.float64)
-    tc = cfg.triangulation
+    tc = triangulation
     tri = triangulate(np.stack([va.P, vb.P]), np.stack([q[:, :2], q[:, 2:]]), iterations=tc.lm_iterations)
     ok = tri.valid(tc.max_reprojection_px, tc.min_angle_deg)
     return PairPoints(b, tri.points[ok], q[ok, :2], q[ok, 2:], sc[ok])
 
 
-def localised_candidates(fa: Features, fb: Features, cfg: Config, cache: PairCache | None = None) -> np.ndarray:
+def localised_candidates(fa: Features, fb: Features, matching: MatchingConfig,
+                         cache: PairCache | None = None) -> np.ndarray:
     """The sparse matcher's candidates without epipolar geometry that pass its relaxed
     localisation check, before any robust F: (S, 4) rows (xa, ya, xb, yb). A robust F needs
     many of them right; propagation only needs a few (a wrong seed grows a region no F
     explains). On the white dinosaur (dinoSparseRing 12 -> 13): 117 candidates, 22 localised,
     13 right; the robust F keeps none. ``cache``: the pair's, where the sparse matcher already
     scored and aligned these candidates (its first pass)."""
-    mc = cfg.matching
+    mc = matching
     if fa.gray is None or fb.gray is None:
         return np.zeros((0, 4))
     m = match_zncc(fa, fb, candidate_config(mc, mc.first_pass_ratio), fb.image_shape[1], multiscale=True, cache=cache)
@@ -329,17 +335,18 @@ def robust_f_agreement(qd: QuasiDenseMatches) -> float:
     return float(np.median(epipolar_distances(qd.F, g[:, :2], g[:, 2:])))
 
 
-def camera_epipolar_limit(floor: float, cfg: Config) -> float:
+def camera_epipolar_limit(floor: float, quasi_dense: QuasiDenseConfig) -> float:
     """The largest :func:`epipolar_agreement` (px) a camera may have: ``camera_epipolar_factor``
     times the robust F's own median ``floor``, and never below the robust F's inlier threshold
     (``f_threshold_px``): on noise-free matches the floor is a tenth of a pixel and the chained
     points' own errors alone exceed twice that (a synthetic camera 5 mm off: 0.45 px, floor 0.12)."""
-    qc = cfg.quasi_dense
+    qc = quasi_dense
     return max(qc.camera_epipolar_factor * floor, qc.f_threshold_px)
 
 
 def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: QuasiDenseMatches, X3: np.ndarray,
-                      x: np.ndarray, scores: np.ndarray, cfg: Config) -> tuple[ResectionResult, str | None] | str:
+                      x: np.ndarray, scores: np.ndarray, settings: RegistrationSettings
+                      ) -> tuple[ResectionResult, str | None] | str:
     """The camera of ``cand`` from the chained pairs X3 (N, 3) <-> x (N, 2), judged by the
     propagated matches' epipolar geometry, which does not depend on the chained points:
 
@@ -353,12 +360,12 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
 
     Returns (result, why an 11-DOF camera was refused or None), or the reason of the failure;
     the agreements go into ``qd.report``."""
-    qc, vp = cfg.quasi_dense, recon.views[prev]
+    qc, vp = settings.quasi_dense, recon.views[prev]
     floor = robust_f_agreement(qd)
     qd.report["robust_f_median_px"] = floor
-    found = Resector(recon, prev, cand, cfg, may_zoom=False)(X3, x, scores)
-    if cfg.pipeline.camera_model != CameraModel.FIXED:  # the run's model may find a zoom
-        zoomed = Resector(recon, prev, cand, cfg)(X3, x, scores)
+    found = Resector(recon, prev, cand, settings, may_zoom=False)(X3, x, scores)
+    if settings.camera_model != CameraModel.FIXED:  # the run's model may find a zoom
+        zoomed = Resector(recon, prev, cand, settings)(X3, x, scores)
         if not isinstance(zoomed, str) and zoomed[0].info.get("model") != CameraModel.FIXED:
             zoom_agrees = epipolar_agreement(vp.P, zoomed[0].P, qd)
             qd.report["zoomed_camera_median_px"] = zoom_agrees
@@ -368,13 +375,13 @@ def _resect_validated(recon: Reconstruction, prev: int, cand: Candidate, qd: Qua
         return found
     agrees = epipolar_agreement(vp.P, found[0].P, qd)
     qd.report["camera_median_px"] = agrees
-    if not agrees <= camera_epipolar_limit(floor, cfg):
+    if not agrees <= camera_epipolar_limit(floor, qc):
         return (f"{cand.name}: the quasi-dense camera disagrees with the propagated matches (their median distance "
                 f"to its epipolar lines {agrees:.2f} px, to the robust F's {floor:.2f} px)")
     return found
 
 
-def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg: Config,
+def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, settings: RegistrationSettings,
                          source: CorrespondenceSource | None = None
                          ) -> tuple[Registration | str, QuasiDenseMatches | None]:
     """Steps 1-4 for candidate ``cand`` after the registered view ``prev``: (a
@@ -384,7 +391,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
     found and propagated, until the propagation's sub-pixel step asks for the pixels they
     chain through (``seconds["previous_pair"]``: the time left to wait for them)."""
     waited = 0.0
-    with in_background(previous_pair_points, recon, prev, cfg) as pair_points:
+    with in_background(previous_pair_points, recon, prev, settings.quasi_dense, settings.propagation,
+                       settings.triangulation) as pair_points:
 
         def chained_pixels() -> np.ndarray:  # what the chain below reads of prev: its points, the pair's
             nonlocal waited
@@ -394,8 +402,8 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
             return np.vstack([_observed(recon, prev)[2], pair.xa])
 
         # grow_quasi_dense (keep_tracks) reads the pixels of points added after this: all refined
-        qd = propagated_to_candidate(recon, source, prev, cand, cfg,
-                                      None if cfg.quasi_dense.keep_tracks else chained_pixels)
+        qd = propagated_to_candidate(recon, source, prev, cand, settings.quasi_dense, settings.propagation,
+                                     settings.matching, None if settings.quasi_dense.keep_tracks else chained_pixels)
         seconds = qd.report["seconds"]  # seeds, propagation; then previous_pair, resection
         seconds["propagation"] -= waited
         if qd.F is None:  # leaving the block still waits for the previous pair's points (they read recon)
@@ -408,15 +416,15 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
     X3 = np.vstack([recon.points[pids], qd.pair.X[pi]])
     x_prev, x_cand = np.vstack([x_prev, qd.pair.xa[pi]]), np.vstack([x_cand, x_pair])
     scores = np.concatenate([scores, s_pair])
-    qc = cfg.quasi_dense
+    qc = settings.quasi_dense
     on_lines = epipolar_distances(qd.F, x_prev, x_cand) <= qc.chain_epipolar_px
     qd.report.update(chained=int(len(pids)), previous_pair_points=int(len(qd.pair.X)), chained_previous_pair=int(len(pi)),
                      chained_on_epipolar_lines=int(on_lines.sum()))
-    if on_lines.sum() < cfg.registration.min_chained_points:
+    if on_lines.sum() < settings.registration.min_chained_points:
         return (f"{cand.name}: only {int(on_lines.sum())} 3D points chained through {len(qd.matches)} propagated "
-                f"matches (need {cfg.registration.min_chained_points})"), qd
+                f"matches (need {settings.registration.min_chained_points})"), qd
     t = time.perf_counter()
-    found = _resect_validated(recon, prev, cand, qd, X3[on_lines], x_cand[on_lines], scores[on_lines], cfg)
+    found = _resect_validated(recon, prev, cand, qd, X3[on_lines], x_cand[on_lines], scores[on_lines], settings)
     seconds["resection"] = time.perf_counter() - t
     if isinstance(found, str):
         return found, qd
@@ -427,18 +435,19 @@ def register_quasi_dense(recon: Reconstruction, prev: int, cand: Candidate, cfg:
 
 
 def propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource, prev: int, cand: Candidate,
-                             cfg: Config, chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
+                            quasi_dense: QuasiDenseConfig, propagation: PropagationConfig, matching: MatchingConfig,
+                            chained_pixels: Callable[[], np.ndarray] | None) -> QuasiDenseMatches:
     """Steps 1-3: the seeds of (prev, cand) and their propagation (``chained_pixels``: as
     :func:`propagate_pair`'s)."""
     vp = recon.views[prev]
     t = time.perf_counter()
     pair_cache = optional(source, "pair_cache")  # a source without one computes afresh
-    harris = localised_candidates(vp.features, cand.features, cfg,
+    harris = localised_candidates(vp.features, cand.features, matching,
                                   pair_cache(vp.features, cand.features) if pair_cache else None)
-    sift = sift_seeds(vp.image, cand.image, cfg.quasi_dense.sift_ratio)
+    sift = sift_seeds(vp.image, cand.image, quasi_dense.sift_ratio)
     seeds = np.vstack([harris, sift])
     t_seeds = time.perf_counter() - t
-    qd = propagate_pair(vp.image, cand.image, seeds, cfg, chained_pixels)
+    qd = propagate_pair(vp.image, cand.image, seeds, quasi_dense, propagation, chained_pixels)
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
     return qd
@@ -454,7 +463,8 @@ def _grid_features(view_features: Features, xy: np.ndarray, patch_size: int) -> 
 
 
 def grow_quasi_dense(recon: Reconstruction, prev: int, k: int, reg: Registration, mode: Any,
-                     cfg: Config) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     quasi_dense: QuasiDenseConfig, resection: ResectionConfig,
+                     triangulation: TriangulationConfig) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Step 5, after view k's camera was committed (and the mode added the sparse matches'
     points): the points of prev chained to k by the propagated matches gain an observation in
     k, and every grid match away from them becomes a new point (the mode's ``add_points``,
@@ -463,14 +473,14 @@ def grow_quasi_dense(recon: Reconstruction, prev: int, k: int, reg: Registration
     Returns (new point ids, chained point ids now observed in k, report)."""
     qd: QuasiDenseMatches = reg.quasi_dense
     vp, vk = recon.views[prev], recon.views[k]
-    pair_ids, pair_xa = _commit_pair_points(recon, prev, k, qd, cfg)
+    pair_ids, pair_xa = _commit_pair_points(recon, prev, k, qd, resection, triangulation)
     feats, pids, x_prev, x_k, scores = dense_chain(recon, prev, qd)
     keep = ~np.isin(pids, pair_ids)  # just added, observed in k already
     feats, pids, x_prev, x_k, scores = feats[keep], pids[keep], x_prev[keep], x_k[keep], scores[keep]
     fresh = ~np.isin(pids, recon.points_seen_by(k))  # the sparse matches may have extended some already
     feats, x_prev, x_k, scores = feats[fresh], x_prev[fresh], x_k[fresh], scores[fresh]
     # grid cells already holding a chained point add no new point there
-    cell = cfg.quasi_dense.grid_cell_px
+    cell = quasi_dense.grid_cell_px
     grid = qd.grid
     g = qd.matches[grid]
     g_keep = ~np.isin(_cell_keys(g[:, :2], cell), _cell_keys(np.vstack([x_prev, pair_xa]), cell))
@@ -479,27 +489,28 @@ def grow_quasi_dense(recon: Reconstruction, prev: int, k: int, reg: Registration
     new_prev = vp.append_features(_grid_features(vp.features, g[:, :2], patch))
     new_k = vk.append_features(_grid_features(vk.features, np.vstack([x_k, g[:, 2:]]), patch))
     m = Matches(np.concatenate([feats, new_prev]), new_k, np.concatenate([scores, g_scores]))
-    pid, chained, consistent = consistent_chain(recon, prev, k, m, cfg.resection.ransac_threshold_px)
+    pid, chained, consistent = consistent_chain(recon, prev, k, m, resection.ransac_threshold_px)
     chain_points = pid[consistent]
-    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, cfg)
+    ids = mode.add_points(recon, prev, k, m, chained, consistent, chain_points, triangulation)
     report = {"previous_pair_points": int(len(pair_ids)), "chained_observations": int(len(chain_points)),
               "new_points": int(len(ids)), "grid_matches": int(len(g))}
     return np.concatenate([ids, pair_ids]), chain_points, report
 
 
 def _commit_pair_points(recon: Reconstruction, prev: int, k: int, qd: QuasiDenseMatches,
-                        cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+                        resection: ResectionConfig, triangulation: TriangulationConfig
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """The previous pair's points chained to k enter the model as three-view points (the
     other view, prev, k; triangulated again from the three) when they reproject in k within the
     resection threshold. Returns their ids (T,) and their pixels (T, 2) in prev."""
     pi, xk, _ = qd.pair_chain()
     if len(pi) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 2))
-    pair, tc = qd.pair, cfg.triangulation
+    pair, tc = qd.pair, triangulation
     views = [recon.views[v] for v in (pair.other, prev, k)]
     x = np.stack([pair.x_other[pi], pair.xa[pi], xk])
     tri = triangulate(np.stack([v.P for v in views]), x, iterations=tc.lm_iterations)
-    ok = tri.valid(min(tc.max_reprojection_px, cfg.resection.ransac_threshold_px), tc.min_angle_deg)
+    ok = tri.valid(min(tc.max_reprojection_px, resection.ransac_threshold_px), tc.min_angle_deg)
     x = x[:, ok]
     ids = recon.add_points(tri.points[ok], colors_at(views[2].image, x[2]))
     patch = views[0].features.patch_size

@@ -10,10 +10,11 @@ import logging
 
 import numpy as np
 
-from stereoseed.config import Config
 from stereoseed.sfm.correspondence import CorrespondenceSource
 from stereoseed.scene.reconstruction import Reconstruction
+from stereoseed.sfm.config import QuasiDenseConfig
 from stereoseed.sfm.registration.base import FailureKind, FoundBy, Registration, RegistrationFailure
+from stereoseed.sfm.registration.settings import RegistrationSettings
 from stereoseed.sfm.registration.quasi_dense import (QuasiDenseMatches, camera_epipolar_limit, epipolar_agreement,
                                                      register_quasi_dense, robust_f_agreement, weak_chain_limit)
 
@@ -27,14 +28,16 @@ class QuasiDenseRegistrar:
     sparse outcome is weak or failed (:func:`reconsider`)."""
 
     def register(self, recon: Reconstruction, source: CorrespondenceSource, k: int,
-                 found: Registration | RegistrationFailure | None, cfg: Config) -> Registration | RegistrationFailure:
+                 found: Registration | RegistrationFailure | None,
+                 settings: RegistrationSettings) -> Registration | RegistrationFailure:
         if found is None:
             raise ValueError("the quasi-dense registrar reconsiders a sparse attempt; it cannot come first")
-        return reconsider(recon, k, found, cfg, source)
+        return reconsider(recon, k, found, settings, source)
 
 
 def reconsider(recon: Reconstruction, k: int, found: Registration | RegistrationFailure,
-               cfg: Config, source: CorrespondenceSource | None = None) -> Registration | RegistrationFailure:
+               settings: RegistrationSettings, source: CorrespondenceSource | None = None
+               ) -> Registration | RegistrationFailure:
     """The sparse attempt ``found`` for view k, or the quasi-dense one when the sparse chain is
     weak (fewer resection inliers than :func:`weak_chain_limit`, or none, or the motion prior's
     camera predicted across views not placed) and the quasi-dense camera rests on more inliers.
@@ -42,11 +45,10 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     (:func:`_unconfirmed`): the matches with that view only say how the two stand.
     Changes nothing in ``recon``; the choice is in ``notes``. With the quasi-dense registration
     off (``QuasiDenseConfig.enabled``) nothing is reconsidered, across a gap neither."""
-    cfg = cfg.resolve()
-    if not cfg.quasi_dense.enabled or found.candidate is None:
+    if not settings.quasi_dense.enabled or found.candidate is None:
         return found
     sparse_inliers = int(found.resection.inliers.sum()) if isinstance(found, Registration) else 0
-    limit = weak_chain_limit(cfg)
+    limit = weak_chain_limit(settings.quasi_dense, settings.motion_prior, settings.resection)
     prev = recon.registered_before(k, 1)[0]
     vp = recon.views[prev]
     if isinstance(found, Registration) and k - prev > 1 and vp.placement_flag:
@@ -63,7 +65,7 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
     else:
         why_weak = found.reason
     try:
-        attempt, qd = register_quasi_dense(recon, prev, cand, cfg, source)
+        attempt, qd = register_quasi_dense(recon, prev, cand, settings, source)
     except np.linalg.LinAlgError as e:  # a degenerate configuration the checks did not foresee
         attempt, qd = f"{cand.name}: numerical failure of the quasi-dense registration ({e})", None
     notes = {"sparse_weak": why_weak}
@@ -72,7 +74,8 @@ def reconsider(recon: Reconstruction, k: int, found: Registration | Registration
         """The sparse outcome, with the attempt's notes: a camera checked, a failure extended."""
         if isinstance(found, Registration):
             return _weak_sparse_checked(recon, prev, dataclasses.replace(found, notes={**found.notes, **notes},
-                                                                         seconds=seconds), qd, cfg)
+                                                                         seconds=seconds), qd,
+                                        settings.quasi_dense)
         return dataclasses.replace(found, reason=f"{found.reason}; quasi-dense: {notes['quasi_dense_failed']}",
                                    notes=notes, seconds=seconds)
 
@@ -119,7 +122,7 @@ def _refused(found: Registration, reason: str, kind: FailureKind) -> Registratio
 
 
 def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, qd: QuasiDenseMatches | None,
-                         cfg: Config) -> Registration | RegistrationFailure:
+                         quasi_dense: QuasiDenseConfig) -> Registration | RegistrationFailure:
     """The weak sparse camera ``found`` kept after the quasi-dense attempt, refused when it
     disagrees with the propagated matches' epipolar geometry as a quasi-dense camera would be
     (``QuasiDenseConfig.camera_epipolar_factor``); unchanged when there is no robust F. The
@@ -132,7 +135,7 @@ def _weak_sparse_checked(recon: Reconstruction, prev: int, found: Registration, 
         return found
     floor = robust_f_agreement(qd)
     agrees = epipolar_agreement(recon.views[prev].P, found.P, qd)
-    if agrees <= camera_epipolar_limit(floor, cfg):
+    if agrees <= camera_epipolar_limit(floor, quasi_dense):
         return found
     return _refused(found, f"{found.candidate.name}: the weak {found.found_by} camera "
                            f"({int(found.resection.inliers.sum())} inliers) disagrees with the propagated matches "

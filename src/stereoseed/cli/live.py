@@ -1,0 +1,69 @@
+"""`stereoseed live`: photos reconstructed as they arrive, the model in a page on 127.0.0.1."""
+from __future__ import annotations
+
+import argparse
+
+from stereoseed.cli._terminal import say
+from stereoseed.errors import StereoseedError
+
+
+def _cmd_live(args: argparse.Namespace) -> int:
+    from stereoseed.config import Config
+    from stereoseed.live import run_live
+
+    cfg = Config.from_file(args.config) if args.config else Config()
+    if args.video is not None and args.pair is None:
+        raise StereoseedError("--video needs the calibrated pair's two photos first: --pair PAIR1.png PAIR2.png")
+    report = run_live(args.watch, args.calib, args.out, cfg, until=args.until, port=args.port, resume=args.resume,
+                      video=args.video, pair=args.pair, dense=args.dense,
+                      on_start=lambda url: say(f"live page: {url}  (Ctrl-C: stop and write {args.out})"),
+                      on_line=None if args.quiet else say)
+    say(f"{report['registered']}/{report['images']} photos placed, {report['points']} points; wrote {args.out}")
+    return 0
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be at least 2 (the calibrated pair), got {value}")
+    return value
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be within 0..65535 (0: a free one), got {value}")
+    return value
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the live subcommand."""
+    p = sub.add_parser("live", help="reconstruct photos as they arrive in a folder, the model growing in a page "
+                                    "on 127.0.0.1 (docs/live.md)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--watch", metavar="DIR",
+                   help="the folder the photos arrive in (synced from a phone, a tethered camera); the first two are "
+                        "the calibrated pair; photos already there are taken first, in the order they were written")
+    source.add_argument("--video", metavar="FILE",
+                        help="a filmed walk, read at its own pace, its keyframes picked as reconstruct picks them "
+                             "(with --pair)")
+    p.add_argument("--pair", nargs=2, metavar=("PAIR1", "PAIR2"),
+                   help="with --video: the calibrated pair's two photos (the video starts where the second was taken)")
+    p.add_argument("--calib", required=True, help="the pair's calibration, as for reconstruct")
+    p.add_argument("--out", required=True, help="result folder, written as reconstruct writes it when the run stops")
+    p.add_argument("--until", type=_count, metavar="N", help="stop after N photos (default: Ctrl-C)")
+    p.add_argument("--port", type=_port, default=8765,
+                   help="the page's port on 127.0.0.1 (default: %(default)s; 0: a free one, printed)")
+    p.add_argument("--dense", action="store_true",
+                   help="once stopped, the quasi-dense stage as reconstruct --dense runs it (dense.ply)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted live run into the same --out")
+    p.add_argument("--config", metavar="FILE", help="the run's settings: a TOML file (docs/config.md)")
+    p.add_argument("--quiet", action="store_true", help="print only the page's address, errors and the summary")
+    p.add_argument("--verbose", action="store_true", help="log each step")
+    p.set_defaults(func=_cmd_live)

@@ -1,0 +1,229 @@
+"""Multi-view fusion of the pairs' dense clouds (as COLMAP's fusion and the Lhuillier-Quan
+paper's own multi-view step do): every point a pair triangulated is checked against every other
+pair's cloud, seen from that pair's first view as a depth map (each propagated match has an
+integer pixel in the pair's first image, so a pair's cloud is a sparse depth map of that view).
+
+For point X of pair p and another pair q with first view c: X is projected into c; the pixels
+within ``lookup_px`` of its image that hold one of q's points are looked at, and the one
+nearest X's image is compared:
+
+- **agree** when the depths differ by less than the tolerance their noise allows (each point's
+  depth noise from the matching's: ``match_noise_px`` over its pair's angle, :func:`depth_sigma`)
+  and q's point reprojects into p's first view within the matching's noise of X's pixel;
+- **violate** when X lies in front of q's point by more than the tolerance: view c sees q's point
+  through the place of X, so one of the two is wrong (a floater lies in front of the surface the
+  other pairs see);
+- nothing otherwise (X behind: hidden from c; no point there: not matched in q).
+
+Per point: the views that agree (p's two and each agreeing pair's two, counted once) are its
+support; its position is the mean of X and the agreeing points (the pairs' noise averages out);
+its triangulation angle the widest between the rays of those views; its confidence
+(agree + 1) / (agree + violate + 2), Laplace's estimate of the chance that another pair that
+judges it agrees: 0.5 with no evidence either way, towards 1 when confirmed, towards 0 when
+contradicted.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from stereoseed.threads import map_chunks, split_rows
+
+__all__ = ["PairCloud", "ViewChecks", "check_views", "depth_sigma", "normalised_camera"]
+
+
+@dataclass(frozen=True)
+class PairCloud:
+    """One pair's triangulated points: points (N, 3); pixels (N, 2) int, each point's integer
+    pixel in the pair's first view (the propagation's x1); angles (N,) degrees; views (a, b),
+    their indices among the cameras."""
+
+    points: np.ndarray
+    pixels: np.ndarray
+    angles: np.ndarray
+    views: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class ViewChecks:
+    """What the other pairs said of every point (the pairs' points in pair order): merged
+    positions (N, 3), support (N,) views, angle (N,) degrees, agree / violate (N,) pairs,
+    judged (N,) the other pairs that had a point near its image (whatever their verdict),
+    confidence (N,)."""
+
+    points: np.ndarray
+    support: np.ndarray
+    angle: np.ndarray
+    agree: np.ndarray
+    violate: np.ndarray
+    judged: np.ndarray
+    confidence: np.ndarray
+
+
+def normalised_camera(P: np.ndarray) -> np.ndarray:
+    """P (3, 4) scaled so that its third row gives a point's depth along the optical axis (unit
+    principal axis, positive in front)."""
+    M = P[:, :3]
+    scale = np.linalg.norm(M[2]) * np.sign(np.linalg.det(M))
+    return P / scale
+
+
+def _focal(P: np.ndarray) -> float:
+    """The focal length in pixels of a normalised camera (the mean of its two axes')."""
+    return 0.5 * float(np.linalg.norm(np.cross(P[0, :3], P[2, :3])) + np.linalg.norm(np.cross(P[1, :3], P[2, :3])))
+
+
+def depth_sigma(points: np.ndarray, centre: np.ndarray, focal: float, angles_deg: np.ndarray,
+                noise_px: float) -> np.ndarray:
+    """The standard deviation (N,) of each point's position along its ray from a two-view
+    triangulation: distance x noise_px / (focal x sin(angle)); a match noise of noise_px
+    pixels moves a point of triangulation angle theta by that much along the ray."""
+    distance = np.linalg.norm(points - centre, axis=1)
+    return distance * noise_px / (focal * np.sin(np.radians(np.maximum(angles_deg, 1e-3))))
+
+
+def check_views(clouds: list[PairCloud], cameras: list[np.ndarray], sizes: list[tuple[int, int]],
+                noise_px: float, sigmas: float, lookup_px: int) -> ViewChecks:
+    """Each pair's points checked against every other pair's (module doc). cameras: (3, 4) per
+    view index; sizes: (width, height) per view index."""
+    Pn = np.stack([normalised_camera(np.asarray(P, np.float64)) for P in cameras])
+    centres = np.stack([-np.linalg.solve(P[:, :3], P[:, 3]) for P in Pn])
+    focal = np.array([_focal(P) for P in Pn])
+    counts = np.array([len(c.points) for c in clouds], np.int64)
+    offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    n = int(offsets[-1])
+    points = np.ascontiguousarray(np.vstack([c.points for c in clouds]) if n else np.zeros((0, 3)), np.float64)
+    pixels = np.ascontiguousarray(np.vstack([c.pixels for c in clouds]) if n else np.zeros((0, 2)), np.int64)
+    pair_views = np.array([c.views for c in clouds], np.int64).reshape(-1, 2)
+    sigma = np.concatenate([depth_sigma(c.points, centres[c.views[0]], focal[c.views[0]], c.angles, noise_px)
+                            for c in clouds]) if n else np.zeros(0)
+    # each pair's depth map: the row of its point at each pixel of its first view, -1 where none
+    width = max((s[0] for s in sizes), default=1)
+    height = max((s[1] for s in sizes), default=1)
+    index = np.full((len(clouds), height, width), -1, np.int32)
+    for q, c in enumerate(clouds):
+        index[q, c.pixels[:, 1], c.pixels[:, 0]] = np.arange(offsets[q], offsets[q + 1], dtype=np.int32)
+    source = np.repeat(np.arange(len(clouds)), counts)
+    merged = np.empty((n, 3))
+    support = np.zeros(n, np.int64)
+    angle = np.zeros(n)
+    agree = np.zeros(n, np.int64)
+    violate = np.zeros(n, np.int64)
+    judged = np.zeros(n, np.int64)
+    map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
+                                   float(noise_px), float(sigmas), int(lookup_px), len(cameras),
+                                   merged, support, angle, agree, violate, judged, a, b), split_rows(n, 20_000))
+    confidence = (agree + 1.0) / (agree + violate + 2.0)
+    return ViewChecks(merged, support, angle, agree, violate, judged, confidence)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _project(P, X):
+    h0 = P[0, 0] * X[0] + P[0, 1] * X[1] + P[0, 2] * X[2] + P[0, 3]
+    h1 = P[1, 0] * X[0] + P[1, 1] * X[1] + P[1, 2] * X[2] + P[1, 3]
+    z = P[2, 0] * X[0] + P[2, 1] * X[1] + P[2, 2] * X[2] + P[2, 3]
+    return h0, h1, z
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
+           n_views, merged, support, angle, agree, violate, judged, first, end):
+    """The checks of points [first, end) (check_views' module doc)."""
+    n_pairs = pair_views.shape[0]
+    height, width = index.shape[1], index.shape[2]
+    seen = np.zeros(n_views, np.int64)  # the agreeing views of the current point: seen[v] == i + 1
+    members = np.empty(n_views, np.int64)
+    rays = np.empty((n_views, 3))
+    for i in range(first, end):
+        p = source[i]
+        X = points[i]
+        a = pair_views[p, 0]
+        sx, sy, sz = X[0], X[1], X[2]
+        count = 1
+        n_members = 0
+        for v in (pair_views[p, 0], pair_views[p, 1]):
+            if seen[v] != i + 1:
+                seen[v] = i + 1
+                members[n_members] = v
+                n_members += 1
+        n_agree = 0
+        n_violate = 0
+        n_judged = 0
+        for q in range(n_pairs):
+            if q == p:
+                continue
+            c = pair_views[q, 0]
+            h0, h1, z = _project(Pn[c], X)
+            if z <= 0:
+                continue
+            fx, fy = h0 / z, h1 / z
+            u = int(np.floor(fx + 0.5))
+            w = int(np.floor(fy + 0.5))
+            if u < -lookup_px or w < -lookup_px or u >= width + lookup_px or w >= height + lookup_px:
+                continue
+            # q's point nearest X's image in c: not the one nearest in depth, which would pick
+            # q's noise to match X's and make the average no better than X
+            best = -1
+            best_gap = np.inf
+            for yy in range(max(w - lookup_px, 0), min(w + lookup_px, height - 1) + 1):
+                for xx in range(max(u - lookup_px, 0), min(u + lookup_px, width - 1) + 1):
+                    if index[q, yy, xx] >= 0:
+                        gap = (xx - fx) ** 2 + (yy - fy) ** 2
+                        if gap < best_gap:
+                            best_gap = gap
+                            best = index[q, yy, xx]
+            if best < 0:
+                continue
+            n_judged += 1
+            Y = points[best]
+            _, _, zy = _project(Pn[c], Y)
+            # the lookup's offset of up to lookup_px pixels of c moves along a surface slanted
+            # in c by about that footprint: allowed on top of the two points' noise
+            footprint = z / focal[c] * (lookup_px + 0.5)
+            tol = sigmas * np.sqrt(sigma[i] ** 2 + sigma[best] ** 2) + footprint
+            if zy - z > tol:
+                n_violate += 1
+                continue
+            if abs(zy - z) > tol:
+                continue
+            # q's point in p's first view: within the matching noise (and the lookup's offset
+            # seen from there) of X's own pixel
+            g0, g1, gz = _project(Pn[a], Y)
+            if gz <= 0:
+                continue
+            dx = g0 / gz - pixels[i, 0]
+            dy = g1 / gz - pixels[i, 1]
+            _, _, za = _project(Pn[a], X)
+            slack = sigmas * noise_px * np.sqrt(2.0) + footprint * focal[a] / za
+            if dx * dx + dy * dy > slack * slack:
+                continue
+            n_agree += 1
+            count += 1
+            sx += Y[0]
+            sy += Y[1]
+            sz += Y[2]
+            for v in (pair_views[q, 0], pair_views[q, 1]):
+                if seen[v] != i + 1:
+                    seen[v] = i + 1
+                    members[n_members] = v
+                    n_members += 1
+        mx, my, mz = sx / count, sy / count, sz / count
+        merged[i, 0], merged[i, 1], merged[i, 2] = mx, my, mz
+        # the widest angle between two agreeing views' rays: the smallest cosine, one arccos
+        for k in range(n_members):
+            c1 = centres[members[k]]
+            rx, ry, rz = c1[0] - mx, c1[1] - my, c1[2] - mz
+            norm = np.sqrt(rx * rx + ry * ry + rz * rz)
+            rays[k, 0], rays[k, 1], rays[k, 2] = rx / norm, ry / norm, rz / norm
+        smallest = 1.0
+        for k in range(n_members):
+            for m in range(k + 1, n_members):
+                smallest = min(smallest, rays[k, 0] * rays[m, 0] + rays[k, 1] * rays[m, 1] + rays[k, 2] * rays[m, 2])
+        widest = np.degrees(np.arccos(max(-1.0, smallest)))
+        support[i] = n_members
+        angle[i] = widest
+        agree[i] = n_agree
+        violate[i] = n_violate
+        judged[i] = n_judged

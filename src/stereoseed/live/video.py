@@ -1,0 +1,132 @@
+"""A filmed walk as a live source (``stereoseed live --video FILE``): the video read at its own
+pace (a file at its frame rate, as if filmed now) in a thread, each frame given to the keyframe
+choice of ``reconstruct`` (:class:`stereoseed.io.video.KeyframePicker`), the keyframes handed to
+the run through a bounded queue.
+
+When the run falls behind (the queue is full), the reader waits; a stream cannot wait, so the
+frames that came meanwhile are dropped (grabbed, not decoded) until the reader is back at the
+stream's pace, and the drop is said: with frames dropped the keyframes may differ from
+``reconstruct``'s on the same video (the tracking jumped). With none dropped they are the same
+frames, named alike, so the result is ``reconstruct``'s on the pair's photos and the video.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+
+import cv2
+
+from stereoseed.errors import StereoseedError
+from stereoseed.io.config import VideoConfig
+from stereoseed.io.video import KeyframePicker
+from stereoseed.live.config import LiveConfig
+from stereoseed.live.watch import Arrival, Look
+
+__all__ = ["VideoFeed"]
+
+log = logging.getLogger(__name__)
+
+
+class VideoFeed:
+    """Keyframes of the video at ``path`` as they are chosen (:meth:`look`, as a watched
+    folder's arrivals). ``realtime`` False: read as fast as the run takes them (a test)."""
+
+    def __init__(self, path: str | Path, cfg: VideoConfig = VideoConfig(), live: LiveConfig = LiveConfig(),
+                 realtime: bool = True):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise StereoseedError(f"{self.path}: video not found")
+        self._capture = cv2.VideoCapture(str(self.path))
+        if not self._capture.isOpened():
+            raise StereoseedError(f"{self.path}: cannot be opened as a video; give a video OpenCV reads (MP4, AVI, MKV)")
+        fps = self._capture.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if fps and 1.0 <= fps <= 1000.0 else live.video_fps
+        self.live, self.realtime = live, realtime
+        self._picker = KeyframePicker(self.path, cfg)
+        self._queue: queue.Queue = queue.Queue(maxsize=live.video_queue)
+        self._notes: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self.ended = threading.Event()
+        self.frames = self.dropped = 0
+        self._thread = threading.Thread(target=self._read, name="stereoseed-live-video", daemon=True)
+
+    def start(self) -> VideoFeed:
+        self._thread.start()
+        return self
+
+    def _put(self, arrival: Arrival) -> None:
+        """Into the queue, waiting while it is full (the run is behind)."""
+        while not self._stop.is_set():
+            try:
+                self._queue.put(arrival, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def _read(self) -> None:
+        t0, index, dropped_since = time.monotonic(), -1, 0
+        try:
+            while not self._stop.is_set():
+                due = t0 + (index + 1) / self.fps
+                late = time.monotonic() - due
+                if self.realtime and late < 0:
+                    time.sleep(-late)
+                if self.realtime and index >= 0 and late > self.live.video_late_s:
+                    if not self._capture.grab():  # behind the stream: this frame is dropped
+                        break
+                    index += 1
+                    self.dropped += 1
+                    dropped_since += 1
+                    continue
+                if dropped_since:
+                    self._notes.put(f"{self.path.name}: {dropped_since} frame(s) dropped while the run was behind "
+                                    f"(before frame {index + 1}); the keyframes may differ from reconstruct's")
+                    dropped_since = 0
+                ok, frame = self._capture.read()
+                if not ok:
+                    break
+                index += 1
+                self.frames += 1
+                for keyframe in self._picker.push(index, frame):
+                    self._put(self._arrival(keyframe))
+            for keyframe in self._picker.end():
+                self._put(self._arrival(keyframe))
+            self._notes.put(f"{self.path.name}: the stream ended after {index + 1} frames "
+                            f"({self._picker.kept} keyframes)")
+        except Exception as e:  # noqa: BLE001 - a decoder error ends the stream, said
+            log.debug("video reader", exc_info=True)
+            self._notes.put(f"{self.path.name}: the stream stopped ({e}); what came is kept")
+        finally:
+            self._capture.release()
+            self.ended.set()
+
+    def _arrival(self, keyframe) -> Arrival:
+        ok, png = cv2.imencode(".png", keyframe.image)  # lossless: the pixels reconstruct's keyframes hold
+        return Arrival(self.path, keyframe.name, png.tobytes(), bool(ok), time.monotonic())
+
+    def look(self, now: float) -> Look:
+        """The keyframes chosen since the last look, and the lines to say."""
+        found = Look()
+        while True:
+            try:
+                found.arrivals.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        while True:
+            try:
+                found.notes.append(self._notes.get_nowait())
+            except queue.Empty:
+                break
+        return found
+
+    @property
+    def done(self) -> bool:
+        """The stream has ended and every keyframe was taken."""
+        return self.ended.is_set() and self._queue.empty()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)

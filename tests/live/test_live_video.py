@@ -1,0 +1,73 @@
+"""``stereoseed live --video``: the keyframes reconstruct picks, at the stream's pace through a
+bounded queue; with no frame dropped the result is reconstruct's on the pair and the video."""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from scene_helpers import write_calib, write_video
+from stereoseed.io.files import write_image
+from stereoseed.io.video import read_keyframes
+from stereoseed.live import LiveConfig, run_live
+from stereoseed.live.video import VideoFeed
+from stereoseed.pipeline import reconstruct_to_folder
+from stereoseed.synthetic.scene import SceneConfig, render_scene
+
+SMALL = dict(width=320, height=240, supersample=1, seed=4)
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    """The calibrated pair's two photos, calib.json, and a video walking on from the second
+    camera at 2 degrees a frame (as tests/io/test_video.py's, shorter)."""
+    folder = tmp_path_factory.mktemp("walk")
+    pair = render_scene(SceneConfig(n_images=2, focal_px=400, focal0_px=390, principal_offset0_px=(1.5, -1.0), **SMALL))
+    frames = render_scene(SceneConfig(n_images=36, step_deg=2.0, azimuth0_deg=50.0, focal_px=400, focal0_px=400,
+                                      principal_offset0_px=(0.0, 0.0), focal_jitter=0.0, pose_jitter=False, **SMALL))
+    photos = [write_image(folder / f"pair{i}.png", image) for i, image in enumerate(pair.images)]
+    return photos, write_calib(folder / "calib.json", pair.P[:2]), write_video(folder / "walk.avi", frames.images)
+
+
+def _cameras(out):
+    return {c["name"]: c for c in json.loads((out / "cameras.json").read_text())["images"]}
+
+
+def test_a_video_run_live_is_reconstructs_on_the_pair_and_the_video(walk, tmp_path):
+    photos, calib, video = walk
+    lines = []
+    report = run_live(None, calib, tmp_path / "live", video=video, pair=photos, port=0, realtime=False,
+                      on_line=lines.append)
+    reconstruct_to_folder([str(photos[0]), str(photos[1]), str(video)], str(calib), tmp_path / "ref")
+    live, ref = _cameras(tmp_path / "live"), _cameras(tmp_path / "ref")
+    assert list(live) == list(ref) and len(ref) >= 5  # the pair, then the same keyframes
+    for name, c in ref.items():
+        assert (live[name]["status"], live[name].get("flag_reason")) == (c["status"], c.get("flag_reason")), name
+        if c["registered"]:
+            assert max(abs(a - b) for a, b in zip(live[name]["center"], c["center"])) <= 1e-9, name
+    assert report["registered"] == sum(c["registered"] for c in ref.values())
+    assert any("the stream ended after 36 frames" in line for line in lines), lines
+
+
+def test_a_run_that_falls_behind_drops_frames_and_says_so(walk):
+    _, _, video = walk
+    all_keyframes = [k.name for k in read_keyframes(video)]
+    feed = VideoFeed(video, live=LiveConfig(video_queue=1)).start()
+    try:
+        time.sleep(1.25)  # the run busy: a keyframe waits in the queue, the next one waits, the stream goes on
+        taken, notes = [], []
+        while not feed.done:
+            look = feed.look(time.monotonic())
+            taken += [a.name for a in look.arrivals]
+            notes += look.notes
+            time.sleep(0.02)
+        look = feed.look(time.monotonic())
+        taken += [a.name for a in look.arrivals]
+        notes += look.notes
+    finally:
+        feed.close()
+    assert feed.dropped > 0 and feed.frames + feed.dropped == 36
+    assert any("dropped while the run was behind" in n for n in notes), notes
+    assert any("the stream ended after 36 frames" in n for n in notes), notes
+    assert taken and len(taken) <= len(all_keyframes) + 1  # keyframes still, the queue never longer than one
