@@ -58,3 +58,15 @@ def make_rig(baseline=0.12, toe_in_deg=5.0, focal_ratio=1.03):
     from stereoseed.synthetic.rig import RigConfig, rig_of
 
     return rig_of(RigConfig(baseline=baseline, toe_in_deg=toe_in_deg, focal_ratio=focal_ratio))
+
+
+def opencv_undistort_points(pixels, K, distortion, P, criteria, R=None):
+    """OpenCV's iterative undistortion as the oracle, (N, 2): cv2.undistortPoints takes the
+    iterations' criteria in OpenCV 5, cv2.undistortPointsIter in 4.x (nerfstudio's 4.10)."""
+    import cv2
+
+    src = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
+    d = np.asarray(distortion, np.float64)
+    if hasattr(cv2, "undistortPointsIter"):
+        return cv2.undistortPointsIter(src, K, d, R, P, criteria).reshape(-1, 2)
+    return cv2.undistortPoints(src, K, d, None, R, P, criteria).reshape(-1, 2)

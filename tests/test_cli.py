@@ -262,3 +262,33 @@ def test_a_reader_that_stops_reading_is_no_error_of_the_command():
         child.stderr.close()
         if child.poll() is None:
             child.kill()
+
+
+def test_a_warning_during_a_progress_bar_is_a_line_of_its_own(monkeypatch):
+    """The bar is drawn on stderr without a newline: a warning (the CLI's or the library's) clears
+    it and takes a line of its own, the bar drawn again below it."""
+    import io
+    import logging
+    import sys
+
+    from stereoseed.cli import _progress
+    from stereoseed.cli._terminal import LibraryLines, warn
+
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    library = logging.getLogger("stereoseed.test_lines")
+    handler = LibraryLines(logging.WARNING)
+    library.addHandler(handler)
+    try:
+        with _progress.Bar("image", quiet=False) as bar:
+            bar(1, 4, "a.png")
+            warn("the first warning")
+            library.warning("a library warning")
+            bar(2, 4, "b.png")
+    finally:
+        library.removeHandler(handler)
+    text = err.getvalue()
+    for line in ("stereoseed: warning: the first warning", "stereoseed: WARNING: a library warning"):
+        before = text.split(line)[0]
+        assert before[-1:] in ("\r", "\n"), repr(before[-40:])  # not after the bar's text
+        assert text.split(line)[1].startswith("\n")

@@ -119,7 +119,8 @@ def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) 
 def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCalibration | Sequence[np.ndarray],
                 out: PathLike | None = None, cfg: Config | None = None, *, dense: bool = False, resume: bool = False,
                 progress: Progress | None = None, pool=None, dense_progress: Progress | None = None,
-                rig_right: PathLike | Sequence[PathLike] | None = None, mesh: bool = False) -> Result:
+                rig_right: PathLike | Sequence[PathLike] | None = None, mesh: bool = False,
+                unit: str | None = None) -> Result:
     """Reconstruct an ordered sequence whose first two images are the calibrated pair.
 
     images: a folder (its images in name order), a text file listing image paths, or a list of
@@ -138,7 +139,8 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     dense pair comes in. rig_right: a stereo rig walked with both cameras: ``images`` are the left
     camera's, these the right one's, image k of each taken together (the calibrated pair is the
     first station). mesh: with ``out`` and ``dense``, the dense cloud meshed into ``mesh.ply``
-    (the mesh extra). Raises :class:`StereoseedError` (one line) for input it cannot use."""
+    (the mesh extra). unit: the calibration's unit where it names none (a par file), such as "m".
+    Raises :class:`StereoseedError` (one line) for input it cannot use."""
     from stereoseed import pipeline
 
     cfg = Config() if cfg is None else cfg
@@ -151,11 +153,15 @@ def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCal
     with _calibration_file(calib) as calib_path:
         if out is not None:
             pipeline.reconstruct_to_folder(images, calib_path, out, cfg, dense=dense, resume=resume, progress=progress,
-                                           pool=pool, dense_progress=dense_progress, rig_right=rig_right, mesh=mesh)
+                                           pool=pool, dense_progress=dense_progress, rig_right=rig_right, mesh=mesh,
+                                           unit=unit)
             return load_result(out)
         sequence, names, P_pair, lenses = pipeline.load_sequence_and_lenses(images, calib_path, cfg.video,
                                                                             rig_right=rig_right, ordering=cfg.ordering)
         recon, report = pipeline.reconstruct(sequence, names, P_pair, cfg, progress=progress, rig=rig_right is not None)
+        from stereoseed.io.files import read_calibration_unit
+
+        report["unit"] = read_calibration_unit(calib_path, unit)  # as a result folder's report.json says it
         cloud = None
         if dense:
             from stereoseed.dense.densify import densify

@@ -433,7 +433,8 @@ def save_outputs(recon: Reconstruction, report: dict[str, Any], out_dir: str | P
 def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: str | Path, cfg: Config = Config(),
                           dense: bool = False, resume: bool = False, progress: Progress | None = None,
                           pool: JobPool | None = None, dense_progress: Progress | None = None,
-                          rig_right: str | list[str] | None = None, mesh: bool = False) -> dict[str, Any]:
+                          rig_right: str | list[str] | None = None, mesh: bool = False,
+                          unit: str | None = None) -> dict[str, Any]:
     """A whole run from files to a result folder: :func:`load_sequence`, :func:`reconstruct`
     (checkpointed in the staging folder), the dense stage when ``dense`` (its pair jobs on
     ``pool``, default local processes), :func:`save_outputs`. The folder is written as a whole
@@ -443,7 +444,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
     progress: called after the pair and after each insertion; dense_progress: as each of the
     dense stage's pairs comes in (:func:`stereoseed.dense.densify.densify`). The report's
     "timing": the command's wall time up to the writing of the results and its stages'; its
-    "unit": the calibration's (:func:`stereoseed.io.files.read_calibration_unit`). rig_right: the
+    "unit": the calibration's, else ``unit`` (:func:`stereoseed.io.files.read_calibration_unit`). rig_right: the
     right camera's images of a stereo rig walked with both cameras (:func:`load_sequence`). mesh:
     the dense cloud meshed into ``mesh.ply`` too (:func:`stereoseed.dense.mesh.mesh_result`; needs
     ``dense`` and the mesh extra, checked before any work)."""
@@ -466,7 +467,7 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
                                                                      staging / "keyframes", rig_right=rig_right,
                                                                      ordering=cfg.ordering)
             _refuse_output_over_inputs(results, [images.source(i) for i in range(len(images))])
-            unit = read_calibration_unit(calib_path)
+            unit = read_calibration_unit(calib_path, unit)
         except BaseException:
             if not resume:  # a resumed run's checkpoint outlives a mistyped input
                 results.abandon()

@@ -54,6 +54,9 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                        "float64[:, ::1], float64[:, ::1], float64, int64")),
     "junctions": ("stereoseed.features.harris", "_junction_residual_kernel",
                   "float32[:, ::1], float32[:, ::1], float64[:, ::1], int64, float64, float64[::1]"),
+    # called on OpenCV 4.x only (its remap rounds positions: features.harris._remap_is_exact)
+    "sample_patches": ("stereoseed.features.harris", "_sample_patches",
+                       "float32[:, ::1], float32[:, ::1], float32[:, ::1], float32[:, ::1]"),
     "edge_corners": ("stereoseed.features.edge_corners", "_edge_corner_kernel",
                      ("float32[:, ::1], float32[:, ::1], float32[:, ::1], float64[:, ::1], int64, float64, float64, "
                       "float64, float64, float64, float64, float64, float64, float64[:, ::1], boolean[::1]")),
@@ -143,7 +146,8 @@ KERNELS: dict[str, tuple[str, str, str]] = {
 # CPU seconds each kernel takes to compile alone in a fresh process on the reference machine (an
 # x86-64 core; benchmarks/bench_firstrun.py measures them): what the first run's notice adds up
 COST_S: dict[str, float] = {
-    "render": 3.3, "cast": 0.8, "refine_camera": 5.9, "junctions": 1.0, "edge_corners": 2.6, "repeats": 0.9,
+    "render": 3.3, "cast": 0.8, "refine_camera": 5.9, "junctions": 1.0, "sample_patches": 0.4, "edge_corners": 2.6,
+    "repeats": 0.9,
     "candidate_pairs": 2.4, "pair_scores": 0.7, "best_of_pairs": 0.5, "align": 7.7, "competitors": 0.6,
     "largest_angles": 0.2, "choose_samples": 1.1, "score_hypotheses": 1.3, "nearest": 0.9, "tracks_lm": 3.9,
     "observation_errors": 0.2, "normal_equations": 0.9, "eliminate_points": 0.6, "add_point_pairs": 0.3,
@@ -153,7 +157,7 @@ COST_S: dict[str, float] = {
     "pca_normals": 0.4, "view_checks": 1.8,
 }
 
-_FEATURES = ("junctions", "edge_corners", "repeats", "candidate_pairs", "pair_scores", "best_of_pairs", "align",
+_FEATURES = ("junctions", "sample_patches", "edge_corners", "repeats", "candidate_pairs", "pair_scores", "best_of_pairs", "align",
              "competitors", "largest_angles", "choose_samples", "score_hypotheses")
 _BUNDLE = ("tracks_lm", "observation_errors", "normal_equations", "eliminate_points", "add_point_pairs",
            "mirror_upper", "back_substitute")

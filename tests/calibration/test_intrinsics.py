@@ -84,6 +84,9 @@ def test_intrinsics_from_a_flat_board_against_opencv_and_the_truth(board, tmp_pa
     assert main(["intrinsics", "--target", str(folder / "board.json"), *map(str, paths), str(blank), "-o", str(out)]) == 0
     printed = capsys.readouterr()
     assert f"{blank}: skipped: no calibration target found" in printed.err and f"wrote {out}" in printed.out
+    for p in paths:  # a check image per photo used, named as calibrate names them, and said
+        check = tmp_path / f"camera_cam1_{p.stem}.png"
+        assert check.is_file() and f"; check {check}" in printed.out
     K_est, lens, size = read_opencv_camera(out)
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     rms, per_view = fs.getNode("avg_reprojection_error").real(), fs.getNode("per_view_reprojection_errors").mat()

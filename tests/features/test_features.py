@@ -391,3 +391,22 @@ def test_describe_never_crashes_on_any_points(points, patch):
     assert np.all(np.isfinite(desc))
     if valid.any():
         np.testing.assert_allclose(np.linalg.norm(desc[valid], axis=1), 1, atol=1e-4)
+
+
+def test_descriptors_are_the_same_whatever_opencv_s_remap_does(monkeypatch):
+    """OpenCV 4.x's remap rounds a position to 1/32 px, 5.x's does not; where remap rounds, the
+    patches come from sample_bilinear: the same descriptors (to float32 rounding) either way,
+    and the exact bilinear values, not 1/32 px steps."""
+    from stereoseed.features import harris
+
+    gray = band_noise((60, 70), seed=7)
+    pts = np.array([[20.3, 30.71], [45.0, 40.0], [33.53, 25.26], [1.2, 58.7]])
+    monkeypatch.setattr(harris, "_remap_is_exact", lambda: False)
+    mine, _ = describe(gray, pts, 11)
+    ramp = np.tile(np.arange(8, dtype=np.float32), (8, 1))  # grey level = x
+    row = harris._bilinear_patches(ramp, np.array([[3.3, 3.0]]), 3)[0, :3]
+    np.testing.assert_allclose(row, [2.3, 3.3, 4.3], atol=1e-5)  # 1/32 px steps give 2.3125
+    monkeypatch.undo()
+    if harris._remap_is_exact():  # OpenCV 5.x: its remap is the oracle
+        theirs, _ = describe(gray, pts, 11)
+        np.testing.assert_allclose(mine, theirs, atol=1e-6)

@@ -270,7 +270,7 @@ def test_pair_scores_and_competitors_agree_with_the_score_matrix(textured):
     ptr_kept, cols_kept, s_kept = pair_scores(desc1, desc2, ok2, indptr, cols, *_bound_terms(desc1),
                                                *_bound_terms(desc2), 0.6)
     kept_rows = np.repeat(np.arange(len(v1)), np.diff(ptr_kept))
-    above = s_all > 0.6
+    above = s_all.astype(np.float64) > 0.6  # as the kernel compares: a score of float32(0.6) is above 0.6
     np.testing.assert_array_equal(np.stack([rows[above], cols[above]]), np.stack([kept_rows, cols_kept]))
     np.testing.assert_array_equal(s_kept, s_all[above])
     assert 0 < len(s_kept) < 0.2 * len(s_all)  # the bound's purpose: most pairs are hopeless

@@ -27,6 +27,8 @@ from stereoseed.output.reader import load_result
 from stereoseed.pipeline import reconstruct_to_folder
 from stereoseed.synthetic.scene import SceneConfig, render_scene, write_scene
 
+from geometry_helpers import opencv_undistort_points
+
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (the test extra) is the COLMAP oracle")
 
 LENS = (-0.12, 0.03, 0.001, -0.0005)  # barrel, with tangential terms
@@ -115,8 +117,7 @@ def test_the_pinhole_cameras_see_the_true_corners_where_opencv_undistorts_them(l
         cam = model.cameras[im.camera_id]
         X = scene.corners[scene.corner_visibility(i)]
         K = cam.calibration_matrix() - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])  # COLMAP's pixel corner
-        expected = cv2.undistortPoints(scene.project(i, X).reshape(-1, 1, 2), scene.K[i], np.array(LENS), None, None, K,
-                                       criteria).reshape(-1, 2) + 0.5
+        expected = opencv_undistort_points(scene.project(i, X), scene.K[i], LENS, K, criteria) + 0.5
         moved = np.max(np.linalg.norm(cam.img_from_cam(_to_camera(im, X)) - expected, axis=1))
         assert len(X) > 20 and moved < (1e-6 if i < 2 else 0.25), (im.name, moved)  # measured 2e-13 and 0.06
 

@@ -358,3 +358,14 @@ def test_the_scale_bar_the_distance_readout_and_the_toolbars_in_chromium(run, tm
     assert distance == pytest.approx(float(np.linalg.norm(expected[1] - expected[0])), rel=1e-12)
     assert text.startswith(f"distance: {length_text(distance, 'm')} between ("), text
     assert np.allclose(np.array(drawn).T, expected)  # the measured segment drawn in the view
+
+
+def test_the_summary_says_the_model_used_the_points_written_and_the_unit(run, tmp_path):
+    """No image zoomed: the header names the fixed model the rows show, not only the one asked
+    for; the sparse points are those written (far ones left out, counted); a named unit shows."""
+    recon, report = run
+    report = dict(report, final=dict(report["final"], no_zoom=True), camera_model="focal", unit="m",
+                  exported_points=report["points"] - 1, far_points_dropped=1)
+    text = write_report_html(recon, report, tmp_path).read_text(encoding="utf-8")
+    assert "<b>fixed: no image zoomed (focal asked)</b>" in text
+    assert f"<b>{report['points'] - 1} (1 far left out)</b>" in text and "<span>unit</span><b>m</b>" in text

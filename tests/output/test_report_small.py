@@ -122,6 +122,21 @@ def test_the_unit_is_read_from_calib_json_when_it_names_one(tmp_path):
         read_calibration_unit(calib)
 
 
+def test_a_calibration_that_names_no_unit_takes_the_one_given(tmp_path):
+    """A par file names no unit: reconstruct --unit names it (a Middlebury set's metres); a
+    calib.json naming another is refused in one line, and so is a unit that is no short name."""
+    (tmp_path / "par.txt").write_text("2\n")
+    assert read_calibration_unit(tmp_path / "par.txt", " m ") == "m"
+    calib = tmp_path / "calib.json"
+    write_json(calib, {"cameras": [], "unit": "mm"})
+    assert read_calibration_unit(calib, "mm") == "mm"
+    with pytest.raises(StereoseedError, match=r'calib.json names its unit "mm", not "m": leave --unit out'):
+        read_calibration_unit(calib, "m")
+    with pytest.raises(StereoseedError, match=r'--unit is ""; give a short name'):
+        read_calibration_unit(tmp_path / "par.txt", "")
+    assert length_text(0.2, "m") == "20 cm" and length_text(0.2, None) == "0.2 units"
+
+
 def test_the_match_panel_draws_a_few_matches_spread_over_the_image():
     """717 matches, 700 of them crowded in one corner: the lines drawn are at most 60, every part
     of the image that has a match is among them, and each part gives its best first."""

@@ -214,6 +214,10 @@ def test_report_html_draws_the_rig_of_each_station(rig_scene, tmp_path):
     save_outputs(recon, report, tmp_path, Config())
     page = (tmp_path / "report.html").read_text()
     assert "stereo rig (each station)" in page
+    from stereoseed.output.report.figures import RIG_COLOUR
+    from stereoseed.output.report.measure import SCALE_COLOUR
+
+    assert RIG_COLOUR in page and SCALE_COLOUR in page and RIG_COLOUR != SCALE_COLOUR  # told apart
 
 
 def test_rig_videos_named_alike_get_their_side_in_front(rig_films, tmp_path):

@@ -37,6 +37,12 @@ class CalibrationConfig:
     # dropped, its reason reported: another camera's image, a moved lens, a target that moved
     # while the rig's two shutters closed. Blur alone makes a view 1.5-3 times worse.
     view_outlier_factor: float = 5.0
+    # A corner left at OpenCV's position (its saddle fit failed: a defocused face) is 0.2-1 px
+    # off on renders where fitted corners are within 0.06 px (detection.py). Its error scale is
+    # measured where both kinds are numerous enough; with fewer it is taken as this many times
+    # the fitted corners': 8 such corners among 163, weighed like fitted ones, pulled a rendered
+    # camera's whole-frame p95 error from 0.03 to 0.26 px (docs/benchmarks.md, lens calibration).
+    unrefined_sigma_ratio: float = 10.0
     view_outlier_min_px: float = 2.0
     # Views of a flat target one camera needs for its intrinsics (Zhang: 2 constraints per view
     # on 4 intrinsics, and views at different angles); with fewer it needs known intrinsics.
@@ -88,7 +94,7 @@ class CalibrationConfig:
 
     def __post_init__(self) -> None:
         positive(self, "max_aspect_difference", "max_tangential", "huber_sigmas", "huber_min_px",
-                 "view_outlier_factor", "view_outlier_min_px", "warn_rms_px", "max_iterations", "min_flat_views",
+                 "view_outlier_factor", "view_outlier_min_px", "unrefined_sigma_ratio", "warn_rms_px", "max_iterations", "min_flat_views",
                  "refine_evidence_bic", "rig_shot_agreement_deg", "rig_shot_agreement_share", "rig_uncertainty_sigmas",
                  "rig_warn_rotation_deg", "rig_warn_baseline_share")
         in_range(self, "rig_min_agreeing_share", 0.0, 1.0)

@@ -13,6 +13,7 @@ oblique face, measured on rendered photos).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from stereoseed.io.files import read_image
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Detection", "detect_target", "MIN_FACE_CORNERS", "MIN_CORNERS"]
+__all__ = ["Detection", "detect_target", "charuco_shift", "MIN_FACE_CORNERS", "MIN_CORNERS"]
 
 # Fewer corners than this on a face: dropped. OpenCV interpolates a ChArUco corner from the
 # markers around it, so a face with one to three corners is most often a single marker, easily
@@ -43,6 +44,12 @@ _SADDLE_MOVE = 1.5  # a fit that moves further than this (pixels) from OpenCV's 
 # (its failures kept at OpenCV's position): a sharp face fails on isolated corners only (at most
 # ~40 % on small oblique renders at 640x480), a defocused one on nearly all (16 of 19 measured)
 _BLURRED_SHARE = 0.5
+# An X junction is point-symmetric about its centre: mean |patch - patch rotated 180 deg| over
+# mean |patch - its mean| at the fitted point is 0.02 on a clean corner (median, 0.19 the worst of
+# 336 within 0.06 px of the truth, rendered oblique views), 0.29-0.35 where a marker edge in the
+# window let the fit converge 0.1-0.2 px off (corners OpenCV 4.10 interpolates from extra markers):
+# above this the fit has failed.
+_SADDLE_ASYMMETRY = 0.25
 _ys, _xs = np.mgrid[-_SADDLE_HALF:_SADDLE_HALF + 1, -_SADDLE_HALF:_SADDLE_HALF + 1].reshape(2, -1).astype(np.float64)
 _SADDLE_FIT = np.linalg.pinv(np.stack([_xs * _xs, _xs * _ys, _ys * _ys, _xs, _ys, np.ones_like(_xs)], axis=1))
 
@@ -88,12 +95,19 @@ class Detection:
         return text
 
 
+def _asymmetry(patch: np.ndarray) -> float:
+    """How far ``patch`` is from point symmetry about its centre (0: an ideal X junction)."""
+    q = patch.astype(np.float64) - patch.mean()
+    return float(np.abs(q - q[::-1, ::-1]).mean() / (np.abs(q).mean() + 1e-12))
+
+
 def _refine_saddles(blurred: np.ndarray, points: np.ndarray, iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """Chessboard corners refined as the saddle point of a quadratic fitted to the blurred image
     around each (Newton steps); (refined (N, 2), ok (N,)). cornerSubPix's gradient window reaches
     the marker borders next to a corner on an oblique face and is pulled by up to ~2 px there; a
     5x5 saddle fit stays on the X junction. A corner that is no saddle, does not converge or
-    moves more than ``_SADDLE_MOVE`` px is not ok, and keeps its starting position."""
+    moves more than ``_SADDLE_MOVE`` px, or whose window is not point-symmetric about the result
+    (``_SADDLE_ASYMMETRY``), is not ok, and keeps its starting position."""
     size = (2 * _SADDLE_HALF + 1,) * 2
     out, ok = points.astype(np.float64).copy(), np.zeros(len(points), bool)
     for i, start in enumerate(points.astype(np.float64)):
@@ -109,10 +123,33 @@ def _refine_saddles(blurred: np.ndarray, points: np.ndarray, iterations: int = 6
             if np.linalg.norm(p - start) > _SADDLE_MOVE:
                 break
             if step @ step < 1e-6:  # converged; a slow one (marker edges in the window) is left out
-                ok[i] = True
-                out[i] = p
+                if _asymmetry(cv2.getRectSubPix(blurred, size, (float(p[0]), float(p[1])))) <= _SADDLE_ASYMMETRY:
+                    ok[i] = True
+                    out[i] = p
                 break
     return out, ok
+
+
+@functools.cache
+def charuco_shift() -> float:
+    """What to subtract from the corners ``CharucoDetector.detectBoard`` returns (pixels, both
+    axes). OpenCV releases before the fix of its issue #25539 (4.10 among them, the version
+    nerfstudio pins) add 0.5 px to each corner after refining it; later ones (5.x) do not. Measured
+    once on a board OpenCV draws itself, whose corners lie exactly between pixels, rather than
+    guessed from the version number: 0.5 or 0."""
+    square, margin = 40, 20
+    board = cv2.aruco.CharucoBoard((5, 5), float(square), 30.0,
+                                   cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    image = cv2.GaussianBlur(board.generateImage((5 * square + 2 * margin,) * 2, marginSize=margin), (0, 0), 1.0)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(image)
+    if ids is None:  # cannot happen with a clean drawn board; assume the fixed behaviour
+        return 0.0
+    ids = ids.ravel()
+    truth = margin - 0.5 + square * np.stack([ids % 4 + 1, ids // 4 + 1], axis=1)
+    shift = float(np.median(corners.reshape(-1, 2) - truth))
+    log.debug("OpenCV %s's ChArUco corners measured %.3f px off; corrected by %.1f px", cv2.__version__, shift,
+              0.5 if shift > 0.25 else 0.0)
+    return 0.5 if shift > 0.25 else 0.0  # nearer 0.5 than 0: the old bias
 
 
 def _grey(image: np.ndarray, what: str) -> np.ndarray:
@@ -153,6 +190,8 @@ def detect_target(image: np.ndarray | str | os.PathLike, target: Target, what: s
             cc, ci, _, _ = detector.detectBoard(grey, markerCorners=tuple(corners[i] for i in mine),
                                                 markerIds=ids[mine].reshape(-1, 1).astype(np.int32))
         n = 0 if cc is None else len(cc)
+        if n:
+            cc = cc - np.float32(charuco_shift())
         unrefined.append(0)
         dropped.append(0)
         keep = np.ones(n, bool)

@@ -40,7 +40,7 @@ from stereoseed.calibration.config import CalibrationConfig, camera_problems, ch
 from stereoseed.calibration.detection import Detection
 from stereoseed.calibration.refine_target import Problem, Solution, intrinsics_covariance, projections
 from stereoseed.calibration.rig_check import RigResult, check_shots, judge, shot_poses, view_poses
-from stereoseed.calibration.stages import (ViewResult, fit, flat_stage, joint_problem, rms, view_errors, view_key,
+from stereoseed.calibration.stages import (ViewResult, blur_first, fit, flat_stage, joint_problem, rms, view_errors, view_key,
                                           view_of)
 from stereoseed.calibration.target import Target
 from stereoseed.errors import StereoseedError
@@ -186,7 +186,7 @@ def _solve_all(target: Target, views: list[list[ViewResult]], flat: list[tuple],
         for k in bad:
             c, i = view_of(k)
             views[c][i].reason = (f"its corners reproject at {per_view[k]:.1f} px while the views reproject at "
-                                  f"{median:.2f} px (median): {cause}")
+                                  f"{median:.2f} px (median): {blur_first(views[c][i], cause)}")
         problem, state, shots = joint_problem(target, views, flat, rig, rigid, known, k3, prior)
         state.K, state.lens, state.rig = sol.state.K, sol.state.lens, sol.state.rig
         sol = fit(problem, state, cfg)
@@ -259,6 +259,11 @@ def _results(target: Target, views: list[list[ViewResult]], problem: Problem, so
             if cfg.max_rms_px is not None and result.rms_px > cfg.max_rms_px:
                 raise StereoseedError(f"{message} (--max-rms {cfg.max_rms_px:g})")
             warnings.append(message)
+        for v in used:  # one bad photo among good ones leaves the camera's RMS under the limit: it is named
+            if v.rms_px > cfg.warn_rms_px and result.rms_px <= cfg.warn_rms_px:
+                warnings.append(f"{labels[c]}, {v.name}: its corners reproject with {v.rms_px:.2f} px RMS (the camera's: "
+                                f"{result.rms_px:.2f} px); {blur_first(v, 'pixels that are not the target corners')}: "
+                                "look at its check image")
         if pair and not target.planar and len(cam[0].detection.faces_found) == 1:
             warnings.append(f"{labels[c]}: the pair's photo {cam[0].name} shows one face of the target: the camera's "
                             "pose (its P) is determined less well than from two or three faces in view")

@@ -23,7 +23,7 @@ from stereoseed.errors import StereoseedError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewResult", "flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
+__all__ = ["ViewResult", "blur_first", "flat_stage", "joint_problem", "fit", "view_errors", "rms", "face_groups", "view_key", "view_of"]
 
 
 @dataclass
@@ -41,6 +41,15 @@ class ViewResult:
     @property
     def used(self) -> bool:
         return self.reason is None
+
+
+def blur_first(view: ViewResult, causes: str) -> str:
+    """Why a view reprojects badly: out of focus first where its detection saw blurred faces
+    (corners left at OpenCV's position, detection.py), else ``causes``."""
+    blurred = sum(view.detection.unrefined)
+    if blurred:
+        return f"out of focus ({blurred} of its {len(view.detection)} corners blurred: retake it sharp), or {causes}"
+    return causes
 
 
 _VIEWS = 100000  # views per camera the keys leave room for
@@ -69,16 +78,19 @@ class _Corners(Group):
     refined: np.ndarray | None = None  # (N,) bool: the corner's sub-pixel fit succeeded
 
 
-def _set_sigmas(problem: Problem, errors: list[np.ndarray] | None) -> None:
+def _set_sigmas(problem: Problem, errors: list[np.ndarray] | None, cfg: CalibrationConfig) -> None:
     """Each corner's error scale: 1 for a fitted corner; for one left at OpenCV's position, how
     much larger its errors are (the robust sigmas of the two kinds' errors, both from the same
-    fit), so that blurred corners count for what they are worth, on any camera."""
+    fit), so that blurred corners count for what they are worth, on any camera. Too few of
+    either kind to measure that: cfg.unrefined_sigma_ratio."""
     ratio = 1.0
     if errors is not None:
         fitted = np.concatenate([e[g.refined] for g, e in zip(problem.groups, errors)])
         other = np.concatenate([e[~g.refined] for g, e in zip(problem.groups, errors)])
         if len(other) >= _MIN_CLASS_CORNERS and len(fitted) >= _MIN_CLASS_CORNERS:
             ratio = max(1.0, float(np.median(other)) / max(float(np.median(fitted)), 1e-12))
+        else:
+            ratio = cfg.unrefined_sigma_ratio
     for g in problem.groups:
         g.sigma = np.where(g.refined, 1.0, ratio)
 
@@ -90,9 +102,9 @@ _MIN_CLASS_CORNERS = 20
 def _robust_solve(problem: Problem, state: State, cfg: CalibrationConfig) -> Solution:
     """Solved twice: with every corner alike and Huber's threshold from the start's errors, then
     with each kind of corner at its own scale and the threshold from the first answer's errors."""
-    _set_sigmas(problem, None)
+    _set_sigmas(problem, None, cfg)
     sol = solve(problem, state, _huber(residuals(problem, state), cfg), cfg.max_iterations)
-    _set_sigmas(problem, sol.errors)
+    _set_sigmas(problem, sol.errors, cfg)
     return solve(problem, sol.state, _huber([e / g.scale() for g, e in zip(problem.groups, sol.errors)], cfg),
                  cfg.max_iterations)
 
@@ -184,8 +196,8 @@ def flat_stage(target: Target, views: list[ViewResult], known: tuple | None, k3:
     if bad:
         for i in bad:
             views[i].reason = (f"its corners reproject at {view_rms[i]:.1f} px while the camera's views reproject at "
-                               f"{median:.2f} px (median): another camera's image, a moved lens or a wrongly detected "
-                               "target")
+                               f"{median:.2f} px (median): "
+                               + blur_first(views[i], "another camera's image, a moved lens or a wrongly detected target"))
         return flat_stage(target, views, known, k3, cfg, what, keep_first)
     return state.K[0], state.lens[0], {k: state.shots[s] for s, k in enumerate(keys)}, \
         intrinsics_covariance(problem, sol, 0), problem.n_lens, problem, sol

@@ -22,7 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # the commands' modules import NumPy: after the BLAS setting
 from stereoseed.cli import calibration, data, live, mesh, reconstruct, results, tools  # noqa: E402
-from stereoseed.cli._terminal import complain, warn  # noqa: E402
+from stereoseed.cli._terminal import LibraryLines, complain, warn  # noqa: E402
 from stereoseed.errors import StereoseedError  # noqa: E402
 
 
@@ -89,8 +89,7 @@ def _configure_logging(args: argparse.Namespace) -> None:
     logger.setLevel(level)
     for old in [h for h in logger.handlers if getattr(h, "_stereoseed", False)]:
         logger.removeHandler(old)  # main() may run several times in one process (tests, notebooks)
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("stereoseed: %(levelname)s: %(message)s"))
+    handler = LibraryLines(logging.DEBUG)  # on a line of its own beside a progress bar
     handler._stereoseed = True
     logger.addHandler(handler)
 

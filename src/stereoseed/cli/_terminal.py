@@ -10,7 +10,19 @@ import logging
 import os
 import sys
 
-__all__ = ["say", "complain", "warn"]
+__all__ = ["say", "complain", "warn", "LibraryLines"]
+
+
+def _write_line(stream, text: str) -> None:
+    """``text`` as a line of its own: while a progress bar is drawn (tqdm's, on stderr), the bar
+    is cleared first and drawn again below it, so that a warning is never glued to the bar's line."""
+    from tqdm import tqdm
+
+    if getattr(tqdm, "_instances", None):
+        tqdm.write(text, file=stream)
+    else:
+        stream.write(text + "\n")
+    stream.flush()
 
 
 class _Stream(logging.Handler):
@@ -25,8 +37,7 @@ class _Stream(logging.Handler):
         if stream is None:  # started with the stream closed (`>&-`): nobody to tell
             return
         try:
-            stream.write(record.getMessage() + "\n")
-            stream.flush()
+            _write_line(stream, self.format(record))
         except (BrokenPipeError, ValueError):  # the reader went away (`| head -1`), or the stream was closed
             # what the run wrote stays written: a reader that stopped reading is no error of the run's
             _to_devnull(stream)
@@ -34,6 +45,16 @@ class _Stream(logging.Handler):
             if e.errno != errno.EBADF:  # a full disk under `> file` is one, and says so
                 raise
             _to_devnull(stream)
+
+
+class LibraryLines(_Stream):
+    """The library's log records on stderr as ``stereoseed: LEVEL: message`` lines, each on a
+    line of its own beside the progress bars (:func:`_write_line`)."""
+
+    def __init__(self, level: int):
+        super().__init__(to_stderr=True)
+        self.setLevel(level)
+        self.setFormatter(logging.Formatter("stereoseed: %(levelname)s: %(message)s"))
 
 
 def _to_devnull(stream) -> None:

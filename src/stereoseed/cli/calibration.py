@@ -193,11 +193,15 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     paths = _image_list(args.images)
     refuse_input_as_output(out, [args.target, *paths], "give another -o")
     refuse_foreign_file(out, "give another -o")
+    # a check image per photo, <stem of -o>_cam1_<photo>.png, as calibrate writes them
+    checks = _check_images(out, [[str(p) for p in paths]], [args.target, *paths])
+    for png in checks.values():
+        refuse_foreign_file(png, "give another -o (the check images are <stem of -o>_cam1_<photo>.png)")
     target = load_target(args.target)
     detections = _detect_all(target, [str(p) for p in paths])
     cal = calibrate_cameras(target, [detections], rigid_target=args.rigid_target, k3=args.k3, cfg=cfg, pair=False,
                             labels=["camera"])
-    _report_views(cal, ["camera"])
+    _report_views(cal, ["camera"], checks)
     _report_cameras(cal, ["camera"])
     cam = cal.cameras[0]
     write_opencv_camera(out, cam.K, cam.lens, cam.image_size, cam.rms_px,

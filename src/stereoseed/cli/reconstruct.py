@@ -69,7 +69,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
           Bar("pair", args.quiet, after=progress) as dense_progress):
         report = reconstruct_to_folder(images, args.calib, args.out, cfg, dense=args.dense, resume=args.resume,
                                        progress=progress, pool=pool, dense_progress=dense_progress, rig_right=right,
-                                       mesh=args.mesh)
+                                       mesh=args.mesh, unit=args.unit)
     failed = [r for r in report["per_image"] if r.get("status") == "failed"]
     if report.get("resumed_images"):
         say(f"resumed after {len(report['resumed_images'])} images already placed")
@@ -77,9 +77,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         say("no image zoomed: every camera keeps the calibrated intrinsics (report.json: final.no_zoom)")
     for r in failed:
         say(f"skipped: {r['reason']}")
+    # each flagged image's reason was logged (stderr) when it was flagged; the summary line names them
     flagged = (report["final"].get("trust") or {}).get("flagged") or {}
-    for name, reason in flagged.items():
-        say(f"flagged: {name}: {reason}")
     loop = report["final"].get("loop_closure") or {}
     if loop:
         from stereoseed.output.report.measure import length_text
@@ -93,8 +92,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
                                                                      if report["dense"].get("note") else ""))
     flags = f", {len(flagged)} flagged: " + ", ".join(f"{n} {flag_kind(r)}" for n, r in flagged.items()) \
         if flagged else ", 0 flagged"
+    far = report.get("far_points_dropped") or 0
+    points = f"{report.get('exported_points', report['points'])} points" + (
+        f" ({far} far point{'s' if far > 1 else ''} left out)" if far else "")
     say(f"registered {report['registered']}/{report['images']} images ({len(failed)} skipped{flags}), "
-          f"{report['points']} points, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
+        f"{points}, reprojection RMS {report['reprojection']['rms_px']:.3f} px; wrote {args.out}")
     return EXIT_SKIPPED if (args.strict and (failed or flagged)) else 0
 
 def _cmd_batch(args: argparse.Namespace) -> int:
@@ -190,6 +192,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calib", required=True, help="calib.json (only each camera's 'P' is needed), a Middlebury *_par.txt or a COLMAP "
                         "model folder (the pair's cameras looked up by image name)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--unit", metavar="NAME", help="the calibration's unit where it names none (a par file, a COLMAP "
+                   "model; calib.json's \"unit\" otherwise), such as m: report.html's lengths are in it")
     p.add_argument("--refine-rig", action="store_true",
                    help="with --rig: refine the rig's relative pose once in the final bundle adjustment (rotation and "
                         "baseline direction; the baseline length keeps the scale); default: held as calibrated")

@@ -14,6 +14,7 @@ Why the sub-pixel refinement is built the way it is, with figures: ``docs/featur
 """
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -365,28 +366,50 @@ def detect_corners(gray: np.ndarray, config: FeatureConfig = FeatureConfig()) ->
     return detect_corners_with_response(gray, config)[0]
 
 
+@functools.cache
+def _remap_is_exact() -> bool:
+    """Whether cv2.remap (INTER_LINEAR, float maps) interpolates at the exact position: OpenCV
+    5.x does; 4.x (4.10, nerfstudio's pin) first rounds the position to 1/32 px, so the
+    descriptors, and every match decided on a margin after them, would differ by version."""
+    ramp = np.array([[0.0, 64.0], [0.0, 64.0]], np.float32)
+    sample = cv2.remap(ramp, np.full((1, 1), 0.3, np.float32), np.zeros((1, 1), np.float32), cv2.INTER_LINEAR)
+    return abs(float(sample[0, 0]) - 19.2) < 1e-3  # 1/32 px steps give 20.0
+
+
+@njit(cache=True)
+def _sample_patches(gray, xs, ys, out):
+    """out[i, j] = gray bilinearly sampled at (xs[i, j], ys[i, j]), edges replicated."""
+    for i in range(xs.shape[0]):
+        for j in range(xs.shape[1]):
+            out[i, j] = sample_bilinear(gray, np.float64(xs[i, j]), np.float64(ys[i, j]))
+
+
 def _bilinear_patches(
     gray: np.ndarray, points: np.ndarray, patch_size: int, spacing: float = 1.0
 ) -> np.ndarray:
     """Sample (N, P*P) float32 patches centred on sub-pixel points by bilinear interpolation.
 
-    cv2.remap with one output row per point (positions quantised to 1/32 px, far below the
-    detector's accuracy). Samples outside the image are clamped to the edge (the caller marks
-    those patches invalid). Not image.sample_bilinear: remap's 1/32 px quantisation is part of
-    the descriptors the sparse results were measured with, and it is vectorised.
+    cv2.remap with one output row per point where it interpolates at the exact position
+    (OpenCV 5.x), :func:`sample_bilinear` otherwise (:func:`_remap_is_exact`): the same
+    descriptors on either OpenCV to float32 rounding. Samples outside the image are clamped
+    to the edge (the caller marks those patches invalid).
     """
     r = patch_size // 2
     d = np.arange(-r, r + 1, dtype=np.float32) * np.float32(spacing)
     dy, dx = np.meshgrid(d, d, indexing="ij")
     out = np.empty((len(points), patch_size * patch_size), np.float32)
+    exact = _remap_is_exact()
     # remap needs maps smaller than 32767 in each dimension.
     for start in range(0, len(points), _REMAP_ROWS):
         p = points[start : start + _REMAP_ROWS].astype(np.float32)
         xs = p[:, 0:1] + dx.reshape(1, -1)  # (n, P*P), row-major patch order
         ys = p[:, 1:2] + dy.reshape(1, -1)
-        out[start : start + len(p)] = cv2.remap(
-            gray, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )
+        if exact:
+            out[start : start + len(p)] = cv2.remap(
+                gray, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
+        else:
+            _sample_patches(np.ascontiguousarray(gray, np.float32), xs, ys, out[start : start + len(p)])
     return out
 
 

@@ -29,16 +29,14 @@ from stereoseed.io.image_header import refuse_huge_image
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
 __all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file", "read_calibration",
-           "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS",
-           "VIDEO_EXTENSIONS"]
+           "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- reading text safely
 # Every reader below gives a valid result or a StereoseedError whose message is one line that
 # starts with the user's path, says what is wrong and what to do; never another exception.
 
-_CALIB_FORMATS = ('a calib.json ({"cameras": [{"P": 3x4}, {"P": 3x4}]}), a Middlebury *_par.txt '
-                  "or a COLMAP model folder")
+_CALIB_FORMATS = 'a calib.json ({"cameras": [{"P": 3x4}, {"P": 3x4}]}), a Middlebury *_par.txt or a COLMAP model folder'
 _PAR_FORMAT = "give a count line, then one line per image: name, K (9 numbers, row by row), R (9), t (3)"
 _LIST_HINT = "give a folder of images or a text file listing them, one path a line"
 # extensions of files that are images (to refuse as a list of images or a table), and of videos
@@ -208,8 +206,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     refuse_huge_image(path)  # by its header, before its bytes are read and decoded
     data = _read_bytes(path, "image")
     if not data:
-        raise StereoseedError(f"{path}: empty file (0 bytes), not an image; give a PNG, JPEG, PPM, BMP, TIFF "
-                              "or WebP image")
+        raise StereoseedError(f"{path}: empty file (0 bytes), not an image; give a PNG, JPEG, PPM, BMP, TIFF or WebP image")
     error = None
     with captured_stderr() as stderr_text:
         try:
@@ -514,21 +511,24 @@ def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None 
     return _pair_by_name(_parse_par(text, path), names, path, "par file")
 
 
-def read_calibration_unit(path: str | os.PathLike) -> str | None:
-    """The unit of the calibration's coordinates, in which the model is metric: calib.json's
-    optional "unit" (such as "mm"); None when the calibration does not say (no "unit", a par
-    file, a COLMAP model). What else is wrong with the file is :func:`read_calibration`'s to say."""
+def read_calibration_unit(path: str | os.PathLike, given: str | None = None) -> str | None:
+    """The unit of the calibration's coordinates (the model is metric in it): calib.json's "unit"
+    (such as "mm"), else ``given`` (``reconstruct --unit``: a par file or a COLMAP model names
+    none), else None; the rest of the file is :func:`read_calibration`'s to judge."""
     path = Path(path)
     text = _read_text(path, "calibration", f"give {_CALIB_FORMATS}") if path.is_file() else ""
     try:
         data = json.loads(text) if text.lstrip()[:1] == "{" else None
     except (ValueError, RecursionError):
-        return None
-    unit = data.get("unit") if isinstance(data, dict) else None
-    if unit is not None and not (isinstance(unit, str) and 0 < len(unit.strip()) <= 20):
-        raise StereoseedError(f'{path}: "unit" is {_show(json.dumps(unit), 40)}; give a short name such as "mm", '
-                              f"or leave it out")
-    return None if unit is None else unit.strip()
+        data = None
+    named = data.get("unit") if isinstance(data, dict) else None
+    for what, unit in ((f'{path}: "unit"', named), ("--unit", given)):
+        if unit is not None and not (isinstance(unit, str) and 0 < len(unit.strip()) <= 20):
+            raise StereoseedError(f'{what} is {_show(json.dumps(unit), 40)}; give a short name such as "mm", or leave it out')
+    named, given = (None if u is None else u.strip() for u in (named, given))
+    if named and given and given != named:
+        raise StereoseedError(f'{path} names its unit "{named}", not "{given}": leave --unit out')
+    return named or given
 
 
 _CALIB_JSON = '{"cameras": [{"P": 3x4}, {"P": 3x4}]}'

@@ -146,7 +146,8 @@ def _cameras_json(recon: Reconstruction, lenses: list | None = None, unit: str |
 
 def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: str | Path,
                  cfg: Config = Config(), lenses: list | None = None) -> dict[str, Path]:
-    """Write the result folder (each file atomically); returns {what: path}. lenses: the
+    """Write the result folder (each file atomically); returns {what: path}; ``report`` gains
+    "exported_points" and "far_points_dropped" (far outliers left out). lenses: the
     calibration's two lenses (image 0 through the first, every later image through the second)
     when the run worked on undistorted images."""
     out = Path(out_dir)
@@ -164,8 +165,8 @@ def write_result(recon: Reconstruction, report: dict[str, Any] | None, out_dir: 
                                   {"error": tracks["point_error"].astype(np.float32),
                                    "track_length": counts.astype(np.int32), "n_views": views.astype(np.int32)})
     written["cameras_ply"] = _write_cameras_ply(recon, out / "cameras.ply", tracks["point_xyz"])
-    if report is not None:
-        report = dict(report, format_version=FORMAT_VERSION, exported_points=int(len(ids)),
+    if report is not None:  # the caller's report gains what was written, so what it prints matches the files
+        report.update(format_version=FORMAT_VERSION, exported_points=int(len(ids)),
                       far_points_dropped=int(np.sum(recon.alive & (recon.track_lengths() >= 2)) - len(ids)))
         written["report"] = write_json(out / "report.json", report)
     return written

@@ -12,6 +12,10 @@ import numpy as np
 from stereoseed.geometry.projection import backproject, camera_center, is_finite_camera, viewing_direction
 from stereoseed.output.report.measure import measure_spec, measurement_trace, scale_bar, unit_label
 
+# a stereo rig's bar from each station's left camera to its right: cyan, apart from the scale
+# bar's yellow (measure.SCALE_COLOUR), the frustums' orange and red and the clouds' colours
+RIG_COLOUR = "#17becf"
+
 log = logging.getLogger("stereoseed.output.report.html")  # one logger for the whole report
 
 MAX_DENSE_POINTS = 50_000  # the dense cloud is subsampled to this many points
@@ -230,7 +234,7 @@ def figure_3d(dense_cloud: Any, frame: dict[str, Any], sparse: tuple[np.ndarray,
                     xyz[d] += [float(centre_of[i][d]), float(centre_of[i + 1][d]), None]
         if xyz[0]:
             data.append({"type": "scatter3d", "mode": "lines", "name": "stereo rig (each station)", "x": xyz[0],
-                         "y": xyz[1], "z": xyz[2], "line": {"color": "#ffd700", "width": 6}, "hoverinfo": "none"})
+                         "y": xyz[1], "z": xyz[2], "line": {"color": RIG_COLOUR, "width": 6}, "hoverinfo": "none"})
     if cams:
         data.append({"type": "scatter3d", "mode": "markers", "name": "camera centres", "showlegend": False,
                      "x": _rounded(centres[:, 0], size), "y": _rounded(centres[:, 1], size),

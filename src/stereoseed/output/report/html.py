@@ -121,11 +121,11 @@ def _weakest_insertion(recon: Any, report: dict[str, Any], source: Any) -> dict[
 def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
     rep = report.get("reprojection") if isinstance(report.get("reprojection"), dict) else {}
     items = [("registered", f"{_fmt(report.get('registered'))} / {_fmt(report.get('images'))} images"),
-             ("sparse points", _fmt(report.get("points"))),
+             ("sparse points", _points_text(report)),
              ("reprojection RMS", f"{_fmt(rep.get('rms_px'))} px" if finite_number(rep.get("rms_px")) is not None else "—"),
              ("observations", _fmt(rep.get("observations"))),
              ("mode", html.escape(str(report.get("mode", "—")))),
-             ("camera model", html.escape(str(report.get("camera_model", "—")))),
+             ("camera model", _model_text(report)),
              ("BA", html.escape(f"{report.get('ba', '—')}" + (f", window {report['window']}" if report.get("window") else ""))),
              ("unit", html.escape(report["unit"]) if report.get("unit") else "the calibration's (not named)")]
     dense = report.get("dense") if isinstance(report.get("dense"), dict) else None
@@ -139,6 +139,23 @@ def _summary(dense_cloud: Any, report: dict[str, Any]) -> str:
     if isinstance(loop, dict):
         items.append(("loop closure", _loop_text(loop, report.get("unit") if isinstance(report.get("unit"), str) else None)))
     return "".join(f'<div class="kv"><span>{html.escape(k)}</span><b>{v}</b></div>' for k, v in items)
+
+
+def _model_text(report: dict[str, Any]) -> str:
+    """The camera model asked for, and what the run used when no image zoomed (every row then
+    says "fixed": the calibrated intrinsics kept)."""
+    asked = html.escape(str(report.get("camera_model", "—")))
+    final = report.get("final") if isinstance(report.get("final"), dict) else {}
+    if final.get("no_zoom") and asked not in ("fixed", "—"):
+        return f"fixed: no image zoomed ({asked} asked)"
+    return asked
+
+
+def _points_text(report: dict[str, Any]) -> str:
+    """The sparse points written (report "exported_points"), and the far ones left out."""
+    far = finite_number(report.get("far_points_dropped"))
+    text = _fmt(report.get("exported_points", report.get("points")))
+    return text + (f" ({int(far)} far left out)" if far else "")
 
 
 def _loop_text(loop: dict[str, Any], unit: str | None) -> str:
