@@ -85,12 +85,12 @@ def _mesh_command(argv: list[str]) -> int:
 @pytest.fixture(scope="module")
 def dense_box(box_scene, tmp_path_factory):
     """Five images of the textured box reconstructed, the dense stage run, and the result folder
-    written as reconstruct writes it (cameras.json, tracks.npz, dense.ply, the manifest)."""
+    written as reconstruct writes it (cameras.json, tracks.npz, dense.ply, report.html, the
+    manifest)."""
     from stereoseed.config import Config
     from stereoseed.dense.densify import densify
     from stereoseed.experiments.evaluation import TrueCorrespondences
-    from stereoseed.output.results import write_result
-    from stereoseed.pipeline import reconstruct
+    from stereoseed.pipeline import reconstruct, save_outputs
 
     scene = box_scene.prefix(5)
     cfg = Config()
@@ -100,7 +100,7 @@ def dense_box(box_scene, tmp_path_factory):
         results.check()
         staging = results.open()
         cloud, report["dense"] = densify(recon, cfg, staging)
-        write_result(recon, report, staging, cfg)
+        save_outputs(recon, report, staging, cfg, dense=cloud)
         results.commit()
     return scene, recon, cloud, folder
 
@@ -111,8 +111,10 @@ def test_mesh_of_the_dense_box_meets_the_issue_figures(dense_box):
     from scipy.spatial import cKDTree
 
     scene, recon, cloud, folder = dense_box
+    page_before = (folder / "report.html").read_text()
     path, summary = mesh_result(folder)
     assert path == folder / "mesh.ply" and summary["normals"] == "dense.ply"
+    _assert_the_page_shows_the_mesh(folder, page_before, summary, len(recon.registered_views))
     assert "mesh.ply" in json.loads((folder / MANIFEST).read_text())["files"]
     ResultSet(folder).check()  # still a folder of stereoseed's: a later reconstruct --out may replace it
     vertices, faces, colors = _read_mesh(path)
@@ -135,6 +137,27 @@ def test_mesh_of_the_dense_box_meets_the_issue_figures(dense_box):
     assert seen.sum() > 5000
     assert np.median(np.abs(pixel - colors[seen])) <= 8  # measured 4 grey levels
     assert np.corrcoef(pixel.mean(axis=1), colors[seen].astype(np.float64).mean(axis=1))[0, 1] >= 0.9
+
+
+def _figures_of(page: str) -> dict:
+    text = page.split('<script type="application/json" id="figures">', 1)[1].split("</script>", 1)[0]
+    return json.loads(text)
+
+
+def _assert_the_page_shows_the_mesh(folder: Path, before: str, summary: dict, registered: int) -> None:
+    """`stereoseed mesh` wrote report.html again from the folder: the mesh in the 3D view, beside
+    what the run's page showed (the dense cloud, the sparse cloud, a frustum per registered
+    camera), and the mesh's summary in report.json."""
+    assert summary["report_html"] is True
+    old, new = (_figures_of(page)["view3d"]["data"] for page in (before, (folder / "report.html").read_text()))
+    assert not any(t["type"] == "mesh3d" for t in old)
+    meshes = [t for t in new if t["type"] == "mesh3d"]
+    assert len(meshes) == 1 and len(meshes[0]["i"]) == min(summary["faces"], 100_000)
+    assert [t["name"] for t in old] == [t["name"] for t in new if t["type"] != "mesh3d"]  # the rest as the run drew it
+    assert any("dense" in t["name"] for t in old) and any("calibrated pair" in t.get("name", "") for t in old)
+    report = json.loads((folder / "report.json").read_text())
+    assert report["mesh"]["faces"] == summary["faces"] and report["registered"] == registered
+    assert "report.html" in json.loads((folder / MANIFEST).read_text())["files"]
 
 
 @needs_pymeshlab

@@ -13,7 +13,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     normals = "its normals" if summary["normals"] == "dense.ply" else "normals estimated towards the cameras"
     say(f"mesh: {summary['faces']} faces, {summary['vertices']} vertices from {summary['points']} points "
         f"({normals}; {summary['poisson_faces'] - summary['faces']} Poisson faces beyond the cloud trimmed) "
-        f"in {summary['seconds']:.1f} s; wrote {path}")
+        f"in {summary['seconds']:.1f} s; wrote {path}" + ("; report.html shows it" if summary.get("report_html") else ""))
     return 0
 
 

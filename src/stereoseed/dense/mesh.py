@@ -266,12 +266,12 @@ def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = N
     points, normals, colors, source = _read_cloud(folder, cfg)
     mesh, summary = poisson_mesh(points, normals, colors, cfg)
     summary = {"normals": source, **summary}
+    summary["seconds"] = time.perf_counter() - t0
     inside = _inside(target, folder)
     if inside is None:
         write_mesh(target, mesh)
     else:
-        _write_into_result(folder, target, inside, mesh, lock)
-    summary["seconds"] = time.perf_counter() - t0
+        summary["report_html"] = _write_into_result(folder, target, inside, mesh, lock, (points, colors), summary)
     return target, summary
 
 
@@ -283,14 +283,20 @@ def _inside(target: Path, folder: Path) -> str | None:
         return None
 
 
-def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lock: bool) -> None:
+def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lock: bool,
+                       cloud: tuple[np.ndarray, np.ndarray], summary: dict[str, Any]) -> bool:
     """Write the mesh into the result folder and list it in the folder's manifest (when the
-    folder has one: a staging folder gets its manifest when it is committed)."""
+    folder has one: a staging folder gets its manifest when it is committed); the folder's
+    report.html written again with the mesh shown, its report.json given the mesh's summary
+    (:func:`stereoseed.output.report.saved.rewrite_report_html`). Returns whether report.html was
+    written."""
     from contextlib import nullcontext
 
+    from stereoseed.output.report.saved import SavedCloud, rewrite_report_html
     from stereoseed.output.result_set import ResultSet, add_to_manifest
 
     with ResultSet(folder) if lock else nullcontext():
         write_mesh(target, mesh)
         if not add_to_manifest(folder, relative):
             log.warning("%s: its manifest is unreadable; the mesh is not listed in it", folder)
+        return rewrite_report_html(folder, mesh, SavedCloud(*cloud), {"mesh": summary}) is not None
