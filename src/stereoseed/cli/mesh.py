@@ -11,7 +11,8 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
     path, summary = mesh_result(args.result, args.out, MeshConfig(depth=args.depth))
     normals = "its normals" if summary["normals"] == "dense.ply" else "normals estimated towards the cameras"
-    say(f"mesh: {summary['faces']} faces, {summary['vertices']} vertices from {summary['points']} points "
+    say(f"mesh: {summary['faces']} faces, {summary['vertices']} vertices from {summary['points']} points, "
+        f"depth {summary['depth']} "
         f"({normals}; {summary['poisson_faces'] - summary['faces']} Poisson faces beyond the cloud trimmed) "
         f"in {summary['seconds']:.1f} s; wrote {path}" + ("; report.html shows it" if summary.get("report_html") else ""))
     return 0
@@ -23,9 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "its colours (needs the extra: pip install 'stereoseed[mesh]')")
     p.add_argument("result", help="a folder written by stereoseed reconstruct --dense --out RESULT")
     p.add_argument("--out", help="the mesh's PLY file (default: RESULT/mesh.ply, listed with the result's files)")
-    p.add_argument("--depth", type=_depth, default=8,
-                   help="Poisson octree depth: each level halves the grid cell (finer detail, about 3x the time; "
-                        "default: %(default)s)")
+    p.add_argument("--depth", type=_depth, default=0,
+                   help="Poisson octree depth, 4..12: each level halves the grid cell (finer detail, about 4x the "
+                        "time; default: chosen from the cloud's point spacing)")
     p.add_argument("--verbose", action="store_true", help="log each step")
     p.set_defaults(func=_cmd_mesh)
 
@@ -36,5 +37,5 @@ def _depth(text: str) -> int:
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if not 4 <= value <= 12:
-        raise argparse.ArgumentTypeError(f"must be within 4..12, got {value}")
+        raise argparse.ArgumentTypeError(f"must be within 4..12 (leave it out: from the point spacing), got {value}")
     return value

@@ -76,12 +76,26 @@ class DenseConfig:
 @dataclass(frozen=True)
 class MeshConfig:
     # Octree depth of the Poisson solve: the grid cell is scale x the cloud's largest extent
-    # / 2**depth. PoissonRecon's default; each level more is about three times the time and
-    # memory for detail finer than the dense cloud's own noise at the scenes' sizes.
-    depth: int = 8
+    # / 2**depth. 0: chosen from the cloud's point spacing (cell_spacings); a fixed depth set on
+    # the box's flat faces (8) smoothed a curved object's surface to twice its cloud's error
+    # (docs/dense.md).
+    depth: int = 0
+    # Automatic depth: the grid cell at most this many times the cloud's point spacing (the
+    # median distance of a point to its nearest neighbour). A cell spans a few points, so each
+    # leaf holds the samples_per_node Poisson wants; measured on the rendered sphere (docs/dense.md):
+    # a cell of 2.7 spacings kept the cloud's accuracy, 5.5 spacings doubled the error.
+    cell_spacings: float = 3.0
+    # Automatic depth within these bounds: below 6 no object has a shape; each level more is
+    # about four times the time and memory (depth 10: ~1 M faces and a minute on one core).
+    min_auto_depth: int = 6
+    max_auto_depth: int = 10
     # Poisson's bounding cube over the cloud's box (PoissonRecon's default): room for the
     # implicit function to close beyond the outermost points.
     scale: float = 1.1
+    # Points of lower confidence (dense.ply's: (agree + 1) / (agree + contradict + 2)) are left
+    # out of the mesh. 0.5: the points no other pair judged (nothing contradicts them) stay;
+    # the fusion already dropped those contradicted more than confirmed (DenseConfig.min_confidence).
+    min_confidence: float = 0.5
     # Minimum points per octree leaf (PoissonRecon's default): fewer make noise into surface.
     samples_per_node: float = 1.5
     # The screening weight: how strongly the surface is pulled through the points, against
@@ -109,16 +123,24 @@ class MeshConfig:
     threads: int = 1
 
     def __post_init__(self) -> None:
-        whole(self, "depth", minimum=4)
+        whole(self, "depth", minimum=0)
+        whole(self, "min_auto_depth", "max_auto_depth", minimum=4)
+        if 0 < self.depth < 4:
+            raise ValueError(f"MeshConfig.depth must be 0 (from the point spacing) or >= 4, got {self.depth}")
+        if not self.min_auto_depth <= self.max_auto_depth <= 12:
+            raise ValueError(f"MeshConfig: min_auto_depth <= max_auto_depth <= 12 needed, got {self.min_auto_depth} "
+                             f"and {self.max_auto_depth}")
         whole(self, "color_neighbours", "normal_neighbours")
         whole(self, "min_points", minimum=10)
         whole(self, "threads", minimum=0)
-        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop")
+        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop", "cell_spacings")
         if self.depth > 12:
             raise ValueError(f"MeshConfig.depth must be <= 12 (a finer grid needs memory no machine here has), "
                              f"got {self.depth}")
         if self.scale < 1.0:
             raise ValueError(f"MeshConfig.scale must be >= 1 (the cube holds the cloud), got {self.scale}")
+        if not 0 <= self.min_confidence < 1:
+            raise ValueError(f"MeshConfig.min_confidence must be in [0, 1) (0: every point), got {self.min_confidence}")
         if self.point_weight < 0:
             raise ValueError(f"MeshConfig.point_weight must be >= 0 (0: unscreened Poisson), got {self.point_weight}")
 
