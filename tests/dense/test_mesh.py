@@ -230,7 +230,7 @@ def test_each_trim_alone_removes_the_surface_poisson_invents_below_the_rim():
     lowest = {}
     for name, cfg in {"none": MeshConfig(depth=6, max_gap_cells=1000.0, density_drop=1000.0),
                       "density": MeshConfig(depth=6, max_gap_cells=1000.0),
-                      "distance": MeshConfig(depth=6, density_drop=1000.0)}.items():
+                      "distance": MeshConfig(depth=6, max_gap_cells=2.0, density_drop=1000.0)}.items():
         mesh, summary = poisson_mesh(points, normals, colors, cfg)
         lowest[name] = mesh.vertices[:, 2].min() / summary["cell"]
         if name == "density":
@@ -361,13 +361,13 @@ def test_the_poisson_depth_follows_the_point_spacing_and_keeps_curved_surfaces()
     spacing = point_spacing(points)
     mesh, summary = poisson_mesh(points, normals, colors)
     extent = 1.1 * np.ptp(points, axis=0).max()
-    # the shallowest depth whose cell is within 3 spacings
-    assert summary["depth"] == int(np.ceil(np.log2(extent / (3 * spacing)))) and summary["cell"] <= 3 * spacing
+    # the shallowest depth whose cell is within 4 spacings
+    assert summary["depth"] == int(np.ceil(np.log2(extent / (4 * spacing)))) and summary["cell"] <= 4 * spacing
     assert poisson_depth(points[::4], MeshConfig(), point_spacing(points[::4])) == summary["depth"] - 1  # sparser
     assert poisson_depth(points, MeshConfig(depth=7), spacing) == 7  # a depth given is kept
     assert poisson_depth(points, MeshConfig(max_auto_depth=8), spacing) == 8
     error = np.min([np.abs(np.linalg.norm(mesh.vertices - c, axis=1) - 0.05) for c in centres], axis=0)
-    # on the domes within a small part of the spacing (measured 0.025 spacings; the fixed depth 8
+    # on the domes within a small part of the spacing (measured 0.028 spacings; the fixed depth 8
     # of before: 0.072, its cell 5.3 spacings)
     assert np.median(error) <= 0.045 * spacing, (np.median(error) / spacing, summary)
 

@@ -81,10 +81,12 @@ class MeshConfig:
     # (docs/dense.md).
     depth: int = 0
     # Automatic depth: the grid cell at most this many times the cloud's point spacing (the
-    # median distance of a point to its nearest neighbour). A cell spans a few points, so each
-    # leaf holds the samples_per_node Poisson wants; measured on the rendered sphere (docs/dense.md):
-    # a cell of 2.7 spacings kept the cloud's accuracy, 5.5 spacings doubled the error.
-    cell_spacings: float = 3.0
+    # median distance of a point to its nearest neighbour): a cell spans a few points, so each
+    # leaf holds the samples_per_node Poisson wants. Measured on the rendered sphere
+    # (docs/dense.md): a cell of 2.7 spacings kept the cloud's accuracy, 5.5 spacings doubled its
+    # error; 4 takes the box to depth 9 (3.2 spacings), where 3 took it to 10 (4x the time, 1.1 M
+    # faces) for the same median.
+    cell_spacings: float = 4.0
     # Automatic depth within these bounds: below 6 no object has a shape; each level more is
     # about four times the time and memory (depth 10: ~1 M faces and a minute on one core).
     min_auto_depth: int = 6
@@ -102,8 +104,10 @@ class MeshConfig:
     # smoothness (PoissonRecon's default for screened Poisson).
     point_weight: float = 4.0
     # A vertex farther than this many grid cells from every cloud point is not backed by the
-    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents.
-    max_gap_cells: float = 2.0
+    # cloud: Poisson bridges a hole of a few cells, beyond that it invents. 4 at the depth from
+    # the spacing (the box's cell 0.43 cm) bridges what 2 did at the fixed depth 8 (0.87 cm): at 2
+    # the box's mesh covered less of its faces than before (0.948 against 0.956 at 0.5 cm).
+    max_gap_cells: float = 4.0
     # A vertex whose Poisson density is this far below the median of the vertices the cloud
     # backs is dropped: 2 units = 16 times fewer points per area than the typical surface,
     # the density of the extrapolated rims, not of a sparsely matched but real surface.
