@@ -15,8 +15,8 @@ Figures (distances in cm; the model is in metres):
   against what its input held;
 * the share of the area whose face normal points to the outside of the true surface.
 
-Meshed as before issue 50 (``depth_8``: the fixed depth 8, the trim at 2 grid cells) and with
-the defaults since (``auto``: the depth from the cloud's point spacing, the trim at 4 cells).
+Meshed at the default depth 8 (``depth_8``) and at the depth from the cloud's point spacing
+(``auto``, ``--depth auto``).
 
 ``sphere`` (issue 50): a curved object, :mod:`stereoseed.synthetic.curved` (a textured sphere of
 30 cm on a textured ground, 8 views of 640 x 480 on a ring), the sparse run's cameras replaced
@@ -40,7 +40,7 @@ THRESHOLD_M = 0.005  # the issue's 0.5 cm
 def _before():
     from stereoseed.dense.mesh import MeshConfig
 
-    return MeshConfig(depth=8, max_gap_cells=2.0)  # the defaults before issue 50
+    return MeshConfig(depth=8)  # the default depth
 
 
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -166,7 +166,7 @@ def run() -> dict:
         scene = render_scene(SceneConfig(n_images=14))
         views = _registered(folder)
         cloud, _ = read_ply(folder / "dense.ply")
-        for depth, config in ((8, _before()), (0, MeshConfig())):
+        for depth, config in ((8, _before()), (0, MeshConfig(depth=0))):
             path, summary = mesh_result(folder, Path(tmp) / f"mesh_{depth}.ply", config)
             ply = PlyData.read(str(path))
             faces = np.vstack(ply["face"].data["vertex_indices"]).astype(np.int64)
@@ -213,7 +213,7 @@ def run_sphere(n_images: int = 8) -> dict:
     out["threshold_cm"] = threshold * 100
     out["cloud"] = {"median_distance_cm": cloud_median * 100, "completeness_seen": float(covered.mean()),
                     "sphere_samples_seen": int(len(samples))}
-    for label, config in (("depth_8", _before()), ("auto", MeshConfig())):
+    for label, config in (("depth_8", _before()), ("auto", MeshConfig(depth=0))):
         mesh, summary = poisson_mesh(cloud.points, cloud.normals, cloud.colors, config, cloud.confidence)
         median = float(np.median(scene.surface_distance(mesh.vertices[on_sphere(mesh.vertices)])))
         reached = mesh_distance(samples, mesh.vertices, mesh.faces) <= threshold

@@ -24,18 +24,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "its colours (needs the extra: pip install 'stereoseed[mesh]')")
     p.add_argument("result", help="a folder written by stereoseed reconstruct --dense --out RESULT")
     p.add_argument("--out", help="the mesh's PLY file (default: RESULT/mesh.ply, listed with the result's files)")
-    p.add_argument("--depth", type=_depth, default=0,
+    p.add_argument("--depth", type=_depth, default=8,
                    help="Poisson octree depth, 4..12: each level halves the grid cell (finer detail, about 4x the "
-                        "time; default: chosen from the cloud's point spacing)")
+                        "time), or auto: from the cloud's point spacing (curved objects; docs/dense.md); "
+                        "default: %(default)s")
     p.add_argument("--verbose", action="store_true", help="log each step")
     p.set_defaults(func=_cmd_mesh)
 
 
 def _depth(text: str) -> int:
+    if text == "auto":
+        return 0  # MeshConfig's "from the point spacing"
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if not 4 <= value <= 12:
-        raise argparse.ArgumentTypeError(f"must be within 4..12 (leave it out: from the point spacing), got {value}")
+        raise argparse.ArgumentTypeError(f"must be within 4..12, or auto (from the point spacing), got {value}")
     return value

@@ -76,10 +76,12 @@ class DenseConfig:
 @dataclass(frozen=True)
 class MeshConfig:
     # Octree depth of the Poisson solve: the grid cell is scale x the cloud's largest extent
-    # / 2**depth. 0: chosen from the cloud's point spacing (cell_spacings); a fixed depth set on
-    # the box's flat faces (8) smoothed a curved object's surface to twice its cloud's error
-    # (docs/dense.md).
-    depth: int = 0
+    # / 2**depth. 8: PoissonRecon's default, set on the box. 0: chosen from the cloud's point
+    # spacing (cell_spacings): on a curved object depth 8 smoothed the mesh to 1.9 times its
+    # cloud's error, the spacing's depth keeps it (0.85 times); it is not the default because on
+    # the box its finer grid, trimmed at max_gap_cells of its smaller cells, bridges fewer of the
+    # cloud's holes (completeness at 0.5 cm 0.948 against 0.956; docs/dense.md).
+    depth: int = 8
     # Automatic depth: the grid cell at most this many times the cloud's point spacing (the
     # median distance of a point to its nearest neighbour): a cell spans a few points, so each
     # leaf holds the samples_per_node Poisson wants. Measured on the rendered sphere
@@ -104,10 +106,11 @@ class MeshConfig:
     # smoothness (PoissonRecon's default for screened Poisson).
     point_weight: float = 4.0
     # A vertex farther than this many grid cells from every cloud point is not backed by the
-    # cloud: Poisson bridges a hole of a few cells, beyond that it invents. 4 at the depth from
-    # the spacing (the box's cell 0.43 cm) bridges what 2 did at the fixed depth 8 (0.87 cm): at 2
-    # the box's mesh covered less of its faces than before (0.948 against 0.956 at 0.5 cm).
-    max_gap_cells: float = 4.0
+    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents (a dome's
+    # rim extrapolated at 3 or 4 cells bends its normals). On a finer grid it bridges smaller
+    # holes: the box's mesh at the depth from the spacing covers 0.948 of its faces at 0.5 cm
+    # against 0.956 at depth 8 (4 cells: 0.972, docs/dense.md).
+    max_gap_cells: float = 2.0
     # A vertex whose Poisson density is this far below the median of the vertices the cloud
     # backs is dropped: 2 units = 16 times fewer points per area than the typical surface,
     # the density of the extrapolated rims, not of a sparsely matched but real surface.
@@ -138,6 +141,7 @@ class MeshConfig:
         whole(self, "min_points", minimum=10)
         whole(self, "threads", minimum=0)
         positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop", "cell_spacings")
+
         if self.depth > 12:
             raise ValueError(f"MeshConfig.depth must be <= 12 (a finer grid needs memory no machine here has), "
                              f"got {self.depth}")

@@ -1,8 +1,9 @@
 """A surface from the quasi-dense cloud: screened Poisson reconstruction (Kazhdan & Hoppe 2013,
 through PyMeshLab, the optional extra ``mesh``), trimmed to where the cloud is, coloured from it.
 
-The octree's depth follows the cloud's point spacing (a grid cell of a few spacings: the mesh
-keeps the cloud's accuracy on curved surfaces too, docs/dense.md); each point weighs in the fit
+The octree's depth is fixed (``MeshConfig.depth``) or, with depth 0, follows the cloud's point
+spacing (a grid cell of a few spacings: the mesh keeps the cloud's accuracy on curved surfaces
+too, at some of the box's completeness: docs/dense.md); each point weighs in the fit
 by its confidence (dense.ply's), and points below ``MeshConfig.min_confidence`` are left out.
 
 Poisson fits a closed implicit surface to oriented points, so it also makes surface where there
