@@ -488,7 +488,8 @@ def reconstruct_to_folder(images_source: str | list[str], calib_path: str, out: 
             if mesh:  # from the cloud in memory: report.html shows it
                 from stereoseed.dense.mesh import poisson_mesh, write_mesh
 
-                surface, report["mesh"] = poisson_mesh(cloud.points, cloud.normals, cloud.colors, cfg.mesh)
+                surface, report["mesh"] = poisson_mesh(cloud.points, cloud.normals, cloud.colors, cfg.mesh,
+                                                         cloud.confidence)
                 write_mesh(staging / "mesh.ply", surface)
                 stages["mesh"] = time.perf_counter() - t0 - sum(stages.values())
             report.update(unit=unit, timing={"total_s": time.perf_counter() - t0, "stages_s": stages})

@@ -11,9 +11,10 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
     path, summary = mesh_result(args.result, args.out, MeshConfig(depth=args.depth))
     normals = "its normals" if summary["normals"] == "dense.ply" else "normals estimated towards the cameras"
-    say(f"mesh: {summary['faces']} faces, {summary['vertices']} vertices from {summary['points']} points "
+    say(f"mesh: {summary['faces']} faces, {summary['vertices']} vertices from {summary['points']} points, "
+        f"depth {summary['depth']} "
         f"({normals}; {summary['poisson_faces'] - summary['faces']} Poisson faces beyond the cloud trimmed) "
-        f"in {summary['seconds']:.1f} s; wrote {path}")
+        f"in {summary['seconds']:.1f} s; wrote {path}" + ("; report.html shows it" if summary.get("report_html") else ""))
     return 0
 
 
@@ -24,17 +25,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("result", help="a folder written by stereoseed reconstruct --dense --out RESULT")
     p.add_argument("--out", help="the mesh's PLY file (default: RESULT/mesh.ply, listed with the result's files)")
     p.add_argument("--depth", type=_depth, default=8,
-                   help="Poisson octree depth: each level halves the grid cell (finer detail, about 3x the time; "
-                        "default: %(default)s)")
+                   help="Poisson octree depth, 4..12: each level halves the grid cell (finer detail, about 4x the "
+                        "time), or auto: from the cloud's point spacing (curved objects; docs/dense.md); "
+                        "default: %(default)s")
     p.add_argument("--verbose", action="store_true", help="log each step")
     p.set_defaults(func=_cmd_mesh)
 
 
 def _depth(text: str) -> int:
+    if text == "auto":
+        return 0  # MeshConfig's "from the point spacing"
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if not 4 <= value <= 12:
-        raise argparse.ArgumentTypeError(f"must be within 4..12, got {value}")
+        raise argparse.ArgumentTypeError(f"must be within 4..12, or auto (from the point spacing), got {value}")
     return value

@@ -76,19 +76,40 @@ class DenseConfig:
 @dataclass(frozen=True)
 class MeshConfig:
     # Octree depth of the Poisson solve: the grid cell is scale x the cloud's largest extent
-    # / 2**depth. PoissonRecon's default; each level more is about three times the time and
-    # memory for detail finer than the dense cloud's own noise at the scenes' sizes.
+    # / 2**depth. 8: PoissonRecon's default, set on the box. 0: chosen from the cloud's point
+    # spacing (cell_spacings): on a curved object depth 8 smoothed the mesh to 1.9 times its
+    # cloud's error, the spacing's depth keeps it (0.85 times); it is not the default because on
+    # the box its finer grid, trimmed at max_gap_cells of its smaller cells, bridges fewer of the
+    # cloud's holes (completeness at 0.5 cm 0.948 against 0.956; docs/dense.md).
     depth: int = 8
+    # Automatic depth: the grid cell at most this many times the cloud's point spacing (the
+    # median distance of a point to its nearest neighbour): a cell spans a few points, so each
+    # leaf holds the samples_per_node Poisson wants. Measured on the rendered sphere
+    # (docs/dense.md): a cell of 2.7 spacings kept the cloud's accuracy, 5.5 spacings doubled its
+    # error; 4 takes the box to depth 9 (3.2 spacings), where 3 took it to 10 (4x the time, 1.1 M
+    # faces) for the same median.
+    cell_spacings: float = 4.0
+    # Automatic depth within these bounds: below 6 no object has a shape; each level more is
+    # about four times the time and memory (depth 10: ~1 M faces and a minute on one core).
+    min_auto_depth: int = 6
+    max_auto_depth: int = 10
     # Poisson's bounding cube over the cloud's box (PoissonRecon's default): room for the
     # implicit function to close beyond the outermost points.
     scale: float = 1.1
+    # Points of lower confidence (dense.ply's: (agree + 1) / (agree + contradict + 2)) are left
+    # out of the mesh. 0.5: the points no other pair judged (nothing contradicts them) stay;
+    # the fusion already dropped those contradicted more than confirmed (DenseConfig.min_confidence).
+    min_confidence: float = 0.5
     # Minimum points per octree leaf (PoissonRecon's default): fewer make noise into surface.
     samples_per_node: float = 1.5
     # The screening weight: how strongly the surface is pulled through the points, against
     # smoothness (PoissonRecon's default for screened Poisson).
     point_weight: float = 4.0
     # A vertex farther than this many grid cells from every cloud point is not backed by the
-    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents.
+    # cloud: Poisson bridges a hole of about its own resolution, beyond that it invents (a dome's
+    # rim extrapolated at 3 or 4 cells bends its normals). On a finer grid it bridges smaller
+    # holes: the box's mesh at the depth from the spacing covers 0.948 of its faces at 0.5 cm
+    # against 0.956 at depth 8 (4 cells: 0.972, docs/dense.md).
     max_gap_cells: float = 2.0
     # A vertex whose Poisson density is this far below the median of the vertices the cloud
     # backs is dropped: 2 units = 16 times fewer points per area than the typical surface,
@@ -109,16 +130,25 @@ class MeshConfig:
     threads: int = 1
 
     def __post_init__(self) -> None:
-        whole(self, "depth", minimum=4)
+        whole(self, "depth", minimum=0)
+        whole(self, "min_auto_depth", "max_auto_depth", minimum=4)
+        if 0 < self.depth < 4:
+            raise ValueError(f"MeshConfig.depth must be 0 (from the point spacing) or >= 4, got {self.depth}")
+        if not self.min_auto_depth <= self.max_auto_depth <= 12:
+            raise ValueError(f"MeshConfig: min_auto_depth <= max_auto_depth <= 12 needed, got {self.min_auto_depth} "
+                             f"and {self.max_auto_depth}")
         whole(self, "color_neighbours", "normal_neighbours")
         whole(self, "min_points", minimum=10)
         whole(self, "threads", minimum=0)
-        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop")
+        positive(self, "scale", "samples_per_node", "max_gap_cells", "density_drop", "cell_spacings")
+
         if self.depth > 12:
             raise ValueError(f"MeshConfig.depth must be <= 12 (a finer grid needs memory no machine here has), "
                              f"got {self.depth}")
         if self.scale < 1.0:
             raise ValueError(f"MeshConfig.scale must be >= 1 (the cube holds the cloud), got {self.scale}")
+        if not 0 <= self.min_confidence < 1:
+            raise ValueError(f"MeshConfig.min_confidence must be in [0, 1) (0: every point), got {self.min_confidence}")
         if self.point_weight < 0:
             raise ValueError(f"MeshConfig.point_weight must be >= 0 (0: unscreened Poisson), got {self.point_weight}")
 

@@ -1,6 +1,11 @@
 """A surface from the quasi-dense cloud: screened Poisson reconstruction (Kazhdan & Hoppe 2013,
 through PyMeshLab, the optional extra ``mesh``), trimmed to where the cloud is, coloured from it.
 
+The octree's depth is fixed (``MeshConfig.depth``) or, with depth 0, follows the cloud's point
+spacing (a grid cell of a few spacings: the mesh keeps the cloud's accuracy on curved surfaces
+too, at some of the box's completeness: docs/dense.md); each point weighs in the fit
+by its confidence (dense.ply's), and points below ``MeshConfig.min_confidence`` are left out.
+
 Poisson fits a closed implicit surface to oriented points, so it also makes surface where there
 are none (it closes an open ground plane with a bubble underneath, bridges the gaps). The mesh is
 therefore trimmed: a vertex farther than ``max_gap_cells`` Poisson cells from every cloud point,
@@ -27,9 +32,10 @@ import numpy as np
 from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.outputs import same_file
-from stereoseed.io.ply import read_dense_ply, write_ply
+from stereoseed.io.ply import read_dense_ply, read_ply_vertices, write_ply
 
-__all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "poisson_mesh", "write_mesh"]
+__all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "point_spacing", "poisson_depth",
+           "poisson_mesh", "write_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -72,14 +78,49 @@ def _pymeshlab() -> Any:
     return pymeshlab
 
 
+SPACING_SAMPLE = 20_000  # points whose nearest neighbour measures the spacing: its median is stable to ~1 %
+
+
+def point_spacing(points: np.ndarray, tree: Any = None) -> float:
+    """The cloud's point spacing: the median distance of a point (N, 3) to its nearest other
+    point (over a fixed random sample of SPACING_SAMPLE points when there are more)."""
+    from scipy.spatial import cKDTree
+
+    tree = tree if tree is not None else cKDTree(points)
+    sample = points
+    if len(points) > SPACING_SAMPLE:
+        sample = points[np.random.default_rng(0).choice(len(points), SPACING_SAMPLE, replace=False)]
+    distance, _ = tree.query(sample, k=2)
+    return float(np.median(distance[:, 1]))
+
+
+def poisson_depth(points: np.ndarray, cfg: MeshConfig, spacing: float) -> int:
+    """The octree depth: ``cfg.depth``, or (0) the shallowest whose grid cell is at most
+    ``cfg.cell_spacings`` point spacings, within the configured bounds."""
+    if cfg.depth:
+        return cfg.depth
+    extent = cfg.scale * float(np.max(points.max(axis=0) - points.min(axis=0)))
+    if not spacing > 0:  # every point doubled: no spacing to read
+        return cfg.min_auto_depth
+    wanted = int(np.ceil(np.log2(extent / (cfg.cell_spacings * spacing))))
+    depth = min(max(wanted, cfg.min_auto_depth), cfg.max_auto_depth)
+    if depth < wanted:
+        log.warning("mesh: the cloud's spacing (%.3g) calls for Poisson depth %d; depth %d (MeshConfig.max_auto_depth) "
+                    "is used, the mesh is smoother than the cloud", spacing, wanted, depth)
+    return depth
+
+
 def poisson_mesh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
-                 cfg: MeshConfig = MeshConfig()) -> tuple[Mesh, dict[str, Any]]:
+                 cfg: MeshConfig = MeshConfig(), confidence: np.ndarray | None = None) -> tuple[Mesh, dict[str, Any]]:
     """Screened Poisson surface of an oriented cloud, trimmed to the cloud, coloured from it.
 
     points (N, 3), normals (N, 3) unit vectors towards the outside (where the cameras were),
-    colors (N, 3) uint8 RGB. Returns the mesh and a summary (counts before and after each trim,
-    the grid cell, seconds). Raises :class:`StereoseedError` for too few points, a cloud without
-    finite coordinates, or when the extra is missing."""
+    colors (N, 3) uint8 RGB; confidence (N,) in (0, 1] (dense.ply's), when given: each point's
+    weight in the Poisson fit (PoissonRecon's confidence: its normal scaled by it), and points
+    below ``cfg.min_confidence`` left out. The octree depth: :func:`poisson_depth`. Returns the
+    mesh and a summary (counts before and after each trim, the depth, the grid cell, the point
+    spacing, seconds). Raises :class:`StereoseedError` for too few points, a cloud without finite
+    coordinates, or when the extra is missing."""
     from scipy.spatial import cKDTree
 
     t0 = time.perf_counter()
@@ -89,13 +130,21 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
     if not len(points) == len(normals) == len(colors):
         raise ValueError(f"points, normals and colors differ in length ({len(points)}, {len(normals)}, {len(colors)})")
     good = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(normals), axis=1)
+    if confidence is not None:
+        confidence = np.asarray(confidence, np.float64).reshape(-1)
+        if len(confidence) != len(points):
+            raise ValueError(f"confidence has {len(confidence)} values for {len(points)} points")
+        good &= np.isfinite(confidence) & (confidence >= cfg.min_confidence)
+        confidence = confidence[good]
     points, normals, colors = points[good], normals[good], colors[good]
     if len(points) < cfg.min_points:
         raise StereoseedError(f"the cloud has {len(points)} usable points, fewer than the {cfg.min_points} a mesh "
                               f"needs; reconstruct with more images or --dense on a textured object")
-    vertices, faces, vertex_normals, density = _screened_poisson(points, normals, cfg)
-    cell = cfg.scale * float(np.max(points.max(axis=0) - points.min(axis=0))) / 2 ** cfg.depth
     tree = cKDTree(points)
+    spacing = point_spacing(points, tree)
+    depth = poisson_depth(points, cfg, spacing)
+    vertices, faces, vertex_normals, density = _screened_poisson(points, normals, confidence, depth, cfg)
+    cell = cfg.scale * float(np.max(points.max(axis=0) - points.min(axis=0))) / 2 ** depth
     gap, _ = tree.query(vertices, workers=cfg.pool_size())
     near = gap <= cfg.max_gap_cells * cell
     reference = float(np.median(density[near])) if near.any() else float("nan")
@@ -107,26 +156,30 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
     idx = idx.reshape(len(mesh.vertices), k)
     mean = colors[idx].astype(np.float64).mean(axis=1) if len(idx) else np.zeros((0, 3))
     mesh = Mesh(mesh.vertices, mesh.faces, np.rint(mean).astype(np.uint8), mesh.normals, mesh.density)
-    summary = {"points": int(len(points)), "depth": cfg.depth, "cell": cell,
+    summary = {"points": int(len(points)), "depth": depth, "cell": cell, "spacing": spacing,
+               "weighted_by_confidence": confidence is not None,
                "poisson_vertices": int(len(vertices)), "poisson_faces": int(len(faces)),
                "dropped_far_from_cloud": int((~near).sum()), "dropped_low_density": int((near & ~dense_enough).sum()),
                "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "area": mesh.area(),
                "seconds": time.perf_counter() - t0}
-    log.info("mesh: %d faces (%d before trimming) from %d points, grid cell %.3g", summary["faces"],
-             summary["poisson_faces"], summary["points"], cell)
+    log.info("mesh: %d faces (%d before trimming) from %d points, depth %d, grid cell %.3g (point spacing %.3g)",
+             summary["faces"], summary["poisson_faces"], summary["points"], depth, cell, spacing)
     return mesh, summary
 
 
-def _screened_poisson(points: np.ndarray, normals: np.ndarray, cfg: MeshConfig
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _screened_poisson(points: np.ndarray, normals: np.ndarray, confidence: np.ndarray | None, depth: int,
+                      cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """PyMeshLab's screened Poisson: vertices, faces, vertex normals, density (its vertex
-    quality)."""
+    quality). confidence: the points' weights (their quality, PyMeshLab's confidence flag)."""
     pymeshlab = _pymeshlab()
     meshes = pymeshlab.MeshSet()
-    meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=points, v_normals_matrix=normals))
+    if confidence is None:
+        meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=points, v_normals_matrix=normals))
+    else:
+        meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=points, v_normals_matrix=normals, v_scalar_array=confidence))
     meshes.generate_surface_reconstruction_screened_poisson(
-        depth=cfg.depth, scale=cfg.scale, samplespernode=cfg.samples_per_node, pointweight=cfg.point_weight,
-        preclean=False, threads=cfg.pool_size())
+        depth=depth, scale=cfg.scale, samplespernode=cfg.samples_per_node, pointweight=cfg.point_weight,
+        confidence=confidence is not None, preclean=False, threads=cfg.pool_size())
     out = meshes.current_mesh()
     if out.face_number() == 0 or not out.has_vertex_scalar():
         raise StereoseedError("screened Poisson made no surface of the cloud (all its points on a line or a "
@@ -213,6 +266,13 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> Path:
     return write_ply(path, mesh.vertices, mesh.colors, properties, faces=mesh.faces)
 
 
+def _read_confidence(path: Path) -> np.ndarray | None:
+    """dense.ply's confidence per point, None when the file has none (a cloud from before the
+    multi-view fusion, or another tool's)."""
+    vertex = read_ply_vertices(path)
+    return vertex["confidence"].astype(np.float64) if "confidence" in (vertex.dtype.names or ()) else None
+
+
 def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """Points, normals, colours of the folder's dense.ply, and where the normals come from: the
     file's, or estimated and turned towards the cameras of cameras.json that frame each point."""
@@ -264,14 +324,14 @@ def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = N
     _refuse_foreign(target)  # before the meshing, not after it
     t0 = time.perf_counter()
     points, normals, colors, source = _read_cloud(folder, cfg)
-    mesh, summary = poisson_mesh(points, normals, colors, cfg)
+    mesh, summary = poisson_mesh(points, normals, colors, cfg, _read_confidence(folder / "dense.ply"))
     summary = {"normals": source, **summary}
+    summary["seconds"] = time.perf_counter() - t0
     inside = _inside(target, folder)
     if inside is None:
         write_mesh(target, mesh)
     else:
-        _write_into_result(folder, target, inside, mesh, lock)
-    summary["seconds"] = time.perf_counter() - t0
+        summary["report_html"] = _write_into_result(folder, target, inside, mesh, lock, (points, colors), summary)
     return target, summary
 
 
@@ -283,14 +343,20 @@ def _inside(target: Path, folder: Path) -> str | None:
         return None
 
 
-def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lock: bool) -> None:
+def _write_into_result(folder: Path, target: Path, relative: str, mesh: Mesh, lock: bool,
+                       cloud: tuple[np.ndarray, np.ndarray], summary: dict[str, Any]) -> bool:
     """Write the mesh into the result folder and list it in the folder's manifest (when the
-    folder has one: a staging folder gets its manifest when it is committed)."""
+    folder has one: a staging folder gets its manifest when it is committed); the folder's
+    report.html written again with the mesh shown, its report.json given the mesh's summary
+    (:func:`stereoseed.output.report.saved.rewrite_report_html`). Returns whether report.html was
+    written."""
     from contextlib import nullcontext
 
+    from stereoseed.output.report.saved import SavedCloud, rewrite_report_html
     from stereoseed.output.result_set import ResultSet, add_to_manifest
 
     with ResultSet(folder) if lock else nullcontext():
         write_mesh(target, mesh)
         if not add_to_manifest(folder, relative):
             log.warning("%s: its manifest is unreadable; the mesh is not listed in it", folder)
+        return rewrite_report_html(folder, mesh, SavedCloud(*cloud), {"mesh": summary}) is not None
