@@ -21,7 +21,7 @@ demo: $(STAMP)
 
 # two processes (pytest-xdist): one leaves half a core idle, the suite's 5 minutes are on two cores
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py --out bench_output
