@@ -80,7 +80,7 @@ def test_cube_corners_are_opencvs_with_the_right_ids(cube):
 def test_the_cube_calibrates_every_kind_of_view_to_opencvs_faces_one_by_one(cube):
     """Twelve shots per camera, views of one face among them (none refused): RMS under 1 px, f
     within 1 % and the principal point within 20 px of OpenCV's fit of the same corners face by
-    face; held at the nominal geometry the fit is some five times worse."""
+    face; held at the nominal geometry the first camera's fit is some five times worse."""
     _, target, detections = cube
     for c in (0, 1):
         cal = calibrate_cameras(target, [detections[c]], pair=False)
@@ -91,8 +91,9 @@ def test_the_cube_calibrates_every_kind_of_view_to_opencvs_faces_one_by_one(cube
         np.testing.assert_allclose(np.diag(cam.K)[:2], np.diag(K)[:2], rtol=0.01)
         assert np.abs(cam.K[:2, 2] - K[:2, 2]).max() < 20
         assert all(m is not None and 0.1 < m[0] < 2.0 for m in cal.face_moves[1:])  # faces ~0.2-1.2 mm off
-        rigid = calibrate_cameras(target, [detections[c]], pair=False, rigid_target=True).cameras[0]
-        assert rigid.rms_px > 4 * cam.rms_px
+        if c == 0:  # the nominal geometry's cost shown once (the suite's five minutes)
+            rigid = calibrate_cameras(target, [detections[c]], pair=False, rigid_target=True).cameras[0]
+            assert rigid.rms_px > 4 * cam.rms_px
 
 
 def _opencv_rig(target, detections):
