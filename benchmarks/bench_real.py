@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stereoseed.config import Config
-from stereoseed.sfm.pair_consistency import centre_offset, left_out_pose
+from stereoseed.sfm.pair_consistency import pair_consistency
 from stereoseed.geometry.projection import camera_center, depths
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.io.sample_data import find_sample, missing_message
@@ -149,21 +149,17 @@ def set_figures(recon, report: dict, truth: dict, seconds: float | None = None) 
 def published_consistency(recon, truth: dict) -> dict:
     """How far the published cameras themselves are from where the images put them: each
     published camera resected (its published intrinsics held) from the run's tracks as the
-    *other* published cameras triangulate them (stereoseed.sfm.pair_consistency.left_out_pose),
+    *other* published cameras triangulate them (stereoseed.sfm.pair_consistency, as a run measures its pair),
     per image its centre's offset and that resection's own 1-sigma. ``allowance``: the median,
     over the published cameras, of the offset beyond that sigma (in quadrature): the ground
     truth's own error as these images see it, which no camera of ours can be checked below.
     Views turned by 180 degrees are left out (their pixels are in the turned frame)."""
     cameras = {k: np.asarray(truth[v.name], np.float64) for k, v in enumerate(recon.views)
                if v.registered and v.name in truth and not getattr(v, "rotated_180", False)}
-    per_image, excess = {}, []
-    for k in cameras:
-        found = left_out_pose(recon, k, Config().trust.independent_cell_px, 3.0, cameras)
-        if found is None:
-            continue
-        moved, sigma = centre_offset(found[1], found[2], found[0])
-        per_image[recon.views[k].name] = {"offset": round(moved, 6), "sigma": round(sigma, 6), "pairs": found[0].n_used}
-        excess.append(np.sqrt(max(moved ** 2 - sigma ** 2, 0.0)))
+    measured = pair_consistency(recon, cameras, Config().trust.independent_cell_px, 3.0, cameras)
+    excess = [np.sqrt(max(m["offset"] ** 2 - m["sigma"] ** 2, 0.0)) for m in measured.values()]
+    per_image = {name: {"offset": round(m["offset"], 6), "sigma": round(m["sigma"], 6), "pairs": m["pairs"]}
+                 for name, m in measured.items()}
     return {"allowance": float(np.median(excess)) if excess else 0.0, "per_image": per_image}
 
 

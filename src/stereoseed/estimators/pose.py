@@ -47,6 +47,21 @@ def _jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, h: np.
     return np.swapaxes(du, 1, 2)
 
 
+def _linearised(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray, w_obs: np.ndarray,
+                inlier_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """At the pose K [R | t]: (use (N,) the pairs in front within ``inlier_px``, the residuals
+    r (N, 2), the weighted normal equations H (6, 6) and gradient g (6,) over ``use``), or None
+    with fewer than 6 pairs kept."""
+    u, h = _project(K, R, t, X)
+    r = u - x
+    use = (h[:, 2] > 0) & (np.linalg.norm(r, axis=1) <= inlier_px) & np.isfinite(r).all(axis=1)
+    if use.sum() < 6:
+        return None
+    J = _jacobian(K, R, t, X[use], h[use])
+    Jw = J * w_obs[use][:, None, None]
+    return use, r, np.einsum("nik,nil->kl", Jw, J), np.einsum("nik,ni->k", Jw, r[use])
+
+
 def refine_pose(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray,
                 weights: np.ndarray | None = None, inlier_px: float = 3.0, iterations: int = 20) -> PoseRefinement | None:
     """Gauss-Newton on the reprojection error of X (N, 3) <-> x (N, 2) over the pose of
@@ -61,15 +76,10 @@ def refine_pose(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: n
     Rk, tk = R0.copy(), t0.copy()
     converged = False
     for _ in range(iterations):
-        u, h = _project(K, Rk, tk, X)
-        r = (u - x)
-        use = (h[:, 2] > 0) & (np.linalg.norm(r, axis=1) <= inlier_px) & np.isfinite(r).all(axis=1)
-        if use.sum() < 6:
+        found = _linearised(K, Rk, tk, X, x, w_obs, inlier_px)
+        if found is None:
             return None
-        J = _jacobian(K, Rk, tk, X[use], h[use])
-        wu = w_obs[use][:, None, None]
-        H = np.einsum("nik,nil->kl", J * wu, J)
-        g = np.einsum("nik,ni->k", J * wu, r[use])
+        _, _, H, g = found
         try:
             step = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -79,14 +89,11 @@ def refine_pose(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: n
         if np.linalg.norm(step[3:]) <= 1e-9 * max(np.linalg.norm(tk), 1e-12) and np.linalg.norm(step[:3]) <= 1e-9:
             converged = True
             break
-    u, h = _project(K, Rk, tk, X)
-    r = u - x
-    use = (h[:, 2] > 0) & (np.linalg.norm(r, axis=1) <= inlier_px) & np.isfinite(r).all(axis=1)
-    if use.sum() < 6:
+    found = _linearised(K, Rk, tk, X, x, w_obs, inlier_px)  # at the refined pose: its residuals and information
+    if found is None:
         return None
-    J = _jacobian(K, Rk, tk, X[use], h[use])
+    use, r, H, _ = found
     wu = w_obs[use]
-    H = np.einsum("nik,nil->kl", J * wu[:, None, None], J)
     dof = 2.0 * wu.sum() - 6.0
     if dof <= 0:
         return None

@@ -58,6 +58,7 @@ class LiveRun:
         self.calib = str(calib)
         self.out = Path(out)
         self.cfg = cfg.resolve()
+        self.options = self.cfg.mapper_options()  # each insertion's components get their sections from it
         self.unit = read_calibration_unit(self.calib)  # a calibration that cannot be read: refused now
         self.results = ResultSet(out).lock()
         try:
@@ -106,7 +107,7 @@ class LiveRun:
             for k in range(len(self.recon.views), len(self.names)):
                 self.seq.append(self.images_dir / self.names[k])
                 self.recon.add_view(view_of_input(self.names[k], self.seq, k))
-                report = insert_next(self.recon, self.seq, k, self.cfg.mapper_options(), self.source, self.spill, self.saver)
+                report = insert_next(self.recon, self.seq, k, self.options, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
         self.last = report
         return report

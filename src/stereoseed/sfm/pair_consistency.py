@@ -12,7 +12,7 @@ published cameras to measure the ground truth's own error (docs/benchmarks.md).
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from stereoseed.estimators.covariance import one_per_cell
 from stereoseed.estimators.pose import PoseRefinement, refine_pose
 from stereoseed.estimators.triangulation import triangulate_tracks
 from stereoseed.geometry.models import rotation_from_vector
-from stereoseed.geometry.projection import decompose_projection
+from stereoseed.geometry.projection import decompose_projection, skew
 from stereoseed.scene.reconstruction import Reconstruction
 
 __all__ = ["centre_offset", "left_out_pose", "pair_consistency"]
@@ -77,21 +77,20 @@ def centre_offset(R: np.ndarray, t: np.ndarray, found: PoseRefinement) -> tuple[
     w, dt = found.increment[:3], found.increment[3:]
     R1 = rotation_from_vector(w) @ R
     moved = float(np.linalg.norm(-R1.T @ (t + dt) + R.T @ t))
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    J = -R.T @ np.hstack([tx, np.eye(3)])  # dC = -R^T (dt + [t]x w) to first order
+    J = -R.T @ np.hstack([skew(t), np.eye(3)])  # dC = -R^T (dt + [t]x w) to first order
     sigma = float(np.sqrt(max(np.linalg.eigvalsh(J @ found.covariance @ J.T)[-1], 0.0)))
     return moved, sigma
 
 
-def pair_consistency(recon: Reconstruction, calibrated: tuple[int, ...], cell_px: float,
-                     inlier_px: float) -> dict[str, Any]:
+def pair_consistency(recon: Reconstruction, views: Iterable[int], cell_px: float, inlier_px: float,
+                     cameras: Mapping[int, np.ndarray] | None = None) -> dict[str, Any]:
     """{image name: {"offset": how far the rest of the walk puts the camera's centre from where
     the calibration does, "sigma": that resection's own 1-sigma (worst axis), "rotation_mrad":
-    how far it turns it, "pairs": the 3D-2D pairs it rests on}} for the ``calibrated`` views the
-    walk can measure (:func:`left_out_pose`)."""
+    how far it turns it, "pairs": the 3D-2D pairs it rests on}} for the ``views`` (the
+    calibrated pair) the walk can measure (:func:`left_out_pose`, ``cameras`` as there)."""
     out = {}
-    for view in calibrated:
-        found = left_out_pose(recon, view, cell_px, inlier_px)
+    for view in views:
+        found = left_out_pose(recon, view, cell_px, inlier_px, cameras)
         if found is None:
             continue
         moved, sigma = centre_offset(found[1], found[2], found[0])
