@@ -11,10 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from stereoseed.geometry.models import CameraModel, projection_derivatives
+from stereoseed.geometry.models import CameraModel, projection_derivatives, rotation_from_vector, rotation_vector
 
 __all__ = ["PoseRefinement", "refine_pose"]
 
@@ -84,7 +83,7 @@ def refine_pose(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: n
             step = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return None
-        Rk = cv2.Rodrigues(step[:3])[0] @ Rk
+        Rk = rotation_from_vector(step[:3]) @ Rk
         tk = tk + step[3:]
         if np.linalg.norm(step[3:]) <= 1e-9 * max(np.linalg.norm(tk), 1e-12) and np.linalg.norm(step[:3]) <= 1e-9:
             converged = True
@@ -103,7 +102,7 @@ def refine_pose(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, x: n
     except np.linalg.LinAlgError:
         return None
     # the increment from the starting pose, in the same parameters: R = exp([w]x) R0, t = t0 + dt
-    w = cv2.Rodrigues(Rk @ R0.T)[0].ravel()
+    w = rotation_vector(Rk @ R0.T)
     increment = np.concatenate([w, tk - t0])
     return PoseRefinement(increment, covariance, float(np.sqrt(np.mean(np.sum(r[use] ** 2, axis=1)))), int(use.sum()),
                           converged)

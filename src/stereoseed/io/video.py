@@ -229,7 +229,6 @@ class KeyframePicker:
                  first: bool = False, prefix: str = ""):
         self.path, self.cfg, self.save_to, self.first, self.prefix = Path(path), cfg, save_to, first, prefix
         self.kept = 0  # keyframes chosen so far
-        self.frames = 0  # frames pushed so far
         self._tracker: _Tracker | None = None
         self._candidates: list[tuple[float, int, np.ndarray]] = []  # (sharpness, index, frame) past 3/4 of the motion
 
@@ -246,7 +245,6 @@ class KeyframePicker:
 
     def push(self, index: int, frame: np.ndarray) -> list[Keyframe]:
         """Frame ``index`` of the video (uint8 BGR); the keyframes it completes."""
-        self.frames += 1
         if self._tracker is None:
             self._scale = min(1.0, self.cfg.tracking_width / frame.shape[1])
             self._threshold = self.cfg.keyframe_motion * frame.shape[1] * self._scale

@@ -83,7 +83,6 @@ class LiveRun:
         self.key = ""
         self.saver = CheckpointWriter(self.checkpoint, self.key)  # its key set with the pair
         self.resumed: list[str] = []
-        self.last: dict[str, Any] | None = None  # the last photo's report
         if resume:
             self._resume()
 
@@ -109,7 +108,6 @@ class LiveRun:
                 self.recon.add_view(view_of_input(self.names[k], self.seq, k))
                 report = insert_next(self.recon, self.seq, k, self.options, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
-        self.last = report
         return report
 
     def _sequence(self) -> None:

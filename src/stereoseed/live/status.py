@@ -30,8 +30,7 @@ LAST_PHOTO_WIDTH = 480
 FAILURES_IN_A_ROW = 3
 
 
-def _rows(recon: Any, names: list[str]) -> list[dict[str, Any]]:
-    reports = recon.reports() if recon is not None else []
+def _rows(recon: Any, names: list[str], reports: list[dict[str, Any]]) -> list[dict[str, Any]]:
     rows = []
     for i, name in enumerate(names):
         if i < len(reports):
@@ -87,13 +86,12 @@ def _hints(rows: list[dict[str, Any]], cams: list, frame: dict[str, Any] | None)
     return hints
 
 
-def last_photo(recon: Any) -> str | None:
+def last_photo(recon: Any, k: int) -> str | None:
     """The last photo reached, small, as a JPEG data URI: its interest points that observe a
-    point of the model drawn green (its matches with the model), the others grey; None before
-    the pair."""
-    if recon is None:
+    point of the model drawn green (its matches with the model), the others grey (``k``: its
+    view); None before the pair."""
+    if recon is None or k < 0:
         return None
-    k = len(recon.reports()) - 1
     view = recon.views[k]
     image = view.image
     if image is None or image.size == 0 or 0 in image.strides:  # (an unreadable photo reads as a blank of no memory)
@@ -115,7 +113,8 @@ def last_photo(recon: Any) -> str | None:
 def page_state(recon: Any, names: list[str], unit: str | None = None, with_figure: bool = True) -> dict[str, Any]:
     """The page's state (JSON-able): counts, a row per photo, the last photo's row, the hints,
     and the 3D view's Plotly figure (None before the pair, or when it cannot be built)."""
-    rows = _rows(recon, names)
+    reports = recon.reports() if recon is not None else []  # every view's history rendered once
+    rows = _rows(recon, names, reports)
     cams = (optional_part("the cameras", lambda: registered_cameras(recon)) or []) if recon is not None else []
     figure = frame = None
     points = 0
@@ -134,4 +133,4 @@ def page_state(recon: Any, names: list[str], unit: str | None = None, with_figur
             "skipped": sum(1 for r in rows if r["status"] == "failed"),
             "last": reached[-1] if reached else (rows[-1] if rows else None),
             "rows": rows, "hints": _hints(rows, cams, frame), "figure": figure,
-            "last_photo": optional_part("the last photo", lambda: last_photo(recon)) if with_figure else None}
+            "last_photo": optional_part("the last photo", lambda: last_photo(recon, len(reports) - 1)) if with_figure else None}

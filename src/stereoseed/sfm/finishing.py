@@ -61,7 +61,7 @@ def finish(recon: Reconstruction, options: MapperOptions | Configuration,
         judge_loop(recon, options.loop_closure, out["loop_closure"])
     if recon.rig is None:  # a rig walk's pair is its first station, adjusted with the rig
         # the pairs the BA would keep (OutlierConfig.max_px), counted as its covariance counts them
-        out["pair_consistency"] = pair_consistency(recon, CALIBRATED, tc.independent_cell_px or 1.0,
+        out["pair_consistency"] = pair_consistency(recon, CALIBRATED, tc.independent_cell_px,
                                                    options.outliers.max_px)
     out["seconds"] = time.perf_counter() - t
     return out

@@ -32,14 +32,15 @@ MIN_OTHER_VIEWS = 2
 MIN_PAIRS = 12
 
 
-def left_out_pose(recon: Reconstruction, view: int, cell_px: float, inlier_px: float,
+def left_out_pose(recon: Reconstruction, view: int, cell_px: float | None, inlier_px: float,
                   cameras: Mapping[int, np.ndarray] | None = None) -> tuple[PoseRefinement, np.ndarray, np.ndarray] | None:
     """Camera ``view`` resected, its intrinsics held, from the points its observations see as
     the *other* registered cameras triangulate them (each seen by at least two of them): its
     refinement from where it is (:class:`~stereoseed.estimators.pose.PoseRefinement`) and its
     R (3, 3), t (3,). ``cameras``: {view: P (3, 4)} to use instead of the run's own (a
     benchmark's published cameras); observations counted once per ``cell_px`` cell of the
-    image, pairs beyond ``inlier_px`` at the refined pose left out. None when fewer than
+    image (None: each independent, as the cameras' covariance takes it), pairs beyond
+    ``inlier_px`` at the refined pose left out. None when fewer than
     :data:`MIN_PAIRS` pairs remain or the resection fails."""
     Ps = {o: recon.views[o].P for o in recon.registered_views} if cameras is None else dict(cameras)
     if Ps.get(view) is None:
@@ -65,8 +66,8 @@ def left_out_pose(recon: Reconstruction, view: int, cell_px: float, inlier_px: f
     if ok.sum() < MIN_PAIRS:
         return None
     K, R, t = decompose_projection(Ps[view])
-    found = refine_pose(K, R, t, X_mine[ok], xy[ok], one_per_cell(np.zeros(int(ok.sum()), np.int64), xy[ok], cell_px),
-                        inlier_px=inlier_px)
+    weights = None if cell_px is None else one_per_cell(np.zeros(int(ok.sum()), np.int64), xy[ok], cell_px)
+    found = refine_pose(K, R, t, X_mine[ok], xy[ok], weights, inlier_px=inlier_px)
     if found is None or found.n_used < MIN_PAIRS:
         return None
     return found, R, t
@@ -82,7 +83,7 @@ def centre_offset(R: np.ndarray, t: np.ndarray, found: PoseRefinement) -> tuple[
     return moved, sigma
 
 
-def pair_consistency(recon: Reconstruction, views: Iterable[int], cell_px: float, inlier_px: float,
+def pair_consistency(recon: Reconstruction, views: Iterable[int], cell_px: float | None, inlier_px: float,
                      cameras: Mapping[int, np.ndarray] | None = None) -> dict[str, Any]:
     """{image name: {"offset": how far the rest of the walk puts the camera's centre from where
     the calibration does, "sigma": that resection's own 1-sigma (worst axis), "rotation_mrad":
