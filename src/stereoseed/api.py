@@ -77,7 +77,7 @@ def _read_dense(path: Path):
     from stereoseed.dense.densify import DenseCloud
     from stereoseed.io.ply import read_dense_ply
 
-    points, colors, normals, support = read_dense_ply(path)
+    points, colors, normals, support, _ = read_dense_ply(path)
     return DenseCloud(points, colors, np.zeros_like(points) if normals is None else normals,
                       np.ones(len(points), np.int64) if support is None else support)
 

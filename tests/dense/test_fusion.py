@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from stereoseed.dense.config import DenseConfig
-from stereoseed.dense.fusion import PairCloud, check_views, depth_sigma, normalised_camera
+from stereoseed.dense.fusion import PairCloud, check_views, depth_sigma
+from stereoseed.geometry.projection import normalize_projection
 
 WIDTH, HEIGHT, FOCAL = 160, 120, 200.0
 
@@ -75,7 +76,7 @@ def test_a_point_behind_the_others_surface_is_not_contradicted():
 def test_depth_sigma_is_the_two_view_formula():
     pts = np.array([[0.0, 0.0, 10.0]])
     assert depth_sigma(pts, np.zeros(3), 1000.0, np.array([30.0]), 0.5)[0] == pytest.approx(10 * 0.5 / (1000 * 0.5))
-    P = normalised_camera(-3.0 * _camera(0.0))  # any scale and sign: the depth is the third row's
+    P = normalize_projection(-3.0 * _camera(0.0))  # any scale and sign: the depth is the third row's
     assert (P @ [0.0, 0.0, 4.0, 1.0])[2] == pytest.approx(4.0)
 
 

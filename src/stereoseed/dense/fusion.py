@@ -29,9 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from stereoseed.geometry.projection import camera_center, normalize_projection
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["PairCloud", "ViewChecks", "check_views", "depth_sigma", "normalised_camera"]
+__all__ = ["PairCloud", "ViewChecks", "check_views", "depth_sigma"]
 
 
 @dataclass(frozen=True)
@@ -62,14 +63,6 @@ class ViewChecks:
     confidence: np.ndarray
 
 
-def normalised_camera(P: np.ndarray) -> np.ndarray:
-    """P (3, 4) scaled so that its third row gives a point's depth along the optical axis (unit
-    principal axis, positive in front)."""
-    M = P[:, :3]
-    scale = np.linalg.norm(M[2]) * np.sign(np.linalg.det(M))
-    return P / scale
-
-
 def _focal(P: np.ndarray) -> float:
     """The focal length in pixels of a normalised camera (the mean of its two axes')."""
     return 0.5 * float(np.linalg.norm(np.cross(P[0, :3], P[2, :3])) + np.linalg.norm(np.cross(P[1, :3], P[2, :3])))
@@ -88,8 +81,8 @@ def check_views(clouds: list[PairCloud], cameras: list[np.ndarray], sizes: list[
                 noise_px: float, sigmas: float, lookup_px: int) -> ViewChecks:
     """Each pair's points checked against every other pair's (module doc). cameras: (3, 4) per
     view index; sizes: (width, height) per view index."""
-    Pn = np.stack([normalised_camera(np.asarray(P, np.float64)) for P in cameras])
-    centres = np.stack([-np.linalg.solve(P[:, :3], P[:, 3]) for P in Pn])
+    Pn = np.stack([normalize_projection(np.asarray(P, np.float64)) for P in cameras])
+    centres = np.stack([camera_center(P) for P in Pn])
     focal = np.array([_focal(P) for P in Pn])
     counts = np.array([len(c.points) for c in clouds], np.int64)
     offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
@@ -140,6 +133,7 @@ def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
         p = source[i]
         X = points[i]
         a = pair_views[p, 0]
+        _, _, za = _project(Pn[a], X)  # X's depth in its own first view (for every pair that agrees)
         sx, sy, sz = X[0], X[1], X[2]
         count = 1
         n_members = 0
@@ -195,7 +189,6 @@ def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
                 continue
             dx = g0 / gz - pixels[i, 0]
             dy = g1 / gz - pixels[i, 1]
-            _, _, za = _project(Pn[a], X)
             slack = sigmas * noise_px * np.sqrt(2.0) + footprint * focal[a] / za
             if dx * dx + dy * dy > slack * slack:
                 continue

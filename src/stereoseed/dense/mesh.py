@@ -32,7 +32,7 @@ import numpy as np
 from stereoseed.dense.config import MeshConfig
 from stereoseed.errors import StereoseedError
 from stereoseed.io.outputs import same_file
-from stereoseed.io.ply import read_dense_ply, read_ply_vertices, write_ply
+from stereoseed.io.ply import read_dense_ply, write_ply
 
 __all__ = ["MESH_NAME", "Mesh", "MeshConfig", "camera_viewpoints", "mesh_result", "point_spacing", "poisson_depth",
            "poisson_mesh", "write_mesh"]
@@ -266,21 +266,15 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> Path:
     return write_ply(path, mesh.vertices, mesh.colors, properties, faces=mesh.faces)
 
 
-def _read_confidence(path: Path) -> np.ndarray | None:
-    """dense.ply's confidence per point, None when the file has none (a cloud from before the
-    multi-view fusion, or another tool's)."""
-    vertex = read_ply_vertices(path)
-    return vertex["confidence"].astype(np.float64) if "confidence" in (vertex.dtype.names or ()) else None
-
-
-def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """Points, normals, colours of the folder's dense.ply, and where the normals come from: the
-    file's, or estimated and turned towards the cameras of cameras.json that frame each point."""
-    points, colors, normals, _ = read_dense_ply(folder / "dense.ply")
+def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
+    """Points, normals, colours and confidence (None when the file has none) of the folder's
+    dense.ply, and where the normals come from: the file's, or estimated and turned towards the
+    cameras of cameras.json that frame each point."""
+    points, colors, normals, _, confidence = read_dense_ply(folder / "dense.ply")
     if normals is not None:
         length = np.linalg.norm(normals, axis=1)
         if np.all(np.isfinite(length)) and np.all(np.abs(length - 1.0) < 1e-3):
-            return points, normals, colors, "dense.ply"
+            return points, normals, colors, confidence, "dense.ply"
     from stereoseed.dense.densify import estimate_normals
     from stereoseed.output.reader import load_result
 
@@ -293,7 +287,7 @@ def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, 
     normals = np.full(points.shape, np.nan)
     if good.sum() >= 3:
         normals[good] = estimate_normals(points[good], views[good], cfg.normal_neighbours)
-    return points, normals, colors, "estimated"
+    return points, normals, colors, confidence, "estimated"
 
 
 def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = None, cfg: Any = None,
@@ -323,8 +317,8 @@ def mesh_result(result_dir: str | os.PathLike, out: str | os.PathLike | None = N
         raise StereoseedError(f"{target}: is a folder; give a file name for the mesh (e.g. {target / MESH_NAME})")
     _refuse_foreign(target)  # before the meshing, not after it
     t0 = time.perf_counter()
-    points, normals, colors, source = _read_cloud(folder, cfg)
-    mesh, summary = poisson_mesh(points, normals, colors, cfg, _read_confidence(folder / "dense.ply"))
+    points, normals, colors, confidence, source = _read_cloud(folder, cfg)
+    mesh, summary = poisson_mesh(points, normals, colors, cfg, confidence)
     summary = {"normals": source, **summary}
     summary["seconds"] = time.perf_counter() - t0
     inside = _inside(target, folder)

@@ -81,16 +81,19 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return _points_and_colours(read_ply_vertices(path), path)
 
 
-def read_dense_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """A dense.ply: points and colours as :func:`read_ply`, normals (N, 3) float64 and support
-    (N,) int64, each None where the file has none."""
+def read_dense_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None,
+                                                     np.ndarray | None]:
+    """A dense.ply: points and colours as :func:`read_ply`, normals (N, 3) float64, support
+    (N,) int64 and confidence (N,) float64, each None where the file has none (a cloud from
+    before the multi-view fusion, or another tool's)."""
     vertex = read_ply_vertices(path)
     pts, cols = _points_and_colours(vertex, path)
     names = set(vertex.dtype.names or ())
     normals = (np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(np.float64)
                if {"nx", "ny", "nz"} <= names else None)
     support = vertex["support"].astype(np.int64) if "support" in names else None
-    return pts, cols, normals, support
+    confidence = vertex["confidence"].astype(np.float64) if "confidence" in names else None
+    return pts, cols, normals, support, confidence
 
 
 def _points_and_colours(vertex: np.ndarray, path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
