@@ -1,16 +1,23 @@
 """Shared fixtures: the data folder of real sequences and the rendered synthetic box scenes."""
 from __future__ import annotations
 
-import logging
-from dataclasses import replace
-from pathlib import Path
+import os
 
-import numpy as np
-import pytest
+# The tests run as the command line does: one BLAS thread, set before NumPy loads OpenBLAS (see
+# stereoseed.cli). Two pytest workers each with OpenBLAS's spinning threads spent a fifth of the
+# suite's CPU waiting.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from stereoseed.experiments.paper import noisy_images
-from stereoseed.io.sample_data import find_sample, missing_message
-from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene
+import logging  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from stereoseed.experiments.paper import noisy_images  # noqa: E402
+from stereoseed.io.sample_data import find_sample, missing_message  # noqa: E402
+from stereoseed.synthetic.scene import SceneConfig, SyntheticScene, render_scene  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
