@@ -4,13 +4,19 @@
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import platform
-import sys
-import time
-from pathlib import Path
+import os
+
+# one BLAS thread, set before NumPy loads OpenBLAS: the sections measure what the command line runs
+# (stereoseed.cli sets the same)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
