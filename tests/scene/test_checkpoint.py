@@ -408,3 +408,21 @@ def test_a_fifo_planted_as_the_checkpoint_is_refused_without_waiting(saved, capl
     with caplog.at_level(logging.WARNING):
         assert _load(saved) is None
     assert "not a file" in caplog.text
+
+
+def test_the_header_is_read_under_the_checks_of_the_whole_checkpoint(saved, caplog):
+    """A live run reads which inputs its checkpoint was signed for before it can check the
+    signature: what it says, from the very file load_checkpoint would read, never from a link,
+    a FIFO or a file others may write."""
+    from stereoseed.scene.checkpoint import checkpoint_header
+
+    assert checkpoint_header(saved.path) == (3, KEY)
+    assert checkpoint_header(saved.path.with_name("none.npz")) is None
+    os.chmod(saved.path, os.stat(saved.path).st_mode | 0o020)
+    with caplog.at_level(logging.WARNING):
+        assert checkpoint_header(saved.path) is None
+    assert "may be written by group or others" in caplog.text
+    saved.path.unlink()
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(saved.path, 0o600)
+        assert checkpoint_header(saved.path) is None  # at once: a FIFO is not waited on

@@ -31,8 +31,8 @@ from stereoseed.live.watch import Arrival
 from stereoseed.output.inputs import write_inputs
 from stereoseed.output.result_set import ResultSet
 from stereoseed.pipeline import CHECKPOINT, load_sequence_and_lenses, reconstruct, save_outputs
-from stereoseed.scene.checkpoint import (SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, save_checkpoint,
-                                         spill_folder)
+from stereoseed.scene.checkpoint import (SPILL_SUFFIX, CheckpointWriter, checkpoint_header, inputs_key,
+                                         load_checkpoint, save_checkpoint, spill_folder)
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.scene.view_store import view_of_input, working_set
 from stereoseed.sfm.correspondence import HarrisZncc
@@ -174,15 +174,10 @@ class LiveRun:
         """(how many views, which key) the interrupted run's checkpoint says it holds: signed by
         the live key, or, when the run was stopped while finishing, by ``reconstruct``'s for all
         its photos (:func:`load_checkpoint` then checks the signature); (None, "") without one."""
-        try:
-            with np.load(self.checkpoint, allow_pickle=False) as z:
-                meta = json.loads(z["meta"].tobytes().decode("utf-8"))
-            count, key = len(meta["views"]), str(meta["key"])
-        except FileNotFoundError:
+        header = checkpoint_header(self.checkpoint)
+        if header is None:
             return None, ""
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            log.warning("%s: unusable checkpoint (%s); inserting the photos again", self.checkpoint, e)
-            return None, ""
+        count, key = header
         if not 2 <= count <= len(self.names):
             log.warning("%s: its views are not the photos taken; inserting them again", self.checkpoint)
             return None, ""

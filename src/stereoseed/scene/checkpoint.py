@@ -45,7 +45,8 @@ from stereoseed.scene.camera_life import event_from_json, event_to_json
 from stereoseed.scene.reconstruction import Checkpoint, Reconstruction
 from stereoseed.scene.view_store import view_of_input
 
-__all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "spill_folder", "SPILL_SUFFIX"]
+__all__ = ["inputs_key", "save_checkpoint", "CheckpointWriter", "load_checkpoint", "checkpoint_header", "spill_folder",
+           "SPILL_SUFFIX"]
 
 log = logging.getLogger(__name__)
 # 3: arrays and JSON in a signed npz; spilled descriptors named, not copied; 4: registration flags;
@@ -285,6 +286,35 @@ def _checked_members(zf: zipfile.ZipFile) -> dict[str, str]:
 def _read(path: Path, key: str) -> dict[str, np.ndarray]:
     """The checkpoint's arrays once its owner, permissions, container and signature are checked
     (the signature before any of them is interpreted). FileNotFoundError when there is none."""
+    arrays = _checked_arrays(path)
+    mac = arrays.pop(_MAC, None)
+    if (mac is None or mac.dtype != np.uint8 or mac.shape != (32,)
+            or not hmac.compare_digest(mac.tobytes(), _signature(arrays, key).tobytes())):
+        raise _Refused("its signature does not match these inputs (another run's, or altered)")
+    return arrays
+
+
+def checkpoint_header(path: str | Path) -> tuple[int, str] | None:
+    """(how many views, the inputs' key) a checkpoint says it holds, read under the same checks of
+    its owner, permissions and container as :func:`load_checkpoint` (its signature cannot be
+    checked before the key is known: :func:`load_checkpoint` checks it). None without a usable
+    one (a warning unless there is none): for a caller that must know which inputs to sign for
+    (a live run stopped while finishing was signed for ``reconstruct``'s)."""
+    path = Path(path)
+    try:
+        raw = _checked_arrays(path, only=_META)[_META]
+        meta = json.loads(raw.tobytes().decode("utf-8"))
+        return len(meta["views"]), str(meta["key"])
+    except FileNotFoundError:
+        return None
+    except (*_UNUSABLE, TypeError, UnicodeDecodeError) as e:
+        log.warning("%s: unusable checkpoint (%s)", path, e)
+        return None
+
+
+def _checked_arrays(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
+    """The checkpoint's arrays (``only``: that member alone), unsigned, once its owner,
+    permissions and container are checked."""
     # non-blocking: a FIFO planted as the checkpoint would otherwise wait for a writer forever;
     # a regular file reads as usual (the flag only matters for the open)
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0)
@@ -300,12 +330,12 @@ def _read(path: Path, key: str) -> dict[str, np.ndarray]:
             raise _Refused("not an .npz archive")
         with loaded as npz:
             # read by member name: NpzFile would take "a.npy" for member "a.npy", not "a.npy.npy"
-            arrays = {name: npz[member] for name, member in _checked_members(npz.zip).items()}
-    mac = arrays.pop(_MAC, None)
-    if (mac is None or mac.dtype != np.uint8 or mac.shape != (32,)
-            or not hmac.compare_digest(mac.tobytes(), _signature(arrays, key).tobytes())):
-        raise _Refused("its signature does not match these inputs (another run's, or altered)")
-    return arrays
+            members = _checked_members(npz.zip)
+            if only is not None:
+                if only not in members:
+                    raise _Refused(f"no {only!r}")
+                members = {only: members[only]}
+            return {name: npz[member] for name, member in members.items()}
 
 
 def _meta(arrays: dict[str, np.ndarray], key: str, names: list[str]) -> dict[str, Any]:

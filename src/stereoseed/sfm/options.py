@@ -11,6 +11,7 @@ No module of ``sfm/`` reads the whole configuration or resolves it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -58,7 +59,7 @@ class MapperOptions:
         (the accurate mode's no-zoom hold, a rig's cameras)."""
         return dataclasses.replace(self, pipeline=dataclasses.replace(self.pipeline, camera_model=CameraModel.FIXED))
 
-    @property
+    @functools.cached_property  # asked for at every insertion; the options never change
     def registering(self) -> RegistrationSettings:
         """The sections a registrar reads (:mod:`stereoseed.sfm.registration`)."""
         return RegistrationSettings(camera_model=self.pipeline.camera_model, resection=self.resection,
