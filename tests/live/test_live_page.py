@@ -205,3 +205,19 @@ def test_ctrl_c_stops_the_command_and_writes_the_result_with_its_dense_cloud(pho
     assert "stopping (Ctrl-C)" in text and "3/3 photos placed" in text and "Traceback" not in text
     assert (tmp_path / "r" / "cameras.json").is_file() and not (tmp_path / ".r.partial").exists()
     assert (tmp_path / "r" / "dense.ply").stat().st_size > 1000  # --dense: the dense stage once stopped
+
+
+def test_the_log_keeps_its_last_lines_and_the_state_is_sent_as_published():
+    from dataclasses import replace
+
+    with LivePage(0, replace(FAST, log_lines=3)) as page:
+        page.publish({"photos": 2, "names": ["a.jpg", "b.jpg"]})
+        for k in range(5):
+            page.event(f"line {k}")
+        version, body = page.message()
+        got = json.loads(body)
+        assert got["version"] == version == 6
+        assert got["state"] == {"photos": 2, "names": ["a.jpg", "b.jpg"]}
+        assert [e["line"] for e in got["events"]] == ["line 2", "line 3", "line 4"]
+    with pytest.raises(ValueError, match="log_lines"):
+        LiveConfig(log_lines=0)

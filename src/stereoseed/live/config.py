@@ -29,6 +29,10 @@ class LiveConfig:
     # At most this many pushed updates a second: each carries the whole 3D view (a few hundred
     # kB); photos that arrive faster are shown together in the next update.
     max_updates_per_s: float = 4.0
+    # The page's log keeps the last this many lines: every update carries the log, and a walk of
+    # hundreds of photos says a few lines each (the whole run's lines are in the terminal and in
+    # report.json).
+    log_lines: int = 200
 
     # --video: keyframes waiting for the run at most (each a full-size frame, ~1 MB at 640 x 480):
     # a few keep the run busy through a fast stretch of the walk; past them the reader waits
@@ -43,4 +47,4 @@ class LiveConfig:
     def __post_init__(self) -> None:
         positive(self, "poll_s", "stable_s", "unreadable_after_s", "heartbeat_s", "max_updates_per_s",
                  "video_late_s", "video_fps")
-        whole(self, "video_queue")
+        whole(self, "video_queue", "log_lines")

@@ -1,6 +1,7 @@
 """The live page: served on 127.0.0.1 only (nothing listens elsewhere), updated by server push
-(Server-Sent Events on ``/events``: each message the whole state, so a browser that reconnects
-loses nothing), every asset served by this process (Plotly's bundle from the installed package,
+(Server-Sent Events on ``/events``: each message the whole state and the log's last
+``LiveConfig.log_lines`` lines, so a browser that reconnects loses nothing; the state is turned
+into JSON once per state, not once per message), every asset served by this process (Plotly's bundle from the installed package,
 the one report.html inlines): the page works with no internet.
 
     page = LivePage(port=0)       # 0: a free port; page.url
@@ -17,6 +18,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
@@ -40,8 +42,8 @@ class LivePage:
         self.title = title
         self._cond = threading.Condition()
         self._version = 0
-        self._state: dict[str, Any] = {}
-        self._events: list[dict[str, Any]] = []
+        self._state_json = b"{}"  # the state as published, in JSON
+        self._events: deque[dict[str, Any]] = deque(maxlen=cfg.log_lines)
         self._closing = False
         self._plotly: bytes | None = None
         self.delivered: dict[int, float] = {}  # version -> when a browser first got it (monotonic s)
@@ -67,8 +69,9 @@ class LivePage:
     # ------------------------------------------------------------------ what the run says
     def publish(self, state: dict[str, Any]) -> int:
         """The run's state as it stands now; returns its version."""
+        body = json.dumps(state, default=jsonable).encode()  # once, here, not in every message
         with self._cond:
-            self._state = state
+            self._state_json = body
             self._version += 1
             self._cond.notify_all()
             return self._version
@@ -88,8 +91,8 @@ class LivePage:
     def message(self) -> tuple[int, bytes]:
         """(version, the whole state and log as one JSON text)."""
         with self._cond:
-            version, state, events = self._version, self._state, list(self._events)
-        return version, json.dumps({"version": version, "state": state, "events": events}, default=jsonable).encode()
+            version, state, events = self._version, self._state_json, list(self._events)
+        return version, b'{"version": %d, "state": %s, "events": %s}' % (version, state, json.dumps(events).encode())
 
     def wait_past(self, version: int, timeout: float) -> bool:
         """Wait until the state is newer than ``version`` (True) or ``timeout`` s (False) or closing."""
