@@ -193,3 +193,24 @@ def test_import_stereoseed_loads_no_numpy_until_the_api_is_used():
             "assert callable(stereoseed.reconstruct) and 'numpy' in sys.modules; "
             "assert {'calibrate', 'reconstruct', 'load_result', 'Result', 'Config'} <= set(dir(stereoseed))")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_the_api_keeps_openblas_to_one_thread_as_the_command_does(monkeypatch):
+    """A notebook's NumPy comes with OpenBLAS's own threads: the API's entry points hold them to
+    one while they run (they spin against the pipeline's threads), and give them back; a user's
+    OPENBLAS_NUM_THREADS is theirs."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from stereoseed.threads import with_one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    seen = with_one_blas_thread(blas_threads)
+    with threadpool_limits(limits=2, user_api="blas"):
+        if not blas_threads() or max(blas_threads()) < 2:
+            pytest.skip("this NumPy's BLAS cannot run two threads here")
+        monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+        assert set(seen()) == {1} and min(blas_threads()) == 2
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
+        assert min(seen()) == 2

@@ -27,6 +27,7 @@ from stereoseed.config import Config
 from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import write_json
 from stereoseed.output import reader
+from stereoseed.threads import with_one_blas_thread
 
 __all__ = ["reconstruct", "calibrate", "load_result", "Result", "PairCalibration", "CalibratedCamera", "Config"]
 
@@ -116,6 +117,7 @@ def _in_memory(recon, report: dict[str, Any], cfg: Config, lenses: list, cloud) 
 
 
 # -------------------------------------------------------------------------------- reconstruct
+@with_one_blas_thread
 def reconstruct(images: PathLike | Sequence[PathLike], calib: PathLike | PairCalibration | Sequence[np.ndarray],
                 out: PathLike | None = None, cfg: Config | None = None, *, dense: bool = False, resume: bool = False,
                 progress: Progress | None = None, pool=None, dense_progress: Progress | None = None,
@@ -272,6 +274,7 @@ class PairCalibration:
         return write_json(path, target_json(self.calibration.target, path.parent.resolve(), REFINED_TARGET_NOTE))
 
 
+@with_one_blas_thread
 def calibrate(inputs: Sequence[Any], *, target: PathLike | None = None,
               lens_images: tuple[Sequence[PathLike], Sequence[PathLike]] = ((), ()),
               intrinsics: tuple[Any, Any] = (None, None), rig: bool = False, rigid_target: bool = False,
