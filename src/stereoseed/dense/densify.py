@@ -26,7 +26,7 @@ from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
 from stereoseed.dense.frames import dense_frames, resized
-from stereoseed.dense.fusion import PairCloud, check_views
+from stereoseed.dense.fusion import PairCloud, PairClouds, check_views
 from stereoseed.dense.normals import pca_normals
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.config import PropagationConfig
@@ -165,11 +165,13 @@ def fuse(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarr
 
 
 def _fuse(points: np.ndarray, colors: np.ndarray, sources: np.ndarray, stand: np.ndarray,
-          voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+          voxel: float, groups: tuple[np.ndarray, np.ndarray] | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`fuse` of a non-empty cloud whose points come from sources (N,) int (pairs, whose
     cameras stand at stand (S, 3)): the fused points (K, 3), colours (K, 3) uint8, where the
-    cameras that saw each stand on average (K, 3) and how many distinct sources each has (K,)."""
-    order, starts = sorted_groups(_voxel_keys(points, voxel))
+    cameras that saw each stand on average (K, 3) and how many distinct sources each has (K,).
+    groups: the points' voxels as :func:`sorted_groups` gives them, when the caller has them."""
+    order, starts = groups if groups is not None else sorted_groups(_voxel_keys(points, voxel))
     k = len(starts) - 1
     fused, mean_colors, viewpoints, support = np.zeros((k, 3)), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k, np.int64)
     args = (order, starts, np.ascontiguousarray(points, np.float64), np.ascontiguousarray(colors),
@@ -458,10 +460,16 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     if progress and pairs:
         progress(len(pairs), len(pairs), "fusing")
     t_fusion = time.perf_counter()
+    # one copy of the points from here on: the pairs' own arrays are let go as soon as stacked
     colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
-    sources = np.repeat(np.arange(len(clouds)), [len(c.points) for c in clouds]) if clouds else np.zeros(0, np.int64)
+    cols.clear()
+    stacked = PairClouds.stack(clouds)
+    clouds.clear()
+    sources = np.repeat(np.arange(len(pairs), dtype=np.int32), np.diff(stacked.offsets))
     dc = cfg.dense
-    checks = check_views(clouds, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px)
+    checks = check_views(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px)
+    n_before = len(stacked)
+    del stacked
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
     # a point no other pair could judge (none matched near its image in their views: the walk's
@@ -475,13 +483,17 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     attributes = {"support": checks.support.take(kept), "angle": checks.angle.take(kept),
                   "confidence": checks.confidence.take(kept)}
     kept_points = checks.points.take(kept, axis=0)
+    kept_colors, kept_sources = colors.take(kept, axis=0), sources.take(kept)
+    counted = {"points_supported": int(keep.sum()), "points_unjudged": int(np.sum(checks.judged == 0)),
+               "support_histogram": np.bincount(checks.support, minlength=2).tolist()[2:] if len(checks.support) else []}
+    del checks, colors, sources, keep, kept  # the judged points: only the kept ones go on to the fusion
     voxel = _voxel_for_at_most(kept_points, voxel, dc.max_points)
-    fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, kept_points, colors.take(kept, axis=0),
-                                                              sources.take(kept), voxel, attributes)
-    report = {"pairs": per_pair, "points_before_fusion": int(len(checks.points)),
-              "points_supported": int(keep.sum()), "points_unjudged": int(np.sum(checks.judged == 0)),
+    fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, kept_points, kept_colors, kept_sources,
+                                                              voxel, attributes)
+    report = {"pairs": per_pair, "points_before_fusion": n_before,
+              "points_supported": counted["points_supported"], "points_unjudged": counted["points_unjudged"],
               "points": int(len(fused)),
-              "support_histogram": np.bincount(checks.support, minlength=2).tolist()[2:] if len(checks.support) else [],
+              "support_histogram": counted["support_histogram"],
               "min_support": dc.min_support, "fusion_voxel_m": voxel, "resolution_scale": min(frames[0], default=1.0),
               "seconds": time.perf_counter() - t0, "fusion_seconds": time.perf_counter() - t_fusion,
               "peak_memory_mb": _peak_memory_mb()}
@@ -539,10 +551,10 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
         return points, colors, np.zeros((0, 3)), {k: v[:0] for k, v in attributes.items()}
     # where the pair's two cameras stand, averaged over the voxel's points
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
-    fused, fused_colors, viewpoints, _ = _fuse(points, colors, sources, stand, voxel)
-    order, starts = sorted_groups(_voxel_keys(points, voxel))  # _fuse's groups, in its order
+    order, starts = sorted_groups(_voxel_keys(points, voxel))  # once: the means and the attributes' groups
+    fused, fused_colors, viewpoints, _ = _fuse(points, colors, sources, stand, voxel, (order, starts))
     first = starts[:-1]
-    merged = {"support": np.maximum.reduceat(attributes["support"][order], first),
+    merged = {"support": np.maximum.reduceat(attributes["support"][order], first).astype(np.int64),
               "angle": np.maximum.reduceat(attributes["angle"][order], first),
               "confidence": np.add.reduceat(attributes["confidence"][order], first) / np.diff(starts)}
     # a neighbour grid 1.5 voxels wide: the ten nearest of a fused point (one a voxel) are mostly

@@ -32,7 +32,7 @@ from numba import njit
 from stereoseed.geometry.projection import camera_center, normalize_projection
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["PairCloud", "ViewChecks", "check_views", "depth_sigma"]
+__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "depth_sigma"]
 
 
 @dataclass(frozen=True)
@@ -48,11 +48,42 @@ class PairCloud:
 
 
 @dataclass(frozen=True)
+class PairClouds:
+    """Every pair's points in one set of arrays, pair after pair: points (N, 3) float64, pixels
+    (N, 2) int32 (each point's pixel in its pair's first view), angles (N,) float64 degrees,
+    offsets (P + 1,) int64 (pair q's rows are offsets[q]:offsets[q + 1]) and views (P, 2) int64.
+    One copy of the points, not one per pair and one stacked: at full resolution they are the
+    dense stage's memory (tens of millions)."""
+
+    points: np.ndarray
+    pixels: np.ndarray
+    angles: np.ndarray
+    offsets: np.ndarray
+    views: np.ndarray
+
+    @classmethod
+    def stack(cls, clouds: list[PairCloud]) -> "PairClouds":
+        counts = np.array([len(c.points) for c in clouds], np.int64)
+        n = int(counts.sum())
+
+        def joined(arrays: list[np.ndarray], dtype: type, width: int | None) -> np.ndarray:
+            shape = (n,) if width is None else (n, width)
+            return np.concatenate(arrays).astype(dtype, copy=False) if n else np.zeros(shape, dtype)
+
+        return cls(joined([c.points for c in clouds], np.float64, 3), joined([c.pixels for c in clouds], np.int32, 2),
+                   joined([c.angles for c in clouds], np.float64, None), np.r_[0, np.cumsum(counts)].astype(np.int64),
+                   np.array([c.views for c in clouds], np.int64).reshape(-1, 2))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True)
 class ViewChecks:
     """What the other pairs said of every point (the pairs' points in pair order): merged
-    positions (N, 3), support (N,) views, angle (N,) degrees, agree / violate (N,) pairs,
-    judged (N,) the other pairs that had a point near its image (whatever their verdict),
-    confidence (N,)."""
+    positions (N, 3) float64, support (N,) views, angle (N,) degrees, agree / violate
+    (N,) pairs, judged (N,) the other pairs that had a point near its image (whatever their
+    verdict), confidence (N,); the counts int32."""
 
     points: np.ndarray
     support: np.ndarray
@@ -77,34 +108,34 @@ def depth_sigma(points: np.ndarray, centre: np.ndarray, focal: float, angles_deg
     return distance * noise_px / (focal * np.sin(np.radians(np.maximum(angles_deg, 1e-3))))
 
 
-def check_views(clouds: list[PairCloud], cameras: list[np.ndarray], sizes: list[tuple[int, int]],
+def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray], sizes: list[tuple[int, int]],
                 noise_px: float, sigmas: float, lookup_px: int) -> ViewChecks:
     """Each pair's points checked against every other pair's (module doc). cameras: (3, 4) per
     view index; sizes: (width, height) per view index."""
+    stacked = clouds if isinstance(clouds, PairClouds) else PairClouds.stack(clouds)
     Pn = np.stack([normalize_projection(np.asarray(P, np.float64)) for P in cameras])
     centres = np.stack([camera_center(P) for P in Pn])
     focal = np.array([_focal(P) for P in Pn])
-    counts = np.array([len(c.points) for c in clouds], np.int64)
-    offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
-    n = int(offsets[-1])
-    points = np.ascontiguousarray(np.vstack([c.points for c in clouds]) if n else np.zeros((0, 3)), np.float64)
-    pixels = np.ascontiguousarray(np.vstack([c.pixels for c in clouds]) if n else np.zeros((0, 2)), np.int64)
-    pair_views = np.array([c.views for c in clouds], np.int64).reshape(-1, 2)
-    sigma = np.concatenate([depth_sigma(c.points, centres[c.views[0]], focal[c.views[0]], c.angles, noise_px)
-                            for c in clouds]) if n else np.zeros(0)
+    offsets, pair_views, n = stacked.offsets, stacked.views, len(stacked)
+    points, pixels = np.ascontiguousarray(stacked.points), np.ascontiguousarray(stacked.pixels)
+    source = np.repeat(np.arange(len(pair_views), dtype=np.int32), np.diff(offsets))
+    sigma = np.empty(n)
+    for q, (first, end) in enumerate(zip(offsets[:-1], offsets[1:])):
+        a = pair_views[q, 0]
+        sigma[first:end] = depth_sigma(points[first:end], centres[a], focal[a], stacked.angles[first:end], noise_px)
     # each pair's depth map: the row of its point at each pixel of its first view, -1 where none
     width = max((s[0] for s in sizes), default=1)
     height = max((s[1] for s in sizes), default=1)
-    index = np.full((len(clouds), height, width), -1, np.int32)
-    for q, c in enumerate(clouds):
-        index[q, c.pixels[:, 1], c.pixels[:, 0]] = np.arange(offsets[q], offsets[q + 1], dtype=np.int32)
-    source = np.repeat(np.arange(len(clouds)), counts)
+    index = np.full((len(pair_views), height, width), -1, np.int32)
+    for q in range(len(pair_views)):
+        rows = slice(offsets[q], offsets[q + 1])
+        index[q, pixels[rows, 1], pixels[rows, 0]] = np.arange(offsets[q], offsets[q + 1], dtype=np.int32)
     merged = np.empty((n, 3))
-    support = np.zeros(n, np.int64)
+    support = np.zeros(n, np.int32)
     angle = np.zeros(n)
-    agree = np.zeros(n, np.int64)
-    violate = np.zeros(n, np.int64)
-    judged = np.zeros(n, np.int64)
+    agree = np.zeros(n, np.int32)
+    violate = np.zeros(n, np.int32)
+    judged = np.zeros(n, np.int32)
     map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
                                    float(noise_px), float(sigmas), int(lookup_px), len(cameras),
                                    merged, support, angle, agree, violate, judged, a, b), split_rows(n, 20_000))
