@@ -134,13 +134,14 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "cells": ("stereoseed.dense.densify", "_cells", "float64[:, ::1], float64"),
     "grid_neighbours": ("stereoseed.dense.densify", "_grid_neighbours",
                         ("float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
-                         "int64, int64, int64[:, ::1]")),
+                         "int64, int64, int32[:, ::1]")),
     "pca_normals": ("stereoseed.dense.normals", "pca_normals",
-                    "float64[:, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
+                    "float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
     "view_checks": ("stereoseed.dense.fusion", "_check",
-                    ("float64[:, ::1], int64[:, ::1], float64[::1], int64[::1], int64[:, ::1], int32[:, :, ::1], "
+                    ("float64[:, ::1], int32[:, ::1], float64[::1], int32[::1], int64[:, ::1], int32[:, :, ::1], "
                      "float64[:, :, ::1], float64[:, ::1], float64[::1], float64, float64, int64, "
-                     "int64, float64[:, ::1], int64[::1], float64[::1], int64[::1], int64[::1], int64[::1], int64, int64")),
+                     "int64, int64, float64[:, ::1], int32[::1], float64[::1], int32[::1], int32[::1], int32[::1], "
+                     "int64, int64")),
 }
 
 # CPU seconds each kernel takes to compile alone in a fresh process on the reference machine (an

@@ -26,7 +26,7 @@ from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
 from stereoseed.dense.frames import dense_frames, resized
-from stereoseed.dense.fusion import PairCloud, PairClouds, check_views
+from stereoseed.dense.fusion import PairCloud, PairClouds, check_views_by_pair
 from stereoseed.dense.normals import pca_normals
 from stereoseed.errors import StereoseedError
 from stereoseed.matching.config import PropagationConfig
@@ -234,7 +234,7 @@ _GRID_COLUMNS_PER_POINT = 8
 
 
 def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) -> np.ndarray:
-    """The indices (N, k) int64 of the k nearest points of each point of ``points`` (N, 3),
+    """The indices (N, k) int32 of the k nearest points of each point of ``points`` (N, 3),
     finite, 1 <= k <= N (itself included), nearest first, as
     ``cKDTree(points).query(points, k)[1]`` gives them (points at exactly the same distance may
     come in another order, or another of them be taken at the k-th place).
@@ -255,9 +255,13 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
             column = cells[:, 0] * span[1] + cells[:, 1]
             order = sort_order(column * span[2] + cells[:, 2])
             ordered, ordered_cells = points[order], np.ascontiguousarray(cells[order])
+            del cells  # (a fused full-resolution cloud is millions of points: each copy counts)
             starts = np.zeros(span[0] * span[1] + 1, np.int64)
             np.cumsum(np.bincount(column, minlength=span[0] * span[1]), out=starts[1:])
-            found = np.empty((n, k), np.int64)  # in the points' own order: no remapped copies
+            del column
+            # in the points' own order: no remapped copies; int32: half the memory of the
+            # largest array of the normals (a cloud of 2**31 points would not fit anyway)
+            found = np.empty((n, k), np.int32)
             low = _grid_origin(points)
             map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, order, int(span[1]), float(cell),
                                                      low, a, b, _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
@@ -269,11 +273,11 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
 
 
 def _tree_neighbours(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
-    """The indices (M, k) int64 of the k nearest points (N, 3) of each query (M, 3), by scipy's
+    """The indices (M, k) int32 of the k nearest points (N, 3) of each query (M, 3), by scipy's
     k-d tree: loaded here only, where the grid search cannot do it."""
     from scipy.spatial import cKDTree
 
-    return cKDTree(points).query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int64)
+    return cKDTree(points).query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int32)
 
 
 @njit(cache=True, nogil=True)
@@ -465,31 +469,22 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     cols.clear()
     stacked = PairClouds.stack(clouds)
     clouds.clear()
-    sources = np.repeat(np.arange(len(pairs), dtype=np.int32), np.diff(stacked.offsets))
     dc = cfg.dense
-    checks = check_views(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px)
     n_before = len(stacked)
-    del stacked
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
-    # a point no other pair could judge (none matched near its image in their views: the walk's
-    # ends) cannot be confirmed; kept or not as DenseConfig.keep_unjudged says
-    keep = (checks.support >= (2 if alone else dc.min_support)) & (checks.confidence >= dc.min_confidence)
-    if dc.keep_unjudged:
-        keep |= checks.judged == 0
-    kept = np.flatnonzero(keep)  # take() by index: 3x faster than a boolean mask on rows
+    kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, colors, frames, dc, alone)
+    del stacked, colors  # only the kept points go on to the fusion
     # one pixel's footprint at the propagation's resolution
     voxel = _fusion_voxel(recon, dc.fusion_voxel, float(np.median([frames[0][v] for v in dense_views(recon, cfg)] or [1.0])))
-    attributes = {"support": checks.support.take(kept), "angle": checks.angle.take(kept),
-                  "confidence": checks.confidence.take(kept)}
-    kept_points = checks.points.take(kept, axis=0)
-    kept_colors, kept_sources = colors.take(kept, axis=0), sources.take(kept)
-    counted = {"points_supported": int(keep.sum()), "points_unjudged": int(np.sum(checks.judged == 0)),
-               "support_histogram": np.bincount(checks.support, minlength=2).tolist()[2:] if len(checks.support) else []}
-    del checks, colors, sources, keep, kept  # the judged points: only the kept ones go on to the fusion
     voxel = _voxel_for_at_most(kept_points, voxel, dc.max_points)
-    fused, fused_colors, normals, merged = _fuse_with_normals(recon, pairs, kept_points, kept_colors, kept_sources,
-                                                              voxel, attributes)
+    fused, fused_colors, viewpoints, merged = _fused(recon, pairs, kept_points, kept_colors, kept_sources, voxel,
+                                                    attributes)
+    del kept_points, kept_colors, kept_sources, attributes  # before the normals' neighbour search
+    # a neighbour grid 1.5 voxels wide: the ten nearest of a fused point (one a voxel) are mostly
+    # within its cube of 27 cells (measured on the 18-image ring: 20 % faster than 1 voxel)
+    normals = estimate_normals(fused, viewpoints, cell=1.5 * voxel) if len(fused) else np.zeros((0, 3))
+    del viewpoints
     report = {"pairs": per_pair, "points_before_fusion": n_before,
               "points_supported": counted["points_supported"], "points_unjudged": counted["points_unjudged"],
               "points": int(len(fused)),
@@ -508,6 +503,41 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
                    "angle": merged["angle"].astype(np.float32),
                    "confidence": merged["confidence"].astype(np.float32)})
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
+
+
+def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alone: bool) -> tuple:
+    """The points the other pairs' checks keep (:func:`stereoseed.dense.fusion.check_views_by_pair`,
+    pair after pair: the checks of all points are never held at once): their merged positions
+    (K, 3), colours (K, 3), pairs (K,) int32, {"support", "angle", "confidence"} (K,) each, and
+    the counts the report gives. A point no other pair could judge (none matched near its image
+    in their views: the walk's ends) cannot be confirmed; kept or not as
+    ``DenseConfig.keep_unjudged`` says."""
+    parts: list[tuple[np.ndarray, ...]] = []
+    counted = {"points_supported": 0, "points_unjudged": 0}
+    histogram = np.zeros(2, np.int64)
+
+    def take(q: int, checks: Any) -> None:
+        nonlocal histogram
+        keep = (checks.support >= (2 if alone else dc.min_support)) & (checks.confidence >= dc.min_confidence)
+        if dc.keep_unjudged:
+            keep |= checks.judged == 0
+        kept = np.flatnonzero(keep)  # take() by index: 3x faster than a boolean mask on rows
+        parts.append((checks.points.take(kept, axis=0), colors.take(stacked.offsets[q] + kept, axis=0),
+                      np.full(len(kept), q, np.int32), checks.support.take(kept), checks.angle.take(kept),
+                      checks.confidence.take(kept)))
+        counted["points_supported"] += len(kept)
+        counted["points_unjudged"] += int(np.sum(checks.judged == 0))
+        counts = np.bincount(checks.support, minlength=2)
+        histogram = np.pad(histogram, (0, max(0, len(counts) - len(histogram))))
+        histogram[:len(counts)] += counts
+
+    check_views_by_pair(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px, take)
+    counted["support_histogram"] = histogram.tolist()[2:] if len(stacked) else []
+    if not parts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32), \
+            {"support": np.zeros(0, np.int32), "angle": np.zeros(0), "confidence": np.zeros(0)}, counted
+    points, cols, sources, support, angle, confidence = (np.concatenate(arrays) for arrays in zip(*parts))
+    return points, cols, sources, {"support": support, "angle": angle, "confidence": confidence}, counted
 
 
 def _voxel_for_at_most(points: np.ndarray, voxel: float, max_points: int) -> float:
@@ -541,15 +571,14 @@ def _peak_memory_mb() -> dict[str, float] | None:
             "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / unit}
 
 
-def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], points: np.ndarray, colors: np.ndarray,
-                       sources: np.ndarray, voxel: float, attributes: dict[str, np.ndarray]
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """:func:`fuse`, plus each fused point's normal (turned towards the cameras of the pairs that
-    produced it) and its attributes over its voxel's points: the largest support and angle, the
-    mean confidence."""
+def _fused(recon: Reconstruction, pairs: list[tuple[int, int]], points: np.ndarray, colors: np.ndarray,
+           sources: np.ndarray, voxel: float, attributes: dict[str, np.ndarray]
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`fuse`, plus where the cameras that saw each fused point stand (the pairs' middles,
+    averaged over its voxel's points: its normal is turned towards them) and its attributes over
+    its voxel's points: the largest support and angle, the mean confidence."""
     if len(points) == 0:
         return points, colors, np.zeros((0, 3)), {k: v[:0] for k, v in attributes.items()}
-    # where the pair's two cameras stand, averaged over the voxel's points
     stand = np.array([0.5 * (recon.views[a].center + recon.views[b].center) for a, b in pairs])
     order, starts = sorted_groups(_voxel_keys(points, voxel))  # once: the means and the attributes' groups
     fused, fused_colors, viewpoints, _ = _fuse(points, colors, sources, stand, voxel, (order, starts))
@@ -557,6 +586,4 @@ def _fuse_with_normals(recon: Reconstruction, pairs: list[tuple[int, int]], poin
     merged = {"support": np.maximum.reduceat(attributes["support"][order], first).astype(np.int64),
               "angle": np.maximum.reduceat(attributes["angle"][order], first),
               "confidence": np.add.reduceat(attributes["confidence"][order], first) / np.diff(starts)}
-    # a neighbour grid 1.5 voxels wide: the ten nearest of a fused point (one a voxel) are mostly
-    # within its cube of 27 cells (measured on the 18-image ring: 20 % faster than 1 voxel)
-    return fused, fused_colors, estimate_normals(fused, viewpoints, cell=1.5 * voxel), merged
+    return fused, fused_colors, viewpoints, merged

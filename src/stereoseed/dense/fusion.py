@@ -24,7 +24,9 @@ contradicted.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from numba import njit
@@ -32,7 +34,7 @@ from numba import njit
 from stereoseed.geometry.projection import camera_center, normalize_projection
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "depth_sigma"]
+__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "check_views_by_pair", "depth_sigma"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +114,20 @@ def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray],
                 noise_px: float, sigmas: float, lookup_px: int) -> ViewChecks:
     """Each pair's points checked against every other pair's (module doc). cameras: (3, 4) per
     view index; sizes: (width, height) per view index."""
+    parts: list[ViewChecks] = []
+    check_views_by_pair(clouds, cameras, sizes, noise_px, sigmas, lookup_px, lambda q, checks: parts.append(checks))
+    if not parts:
+        counts = np.zeros(0, np.int32)
+        return ViewChecks(np.zeros((0, 3)), counts, np.zeros(0), counts, counts, counts, np.zeros(0))
+    return ViewChecks(*(np.concatenate(arrays) for arrays in zip(*(dataclasses.astuple(c) for c in parts))))
+
+
+def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray], sizes: list[tuple[int, int]],
+                        noise_px: float, sigmas: float, lookup_px: int,
+                        take: Callable[[int, ViewChecks], None]) -> None:
+    """:func:`check_views`, pair after pair: ``take(q, checks)`` gets pair q's points' checks (its
+    rows of the stack, in order) as soon as they are known, so a caller that keeps only some
+    points never holds the checks of all of them (at full resolution, tens of millions)."""
     stacked = clouds if isinstance(clouds, PairClouds) else PairClouds.stack(clouds)
     Pn = np.stack([normalize_projection(np.asarray(P, np.float64)) for P in cameras])
     centres = np.stack([camera_center(P) for P in Pn])
@@ -130,17 +146,17 @@ def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray],
     for q in range(len(pair_views)):
         rows = slice(offsets[q], offsets[q + 1])
         index[q, pixels[rows, 1], pixels[rows, 0]] = np.arange(offsets[q], offsets[q + 1], dtype=np.int32)
-    merged = np.empty((n, 3))
-    support = np.zeros(n, np.int32)
-    angle = np.zeros(n)
-    agree = np.zeros(n, np.int32)
-    violate = np.zeros(n, np.int32)
-    judged = np.zeros(n, np.int32)
-    map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
-                                   float(noise_px), float(sigmas), int(lookup_px), len(cameras),
-                                   merged, support, angle, agree, violate, judged, a, b), split_rows(n, 20_000))
-    confidence = (agree + 1.0) / (agree + violate + 2.0)
-    return ViewChecks(merged, support, angle, agree, violate, judged, confidence)
+    for q, (first, end) in enumerate(zip(offsets[:-1].tolist(), offsets[1:].tolist())):
+        m = end - first
+        merged = np.empty((m, 3))
+        support, agree, violate, judged = (np.zeros(m, np.int32) for _ in range(4))
+        angle = np.zeros(m)
+        bounds = first + split_rows(m, 20_000)
+        map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
+                                       float(noise_px), float(sigmas), int(lookup_px), len(cameras), first,
+                                       merged, support, angle, agree, violate, judged, a, b), bounds)
+        confidence = (agree + 1.0) / (agree + violate + 2.0)
+        take(q, ViewChecks(merged, support, angle, agree, violate, judged, confidence))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -153,8 +169,9 @@ def _project(P, X):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
-           n_views, merged, support, angle, agree, violate, judged, first, end):
-    """The checks of points [first, end) (check_views' module doc)."""
+           n_views, base, merged, support, angle, agree, violate, judged, first, end):
+    """The checks of points [first, end) (check_views' module doc), written to the outputs' rows
+    i - base."""
     n_pairs = pair_views.shape[0]
     height, width = index.shape[1], index.shape[2]
     seen = np.zeros(n_views, np.int64)  # the agreeing views of the current point: seen[v] == i + 1
@@ -234,7 +251,8 @@ def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
                     members[n_members] = v
                     n_members += 1
         mx, my, mz = sx / count, sy / count, sz / count
-        merged[i, 0], merged[i, 1], merged[i, 2] = mx, my, mz
+        o = i - base
+        merged[o, 0], merged[o, 1], merged[o, 2] = mx, my, mz
         # the widest angle between two agreeing views' rays: the smallest cosine, one arccos
         for k in range(n_members):
             c1 = centres[members[k]]
@@ -246,8 +264,8 @@ def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
             for m in range(k + 1, n_members):
                 smallest = min(smallest, rays[k, 0] * rays[m, 0] + rays[k, 1] * rays[m, 1] + rays[k, 2] * rays[m, 2])
         widest = np.degrees(np.arccos(max(-1.0, smallest)))
-        support[i] = n_members
-        angle[i] = widest
-        agree[i] = n_agree
-        violate[i] = n_violate
-        judged[i] = n_judged
+        support[o] = n_members
+        angle[o] = widest
+        agree[o] = n_agree
+        violate[o] = n_violate
+        judged[o] = n_judged
