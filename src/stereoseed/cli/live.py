@@ -15,7 +15,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     if args.video is not None and args.pair is None:
         raise StereoseedError("--video needs the calibrated pair's two photos first: --pair PAIR1.png PAIR2.png")
     report = run_live(args.watch, args.calib, args.out, cfg, until=args.until, port=args.port, resume=args.resume,
-                      video=args.video, pair=args.pair, dense=args.dense,
+                      video=args.video, pair=args.pair, dense=args.dense, rig=args.rig,
                       on_start=lambda url: say(f"live page: {url}  (Ctrl-C: stop and write {args.out})"),
                       on_line=None if args.quiet else say)
     say(f"{report['registered']}/{report['images']} photos placed, {report['points']} points; wrote {args.out}")
@@ -55,6 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "(with --pair)")
     p.add_argument("--pair", nargs=2, metavar=("PAIR1", "PAIR2"),
                    help="with --video: the calibrated pair's two photos (the video starts where the second was taken)")
+    p.add_argument("--rig", metavar="DIR",
+                   help="a stereo rig walked with both cameras: the right camera's photos arrive in DIR, the left "
+                        "one's in --watch; a station is placed once both its photos are there (as reconstruct --rig)")
     p.add_argument("--calib", required=True, help="the pair's calibration, as for reconstruct")
     p.add_argument("--out", required=True, help="result folder, written as reconstruct writes it when the run stops")
     p.add_argument("--until", type=_count, metavar="N", help="stop after N photos (default: Ctrl-C)")

@@ -17,7 +17,7 @@ from stereoseed.live.page import LivePage
 from stereoseed.live.session import LiveRun
 from stereoseed.live.status import page_state
 from stereoseed.live.video import VideoFeed
-from stereoseed.live.watch import Arrival, FolderWatch
+from stereoseed.live.watch import Arrival, FolderWatch, RigWatch
 from stereoseed.output.result_set import result_name
 
 __all__ = ["run_live"]
@@ -39,6 +39,16 @@ def _photo_line(name: str, report: dict[str, Any] | None, run: LiveRun) -> tuple
     return f"{name}: {status} ({report.get('new_points', 0)} new points)", "info"
 
 
+def _report_of(run: LiveRun, name: str) -> dict[str, Any] | None:
+    """The report of photo ``name`` as the model holds it (a rig station's left photo, inserted
+    before its right one), None before the pair."""
+    if run.recon is None:
+        return None
+    reports = run.recon.reports()
+    k = run.names.index(name)
+    return reports[k] if k < len(reports) else None
+
+
 def _pair_arrivals(pair: list[str | Path]) -> list[Arrival]:
     """The calibrated pair's two photos, given as files (before a video)."""
     if len(pair) != 2:
@@ -55,7 +65,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
              on_start: Callable[[str], None] | None = None, on_line: Callable[[str], None] | None = None,
              stop: threading.Event | None = None, timings: list[dict[str, Any]] | None = None,
              video: str | Path | None = None, pair: list[str | Path] | None = None,
-             realtime: bool = True, dense: bool = False) -> dict[str, Any]:
+             realtime: bool = True, dense: bool = False, rig: str | Path | None = None) -> dict[str, Any]:
     """Watch ``watch`` for photos (or read the ``video`` after the ``pair``'s two photos) and
     reconstruct them live into the result folder ``out`` (``calib``: the pair's calibration, as
     for ``reconstruct``), the page on ``port`` of 127.0.0.1 (0: a free one). Stops on Ctrl-C,
@@ -65,16 +75,27 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
     timings: when given, a dict per photo (name, settled_at, shown_at: monotonic seconds; the
     latter when a browser got the first state showing it, else None). realtime: a video read
     at its frame rate (False: as fast as the run takes its keyframes). dense: the dense stage
-    once stopped, as ``reconstruct --dense`` runs it."""
+    once stopped, as ``reconstruct --dense`` runs it. rig: a stereo rig walked with both cameras:
+    ``watch`` is the left camera's folder, this the right one's; a station is taken once both
+    its photos are complete (:class:`~stereoseed.live.watch.RigWatch`), and ``until`` counts
+    the photos of both."""
     if (watch is None) == (video is None):
         raise StereoseedError("give one source: --watch DIR or --video FILE")
-    if video is not None:
+    if rig is not None and video is not None:
+        raise StereoseedError("--rig takes the right camera's folder beside --watch (the left one's); not with --video")
+    if rig is not None and until is not None and until % 2:
+        raise StereoseedError(f"--until {until}: a rig walk takes its photos two at a time (a station); give an "
+                              f"even number")
+    if rig is not None:
+        first = []
+        source: Any = RigWatch(watch, rig, live)  # folders that are not there: refused before the result folder
+    elif video is not None:
         first = _pair_arrivals(pair or [])
-        source: Any = VideoFeed(video, cfg.video, live, realtime)
+        source = VideoFeed(video, cfg.video, live, realtime)
     else:
         first = []
         source = FolderWatch(watch, live)  # a folder that is not there: refused before the result folder is touched
-    run = LiveRun(calib, out, cfg, resume)
+    run = LiveRun(calib, out, cfg, resume, rig=rig is not None)
     try:
         page = LivePage(port, live, title=f"{result_name(out)} — stereoseed live")
     except BaseException:
@@ -103,9 +124,8 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 published.setdefault(name, version)
 
         try:
-            if isinstance(source, FolderWatch):
-                source.taken.update(run.names)
-                source.present.update(run.names)
+            if isinstance(source, (FolderWatch, RigWatch)):
+                source.mark_taken(run.names)
             if run.resumed:
                 say(f"resumed: {len(run.resumed)} photos from the interrupted run")
             publish(force=True)
@@ -124,15 +144,19 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 for note in look.notes:
                     say(note, "warning" if "ended" not in note else "info")
                 arrivals, pending = pending + look.arrivals, []
-                for arrival in arrivals:
-                    if until is not None and len(run.names) >= until:
-                        if isinstance(source, FolderWatch):
-                            source.taken.discard(arrival.name)  # not this run's
+                step = 2 if rig is not None else 1  # a rig's station: its two photos together
+                for group in (arrivals[i:i + step] for i in range(0, len(arrivals), step)):
+                    if until is not None and len(run.names) + len(group) > until:
+                        for arrival in group:
+                            if isinstance(source, (FolderWatch, RigWatch)):
+                                source.give_back(arrival.name)  # not this run's
                         continue
-                    if arrival.name in run.names:  # a resumed video run: read again from its start
+                    if group[0].name in run.names:  # a resumed video run: read again from its start
                         continue
-                    report = run.add(arrival)
-                    say(*_photo_line(arrival.name, report, run))
+                    report = run.add(*group)
+                    for arrival in group:  # (a station's left photo: its report as the model holds it)
+                        said = report if arrival is group[-1] else _report_of(run, arrival.name)
+                        say(*_photo_line(arrival.name, said, run))
                     publish()
                 publish(force=bool(arrivals))
                 if isinstance(source, VideoFeed) and source.done and not arrivals:

@@ -11,6 +11,10 @@ resume from it: the finishing step and the result folder are ``reconstruct``'s o
 images in the same order, so the result is the one ``stereoseed reconstruct`` gives on
 ``images/`` listed in that order (inputs.json lists them). An interrupted live run resumes from
 its checkpoint and its list of arrivals (``--resume``).
+
+A stereo rig walked with both cameras (``rig``): the photos come a station at a time, left then
+right (:class:`stereoseed.live.watch.RigWatch` pairs them), and are placed as ``reconstruct
+--rig`` places them, the calibrated pair the first station.
 """
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ from stereoseed.scene.checkpoint import (SPILL_SUFFIX, CheckpointWriter, checkpo
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.scene.view_store import view_of_input, working_set
 from stereoseed.sfm.correspondence import HarrisZncc
-from stereoseed.sfm.mapper import initialise
+from stereoseed.sfm.mapper import initialise, pair_rig
 from stereoseed.sfm.steps import frame_offset, insert_next, shift
 
 __all__ = ["LiveRun", "IMAGES", "ARRIVALS"]
@@ -51,12 +55,16 @@ _LIVE_KEY = "+live"  # a live checkpoint's key: the pair's inputs and the settin
 class LiveRun:
     """A live run writing the result folder ``out`` (held, one run at a time, from the start).
     :meth:`add` each photo as it comes, then :meth:`finish` (or :meth:`close` to leave the
-    staging folder for ``resume``). ``resume``: continue an interrupted live run on ``out``."""
+    staging folder for ``resume``). ``resume``: continue an interrupted live run on ``out``.
+    ``rig``: the photos are a stereo rig's stations, left and right interleaved (:meth:`add`
+    takes a station's two together)."""
 
-    def __init__(self, calib: str | Path, out: str | Path, cfg: Config = Config(), resume: bool = False):
+    def __init__(self, calib: str | Path, out: str | Path, cfg: Config = Config(), resume: bool = False,
+                 rig: bool = False):
         self.t0 = time.perf_counter()
         self.calib = str(calib)
         self.out = Path(out)
+        self.rig = rig
         self.cfg = cfg.resolve()
         self.options = self.cfg.mapper_options()  # each insertion's components get their sections from it
         self.unit = read_calibration_unit(self.calib)  # a calibration that cannot be read: refused now
@@ -84,17 +92,25 @@ class LiveRun:
         self.saver = CheckpointWriter(self.checkpoint, self.key)  # its key set with the pair
         self.resumed: list[str] = []
         if resume:
-            self._resume()
+            try:
+                self._resume()
+            except BaseException:  # refused (another kind of run, photos gone): the folder is free again
+                self.results.unlock()
+                raise
 
     # ------------------------------------------------------------------ arrivals
-    def add(self, arrival: Arrival) -> dict[str, Any] | None:
-        """Take a complete photo: copied into ``images/``, then inserted (the first two: the
-        calibrated pair, set up once the second comes). Returns its report (None for the first)."""
-        with atomic_path(self.images_dir / arrival.name) as tmp:
-            tmp.write_bytes(arrival.data)
-        self.names.append(arrival.name)
-        self.arrived.append(arrival.settled_at)
-        write_json(self.staging / ARRIVALS, {"images": self.names})
+    def add(self, *arrivals: Arrival) -> dict[str, Any] | None:
+        """Take complete photos (one; on a rig walk a station's two, left then right): copied into
+        ``images/``, then inserted (the first two: the calibrated pair, set up once the second
+        comes). Returns the last one's report (None for the first photo alone)."""
+        if self.rig and len(arrivals) != 2:
+            raise ValueError("a rig walk takes a station's two photos together")
+        for arrival in arrivals:
+            with atomic_path(self.images_dir / arrival.name) as tmp:
+                tmp.write_bytes(arrival.data)
+            self.names.append(arrival.name)
+            self.arrived.append(arrival.settled_at)
+        write_json(self.staging / ARRIVALS, {"images": self.names, "rig": self.rig})
         return self._insert_taken()
 
     def _insert_taken(self) -> dict[str, Any] | None:
@@ -103,19 +119,22 @@ class LiveRun:
         if self.recon is None and len(self.names) >= 2:
             report = self._pair()
         if self.recon is not None:
-            for k in range(len(self.recon.views), len(self.names)):
+            new = range(len(self.recon.views), len(self.names))
+            for k in new:  # a station's both views first: its left image is placed with its right
                 self.seq.append(self.images_dir / self.names[k])
                 self.recon.add_view(view_of_input(self.names[k], self.seq, k))
+            for k in new:
                 report = insert_next(self.recon, self.seq, k, self.options, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
         return report
 
     def _sequence(self) -> None:
         """The pair's sequence, calibration and lenses, as ``reconstruct`` loads them."""
-        pair = [self.images_dir / n for n in self.names[:2]]
-        self.seq, _, self.P_pair, self.lenses = load_sequence_and_lenses([str(p) for p in pair], self.calib,
-                                                                         self.cfg.video, ordering=None)
-        self.key = inputs_key(self.seq, self.names[:2], self.P_pair, self.cfg) + _LIVE_KEY
+        pair = [str(self.images_dir / n) for n in self.names[:2]]
+        self.seq, _, self.P_pair, self.lenses = load_sequence_and_lenses(pair[:1] if self.rig else pair, self.calib,
+                                                                         self.cfg.video, ordering=None,
+                                                                         rig_right=pair[1:] if self.rig else None)
+        self.key = inputs_key(self.seq, self.names[:2], self.P_pair, self.cfg, self.rig) + _LIVE_KEY
         self.offset = frame_offset(self.P_pair)
         self.spill.mkdir(mode=0o700, parents=True, exist_ok=True)
         self.saver.key = self.key
@@ -128,14 +147,16 @@ class LiveRun:
     def _pair(self) -> dict[str, Any]:
         """The calibrated pair: initialised as ``reconstruct`` does."""
         self._sequence()
-        self.recon, report = initialise(self.seq, self.names[:2], self._local_pair(), self.cfg, self.source)
+        self.recon, report = initialise(self.seq, self.names[:2], self._local_pair(), self.cfg, self.source,
+                                        rig=self.rig)
         self.saver.save(self.recon)
         return report
 
     # ------------------------------------------------------------------ resuming
     def _resume(self) -> None:
         try:
-            names = json.loads((self.staging / ARRIVALS).read_text(encoding="utf-8"))["images"]
+            arrivals = json.loads((self.staging / ARRIVALS).read_text(encoding="utf-8"))
+            names, rig = arrivals["images"], bool(arrivals.get("rig", False))
             if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
                 raise ValueError("not a list of names")
         except FileNotFoundError:
@@ -144,6 +165,9 @@ class LiveRun:
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise StereoseedError(f"{self.staging / ARRIVALS}: unreadable ({e}); run without --resume to start "
                                   f"again") from None
+        if rig != self.rig:
+            raise StereoseedError(f"{self.results.shown}: the interrupted run was "
+                                  f"{'a rig walk (--rig)' if rig else 'one camera (no --rig)'}; resume it as it was")
         kept = [n for n in names if (self.images_dir / n).is_file()]
         if kept != names:
             raise StereoseedError(f"{self.images_dir}: the run's copies of {len(names) - len(kept)} photo(s) are "
@@ -158,10 +182,11 @@ class LiveRun:
             for n in names[2:count]:  # the views of the checkpoint read their images from here
                 self.seq.append(self.images_dir / n)
             if key != self.key:  # stopped while finishing: signed for reconstruct, these photos
-                key = inputs_key(self.seq, self.names[:count], self.P_pair, self.cfg)
+                key = inputs_key(self.seq, self.names[:count], self.P_pair, self.cfg, self.rig)
             state = load_checkpoint(self.checkpoint, self.seq, self.names[:count], key)
             if state is not None:
                 self.recon = state[0]
+                self.recon.rig = pair_rig(self._local_pair(), self.rig)  # held by the run, not the checkpoint
                 for i in working_set(self.recon, self.cfg):  # the next insertions read their grey images
                     self.recon.views[i].restore_gray()
                 self.resumed = [v.name for v in self.recon.views]
@@ -196,10 +221,11 @@ class LiveRun:
                                       f"pair needs two (what came is kept for --resume)")
             live_s = time.perf_counter() - self.t0
             # reconstruct's key for these inputs: its resume takes this model as its own
-            save_checkpoint(self.checkpoint, self.recon, inputs_key(self.seq, self.names, self.P_pair, self.cfg))
+            save_checkpoint(self.checkpoint, self.recon, inputs_key(self.seq, self.names, self.P_pair, self.cfg,
+                                                                    self.rig))
             self.recon = None  # the model is read back from the checkpoint: not held twice
             recon, report = reconstruct(self.seq, self.names, self.P_pair, self.cfg, checkpoint=self.checkpoint,
-                                        resume=True)
+                                        resume=True, rig=self.rig)
             report.pop("resumed_images", None)  # this run inserted them; a resumed live run says so below
             report["live"] = {"photos": len(self.names), "resumed_photos": self.resumed}
             cloud = None
@@ -211,7 +237,8 @@ class LiveRun:
                                                   "stages_s": {"live": live_s,
                                                                "finishing": time.perf_counter() - self.t0 - live_s}})
             save_outputs(recon, report, self.staging, self.cfg, self.lenses, cloud)
-            write_inputs(self.staging, self.out, [self.seq.source(i) for i in range(len(self.seq))], self.names)
+            write_inputs(self.staging, self.out, [self.seq.source(i) for i in range(len(self.seq))], self.names,
+                         self.rig)
             self.results.commit(drop=(".checkpoint*", ARRIVALS))
             return report
         finally:

@@ -13,6 +13,7 @@ skips it with its reason, as ``reconstruct`` does), a name taken already, a vide
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import stat
@@ -26,7 +27,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, captured_stderr, name_trouble
 from stereoseed.live.config import LiveConfig
 
-__all__ = ["Arrival", "Look", "FolderWatch"]
+__all__ = ["Arrival", "Look", "FolderWatch", "RigWatch"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,15 @@ class FolderWatch:
         self._said: set[str] = set()  # names refused once (a video, a bad name, taken twice)
         self._unlisted = False  # the folder could not be listed at the last look
         self._why_unlisted = ""
+
+    def mark_taken(self, names: list[str]) -> None:
+        """``names`` were taken already (a resumed run's photos): not taken again."""
+        self.taken.update(names)
+        self.present.update(names)
+
+    def give_back(self, name: str) -> None:
+        """``name`` was handed over but not used (past ``--until``): not this run's."""
+        self.taken.discard(name)
 
     def _listing(self) -> dict[str, tuple[int, int]] | None:
         """{name: (size, mtime_ns)} of the regular files in the folder, None when it cannot be listed."""
@@ -185,3 +195,55 @@ class FolderWatch:
             return None
         del self._pending[name]
         return Arrival(self.folder / name, name, data, decodes, pending.since, signature[1])
+
+
+class RigWatch:
+    """A stereo rig's two folders watched together (``--watch LEFT --rig RIGHT``): a station is
+    handed over once both its photos are complete, the k-th complete photo of each side (each
+    side in the order its photos were written), the left one first, as ``reconstruct --rig``
+    interleaves them. Each photo's name gets its folder's name in front (``cam0_0007.jpg``;
+    "left" and "right" when the folders share a name): the two cameras often name their photos
+    alike, and the run keeps both in one folder."""
+
+    def __init__(self, left: str | Path, right: str | Path, cfg: LiveConfig = LiveConfig()):
+        self.sides = (FolderWatch(left, cfg), FolderWatch(right, cfg))
+        names = tuple(w.folder.resolve().name for w in self.sides)
+        if self.sides[0].folder.resolve() == self.sides[1].folder.resolve():
+            raise StereoseedError(f"{left}: the same folder for both cameras; give the right camera's photos "
+                                  f"their own folder (--rig)")
+        self.prefixes = names if names[0] != names[1] else ("left", "right")
+        self.folder = f"{self.sides[0].folder} and {self.sides[1].folder}"
+        self._waiting: tuple[list[Arrival], list[Arrival]] = ([], [])
+
+    def named(self, side: int, name: str) -> str:
+        """The run's name of a photo named ``name`` in side ``side``'s folder (0: left)."""
+        return f"{self.prefixes[side]}_{name}"
+
+    def _side_of(self, name: str) -> tuple[int, str]:
+        for side, prefix in enumerate(self.prefixes):
+            if name.startswith(prefix + "_"):
+                return side, name[len(prefix) + 1:]
+        raise ValueError(f"{name}: not a name this rig's watch gave")
+
+    def mark_taken(self, names: list[str]) -> None:
+        for name in names:
+            side, own = self._side_of(name)
+            self.sides[side].mark_taken([own])
+
+    def give_back(self, name: str) -> None:
+        side, own = self._side_of(name)
+        self.sides[side].give_back(own)
+
+    def look(self, now: float) -> Look:
+        """The stations complete since the last look, left then right each, and both folders' notes."""
+        found = Look()
+        for side, watch in enumerate(self.sides):
+            look = watch.look(now)
+            found.notes.extend(look.notes)
+            self._waiting[side].extend(dataclasses.replace(a, name=self.named(side, a.name)) for a in look.arrivals)
+        complete = min(len(w) for w in self._waiting)
+        for left, right in zip(self._waiting[0][:complete], self._waiting[1][:complete]):
+            found.arrivals += [left, right]
+        for waiting in self._waiting:
+            del waiting[:complete]
+        return found
