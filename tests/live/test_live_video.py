@@ -71,3 +71,36 @@ def test_a_run_that_falls_behind_drops_frames_and_says_so(walk):
     assert any("dropped while the run was behind" in n for n in notes), notes
     assert any("the stream ended after 36 frames" in n for n in notes), notes
     assert taken and len(taken) <= len(all_keyframes) + 1  # keyframes still, the queue never longer than one
+
+
+def test_a_stream_is_read_live_and_its_keyframes_named_after_it_and_the_time(walk, tmp_path):
+    """``--video URL`` (a camera's number works alike: OpenCV opens either): the walk served over
+    HTTP on 127.0.0.1 gives the keyframes the file gives, named after the stream and the time its
+    reading started (a stream cannot be read again: a resumed run's keyframes never take the
+    interrupted run's names); a camera or an address that does not answer is one line."""
+    import functools
+    import http.server
+    import re
+    import threading
+
+    from stereoseed.errors import StereoseedError
+
+    photos, calib, video = walk
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(video.parent))
+    handler.log_message = lambda *a: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/{video.name}"
+        report = run_live(None, calib, tmp_path / "live", video=url, pair=photos, port=0, realtime=False)
+    finally:
+        server.shutdown()
+    names = list(_cameras(tmp_path / "live"))
+    from_file = [k.name.split("_")[-1] for k in read_keyframes(video)]
+    assert [n.split("_")[-1] for n in names[2:]] == from_file and len(from_file) >= 3
+    assert all(re.fullmatch(r"walk_\d{8}-\d{6}_\d{6}\.png", n) for n in names[2:]), names
+    assert report["registered"] >= 5
+    with pytest.raises(StereoseedError, match="no such camera"):
+        VideoFeed("97")
+    with pytest.raises(StereoseedError, match="the stream does not answer"):
+        VideoFeed("http://127.0.0.1:9/none.mp4")

@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the calibrated pair; photos already there are taken first, in the order they were written")
     source.add_argument("--video", metavar="FILE",
                         help="a filmed walk, read at its own pace, its keyframes picked as reconstruct picks them "
-                             "(with --pair)")
+                             "(with --pair); or a camera filming now (its number: 0 is the first) or a stream's "
+                             "address (rtsp://..., http://...)")
     p.add_argument("--pair", nargs=2, metavar=("PAIR1", "PAIR2"),
                    help="with --video: the calibrated pair's two photos (the video starts where the second was taken)")
     p.add_argument("--rig", metavar="DIR",

@@ -1,5 +1,6 @@
-"""A filmed walk as a live source (``stereoseed live --video FILE``): the video read at its own
-pace (a file at its frame rate, as if filmed now) in a thread, each frame given to the keyframe
+"""A filmed walk as a live source (``stereoseed live --video FILE``, or a camera or a stream
+filmed now: ``--video 0``, ``--video rtsp://...``): the video read at its own pace (a file at its
+frame rate, as if filmed now; a camera or a stream as it delivers its frames) in a thread, each frame given to the keyframe
 choice of ``reconstruct`` (:class:`stereoseed.io.video.KeyframePicker`), the keyframes handed to
 the run through a bounded queue.
 
@@ -8,6 +9,10 @@ frames that came meanwhile are dropped (grabbed, not decoded) until the reader i
 stream's pace, and the drop is said: with frames dropped the keyframes may differ from
 ``reconstruct``'s on the same video (the tracking jumped). With none dropped they are the same
 frames, named alike, so the result is ``reconstruct``'s on the pair's photos and the video.
+
+A camera or a stream cannot be read again: its keyframes are named after it and the time the
+reading started (``camera0_20261207-191500_000123.png``), so a resumed run's new keyframes never
+take the names of the interrupted run's.
 """
 from __future__ import annotations
 
@@ -21,13 +26,23 @@ import cv2
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.config import VideoConfig
+from stereoseed.io.files import captured_stderr
 from stereoseed.io.video import KeyframePicker
 from stereoseed.live.config import LiveConfig
 from stereoseed.live.watch import Arrival, Look
 
-__all__ = ["VideoFeed"]
+__all__ = ["VideoFeed", "stream_source"]
 
 log = logging.getLogger(__name__)
+
+
+def stream_source(video: str | Path) -> int | str | None:
+    """What OpenCV opens for ``video`` when it is a camera or a stream filmed now: a camera's
+    number (``"0"``: the first camera) or a URL (``rtsp://``, ``http://``...); None for a file."""
+    text = str(video)
+    if text.isdigit():
+        return int(text)
+    return text if "://" in text else None
 
 
 class VideoFeed:
@@ -36,12 +51,26 @@ class VideoFeed:
 
     def __init__(self, path: str | Path, cfg: VideoConfig = VideoConfig(), live: LiveConfig = LiveConfig(),
                  realtime: bool = True):
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise StereoseedError(f"{self.path}: video not found")
-        self._capture = cv2.VideoCapture(str(self.path))
-        if not self._capture.isOpened():
-            raise StereoseedError(f"{self.path}: cannot be opened as a video; give a video OpenCV reads (MP4, AVI, MKV)")
+        stream = stream_source(path)
+        if stream is None:
+            self.path = Path(path)
+            if not self.path.is_file():
+                raise StereoseedError(f"{self.path}: video not found")
+            self._capture = cv2.VideoCapture(str(self.path))
+            if not self._capture.isOpened():
+                raise StereoseedError(f"{self.path}: cannot be opened as a video; give a video OpenCV reads (MP4, AVI, "
+                                      f"MKV)")
+        else:
+            # the keyframes' names: the camera's number or the stream's last path part, and when
+            # the reading started (a stream read again is another one)
+            what = f"camera{stream}" if isinstance(stream, int) else (Path(stream.split("?")[0]).stem or "stream")
+            self.path = Path(f"{what}_{time.strftime('%Y%m%d-%H%M%S')}")
+            with captured_stderr():  # OpenCV's own warnings of a missing camera: the line below says it
+                self._capture = cv2.VideoCapture(stream)
+            if not self._capture.isOpened():
+                why, check = (("no such camera", "the camera's number") if isinstance(stream, int) else
+                              ("the stream does not answer or is not a video OpenCV reads", "the address"))
+                raise StereoseedError(f"{path}: cannot be opened ({why}); check {check}")
         fps = self._capture.get(cv2.CAP_PROP_FPS)
         self.fps = fps if fps and 1.0 <= fps <= 1000.0 else live.video_fps
         self.live, self.realtime = live, realtime
