@@ -195,7 +195,7 @@ def test_the_kernel_table_holds_the_types_a_run_passes(tmp_path):
     # _sample_patches only where OpenCV's remap rounds positions (4.x)
     from stereoseed.features import harris
 
-    unseen = {"stereoseed.dense.densify:_grid_origin"} | (
+    unseen = {"stereoseed.dense.grid:_grid_origin"} | (
         {"stereoseed.features.harris:_sample_patches"} if harris._remap_is_exact() else set())
     assert set(seen) <= set(table) and set(table) - set(seen) <= unseen
     for key, sigs in seen.items():

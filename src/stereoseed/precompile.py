@@ -126,13 +126,13 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "two_view": ("stereoseed.estimators.triangulation", "_two_view_kernel",
                  ("float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], int64, float64[:, ::1], "
                   "float64[::1]")),
-    "cell_keys": ("stereoseed.dense.densify", "_cell_keys", "float64[:, ::1], float64"),
-    "grid_origin": ("stereoseed.dense.densify", "_grid_origin", "float64[:, ::1]"),
+    "cell_keys": ("stereoseed.dense.grid", "_cell_keys", "float64[:, ::1], float64"),
+    "grid_origin": ("stereoseed.dense.grid", "_grid_origin", "float64[:, ::1]"),
     "voxel_means": ("stereoseed.dense.densify", "_voxel_means",
                     ("int64[::1], int64[::1], float64[:, ::1], uint8[:, ::1], int64[::1], float64[:, ::1], "
                      "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], int64, int64")),
-    "cells": ("stereoseed.dense.densify", "_cells", "float64[:, ::1], float64"),
-    "grid_neighbours": ("stereoseed.dense.densify", "_grid_neighbours",
+    "cells": ("stereoseed.dense.grid", "_cells", "float64[:, ::1], float64"),
+    "grid_neighbours": ("stereoseed.dense.grid", "_grid_neighbours",
                         ("float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
                          "int64, int64, int32[:, ::1]")),
     "pca_normals": ("stereoseed.dense.normals", "pca_normals",

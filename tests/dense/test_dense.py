@@ -95,7 +95,7 @@ def test_normals_are_the_scatter_matrices_least_eigenvectors():
     """The compiled closed form against NumPy's eigh (the oracle), on clouds of every shape."""
     from scipy.spatial import cKDTree
 
-    from stereoseed.dense.densify import estimate_normals
+    from stereoseed.dense.normals import estimate_normals
 
     rng = np.random.default_rng(3)
     pts = rng.normal(size=(4000, 3)) * rng.uniform(0.01, 1.0, (4000, 3))  # anisotropic blobs
@@ -115,7 +115,8 @@ def test_grid_neighbours_are_the_k_d_trees():
     cell or many, duplicates, and points farther than the grid looks (the tree finishes them)."""
     from scipy.spatial import cKDTree
 
-    from stereoseed.dense.densify import estimate_normals, nearest_neighbours
+    from stereoseed.dense.grid import nearest_neighbours
+    from stereoseed.dense.normals import estimate_normals
 
     rng = np.random.default_rng(4)
     blobs = rng.normal(size=(3000, 3)) * rng.uniform(0.01, 1.0, (3000, 3))
@@ -135,7 +136,7 @@ def test_grid_neighbours_are_the_k_d_trees():
 def test_grid_search_looks_past_a_near_point_in_its_cube():
     """After the cube of radius 2 cells, a point 2.9 cells away may not be the nearest: one 2.06
     cells away can sit in the next cube (diagonal geometry aside, along one axis here)."""
-    from stereoseed.dense.densify import nearest_neighbours
+    from stereoseed.dense.grid import nearest_neighbours
 
     query = [10.99, 10.5, 10.5]  # cell (10, 10, 10), the cells counted from the anchor at 0
     inside = [8.09, 10.5, 10.5]  # cell 8: in the cube of radius 2, 2.9 away
@@ -147,7 +148,8 @@ def test_grid_search_looks_past_a_near_point_in_its_cube():
 def test_support_and_fusion_are_the_numpy_sums():
     """The compiled passes give what np.unique and np.bincount give, to the bit: support, mean
     point, colour and viewpoint per voxel, and the sources' count per voxel."""
-    from stereoseed.dense.densify import _fuse, _voxel_keys
+    from stereoseed.dense.densify import _fuse
+    from stereoseed.dense.grid import voxel_keys as _voxel_keys
 
     rng = np.random.default_rng(5)
     pts = rng.normal(size=(20000, 3)) * 0.05
@@ -173,7 +175,8 @@ def test_support_and_fusion_are_the_numpy_sums():
 
 
 def test_normals_of_points_on_a_line_are_perpendicular_to_it():
-    from stereoseed.dense.densify import _voxel_keys, estimate_normals
+    from stereoseed.dense.grid import voxel_keys as _voxel_keys
+    from stereoseed.dense.normals import estimate_normals
 
     direction = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
     line = np.linspace(0.0, 1.0, 40)[:, None] * direction + [0.3, -0.2, 5.0]

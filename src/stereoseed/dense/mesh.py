@@ -205,7 +205,7 @@ def _submesh(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, densi
 def camera_viewpoints(points: np.ndarray, projections: list[np.ndarray], sizes: list[tuple[int, int]]) -> np.ndarray:
     """Where each point (N, 3) was seen from (N, 3): the centre of the nearest camera that has it
     in front and inside its image (P (3, 4), (width, height) each); a point no camera frames
-    takes the nearest centre. With :func:`stereoseed.dense.densify.estimate_normals` it turns
+    takes the nearest centre. With :func:`stereoseed.dense.normals.estimate_normals` it turns
     estimated normals to the outside, where the cameras stood."""
     from stereoseed.geometry.projection import camera_center
 
@@ -275,7 +275,7 @@ def _read_cloud(folder: Path, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, 
         length = np.linalg.norm(normals, axis=1)
         if np.all(np.isfinite(length)) and np.all(np.abs(length - 1.0) < 1e-3):
             return points, normals, colors, confidence, "dense.ply"
-    from stereoseed.dense.densify import estimate_normals
+    from stereoseed.dense.normals import estimate_normals
     from stereoseed.output.reader import load_result
 
     result = load_result(folder)

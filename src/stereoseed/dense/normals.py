@@ -1,11 +1,36 @@
-"""The dense cloud's normals: the compiled per-point plane fit (:func:`pca_normals`), used by
-:func:`stereoseed.dense.densify.estimate_normals`."""
+"""The dense cloud's normals (:func:`estimate_normals`): each point's neighbours
+(:func:`stereoseed.dense.grid.nearest_neighbours`), then the compiled per-point plane fit
+(:func:`pca_normals`)."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-__all__ = ["pca_normals"]
+from stereoseed.dense.grid import nearest_neighbours
+from stereoseed.threads import map_chunks, split_rows
+
+__all__ = ["estimate_normals", "pca_normals"]
+
+
+def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int = 10,
+                     cell: float | None = None) -> np.ndarray:
+    """Unit normals (N, 3) of a point cloud (N, 3): the direction of least spread of each point's
+    ``neighbours`` nearest points (PCA), turned towards its ``viewpoints`` (N, 3) (where the
+    cameras that saw it stand), so that a surface reconstruction (Poisson) knows the outside.
+
+    cell: a grid step for the neighbour search, e.g. 1.5 fusion voxels for a fused cloud (about
+    one point per voxel): the same neighbours as a k-d tree's (:func:`nearest_neighbours`),
+    found about twice as fast on the dense stage's clouds. None: a k-d tree."""
+    n = len(points)
+    normals = np.zeros((n, 3))
+    if n < 3:
+        normals[:, 2] = 1.0
+        return normals
+    points = np.ascontiguousarray(points, np.float64)
+    viewpoints = np.ascontiguousarray(viewpoints, np.float64)
+    idx = nearest_neighbours(points, min(neighbours, n), cell)
+    map_chunks(lambda a, b: pca_normals(points, idx, viewpoints, normals, a, b), split_rows(n, 50_000))
+    return normals
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
