@@ -2,12 +2,14 @@
 photos put into a watched folder one at a time at a fixed rate (in ring_order.txt's order, each
 written beside and renamed in, as a sync tool does), the page followed by a client of its event
 stream. Per photo: the latency from the file's arrival to the first pushed state that shows it
-(median, p95), and the process's memory (peak and after each photo). Then ``walk``: a 300-photo
+(median, p95), and the process's memory (peak and after each photo). With ``--dense`` (the
+issue's setting: the dense stage's propagation running behind the walk in a worker process),
+as the captures of ``run`` do; without, the sparse run alone. Then ``walk``: a 300-photo
 synthetic ring (320 x 240, 1.2 degrees apart) taken by a live run as fast as it inserts them,
 the page's state built after each as the page would: the memory along the walk and the
 insertion's time.
 
-    python benchmarks/bench_live.py [SECONDS_BETWEEN_PHOTOS]
+    python benchmarks/bench_live.py [SECONDS_BETWEEN_PHOTOS] [--dense]
 """
 from __future__ import annotations
 
@@ -76,10 +78,11 @@ def walk(n: int = 300) -> dict:
 
 
 def run(rate_s: float = RATE_S) -> dict:
-    return {"capture": capture(rate_s), "ring36": ring36(rate_s), "walk": walk()}
+    return {"capture": capture(rate_s, dense=True), "ring36": ring36(rate_s, dense=True),
+            "capture_sparse": capture(rate_s), "walk": walk()}
 
 
-def ring36(rate_s: float = RATE_S) -> dict:
+def ring36(rate_s: float = RATE_S, dense: bool = False) -> dict:
     """The capture of bench_speed's 36-image synthetic ring (640 x 480, 10 degrees apart, its
     true pair as the calibration)."""
     from stereoseed.io.files import write_json
@@ -89,17 +92,17 @@ def ring36(rate_s: float = RATE_S) -> dict:
         scene = render_scene(SceneConfig(n_images=36, step_deg=10.0, seed=1))
         photos = write_scene(scene, Path(tmp) / "ring")["images"]
         calib = write_json(Path(tmp) / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
-        return {"set": "synthetic ring, 36 images at 10 degrees", **_capture(photos, calib, rate_s)}
+        return {"set": "synthetic ring, 36 images at 10 degrees", **_capture(photos, calib, rate_s, dense)}
 
 
-def capture(rate_s: float = RATE_S) -> dict:
+def capture(rate_s: float = RATE_S, dense: bool = False) -> dict:
     folder = find_sample(SET)
     if folder is None:
         return {"skipped": missing_message(SET)}
-    return {"set": SET, **_capture(list_images(folder / "ring_order.txt"), folder / "templeSR_par.txt", rate_s)}
+    return {"set": SET, **_capture(list_images(folder / "ring_order.txt"), folder / "templeSR_par.txt", rate_s, dense)}
 
 
-def _capture(photos: list[Path], calib: Path, rate_s: float) -> dict:
+def _capture(photos: list[Path], calib: Path, rate_s: float, dense: bool = False) -> dict:
     written: dict[str, float] = {}
     rss: list[float] = []
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
@@ -133,7 +136,7 @@ def _capture(photos: list[Path], calib: Path, rate_s: float) -> dict:
         timings: list[dict] = []
         t0 = time.perf_counter()
         report = run_live(watch, calib, Path(tmp) / "result", live=LiveConfig(), until=len(photos), port=0,
-                          on_start=lambda url: (urls.append(url), started.set()), timings=timings)
+                          on_start=lambda url: (urls.append(url), started.set()), timings=timings, dense=dense)
         total = time.perf_counter() - t0
     latency = [t["shown_at"] - written[t["name"]] for t in timings if t["shown_at"] is not None]
     return {"photos": len(photos), "seconds_between_photos": rate_s,
@@ -141,9 +144,14 @@ def _capture(photos: list[Path], calib: Path, rate_s: float) -> dict:
             "latency_s": {"median": float(np.median(latency)), "p95": float(np.percentile(latency, 95)),
                           "max": float(np.max(latency)), "shown": len(latency)},
             "finishing_s": report["timing"]["stages_s"]["finishing"], "run_s": total,
+            "dense": {"pairs": len(report["dense"]["pairs"]), "pairs_found_before": report["dense"]["pairs_found_before"],
+                      "seconds_after_stop": report["dense"]["seconds"], "points": report["dense"]["points"]}
+            if dense else None,
             "memory_mb": {"peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
                           "after_first_photo": rss[0] if rss else None, "after_last_photo": rss[-1] if rss else None}}
 
 
 if __name__ == "__main__":
-    print(json.dumps(capture(*(float(a) for a in sys.argv[1:])) if sys.argv[1:] else run(), indent=1))
+    args = [a for a in sys.argv[1:] if a != "--dense"]
+    print(json.dumps(capture(*(float(a) for a in args), dense="--dense" in sys.argv) if args or "--dense" in sys.argv
+                     else run(), indent=1))

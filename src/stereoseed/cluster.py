@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterable, Iterator
 from stereoseed.errors import StereoseedError
 from stereoseed.threads import CORES, limit_chunks
 
-__all__ = ["JobPool", "executor_for", "CONNECT_TIMEOUT_S"]
+__all__ = ["JobPool", "executor_for", "processes_beside", "CONNECT_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 
@@ -112,13 +112,8 @@ def executor_for(scheduler: str | None, workers: int,
         if workers <= 1:
             yield JobPool()
             return
-        local = _LocalPool(workers)
-        try:
-            yield JobPool(workers, local.submit, f"in {workers} local processes")
-        except BaseException:  # an error or an interrupt: its jobs' results are not wanted
-            local.close(abandon=True)
-            raise
-        local.close(abandon=False)
+        with processes_beside(workers) as pool:
+            yield pool
         return
     client = _connect(scheduler, connect_timeout)
     try:
@@ -215,6 +210,21 @@ class _Job:
 
     def __init__(self, fn: Callable[..., Any], args: tuple, number: int):
         self.fn, self.args, self.future, self.number, self.deaths = fn, args, Future(), number, 0
+
+
+@contextmanager
+def processes_beside(workers: int) -> Iterator[JobPool]:
+    """A :class:`JobPool` of ``workers`` local processes (at least one: never this process, for
+    work that runs beside the caller, as a live run's dense stage behind the walk). Closed as
+    :func:`executor_for` closes its local pool."""
+    workers = max(int(workers), 1)
+    local = _LocalPool(workers)
+    try:
+        yield JobPool(workers, local.submit, f"in {workers} local process{'es' if workers > 1 else ''}")
+    except BaseException:  # an error or an interrupt: its jobs' results are not wanted
+        local.close(abandon=True)
+        raise
+    local.close(abandon=False)
 
 
 class _LocalPool:

@@ -15,7 +15,7 @@ import os
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Mapping
 
 import numpy as np
 from numba import njit
@@ -40,28 +40,43 @@ from stereoseed.estimators.triangulation import triangulate_two_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DenseCloud", "densify_pair", "fuse", "densify", "dense_pairs"]
+__all__ = ["DenseCloud", "densify_pair", "propagate_pair", "triangulated_pair", "fuse", "densify", "dense_pairs",
+           "pair_job"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
                  seeds: np.ndarray, propagation: PropagationConfig = PropagationConfig(),
                  dense: DenseConfig = DenseConfig()) -> dict[str, Any]:
-    """Propagate, triangulate and filter one pair.
+    """Propagate, triangulate and filter one pair (:func:`propagate_pair`, then :func:`triangulated_pair`).
 
     image_a, image_b: uint8 BGR; P_a, P_b: (3, 4); seeds: (S, 4). Returns a dict with
     "points" (N, 3), "colors" (N, 3) uint8 RGB, "pixels" (N, 2) int64 (each point's pixel in
     image_a), "angles" (N,) triangulation angles in degrees and "report" (counts before/after
     each filter, seconds).
     """
+    matches, report = propagate_pair(image_a, image_b, P_a, P_b, seeds, propagation)
+    return triangulated_pair(image_a, P_a, P_b, matches, report, dense)
+
+
+def propagate_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray, seeds: np.ndarray,
+                   propagation: PropagationConfig = PropagationConfig()) -> tuple[np.ndarray, dict[str, Any]]:
+    """The pair's propagated matches (M, 4) float64 (x_a, y_a, x_b, y_b, in the images' pixels)
+    under the epipolar geometry of P_a, P_b, and the report's counts and seconds so far: the
+    dense stage's costly part, which a live run does behind the walk (:mod:`stereoseed.live`)."""
     t0 = time.perf_counter()
     F = fundamental_from_projections(P_a, P_b)
     result = propagate(image_a, image_b, seeds, F, propagation, subpixel_method=propagation.subpixel_method)
+    return result.matches, {"seeds": int(len(seeds)), "seeds_used": int(result.n_seeds_used),
+                            "matches": int(len(result.matches)), "seconds": {"propagation": time.perf_counter() - t0}}
+
+
+def triangulated_pair(image_a: np.ndarray, P_a: np.ndarray, P_b: np.ndarray, m: np.ndarray, report: dict[str, Any],
+                      dense: DenseConfig = DenseConfig()) -> dict[str, Any]:
+    """The points of the pair's matches m (M, 4) (:func:`propagate_pair`'s, with its ``report``)
+    triangulated with P_a, P_b and filtered: :func:`densify_pair`'s dict."""
     t1 = time.perf_counter()
-    m = result.matches
-    report: dict[str, Any] = {"seeds": int(len(seeds)), "seeds_used": int(result.n_seeds_used),
-                              "matches": int(len(m))}
+    report = {**report, "seconds": {**report["seconds"], "triangulation": 0.0}}
     if len(m) == 0:
-        report["seconds"] = {"propagation": t1 - t0, "triangulation": 0.0}
         return {"points": np.zeros((0, 3)), "colors": np.zeros((0, 3), np.uint8), "pixels": np.zeros((0, 2), np.int64),
                 "angles": np.zeros(0), "report": report}
     # Three Gauss-Newton steps suffice: the linear solution of a sub-pixel match is already close.
@@ -73,7 +88,7 @@ def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b:
     report.update(in_front=int(in_front.sum()), small_reprojection=int(small_error.sum()), wide_angle=int(wide.sum()))
     x1 = m[wide, :2].astype(np.int64)
     colors = image_a[x1[:, 1], x1[:, 0]][:, ::-1] if image_a.ndim == 3 else np.repeat(image_a[x1[:, 1], x1[:, 0]][:, None], 3, 1)
-    report["seconds"] = {"propagation": t1 - t0, "triangulation": time.perf_counter() - t1}
+    report["seconds"]["triangulation"] = time.perf_counter() - t1
     return {"points": tri.points[wide], "colors": np.ascontiguousarray(colors, dtype=np.uint8), "pixels": x1,
             "angles": tri.angles[wide], "report": report}
 
@@ -201,14 +216,17 @@ def dense_pairs(recon: Reconstruction, cfg: Config) -> list[tuple[int, int]]:
     return own + [(first_of[a], first_of[b]) for a, b in zip(stations[:-1], stations[1:])]
 
 
-def _pair_jobs(recon: Reconstruction, pairs: list[tuple[int, int]], cfg: Config,
-               frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> Iterator[tuple]:
+def pair_job(recon: Reconstruction, pair: tuple[int, int], cfg: Config,
+             frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> tuple:
+    """The arguments of :func:`densify_pair` (and, but the last, of :func:`propagate_pair`) for
+    views ``pair`` = (a, b) in the dense stage's frames (:func:`~stereoseed.dense.frames.dense_frames`
+    of the views): both images at that size, their cameras, the sparse points they share as seeds."""
     scales, cameras, sizes = frames
-    for a, b in pairs:
-        seeds = recon.shared_pixels(a, b)
-        seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
-        yield (resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
-               cameras[b], seeds, cfg.propagation, cfg.dense)
+    a, b = pair
+    seeds = recon.shared_pixels(a, b)
+    seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
+    return (resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
+            cameras[b], seeds, cfg.propagation, cfg.dense)
 
 
 @dataclass(frozen=True)
@@ -231,7 +249,8 @@ class DenseCloud:
 
 
 def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.PathLike | None = None,
-            pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None
+            pool: JobPool | None = None, progress: Callable[[int, int, str], None] | None = None,
+            propagated: Mapping[tuple[int, int], tuple[str | os.PathLike, dict[str, Any]]] | None = None
             ) -> tuple[DenseCloud, dict[str, Any]]:
     """Quasi-dense stage over every consecutive registered pair (:func:`dense_pairs`); writes
     ``dense.ply`` in out_dir when given. Returns the cloud and the report (per pair counts and times, fused count).
@@ -239,7 +258,10 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     pool: where the pair jobs run (:func:`stereoseed.cluster.executor_for`, e.g. a Dask
     cluster); default a local pool of ``cfg.dense.pool_size()`` processes. The cloud is the same
     wherever the jobs run. progress(done, total, message): called as each pair's cloud comes in
-    (total: the pairs) and once more when the fusion starts."""
+    (total: the pairs) and once more when the fusion starts. propagated: {(a, b): (an .npy file
+    of the pair's matches, its report)} found already (:func:`propagate_pair`: a live run's,
+    behind the walk, with the cameras of then): those pairs are only triangulated here, with
+    the cameras of now."""
     t0 = time.perf_counter()
     pairs = dense_pairs(recon, cfg)
     frames = dense_frames(recon.views, cfg.dense.resolution)
@@ -251,10 +273,19 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         cols.append(res["colors"])
         per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
 
-    local = executor_for(None, min(cfg.dense.pool_size(), len(pairs))) if pool is None else nullcontext(pool)
+    propagated = propagated or {}
+    todo = [pair for pair in pairs if pair not in propagated]
+    local = executor_for(None, max(min(cfg.dense.pool_size(), len(todo)), 1)) if pool is None else nullcontext(pool)
     with local as jobs:
-        for i, (pair, done) in enumerate(zip(pairs, jobs.in_order(_run_pair, _pair_jobs(recon, pairs, cfg, frames)))):
-            collect(pair, done.result())
+        computed = jobs.in_order(_run_pair, (pair_job(recon, pair, cfg, frames) for pair in todo))
+        for i, pair in enumerate(pairs):
+            if pair in propagated:  # its matches found already: triangulated with the cameras of now
+                path, found = propagated[pair]
+                image_a, _, P_a, P_b, *_ = pair_job(recon, pair, cfg, frames)
+                res = triangulated_pair(image_a, P_a, P_b, np.load(path, allow_pickle=False), found, cfg.dense)
+            else:
+                res = next(computed).result()
+            collect(pair, res)
             if progress:
                 progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
     if progress and pairs:
@@ -281,7 +312,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     # within its cube of 27 cells (measured on the 18-image ring: 20 % faster than 1 voxel)
     normals = estimate_normals(fused, viewpoints, cell=1.5 * voxel) if len(fused) else np.zeros((0, 3))
     del viewpoints
-    report = {"pairs": per_pair, "points_before_fusion": n_before,
+    report = {"pairs": per_pair, "pairs_found_before": sum(pair in propagated for pair in pairs),
+              "points_before_fusion": n_before,
               "points_supported": counted["points_supported"], "points_unjudged": counted["points_unjudged"],
               "points": int(len(fused)),
               "support_histogram": counted["support_histogram"],

@@ -95,7 +95,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
     else:
         first = []
         source = FolderWatch(watch, live)  # a folder that is not there: refused before the result folder is touched
-    run = LiveRun(calib, out, cfg, resume, rig=rig is not None)
+    run = LiveRun(calib, out, cfg, resume, rig=rig is not None, dense=dense)
     try:
         page = LivePage(port, live, title=f"{result_name(out)} — stereoseed live")
     except BaseException:

@@ -31,6 +31,7 @@ from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import atomic_path, write_json
 from stereoseed.io.files import read_calibration_unit
 from stereoseed.io.sequence import ImageSequence
+from stereoseed.live.dense_behind import FOLDER as DENSE_BEHIND, DenseBehind
 from stereoseed.live.watch import Arrival
 from stereoseed.output.inputs import write_inputs
 from stereoseed.output.result_set import ResultSet
@@ -57,10 +58,11 @@ class LiveRun:
     :meth:`add` each photo as it comes, then :meth:`finish` (or :meth:`close` to leave the
     staging folder for ``resume``). ``resume``: continue an interrupted live run on ``out``.
     ``rig``: the photos are a stereo rig's stations, left and right interleaved (:meth:`add`
-    takes a station's two together)."""
+    takes a station's two together). ``dense``: the dense stage's propagation runs behind the
+    walk (:class:`~stereoseed.live.dense_behind.DenseBehind`), for :meth:`finish` with ``dense``."""
 
     def __init__(self, calib: str | Path, out: str | Path, cfg: Config = Config(), resume: bool = False,
-                 rig: bool = False):
+                 rig: bool = False, dense: bool = False):
         self.t0 = time.perf_counter()
         self.calib = str(calib)
         self.out = Path(out)
@@ -91,12 +93,17 @@ class LiveRun:
         self.key = ""
         self.saver = CheckpointWriter(self.checkpoint, self.key)  # its key set with the pair
         self.resumed: list[str] = []
+        self.dense_behind: DenseBehind | None = None
         if resume:
             try:
                 self._resume()
             except BaseException:  # refused (another kind of run, photos gone): the folder is free again
                 self.results.unlock()
                 raise
+        if dense:  # after the resume, which inserts again what the checkpoint did not hold
+            self.dense_behind = DenseBehind(self.staging, self.cfg)
+            if self.recon is not None:
+                self.dense_behind.after_insertion(self.recon)
 
     # ------------------------------------------------------------------ arrivals
     def add(self, *arrivals: Arrival) -> dict[str, Any] | None:
@@ -126,6 +133,8 @@ class LiveRun:
             for k in new:
                 report = insert_next(self.recon, self.seq, k, self.options, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
+            if self.dense_behind is not None:
+                self.dense_behind.after_insertion(self.recon)
         return report
 
     def _sequence(self) -> None:
@@ -232,22 +241,32 @@ class LiveRun:
             if dense:  # on the final cameras, as reconstruct --dense: its pairs on local processes
                 from stereoseed.dense.densify import densify
 
-                cloud, report["dense"] = densify(recon, self.cfg, self.staging)
+                # the pairs propagated behind the walk are only triangulated, with the final cameras
+                found = self.dense_behind.finish() if self.dense_behind is not None else {}
+                self._close_dense_behind()
+                cloud, report["dense"] = densify(recon, self.cfg, self.staging, propagated=found)
             report.update(unit=self.unit, timing={"total_s": time.perf_counter() - self.t0,
                                                   "stages_s": {"live": live_s,
                                                                "finishing": time.perf_counter() - self.t0 - live_s}})
             save_outputs(recon, report, self.staging, self.cfg, self.lenses, cloud)
             write_inputs(self.staging, self.out, [self.seq.source(i) for i in range(len(self.seq))], self.names,
                          self.rig)
-            self.results.commit(drop=(".checkpoint*", ARRIVALS))
+            self.results.commit(drop=(".checkpoint*", ARRIVALS, DENSE_BEHIND))
             return report
         finally:
+            self._close_dense_behind(abandon=True)
             self.results.unlock()
+
+    def _close_dense_behind(self, abandon: bool = False) -> None:
+        if self.dense_behind is not None:
+            self.dense_behind.close(abandon)
+            self.dense_behind = None
 
     def close(self) -> None:
         """Leave without finishing: the staging folder keeps the checkpoint, the photos and their
         order for ``resume`` (a run that took no photo leaves nothing behind)."""
         try:
+            self._close_dense_behind(abandon=True)
             self.saver.__exit__(None, None, None)
             if not self.names:
                 self.results.abandon()

@@ -1,0 +1,99 @@
+"""The dense stage behind the walk (``stereoseed live --dense``): the propagation of each pair of
+the walk, the dense stage's costly part, run in a worker process beside the live run once both
+its views are out of the window's reach (the window's bundle adjustment no longer moves them), so
+that stopping leaves only the triangulation and the fusion to do.
+
+A pair's matches depend on its cameras through the epipolar constraint of the propagation: found
+with the cameras of then, they are triangulated with the final cameras when the run stops
+(:func:`stereoseed.dense.densify.densify`'s ``propagated``), so the cloud stands where the final
+cameras put it; the final adjustment moves the cameras by a fraction of the propagation's
+epipolar band, so the matches are those the final cameras would give but for the few at its
+edge. The matches wait on disk, in the staging folder (one .npy file a pair): the run's memory
+stays flat however long the walk. A pair whose views the end of the run pairs otherwise (a view
+flagged by the final judgement leaves the dense stage) is propagated then, as ``reconstruct
+--dense`` does.
+"""
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stereoseed.cluster import processes_beside
+from stereoseed.config import Config
+from stereoseed.dense.densify import dense_pairs, pair_job, propagate_pair
+from stereoseed.dense.frames import dense_frames
+from stereoseed.io.atomic import atomic_path
+from stereoseed.scene.reconstruction import Reconstruction
+
+__all__ = ["DenseBehind", "FOLDER"]
+
+log = logging.getLogger(__name__)
+
+FOLDER = ".dense-behind"  # in the staging folder: the pairs' matches, dropped when the result is written
+
+
+def _propagated(args: tuple) -> tuple[np.ndarray, dict[str, Any]]:
+    return propagate_pair(*args[:6])
+
+
+class DenseBehind:
+    """Pairs propagated in one worker process while the run goes on (the run keeps the other
+    core). :meth:`after_insertion` after each insertion; :meth:`finish` when the run stops gives
+    :func:`~stereoseed.dense.densify.densify` its ``propagated``; :meth:`close` in any case."""
+
+    def __init__(self, staging: Path, cfg: Config):
+        self.cfg = cfg
+        self.folder = Path(staging) / FOLDER
+        self.folder.mkdir(mode=0o700, exist_ok=True)
+        self._stack = ExitStack()
+        self._pool = self._stack.enter_context(processes_beside(1))
+        self._running: dict[tuple[int, int], Future] = {}
+        self.done: dict[tuple[int, int], tuple[Path, dict[str, Any]]] = {}
+        self._sent: set[tuple[int, int]] = set()
+
+    def after_insertion(self, recon: Reconstruction) -> None:
+        """Send the pairs whose views the window's adjustment no longer moves (the last
+        ``PipelineConfig.window`` registered views may still move), and keep what came back."""
+        self._collect(wait=False)
+        moving = set(recon.registered_views[-(self.cfg.pipeline.window or 3):])
+        pairs = [p for p in dense_pairs(recon, self.cfg) if p not in self._sent and not moving & set(p)]
+        if not pairs:
+            return
+        frames = dense_frames(recon.views, self.cfg.dense.resolution)
+        for pair in pairs:
+            self._sent.add(pair)
+            self._running[pair] = self._pool.submit(_propagated, pair_job(recon, pair, self.cfg, frames))
+
+    def _collect(self, wait: bool) -> None:
+        for pair, future in list(self._running.items()):
+            if not (wait or future.done()):
+                continue
+            del self._running[pair]
+            try:
+                matches, report = future.result()
+            except Exception as e:  # noqa: BLE001 - a pair that failed behind is propagated at the end
+                log.info("dense stage behind the walk: pair %s: %s; propagated at the end", pair, e)
+                continue
+            path = self.folder / f"{pair[0]}_{pair[1]}.npy"
+            with atomic_path(path) as tmp:
+                with open(tmp, "wb") as fh:
+                    np.save(fh, matches, allow_pickle=False)
+            self.done[pair] = (path, report)
+
+    def finish(self) -> dict[tuple[int, int], tuple[Path, dict[str, Any]]]:
+        """Every pair sent, once it has come back: {pair: (its matches' file, its report)}."""
+        self._collect(wait=True)
+        return dict(self.done)
+
+    def close(self, abandon: bool = False) -> None:
+        """Stop the worker: once idle, or at once (``abandon``: the run was interrupted, the
+        pairs under way are not wanted)."""
+        if abandon:
+            self._stack.__exit__(InterruptedError, InterruptedError("the live run stopped"), None)
+        else:
+            self._stack.close()
