@@ -79,7 +79,50 @@ def walk(n: int = 300) -> dict:
 
 def run(rate_s: float = RATE_S) -> dict:
     return {"capture": capture(rate_s, dense=True), "ring36": ring36(rate_s, dense=True),
-            "capture_sparse": capture(rate_s), "walk": walk()}
+            "video": video_ring(), "capture_sparse": capture(rate_s), "walk": walk()}
+
+
+VIDEO_FPS = 12.0  # a walk filmed at 12 frames a second, 2.5 degrees a frame: a slow full turn in 12 s
+
+
+def video_ring(fps: float = VIDEO_FPS, dense: bool = True) -> dict:
+    """A filmed walk read at real speed (``live --video`` after the pair's two photos): the
+    36-image ring's pair (640 x 480, 10 degrees apart, its true cameras as the calibration) and
+    a video going on from the second camera round the whole ring, 2.5 degrees a frame, read at
+    ``fps`` by the live run. Latency: from the moment the keyframe was picked from the stream to
+    the first state a client was sent showing it."""
+    import cv2
+
+    from stereoseed.io.files import write_image, write_json
+    from stereoseed.synthetic.scene import SceneConfig, render_scene
+
+    with tempfile.TemporaryDirectory(prefix="bench-live-video-") as tmp:
+        pair = render_scene(SceneConfig(n_images=2, step_deg=10.0, seed=1))
+        frames = render_scene(SceneConfig(n_images=144, step_deg=2.5, azimuth0_deg=40.0, focal0_px=800.0,
+                                          principal_offset0_px=(0.0, 0.0), focal_jitter=0.0, pose_jitter=False,
+                                          seed=1))
+        photos = [write_image(Path(tmp) / f"pair{i}.png", image) for i, image in enumerate(pair.images)]
+        calib = write_json(Path(tmp) / "calib.json", {"cameras": [{"P": P.tolist()} for P in pair.P[:2]]})
+        video = Path(tmp) / "walk.avi"
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), fps, frames.images[0].shape[1::-1])
+        for image in frames.images:
+            writer.write(image)
+        writer.release()
+        timings: list[dict] = []
+        started, urls = threading.Event(), []
+        threading.Thread(target=_follow, args=(started, urls), daemon=True).start()
+        t0 = time.perf_counter()
+        report = run_live(None, calib, Path(tmp) / "result", live=LiveConfig(), port=0, video=video, pair=photos,
+                          timings=timings, dense=dense, on_start=lambda url: (urls.append(url), started.set()))
+        total = time.perf_counter() - t0
+    latency = [t["shown_at"] - t["settled_at"] for t in timings[2:] if t["shown_at"] is not None]
+    return {"set": f"synthetic ring filmed: the pair, then 144 frames 2.5 degrees apart at {fps:g} frames a second",
+            "keyframes": len(timings) - 2, "registered": report["registered"], "images": report["images"],
+            "latency_s": {"median": float(np.median(latency)), "p95": float(np.percentile(latency, 95)),
+                          "max": float(np.max(latency)), "shown": len(latency)},
+            "finishing_s": report["timing"]["stages_s"]["finishing"], "run_s": total,
+            "dense": {"pairs": len(report["dense"]["pairs"]), "pairs_found_before": report["dense"]["pairs_found_before"]}
+            if dense else None}
 
 
 def ring36(rate_s: float = RATE_S, dense: bool = False) -> dict:
@@ -102,6 +145,17 @@ def capture(rate_s: float = RATE_S, dense: bool = False) -> dict:
     return {"set": SET, **_capture(list_images(folder / "ring_order.txt"), folder / "templeSR_par.txt", rate_s, dense)}
 
 
+def _follow(started: threading.Event, urls: list[str]) -> None:
+    """A browser's event stream: what makes a state "shown"."""
+    started.wait(60)
+    try:
+        with urllib.request.urlopen(urls[0] + "events", timeout=300) as stream:
+            while stream.readline():
+                pass
+    except OSError:
+        pass
+
+
 def _capture(photos: list[Path], calib: Path, rate_s: float, dense: bool = False) -> dict:
     written: dict[str, float] = {}
     rss: list[float] = []
@@ -121,16 +175,8 @@ def _capture(photos: list[Path], calib: Path, rate_s: float, dense: bool = False
                 time.sleep(rate_s)
                 rss.append(_rss_mb())
 
-        def follow() -> None:  # a browser's event stream: what makes a state "shown"
-            started.wait(60)
-            try:
-                with urllib.request.urlopen(urls[0] + "events", timeout=120) as stream:
-                    while stream.readline():
-                        pass
-            except OSError:
-                pass
-
-        threads = [threading.Thread(target=f, daemon=True) for f in (feed, follow)]
+        threads = [threading.Thread(target=feed, daemon=True),
+                   threading.Thread(target=_follow, args=(started, urls), daemon=True)]
         for t in threads:
             t.start()
         timings: list[dict] = []
