@@ -28,8 +28,8 @@ from stereoseed.io.image_header import refuse_huge_image
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
-__all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file", "read_calibration",
-           "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
+__all__ = ["read_image", "decode_image", "list_images", "check_image_name", "name_trouble", "read_points_file",
+           "read_calibration", "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- reading text safely
@@ -207,20 +207,28 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     data = _read_bytes(path, "image")
     if not data:
         raise StereoseedError(f"{path}: empty file (0 bytes), not an image; give a PNG, JPEG, PPM, BMP, TIFF or WebP image")
+    image, detail = decode_image(data)
+    if image is None:
+        kind = _image_format(data)
+        what = (f"a damaged or truncated {kind} file" if kind else "not an image format it reads")
+        raise StereoseedError(f"{path}: not a readable image (OpenCV cannot decode it: {what}"
+                              + (f": {detail}" if detail else "")
+                              + "); give an intact PNG, JPEG, PPM, BMP, TIFF or WebP image")
+    return image
+
+
+def decode_image(data: bytes) -> tuple[np.ndarray | None, str]:
+    """The image (H, W, 3) uint8 BGR the bytes ``data`` decode to (``cv2.imdecode``), or None,
+    and what the decoders said of them (kept off the terminal; empty when nothing), for a message."""
     error = None
     with captured_stderr() as stderr_text:
         try:
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         except cv2.error as e:
             image, error = None, e
-    if image is None or image.size == 0:
-        kind = _image_format(data)
-        detail = decoder_detail("".join(stderr_text), error)
-        what = (f"a damaged or truncated {kind} file" if kind else "not an image format it reads")
-        raise StereoseedError(f"{path}: not a readable image (OpenCV cannot decode it: {what}"
-                              + (f": {detail}" if detail else "")
-                              + "); give an intact PNG, JPEG, PPM, BMP, TIFF or WebP image")
-    return image
+    if image is not None and image.size == 0:
+        image = None
+    return image, decoder_detail("".join(stderr_text), error)
 
 
 def name_trouble(name: str) -> str | None:

@@ -20,11 +20,8 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, captured_stderr, name_trouble
+from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, decode_image, name_trouble
 from stereoseed.live.config import LiveConfig
 
 __all__ = ["Arrival", "Look", "FolderWatch", "RigWatch"]
@@ -58,15 +55,6 @@ class _Pending:
     since: float  # when it was first seen with that signature
     said_unsettled: bool = False
     said_undecodable: bool = False
-
-
-def _decodes(data: bytes) -> bool:
-    with captured_stderr():  # what the decoders print of a half-written file stays off the terminal
-        try:
-            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-        except cv2.error:
-            return False
-    return image is not None and image.size > 0
 
 
 class FolderWatch:
@@ -186,7 +174,7 @@ class FolderWatch:
         if len(data) != signature[0]:  # written again between the look and the read
             self._pending[name] = _Pending((len(data), signature[1]), now, pending.said_unsettled)
             return None
-        decodes = _decodes(data)
+        decodes = decode_image(data)[0] is not None  # (what the decoders say of a half-written file: kept quiet)
         if not decodes and now - pending.since < self.cfg.unreadable_after_s:
             if not pending.said_undecodable:
                 found.notes.append(f"{name}: complete in size but not decodable yet; waiting "
