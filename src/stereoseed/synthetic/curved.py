@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stereoseed.synthetic.scene import look_at
+
 __all__ = ["CurvedConfig", "CurvedScene", "render_curved"]
 
 _WAVELENGTHS_M = (0.006, 0.04)  # the texture's shortest and longest wavelength (~4 to ~27 px at 1 m)
@@ -97,14 +99,6 @@ class CurvedScene:
         return facing & (x[:, 2] > 0) & (u >= 0) & (v >= 0) & (u <= self.config.width - 1) & (v <= self.config.height - 1)
 
 
-def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z])  # image y down ~ world -z
-
-
 def _solid_texture(points: np.ndarray, seed: int) -> np.ndarray:
     """Unit-variance band-limited noise (N,) at world points (N, 3)."""
     rng = np.random.default_rng([seed, 7])
@@ -153,7 +147,7 @@ def render_curved(cfg: CurvedConfig = CurvedConfig()) -> CurvedScene:
         az, el = math.radians(cfg.azimuth0_deg + i * cfg.step_deg), math.radians(cfg.elevation_deg)
         centre = target + cfg.distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
                                                    math.sin(el)])
-        R = _look_at(centre, target)
+        R = look_at(centre, target)
         t = -R @ centre
         Minv = R.T @ np.linalg.inv(K)
         total = np.zeros(u.size)

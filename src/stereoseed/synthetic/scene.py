@@ -58,8 +58,8 @@ from stereoseed.geometry.lens import distort_pixels, lens_coefficients, principa
 from stereoseed.synthetic.render import cast_kernel, render_kernel, add_noise  # the sensor's noise lives with the renderer
 
 __all__ = ["BOX_HALF", "BOX_HEIGHT", "SQUARE_SIZE", "SQUARE_GAP", "GROUND_RADIUS", "FACE_LABELS", "FACE_NORMALS",
-           "FACE_ORIGIN", "FACE_U", "FACE_V", "SceneConfig", "SyntheticScene", "box_corners", "render_scene",
-           "write_scene"]
+           "FACE_ORIGIN", "FACE_U", "FACE_V", "SceneConfig", "SyntheticScene", "box_corners", "look_at",
+           "render_scene", "write_scene"]
 
 # ---- Fixed geometry of the target (paper section 5); not configurable because 228 corners is the
 # paper's number and other modules' tests rely on it.
@@ -189,7 +189,7 @@ def box_corners() -> tuple[np.ndarray, np.ndarray]:
     return np.round(np.array(corners), 12), np.array(labels, dtype=np.int8)
 
 
-def _look_at(center: np.ndarray, target: np.ndarray, roll_rad: float) -> np.ndarray:
+def look_at(center: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
     """cam_from_world rotation (3, 3) looking from center to target, image y down ~ world -z."""
     z = target - center
     z /= np.linalg.norm(z)
@@ -236,7 +236,7 @@ def _cameras(cfg: SceneConfig) -> tuple[list, list, list]:
         center = target + (cfg.distance + d_dist) * direction
         if center[2] <= 0.0:
             raise ValueError("camera below the ground plane; raise elevation_deg")
-        R = _look_at(center, target, roll)
+        R = look_at(center, target, roll)
         Ks.append(K)
         Rs.append(R)
         ts.append(-R @ center)
