@@ -274,17 +274,9 @@ class RegistrationConfig:
     # steps of the synthetic walks to 0.07-0.3 % at 640 px, 0.2-0.8 % (16-38 sigmas) at 320 px.
     max_focal_sigma: float = 0.004
     zoom_certain_sigmas: float = 12.0
-    # A weak chain (fewer chained points than a trusted chain's inliers, MotionPriorConfig.
-    # trusted_chain_factor x ResectionConfig.min_inliers) is widened with the matches of up to
-    # this many earlier registered views of the window, chained to their points: a camera
-    # resting on ~20 pairs through one view is the one that moved with how its photos were saved
-    # (dinoSparseRing from JPEG q90: every image after a weak view failed on 20-22 pairs with it).
-    # 0: the previous view only, the paper's chain.
-    window_views: int = 2
 
     def __post_init__(self) -> None:
         whole(self, "min_chained_points", minimum=6)  # the DLT needs 6 points
-        whole(self, "window_views", minimum=0)
         in_range(self, "max_focal_sigma", 0.0, 1.0)
         positive(self, "zoom_certain_sigmas")
         if not self.max_zoom_step > 1.0:

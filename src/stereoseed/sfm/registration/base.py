@@ -370,48 +370,16 @@ def register_view(recon: Reconstruction, k: int, settings: RegistrationSettings,
         pid2, chained2 = chained_points(recon, prev, m2)
         if chained2.sum() > chained.sum():
             cand, m, pid, chained = turned, m2, pid2, chained2
-    pids, feats, scores = pid[chained], m.idx2[chained], m.score[chained]
-    if len(pids) < trusted_chain_inliers(settings.motion_prior, settings.resection) and recon.rig is None:
-        pids, feats, scores = _widened_chain(recon, source, prev, cand, (pids, feats, scores), settings)
     seconds["matching"] = time.perf_counter() - t
     t = time.perf_counter()
-    found = _resect(recon, prev, cand, recon.points[pids], cand.features.points[feats], scores, settings)
+    found = _resect(recon, prev, cand, recon.points[pid[chained]], cand.features.points[m.idx2[chained]],
+                    m.score[chained], settings)
     seconds["resection"] = time.perf_counter() - t
-    n_matches, n_chained = len(m), int(len(pids))
+    n_matches, n_chained = len(m), int(chained.sum())
     if isinstance(found, _Failed):
         return RegistrationFailure(found.reason, n_matches, n_chained, seconds, cand, kind=found.kind)
     return Registration(cand, found.result, found.found_by, n_matches, n_chained, found.hypothesis, found.refused,
                         seconds, flag=found.flag, rivals=found.rivals)
-
-
-def _widened_chain(recon: Reconstruction, source: CorrespondenceSource, prev: int, cand: Candidate,
-                   chain: tuple[np.ndarray, np.ndarray, np.ndarray], settings: RegistrationSettings
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A weak chain through ``prev`` (point ids (N,), the candidate's interest points (N,), ZNCC
-    scores (N,)) with the chains through the ``RegistrationConfig.window_views`` registered views
-    before it added (each matched with the candidate by robust F, as prev was). A point or an
-    interest point claimed twice keeps its best-scored pairing only: two views that chain one
-    interest point to two points, or one point to two interest points, cannot both be right."""
-    parts = [chain]
-    for other in recon.registered_before(prev, settings.registration.window_views):
-        vo = recon.views[other]
-        if vo.rotated_180 != recon.views[prev].rotated_180:
-            continue  # matched in another frame: the previous view's turn decides the candidate's
-        m = source.match(other, cand.index, vo.features, cand.features, None, vo.image_size[0])
-        pid, chained = chained_points(recon, other, m)
-        parts.append((pid[chained], m.idx2[chained], m.score[chained]))
-    pids, feats, scores = (np.concatenate(arrays) for arrays in zip(*parts))
-    order = np.argsort(-scores, kind="stable")
-    keep = np.zeros(len(pids), bool)
-    seen_points, seen_feats = set(), set()
-    for i in order:
-        p, f = int(pids[i]), int(feats[i])
-        if p in seen_points or f in seen_feats:
-            continue
-        seen_points.add(p), seen_feats.add(f)
-        keep[i] = True
-    keep = np.flatnonzero(keep)  # in the order of the parts: the previous view's pairs first
-    return pids[keep], feats[keep], scores[keep]
 
 
 def _trusted_chain(inliers: np.ndarray, settings: RegistrationSettings) -> bool:
