@@ -39,7 +39,9 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
-def walk(n: int = 300) -> dict:
+def walk(n: int = 300, dense: bool = True) -> dict:
+    """The long walk (module doc); ``dense``: with the dense stage's propagation behind it, its
+    matches on disk (the worker's memory is its own process's: ``worker_peak_mb``)."""
     from stereoseed.io.files import write_image, write_json
     from stereoseed.live.session import LiveRun
     from stereoseed.live.status import page_state
@@ -53,7 +55,7 @@ def walk(n: int = 300) -> dict:
         calib = write_json(Path(tmp) / "calib.json", {"cameras": [{"P": P.tolist()} for P in scene.P[:2]]})
         paths = [write_image(Path(tmp) / name, image) for name, image in zip(scene.names, scene.images)]
         del scene
-        run = LiveRun(calib, Path(tmp) / "result")
+        run = LiveRun(calib, Path(tmp) / "result", dense=dense)
         mapper, state = [], []
         for i, path in enumerate(paths, 1):
             t = time.perf_counter()
@@ -66,7 +68,7 @@ def walk(n: int = 300) -> dict:
             if i in (30, 60, 100, 150, 200, 250, 300) or i == n:
                 rss[i] = _rss_mb()
         t = time.perf_counter()
-        report = run.finish()
+        report = run.finish(dense)
         finishing = time.perf_counter() - t
     return {"photos": n, "registered": report["registered"], "rss_mb_after_photo": rss,
             "photo_s": {"photos_10_19": float(np.median(seconds[9:19])), "last_ten": float(np.median(seconds[-10:]))},
@@ -74,7 +76,11 @@ def walk(n: int = 300) -> dict:
             "insertion_s": {"photos_10_19": float(np.median(mapper[9:19])), "last_ten": float(np.median(mapper[-10:]))},
             "page_state_s": {"photos_10_19": float(np.median(state[9:19])), "last_ten": float(np.median(state[-10:]))},
             "live_s": float(sum(seconds)), "finishing_s": finishing,
-            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3}
+            "dense": {"pairs": len(report["dense"]["pairs"]), "pairs_found_before": report["dense"]["pairs_found_before"],
+                      "points": report["dense"]["points"], "seconds_after_stop": report["dense"]["seconds"]}
+            if dense else None,
+            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+            "worker_peak_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e3}
 
 
 def run(rate_s: float = RATE_S) -> dict:
