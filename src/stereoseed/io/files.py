@@ -7,14 +7,10 @@ a message naming the file and what to do.
 from __future__ import annotations
 
 import codecs
-import contextlib
 import json
 import math
 import os
 import re
-import sys
-import tempfile
-import threading
 import unicodedata
 from pathlib import Path
 from typing import Any, Iterable
@@ -24,12 +20,14 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import atomic_path, write_json, write_text  # re-exported: the writers' home
+from stereoseed.io.decoders import decode_image, one_line as _show
 from stereoseed.io.image_header import refuse_huge_image
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
 
-__all__ = ["read_image", "decode_image", "list_images", "check_image_name", "name_trouble", "read_points_file",
-           "read_calibration", "read_calibration_unit", "write_json", "write_text", "atomic_path", "captured_stderr", "IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS"]
+__all__ = ["read_image", "list_images", "check_image_name", "name_trouble", "read_points_file",
+           "read_calibration", "read_calibration_unit", "write_json", "write_text", "atomic_path", "IMAGE_EXTENSIONS",
+           "VIDEO_EXTENSIONS"]
 
 
 # ---------------------------------------------------------------- reading text safely
@@ -54,12 +52,6 @@ MAX_MAGNITUDE = 1e100
 # a left 3x3 block of P whose smallest singular value is below this fraction of its largest is
 # singular (condition number above 1e10; a real camera with f = 1e6 px is at 1e-6)
 SINGULAR_RATIO = 1e-10
-
-
-def _show(text: str, limit: int = 80) -> str:
-    """``text`` for a one-line message: non-printable characters escaped, shortened."""
-    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text[: limit + 1])
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _image_format(data: bytes) -> str | None:
@@ -141,56 +133,6 @@ def _missing_message(path: Path, what: str) -> str:
 
 
 # ---------------------------------------------------------------- images
-# One redirection of file descriptor 2 at a time: the images are read in background threads
-# too (the mapper's prefetching), and two overlapping redirections would each save and restore
-# the other's temporary file, leaving the process's stderr (progress bars, error lines) pointed
-# at a deleted file for the rest of the run.
-_STDERR_LOCK = threading.RLock()  # re-entrant: a nested capture in one thread nests properly
-
-
-@contextlib.contextmanager
-def captured_stderr():
-    """Route the process's standard error (file descriptor 2, where libpng, libjpeg and OpenCV's
-    log write) to a temporary file for the block; yields a list that then holds what was written.
-    Anything another thread writes to stderr meanwhile is captured too (decoding takes ms);
-    threads capturing at once take turns (:data:`_STDERR_LOCK`)."""
-    captured: list[str] = []
-    with _STDERR_LOCK:
-        try:
-            sys.stderr.flush()
-            saved = os.dup(2)
-        except (OSError, ValueError, AttributeError):
-            yield captured  # no file descriptor 2 to redirect (embedded interpreter): leave it
-            return
-        try:
-            with tempfile.TemporaryFile() as tmp:
-                os.dup2(tmp.fileno(), 2)
-                try:
-                    yield captured
-                finally:
-                    os.dup2(saved, 2)
-                    tmp.seek(0)
-                    captured.append(tmp.read(4000).decode("utf-8", "replace"))
-        finally:
-            os.close(saved)
-
-
-_CV_LOG_PREFIX = re.compile(r"^\[\s*\w+:[^\]]*\]\s*(?:global\s+)?\S+:\d+\s+\S+\s+")
-
-
-def decoder_detail(stderr_text: str, error: Exception | None) -> str:
-    """What the decoders said, as a short one-line text ('' when nothing)."""
-    said = [_CV_LOG_PREFIX.sub("", ln).strip() for ln in stderr_text.splitlines()]
-    if error is not None:
-        text = str(error)
-        if "CV_IO_MAX_IMAGE_PIXELS" in text:
-            said.append("more pixels than OpenCV decodes (CV_IO_MAX_IMAGE_PIXELS)")
-        else:
-            m = re.search(r"\)\s*(.*?)\s+in function", text, re.S)
-            said.append(m.group(1) if m else "OpenCV error")
-    return _show("; ".join(dict.fromkeys(s for s in said if s)), 160)
-
-
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image as uint8 BGR (H, W, 3); clear error if missing, unreadable or empty.
 
@@ -215,20 +157,6 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
                               + (f": {detail}" if detail else "")
                               + "); give an intact PNG, JPEG, PPM, BMP, TIFF or WebP image")
     return image
-
-
-def decode_image(data: bytes) -> tuple[np.ndarray | None, str]:
-    """The image (H, W, 3) uint8 BGR the bytes ``data`` decode to (``cv2.imdecode``), or None,
-    and what the decoders said of them (kept off the terminal; empty when nothing), for a message."""
-    error = None
-    with captured_stderr() as stderr_text:
-        try:
-            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-        except cv2.error as e:
-            image, error = None, e
-    if image is not None and image.size == 0:
-        image = None
-    return image, decoder_detail("".join(stderr_text), error)
 
 
 def name_trouble(name: str) -> str | None:

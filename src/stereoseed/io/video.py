@@ -21,7 +21,8 @@ import numpy as np
 
 from stereoseed.io.config import VideoConfig
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import decoder_detail, captured_stderr, write_image
+from stereoseed.io.decoders import captured_stderr, decoder_detail
+from stereoseed.io.files import write_image
 
 __all__ = ["Keyframe", "KeyframePicker", "read_keyframes", "read_rig_keyframes", "sharpness"]
 

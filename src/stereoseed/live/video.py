@@ -26,7 +26,7 @@ import cv2
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.config import VideoConfig
-from stereoseed.io.files import captured_stderr
+from stereoseed.io.decoders import captured_stderr
 from stereoseed.io.video import KeyframePicker
 from stereoseed.live.config import LiveConfig
 from stereoseed.live.watch import Arrival, Look

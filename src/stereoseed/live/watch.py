@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stereoseed.errors import StereoseedError
-from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, decode_image, name_trouble
+from stereoseed.io.decoders import decode_image
+from stereoseed.io.files import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, name_trouble
 from stereoseed.live.config import LiveConfig
 
 __all__ = ["Arrival", "Look", "FolderWatch", "RigWatch"]
