@@ -140,8 +140,8 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "view_checks": ("stereoseed.dense.fusion", "_check",
                     ("float64[:, ::1], int32[:, ::1], float64[::1], int32[::1], int64[:, ::1], int32[:, :, ::1], "
                      "float64[:, :, ::1], float64[:, ::1], float64[::1], float64, float64, int64, "
-                     "int64, int64, float64[:, ::1], int32[::1], float64[::1], int32[::1], int32[::1], int32[::1], "
-                     "int64, int64")),
+                     "int64, int64[:, ::1], int64, float64[:, ::1], int32[::1], float64[::1], int32[::1], int32[::1], "
+                     "int32[::1], int64, int64")),
 }
 
 # CPU seconds each kernel takes to compile alone in a fresh process on the reference machine (an

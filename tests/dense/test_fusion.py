@@ -142,3 +142,24 @@ def test_max_points_grows_the_voxel_until_the_cloud_fits(box_scene):
     assert 0.7 * limit < len(small) <= limit
     assert report["fusion_voxel_m"] > 2 * full_report["fusion_voxel_m"]
     assert np.median(surface_distance(small.points)) < 0.001
+
+
+def test_a_pair_is_checked_against_the_pairs_that_overlap_it_most():
+    """DenseConfig.check_pairs: beyond that many pairs, each pair's points are checked against
+    the pairs whose first views share the most sparse points with its own (ascending, so that
+    the merge adds them in the order every pair would), never one that shares none."""
+    from stereoseed.dense.fusion import every_other_pair, overlapping_pairs
+
+    assert every_other_pair(3).tolist() == [[1, 2], [0, 2], [0, 1]]
+    shared = np.array([[50, 9, 3, 0, 7],
+                       [9, 50, 8, 2, 0],
+                       [3, 8, 50, 6, 1],
+                       [0, 2, 6, 50, 5],
+                       [7, 0, 1, 5, 50]])
+    assert overlapping_pairs(shared, 4).tolist() == every_other_pair(5).tolist()  # a walk within the limit
+    assert overlapping_pairs(shared, 0).tolist() == every_other_pair(5).tolist()  # 0: every pair
+    assert overlapping_pairs(shared, 2).tolist() == [[1, 4], [0, 2], [1, 3], [2, 4], [0, 3]]
+    lonely = shared.copy()
+    lonely[0, 1:] = lonely[1:, 0] = 0
+    lonely[0, 2] = lonely[2, 0] = 1
+    assert overlapping_pairs(lonely, 2)[0].tolist() == [2, -1]  # none that shares nothing

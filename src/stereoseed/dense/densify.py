@@ -26,7 +26,7 @@ from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
 from stereoseed.dense.frames import dense_frames, resized
-from stereoseed.dense.fusion import PairCloud, PairClouds, check_views_by_pair
+from stereoseed.dense.fusion import PairCloud, PairClouds, check_views_by_pair, overlapping_pairs
 from stereoseed.dense.grid import voxel_keys
 from stereoseed.dense.normals import estimate_normals
 from stereoseed.errors import StereoseedError
@@ -300,7 +300,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     n_before = len(stacked)
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
-    kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, colors, frames, dc, alone)
+    others = overlapping_pairs(_shared_points(recon, [a for a, _ in pairs]), dc.check_pairs)
+    kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, colors, frames, dc, alone, others)
     del stacked, colors  # only the kept points go on to the fusion
     # one pixel's footprint at the propagation's resolution
     voxel = _fusion_voxel(recon, dc.fusion_voxel, float(np.median([frames[0][v] for v in dense_views(recon, cfg)] or [1.0])))
@@ -333,7 +334,21 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
 
 
-def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alone: bool) -> tuple:
+def _shared_points(recon: Reconstruction, views: list[int]) -> np.ndarray:
+    """(V, V) int64: how many live sparse points each two of ``views`` (V,) both observe."""
+    from scipy.sparse import csr_matrix
+
+    slot = np.full(len(recon.views), -1, np.int64)
+    slot[views] = np.arange(len(views))
+    sel = recon.alive[recon.obs_point] & (slot[recon.obs_view] >= 0)
+    seen = csr_matrix((np.ones(int(sel.sum())), (slot[recon.obs_view[sel]], recon.obs_point[sel])),
+                      shape=(len(views), len(recon.alive)))
+    seen.data[:] = 1.0  # (an observation counted once however many times it was added)
+    return np.rint((seen @ seen.T).toarray()).astype(np.int64)
+
+
+def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alone: bool,
+            others: np.ndarray) -> tuple:
     """The points the other pairs' checks keep (:func:`stereoseed.dense.fusion.check_views_by_pair`,
     pair after pair: the checks of all points are never held at once): their merged positions
     (K, 3), colours (K, 3), pairs (K,) int32, {"support", "angle", "confidence"} (K,) each, and
@@ -359,7 +374,8 @@ def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alo
         histogram = np.pad(histogram, (0, max(0, len(counts) - len(histogram))))
         histogram[:len(counts)] += counts
 
-    check_views_by_pair(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px, take)
+    check_views_by_pair(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px, take,
+                        others)
     counted["support_histogram"] = histogram.tolist()[2:] if len(stacked) else []
     if not parts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32), \

@@ -34,7 +34,8 @@ from numba import njit
 from stereoseed.geometry.projection import camera_center, normalize_projection
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "check_views_by_pair", "depth_sigma"]
+__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "check_views_by_pair", "depth_sigma",
+           "every_other_pair", "overlapping_pairs"]
 
 
 @dataclass(frozen=True)
@@ -110,12 +111,38 @@ def depth_sigma(points: np.ndarray, centre: np.ndarray, focal: float, angles_deg
     return distance * noise_px / (focal * np.sin(np.radians(np.maximum(angles_deg, 1e-3))))
 
 
+def every_other_pair(n_pairs: int) -> np.ndarray:
+    """(P, P - 1) int64: for each pair, every other one, ascending."""
+    every = np.tile(np.arange(n_pairs, dtype=np.int64), (n_pairs, 1))
+    return every[~np.eye(n_pairs, dtype=bool)].reshape(n_pairs, max(n_pairs - 1, 0))
+
+
+def overlapping_pairs(shared: np.ndarray, limit: int) -> np.ndarray:
+    """(P, K) int64: for each pair, the other pairs to check its points against, ascending, -1
+    after the last: the ``limit`` whose first views share the most sparse points with its own
+    (``shared`` (P, P): those counts; ties to the earlier pair), none that shares none; every other
+    pair when there are at most ``limit`` (or ``limit`` is 0)."""
+    n = len(shared)
+    if not limit or n - 1 <= limit:
+        return every_other_pair(n)
+    out = np.full((n, limit), -1, np.int64)
+    for p in range(n):
+        counts = np.asarray(shared[p], np.int64).copy()
+        counts[p] = -1
+        best = np.argsort(-counts, kind="stable")[:limit]
+        best = np.sort(best[counts[best] > 0])
+        out[p, :len(best)] = best
+    return out
+
+
 def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray], sizes: list[tuple[int, int]],
-                noise_px: float, sigmas: float, lookup_px: int) -> ViewChecks:
-    """Each pair's points checked against every other pair's (module doc). cameras: (3, 4) per
-    view index; sizes: (width, height) per view index."""
+                noise_px: float, sigmas: float, lookup_px: int, others: np.ndarray | None = None) -> ViewChecks:
+    """Each pair's points checked against every other pair's (module doc), or against
+    ``others`` (P, K) int64 (pair p's: the pairs to check against, ascending, -1 after the last).
+    cameras: (3, 4) per view index; sizes: (width, height) per view index."""
     parts: list[ViewChecks] = []
-    check_views_by_pair(clouds, cameras, sizes, noise_px, sigmas, lookup_px, lambda q, checks: parts.append(checks))
+    check_views_by_pair(clouds, cameras, sizes, noise_px, sigmas, lookup_px, lambda q, checks: parts.append(checks),
+                        others)
     if not parts:
         counts = np.zeros(0, np.int32)
         return ViewChecks(np.zeros((0, 3)), counts, np.zeros(0), counts, counts, counts, np.zeros(0))
@@ -124,7 +151,7 @@ def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray],
 
 def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray], sizes: list[tuple[int, int]],
                         noise_px: float, sigmas: float, lookup_px: int,
-                        take: Callable[[int, ViewChecks], None]) -> None:
+                        take: Callable[[int, ViewChecks], None], others: np.ndarray | None = None) -> None:
     """:func:`check_views`, pair after pair: ``take(q, checks)`` gets pair q's points' checks (its
     rows of the stack, in order) as soon as they are known, so a caller that keeps only some
     points never holds the checks of all of them (at full resolution, tens of millions)."""
@@ -133,6 +160,8 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
     centres = np.stack([camera_center(P) for P in Pn])
     focal = np.array([_focal(P) for P in Pn])
     offsets, pair_views, n = stacked.offsets, stacked.views, len(stacked)
+    if others is None:
+        others = every_other_pair(len(pair_views))
     points, pixels = np.ascontiguousarray(stacked.points), np.ascontiguousarray(stacked.pixels)
     source = np.repeat(np.arange(len(pair_views), dtype=np.int32), np.diff(offsets))
     sigma = np.empty(n)
@@ -153,7 +182,7 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
         angle = np.zeros(m)
         bounds = first + split_rows(m, 20_000)
         map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
-                                       float(noise_px), float(sigmas), int(lookup_px), len(cameras), first,
+                                       float(noise_px), float(sigmas), int(lookup_px), len(cameras), others, first,
                                        merged, support, angle, agree, violate, judged, a, b), bounds)
         confidence = (agree + 1.0) / (agree + violate + 2.0)
         take(q, ViewChecks(merged, support, angle, agree, violate, judged, confidence))
@@ -169,10 +198,9 @@ def _project(P, X):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
-           n_views, base, merged, support, angle, agree, violate, judged, first, end):
+           n_views, others, base, merged, support, angle, agree, violate, judged, first, end):
     """The checks of points [first, end) (check_views' module doc), written to the outputs' rows
     i - base."""
-    n_pairs = pair_views.shape[0]
     height, width = index.shape[1], index.shape[2]
     seen = np.zeros(n_views, np.int64)  # the agreeing views of the current point: seen[v] == i + 1
     members = np.empty(n_views, np.int64)
@@ -193,9 +221,10 @@ def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
         n_agree = 0
         n_violate = 0
         n_judged = 0
-        for q in range(n_pairs):
-            if q == p:
-                continue
+        for j in range(others.shape[1]):
+            q = others[p, j]
+            if q < 0:
+                break
             c = pair_views[q, 0]
             h0, h1, z = _project(Pn[c], X)
             if z <= 0:
