@@ -161,3 +161,33 @@ def test_the_dense_stage_behind_the_walk_gives_reconstructs_cloud(small_box_scen
     assert np.median(gaps) <= 1e-4 * size
     files = json.loads((tmp_path / "live" / MANIFEST).read_text())["files"]
     assert not any(f.startswith(".dense-behind") for f in files)
+
+
+def test_a_pair_that_fails_behind_the_walk_is_propagated_at_the_stop(small_box_scene, tmp_path, monkeypatch):
+    """A pair job that fails in the worker (here: the first pair's) is said in the log and
+    propagated when the run stops, as reconstruct --dense would: nothing of the cloud is lost."""
+    import stereoseed.live.dense_behind as behind
+
+    propagate = behind.propagate_pair
+
+    def failing_first(image_a, *args):
+        if failing_first.calls == 0:
+            failing_first.calls += 1
+            raise RuntimeError("a pair that fails")
+        return propagate(image_a, *args)
+
+    failing_first.calls = 0
+    monkeypatch.setattr(behind, "propagate_pair", failing_first)  # the worker is forked: it has this one
+    scene = small_box_scene.prefix(8)
+    paths, calib = scene_on_disk(scene, tmp_path / "walk")
+    run = LiveRun(calib, tmp_path / "live", dense=True)
+    for p in paths["images"]:
+        run.add(_arrival(p))
+    found = dict(run.dense_behind.finish())
+    report = run.finish(dense=True)
+    dense = report["dense"]
+    assert (0, 1) not in found and len(found) >= 2  # the failed pair was not found behind ...
+    first = [p for p in dense["pairs"] if p["pair"] == ["img_000.png", "img_001.png"]]
+    assert len(first) == 1 and first[0]["matches"] > 1000  # ... but is in the cloud
+    assert 1 <= dense["pairs_found_before"] < len(dense["pairs"])
+    assert all(p["matches"] > 1000 for p in dense["pairs"])
