@@ -163,3 +163,23 @@ def test_a_pair_is_checked_against_the_pairs_that_overlap_it_most():
     lonely[0, 1:] = lonely[1:, 0] = 0
     lonely[0, 2] = lonely[2, 0] = 1
     assert overlapping_pairs(lonely, 2)[0].tolist() == [2, -1]  # none that shares nothing
+
+
+def test_a_rig_walks_pairs_that_share_a_first_view_are_each_checked():
+    """A rig walk pairs each station's two images and then the station with the next: two pairs
+    start from the same view, and both must be checked against their neighbours (the shared
+    points are counted per distinct view, then given to each pair)."""
+    from stereoseed.dense.densify import pair_overlaps
+    from stereoseed.dense.fusion import overlapping_pairs
+
+    class Model:  # what _shared_points reads: views, observations, live points
+        views = [None] * 6
+        obs_view = np.array([0, 1, 2, 0, 2, 4, 2, 4, 5])
+        obs_point = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
+        alive = np.array([True, True, True])
+
+    pairs = [(0, 1), (0, 2), (2, 3), (2, 4), (4, 5)]
+    shared = pair_overlaps(Model, pairs)
+    assert shared.tolist() == [[2, 2, 2, 2, 1], [2, 2, 2, 2, 1], [2, 2, 3, 3, 2], [2, 2, 3, 3, 2], [1, 1, 2, 2, 2]]
+    others = overlapping_pairs(shared, 2)
+    assert (others >= 0).sum(axis=1).tolist() == [2, 2, 2, 2, 2]  # every pair checked, the station pairs too

@@ -41,7 +41,7 @@ from stereoseed.estimators.triangulation import triangulate_two_view
 log = logging.getLogger(__name__)
 
 __all__ = ["DenseCloud", "densify_pair", "propagate_pair", "triangulated_pair", "fuse", "densify", "dense_pairs",
-           "pair_job"]
+           "pair_job", "pair_overlaps"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -300,7 +300,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     n_before = len(stacked)
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
-    others = overlapping_pairs(_shared_points(recon, [a for a, _ in pairs]), dc.check_pairs)
+    others = overlapping_pairs(pair_overlaps(recon, pairs), dc.check_pairs)
     kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, colors, frames, dc, alone, others)
     del stacked, colors  # only the kept points go on to the fusion
     # one pixel's footprint at the propagation's resolution
@@ -334,8 +334,16 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
 
 
+def pair_overlaps(recon: Reconstruction, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(P, P) int64: how many live sparse points the first views of each two ``pairs`` both
+    observe (a rig walk's station pair and its pair with the next station start from the same
+    view: counted once per distinct view, then given to each pair)."""
+    firsts, slot = np.unique(np.array([a for a, _ in pairs], np.int64), return_inverse=True)
+    return _shared_points(recon, firsts.tolist())[np.ix_(slot.reshape(-1), slot.reshape(-1))]
+
+
 def _shared_points(recon: Reconstruction, views: list[int]) -> np.ndarray:
-    """(V, V) int64: how many live sparse points each two of ``views`` (V,) both observe."""
+    """(V, V) int64: how many live sparse points each two of ``views`` (V,), distinct, both observe."""
     from scipy.sparse import csr_matrix
 
     slot = np.full(len(recon.views), -1, np.int64)
