@@ -118,3 +118,40 @@ def test_an_interrupted_rig_walk_resumes_as_a_rig_walk(rig_walk, tmp_path):
     assert list(live) == list(ref)
     for name, c in ref.items():
         assert np.abs(np.subtract(live[name]["center"], c["center"])).max() <= 1e-9, name
+
+
+def test_a_rig_walk_stopped_between_a_stations_two_photos_resumes_as_reconstruct(rig_walk, tmp_path, monkeypatch):
+    """Killed after a station's left image was inserted and before its right one: the checkpoint
+    holds the right image as a view not reached yet, which the resumed run inserts first."""
+    import stereoseed.live.session as session
+    from stereoseed.live.session import LiveRun
+    from stereoseed.live.watch import Arrival
+
+    left, right, calib = rig_walk
+
+    def station(k):
+        return [Arrival(folder / f"{k:03d}.png", f"{folder.name}_{k:03d}.png", (folder / f"{k:03d}.png").read_bytes(),
+                        True, 0.0) for folder in (left, right)]
+
+    insert = session.insert_next
+
+    def dies_at_the_second_right(recon, images, k, *args):
+        if k == 3:
+            raise KeyboardInterrupt  # the user's Ctrl-C, between the station's two insertions
+        return insert(recon, images, k, *args)
+
+    run = LiveRun(calib, tmp_path / "live", rig=True)
+    run.add(*station(0))
+    monkeypatch.setattr(session, "insert_next", dies_at_the_second_right)
+    with pytest.raises(KeyboardInterrupt):
+        run.add(*station(1))
+    run.close()
+    monkeypatch.setattr(session, "insert_next", insert)
+    resumed = LiveRun(calib, tmp_path / "live", resume=True, rig=True)
+    resumed.add(*station(2))
+    resumed.finish()
+    reconstruct(left, calib, tmp_path / "ref", rig_right=right)
+    ref, live = _cameras(tmp_path / "ref"), _cameras(tmp_path / "live")
+    assert list(live) == list(ref) and all(c["registered"] for c in live.values())
+    for name, c in ref.items():
+        assert np.abs(np.subtract(live[name]["center"], c["center"])).max() <= 1e-9, name

@@ -126,11 +126,13 @@ class LiveRun:
         if self.recon is None and len(self.names) >= 2:
             report = self._pair()
         if self.recon is not None:
-            new = range(len(self.recon.views), len(self.names))
-            for k in new:  # a station's both views first: its left image is placed with its right
+            for k in range(len(self.recon.views), len(self.names)):
+                # a station's both views first: its left image is placed with its right
                 self.seq.append(self.images_dir / self.names[k])
                 self.recon.add_view(view_of_input(self.names[k], self.seq, k))
-            for k in new:
+            # from the first view not reached: a rig run stopped between a station's two
+            # insertions resumes with its right image, already a view of the checkpoint
+            for k in range(len(self.recon.reports()), len(self.names)):
                 report = insert_next(self.recon, self.seq, k, self.options, self.source, self.spill, self.saver)
                 log.info("%s: %s", self.names[k], report["status"])
             if self.dense_behind is not None:
