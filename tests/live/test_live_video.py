@@ -104,3 +104,49 @@ def test_a_stream_is_read_live_and_its_keyframes_named_after_it_and_the_time(wal
         VideoFeed("97")
     with pytest.raises(StereoseedError, match="the stream does not answer"):
         VideoFeed("http://127.0.0.1:9/none.mp4")
+
+
+def test_a_camera_is_read_as_it_delivers_and_a_hiccup_is_not_the_end(walk, monkeypatch):
+    """A camera paces itself: a slow first frame, or fewer frames a second than it reports, must
+    not make the reader take every later frame for a late one (it would drop them all); one
+    failed read in the middle is waited over (LiveConfig.stream_gap_s), not taken for the end."""
+    import numpy as np
+
+    import stereoseed.live.video as video
+
+    frames = [np.full((240, 320, 3), 40 + i, np.uint8) for i in range(30)]
+
+    class Camera:  # 20 frames a second after a 0.3 s start, reporting 25; frame 12's read fails once
+        def __init__(self, source):
+            self.i, self.failed = 0, False
+
+        def isOpened(self):  # noqa: N802 - OpenCV's name
+            return True
+
+        def get(self, prop):
+            return 25.0
+
+        def read(self):
+            time.sleep(0.3 if self.i == 0 else 0.05)
+            if self.i == 12 and not self.failed:
+                self.failed = True
+                return False, None
+            if self.i >= len(frames):
+                return False, None
+            self.i += 1
+            return True, frames[self.i - 1]
+
+        def grab(self):
+            return self.read()[0]
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(video.cv2, "VideoCapture", Camera)
+    feed = VideoFeed("0", live=LiveConfig(stream_gap_s=0.5)).start()  # realtime, as the command reads it
+    deadline = time.monotonic() + 30
+    while not feed.done and time.monotonic() < deadline:
+        feed.look(time.monotonic())
+        time.sleep(0.05)
+    feed.close()
+    assert feed.frames == 30 and feed.dropped == 0

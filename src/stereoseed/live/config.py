@@ -43,8 +43,11 @@ class LiveConfig:
     video_late_s: float = 0.08
     # --video: the frame rate assumed when the container does not give one (the usual camera's)
     video_fps: float = 25.0
+    # --video with a camera or a stream: after a failed read, frames are waited for this long (s)
+    # before the stream counts as ended (a network or USB hiccup is not the end of the walk)
+    stream_gap_s: float = 5.0
 
     def __post_init__(self) -> None:
         positive(self, "poll_s", "stable_s", "unreadable_after_s", "heartbeat_s", "max_updates_per_s",
-                 "video_late_s", "video_fps")
+                 "video_late_s", "video_fps", "stream_gap_s")
         whole(self, "video_queue", "log_lines")

@@ -73,7 +73,11 @@ class VideoFeed:
                 raise StereoseedError(f"{path}: cannot be opened ({why}); check {check}")
         fps = self._capture.get(cv2.CAP_PROP_FPS)
         self.fps = fps if fps and 1.0 <= fps <= 1000.0 else live.video_fps
-        self.live, self.realtime = live, realtime
+        # a camera or a stream delivers its frames at its own pace: read as they come (its own
+        # buffer drops what the run cannot take), not against a clock of the fps it reports, which
+        # would take every frame after a slow one for a late one and drop them all
+        self.stream = stream
+        self.live, self.realtime = live, realtime and stream is None
         self._picker = KeyframePicker(self.path, cfg)
         self._queue: queue.Queue = queue.Queue(maxsize=live.video_queue)
         self._notes: queue.Queue = queue.Queue()
@@ -115,6 +119,8 @@ class VideoFeed:
                                     f"(before frame {index + 1}); the keyframes may differ from reconstruct's")
                     dropped_since = 0
                 ok, frame = self._capture.read()
+                if not ok and self.stream is not None:
+                    ok, frame = self._next_after_a_gap()
                 if not ok:
                     break
                 index += 1
@@ -131,6 +137,19 @@ class VideoFeed:
         finally:
             self._capture.release()
             self.ended.set()
+
+    def _next_after_a_gap(self) -> tuple[bool, object]:
+        """A camera's or a stream's next frame after a failed read: tried again for
+        ``LiveConfig.stream_gap_s`` (a network or USB hiccup is not the end of the walk)."""
+        self._notes.put(f"{self.path.name}: no frame; waiting up to {self.live.stream_gap_s:g} s for the stream")
+        until = time.monotonic() + self.live.stream_gap_s
+        while time.monotonic() < until and not self._stop.is_set():
+            time.sleep(0.1)
+            ok, frame = self._capture.read()
+            if ok:
+                self._notes.put(f"{self.path.name}: frames again")
+                return ok, frame
+        return False, None
 
     def _arrival(self, keyframe) -> Arrival:
         ok, png = cv2.imencode(".png", keyframe.image)  # lossless: the pixels reconstruct's keyframes hold
