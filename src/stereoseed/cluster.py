@@ -213,12 +213,13 @@ class _Job:
 
 
 @contextmanager
-def processes_beside(workers: int) -> Iterator[JobPool]:
+def processes_beside(workers: int, cores_each: int | None = None) -> Iterator[JobPool]:
     """A :class:`JobPool` of ``workers`` local processes (at least one: never this process, for
-    work that runs beside the caller, as a live run's dense stage behind the walk). Closed as
+    work that runs beside the caller, as a live run's dense stage behind the walk), each cutting
+    its kernels' rows into ``cores_each`` chunks (default: its share of the cores). Closed as
     :func:`executor_for` closes its local pool."""
     workers = max(int(workers), 1)
-    local = _LocalPool(workers)
+    local = _LocalPool(workers, cores_each)
     try:
         yield JobPool(workers, local.submit, f"in {workers} local process{'es' if workers > 1 else ''}")
     except BaseException:  # an error or an interrupt: its jobs' results are not wanted
@@ -242,8 +243,9 @@ class _LocalPool:
     free. The futures handed out are the pool's own, so a job keeps its future whichever pool
     runs it."""
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, cores_each: int | None = None):
         self.workers = workers
+        self.cores_each = max(1, CORES // workers) if cores_each is None else max(1, int(cores_each))
         self._lock = threading.Lock()  # the executor, its processes and board, the jobs in it, closing
         self._executor: Any = None
         self._processes: dict = {}  # pid -> Process
@@ -286,7 +288,7 @@ class _LocalPool:
         ctx = fork_context()
         self._board = ctx.RawArray("q", 2 * self.workers)
         self._executor = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_start_worker,
-                                             initargs=(os.getpid(), max(1, CORES // self.workers), self._board,
+                                             initargs=(os.getpid(), self.cores_each, self._board,
                                                        ctx.Lock()))
         # the executor's own dict (empty until it forks), kept here past its shutdown
         processes = getattr(self._executor, "_processes", None)

@@ -155,3 +155,16 @@ def test_a_rig_walk_stopped_between_a_stations_two_photos_resumes_as_reconstruct
     assert list(live) == list(ref) and all(c["registered"] for c in live.values())
     for name, c in ref.items():
         assert np.abs(np.subtract(live[name]["center"], c["center"])).max() <= 1e-9, name
+
+
+def test_folders_whose_names_could_make_two_photos_one_name_are_left_and_right(tmp_path):
+    """cam + b_1.png and cam_b + 1.png would both be cam_b_1.png: the sides are then named left
+    and right; a resumed run's photo that neither folder names is one line."""
+    (tmp_path / "cam").mkdir(), (tmp_path / "cam_b").mkdir()
+    watch = RigWatch(tmp_path / "cam", tmp_path / "cam_b", FAST)
+    assert watch.prefixes == ("left", "right") and watch.named(0, "b_1.png") != watch.named(1, "1.png")
+    (tmp_path / "cam0").mkdir(), (tmp_path / "cam1").mkdir()
+    watch = RigWatch(tmp_path / "cam0", tmp_path / "cam1", FAST)
+    assert watch.prefixes == ("cam0", "cam1")
+    with pytest.raises(StereoseedError, match="resume with the folders the run watched"):
+        watch.mark_taken(["left_000.png"])

@@ -29,6 +29,7 @@ from stereoseed.dense.densify import dense_pairs, pair_job, propagate_pair
 from stereoseed.dense.frames import dense_frames
 from stereoseed.io.atomic import atomic_path
 from stereoseed.scene.reconstruction import Reconstruction
+from stereoseed.threads import CORES
 
 __all__ = ["DenseBehind", "FOLDER"]
 
@@ -41,33 +42,53 @@ def _propagated(args: tuple) -> tuple[np.ndarray, dict[str, Any]]:
     return propagate_pair(*args[:6])
 
 
+# pairs sent to the worker at most at a time: each holds its two images in this process until it
+# runs (37 MB at 6 megapixels), so a walk faster than the propagation must not queue them all; a
+# pair left unsent is propagated at the stop, as reconstruct --dense does
+IN_FLIGHT = 2
+
+
 class DenseBehind:
     """Pairs propagated in one worker process while the run goes on (the run keeps the other
     core). :meth:`after_insertion` after each insertion; :meth:`finish` when the run stops gives
-    :func:`~stereoseed.dense.densify.densify` its ``propagated``; :meth:`close` in any case."""
+    :func:`~stereoseed.dense.densify.densify` its ``propagated``; :meth:`close` in any case.
+    Not for a run whose every insertion moves every camera (``PipelineConfig.ba = "global"``):
+    :meth:`for_run` gives None there."""
+
+    @classmethod
+    def for_run(cls, staging: Path, cfg: Config) -> "DenseBehind | None":
+        return None if cfg.pipeline.ba == "global" else cls(staging, cfg)
 
     def __init__(self, staging: Path, cfg: Config):
         self.cfg = cfg
         self.folder = Path(staging) / FOLDER
         self.folder.mkdir(mode=0o700, exist_ok=True)
         self._stack = ExitStack()
-        self._pool = self._stack.enter_context(processes_beside(1))
+        # one worker, a core left to the insertions (the page's latency is theirs)
+        self._pool = self._stack.enter_context(processes_beside(1, cores_each=max(1, CORES - 1)))
         self._running: dict[tuple[int, int], Future] = {}
         self.done: dict[tuple[int, int], tuple[Path, dict[str, Any]]] = {}
         self._sent: set[tuple[int, int]] = set()
 
     def after_insertion(self, recon: Reconstruction) -> None:
         """Send the pairs whose views the window's adjustment no longer moves (the last
-        ``PipelineConfig.window`` registered views may still move), and keep what came back."""
-        self._collect(wait=False)
-        moving = set(recon.registered_views[-(self.cfg.pipeline.window or 3):])
-        pairs = [p for p in dense_pairs(recon, self.cfg) if p not in self._sent and not moving & set(p)]
-        if not pairs:
-            return
-        frames = dense_frames(recon.views, self.cfg.dense.resolution)
-        for pair in pairs:
-            self._sent.add(pair)
-            self._running[pair] = self._pool.submit(_propagated, pair_job(recon, pair, self.cfg, frames))
+        ``PipelineConfig.window`` registered views may still move; on a rig walk the window
+        counts stations, two views each), at most :data:`IN_FLIGHT` at a time, and keep what came
+        back. A failure here is said and leaves the pairs to the stop: the walk goes on."""
+        try:
+            self._collect(wait=False)
+            window = (self.cfg.pipeline.window or 3) * (2 if recon.rig is not None else 1)
+            moving = set(recon.registered_views[-window:])
+            pairs = [p for p in dense_pairs(recon, self.cfg) if p not in self._sent and not moving & set(p)]
+            pairs = pairs[:max(IN_FLIGHT - len(self._running), 0)]
+            if not pairs:
+                return
+            frames = dense_frames(recon.views, self.cfg.dense.resolution)
+            for pair in pairs:
+                self._sent.add(pair)
+                self._running[pair] = self._pool.submit(_propagated, pair_job(recon, pair, self.cfg, frames))
+        except Exception as e:  # noqa: BLE001 - the dense stage behind is a saving, never the walk's end
+            log.warning("dense stage behind the walk: %s; its pairs are propagated when the run stops", e)
 
     def _collect(self, wait: bool) -> None:
         for pair, future in list(self._running.items()):

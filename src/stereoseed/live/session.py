@@ -101,9 +101,14 @@ class LiveRun:
                 self.results.unlock()
                 raise
         if dense:  # after the resume, which inserts again what the checkpoint did not hold
-            self.dense_behind = DenseBehind(self.staging, self.cfg)
-            if self.recon is not None:
-                self.dense_behind.after_insertion(self.recon)
+            try:
+                self.dense_behind = DenseBehind.for_run(self.staging, self.cfg)
+                if self.dense_behind is not None and self.recon is not None:
+                    self.dense_behind.after_insertion(self.recon)
+            except BaseException:
+                self._close_dense_behind(abandon=True)
+                self.results.unlock()
+                raise
 
     # ------------------------------------------------------------------ arrivals
     def add(self, *arrivals: Arrival) -> dict[str, Any] | None:

@@ -200,7 +200,10 @@ class RigWatch:
         if self.sides[0].folder.resolve() == self.sides[1].folder.resolve():
             raise StereoseedError(f"{left}: the same folder for both cameras; give the right camera's photos "
                                   f"their own folder (--rig)")
-        self.prefixes = names if names[0] != names[1] else ("left", "right")
+        # "left" and "right" where the folders' names could make one photo's name another's
+        # (cam + b_1.png and cam_b + 1.png): a name must say its side
+        clash = names[0] == names[1] or names[0].startswith(names[1] + "_") or names[1].startswith(names[0] + "_")
+        self.prefixes = ("left", "right") if clash else names
         self.folder = f"{self.sides[0].folder} and {self.sides[1].folder}"
         self._waiting: tuple[list[Arrival], list[Arrival]] = ([], [])
 
@@ -212,7 +215,9 @@ class RigWatch:
         for side, prefix in enumerate(self.prefixes):
             if name.startswith(prefix + "_"):
                 return side, name[len(prefix) + 1:]
-        raise ValueError(f"{name}: not a name this rig's watch gave")
+        raise StereoseedError(f"{name}: a photo of the interrupted run that neither {self.sides[0].folder} nor "
+                              f"{self.sides[1].folder} names ({' or '.join(p + '_' for p in self.prefixes)}...); "
+                              f"resume with the folders the run watched")
 
     def mark_taken(self, names: list[str]) -> None:
         for name in names:
