@@ -278,13 +278,15 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     local = executor_for(None, max(min(cfg.dense.pool_size(), len(todo)), 1)) if pool is None else nullcontext(pool)
     with local as jobs:
         computed = jobs.in_order(_run_pair, (pair_job(recon, pair, cfg, frames) for pair in todo))
+        # the pool's first jobs sent before any pair is triangulated here: they run meanwhile
+        first = [next(computed)] if todo and len(todo) < len(pairs) else []
         for i, pair in enumerate(pairs):
             if pair in propagated:  # its matches found already: triangulated with the cameras of now
                 path, found = propagated[pair]
                 image_a, _, P_a, P_b, *_ = pair_job(recon, pair, cfg, frames)
                 res = triangulated_pair(image_a, P_a, P_b, np.load(path, allow_pickle=False), found, cfg.dense)
             else:
-                res = next(computed).result()
+                res = (first.pop() if first else next(computed)).result()
             collect(pair, res)
             if progress:
                 progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
