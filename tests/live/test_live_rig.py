@@ -80,6 +80,16 @@ def test_a_station_is_taken_once_both_its_photos_are_complete(tmp_path):
     put(right, "y.png", 4)
     watch.look(4.0)
     assert [a.name for a in watch.look(5.0).arrivals] == ["cam0_b.png", "cam1_y.png"]
+    # a camera that missed a shot: the left one is two photos ahead, the pair's times 10 s apart
+    put(left, "c.png", 5)
+    put(left, "d.png", 6)
+    put(left, "e.png", 7)
+    put(right, "z.png", 17)
+    watch.look(6.0)
+    look = watch.look(7.0)
+    assert [a.name for a in look.arrivals] == ["cam0_c.png", "cam1_z.png"]
+    assert any("written 12 s apart" in note and "paired wrong" in note for note in look.notes), look.notes
+    assert any("2 photos wait for the other camera's" in note for note in look.notes), look.notes
     with pytest.raises(StereoseedError, match="the same folder for both cameras"):
         RigWatch(left, left, FAST)
 

@@ -43,11 +43,15 @@ class LiveConfig:
     video_late_s: float = 0.08
     # --video: the frame rate assumed when the container does not give one (the usual camera's)
     video_fps: float = 25.0
+    # --rig: a station's two photos written more than this many seconds apart are said (a rig
+    # fires both cameras together; a camera that missed a shot pairs every later station wrong;
+    # a sync tool that writes a folder late may set the times apart too, so it is said, not refused)
+    station_apart_s: float = 2.0
     # --video with a camera or a stream: after a failed read, frames are waited for this long (s)
     # before the stream counts as ended (a network or USB hiccup is not the end of the walk)
     stream_gap_s: float = 5.0
 
     def __post_init__(self) -> None:
         positive(self, "poll_s", "stable_s", "unreadable_after_s", "heartbeat_s", "max_updates_per_s",
-                 "video_late_s", "video_fps", "stream_gap_s")
+                 "video_late_s", "video_fps", "stream_gap_s", "station_apart_s")
         whole(self, "video_queue", "log_lines")

@@ -195,6 +195,7 @@ class RigWatch:
     alike, and the run keeps both in one folder."""
 
     def __init__(self, left: str | Path, right: str | Path, cfg: LiveConfig = LiveConfig()):
+        self.cfg = cfg
         self.sides = (FolderWatch(left, cfg), FolderWatch(right, cfg))
         names = tuple(w.folder.resolve().name for w in self.sides)
         if self.sides[0].folder.resolve() == self.sides[1].folder.resolve():
@@ -238,6 +239,16 @@ class RigWatch:
         complete = min(len(w) for w in self._waiting)
         for left, right in zip(self._waiting[0][:complete], self._waiting[1][:complete]):
             found.arrivals += [left, right]
+            apart = abs(left.modified_ns - right.modified_ns) / 1e9
+            if apart > self.cfg.station_apart_s:  # a camera that missed a shot shifts every station after
+                found.notes.append(f"{left.name} and {right.name}, paired as one station, were written {apart:.0f} s "
+                                   f"apart: if a camera missed a shot, the stations from here are paired wrong; "
+                                   f"stop and give the photos to reconstruct --rig in their pairs")
         for waiting in self._waiting:
             del waiting[:complete]
+        ahead = len(self._waiting[0]) - len(self._waiting[1])
+        if abs(ahead) >= 2:
+            side = 0 if ahead > 0 else 1
+            found.notes.append(f"{self.sides[side].folder}: {abs(ahead)} photos wait for the other camera's "
+                               f"({self.sides[1 - side].folder})")
         return found
