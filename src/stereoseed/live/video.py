@@ -38,8 +38,11 @@ log = logging.getLogger(__name__)
 
 def stream_source(video: str | Path) -> int | str | None:
     """What OpenCV opens for ``video`` when it is a camera or a stream filmed now: a camera's
-    number (``"0"``: the first camera) or a URL (``rtsp://``, ``http://``...); None for a file."""
+    number (``"0"``: the first camera, unless a file of that name is there) or a URL (``rtsp://``,
+    ``http://``...); None for a file."""
     text = str(video)
+    if Path(text).is_file():  # a file named 0 is a file
+        return None
     if text.isdigit():
         return int(text)
     return text if "://" in text else None
