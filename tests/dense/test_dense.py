@@ -201,3 +201,33 @@ def test_a_fusion_voxel_far_below_a_pixels_footprint_is_refused(monkeypatch):
         module._fusion_voxel(None, 1e-9)
     with pytest.raises(ValueError, match="fusion_voxel must be a finite number >= 0"):
         Config().replace(dense={"fusion_voxel": float("nan")})
+
+
+def test_matches_found_before_are_used_while_they_fit_the_final_cameras(small_box_scene, tmp_path):
+    """densify's ``propagated`` (a live run's pairs found behind the walk): matches found with
+    the final cameras give the cloud densify gives alone, bit for bit; matches that no longer
+    fit the pair's cameras (here another pair's, as after a camera moved in the finishing step)
+    are propagated again."""
+    from stereoseed.config import Config
+    from stereoseed.dense.densify import dense_pairs, densify, pair_job, propagate_pair
+    from stereoseed.dense.frames import dense_frames
+    from stereoseed.pipeline import reconstruct
+
+    s = small_box_scene.prefix(5)
+    recon, _ = reconstruct(s.images, s.names, s.P[:2], Config())
+    cfg = Config()
+    pairs = dense_pairs(recon, cfg)
+    frames = dense_frames(recon.views, cfg.dense.resolution)
+    found = {}
+    for pair in pairs:
+        matches, report = propagate_pair(*pair_job(recon, pair, cfg, frames)[:6])
+        np.save(tmp_path / f"{pair[0]}_{pair[1]}.npy", matches)
+        found[pair] = (tmp_path / f"{pair[0]}_{pair[1]}.npy", report)
+    alone, report_alone = densify(recon, cfg)
+    again, report = densify(recon, cfg, propagated=found)
+    assert report["pairs_found_before"] == len(pairs) and report_alone["pairs_found_before"] == 0
+    np.testing.assert_array_equal(again.points, alone.points)
+    found[pairs[0]] = found[pairs[-1]]  # matches of another pair: not the first pair's geometry
+    stale, report = densify(recon, cfg, propagated=found)
+    assert report["pairs_found_before"] == len(pairs) - 1
+    np.testing.assert_array_equal(stale.points, alone.points)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from stereoseed.validation import positive, whole
+from stereoseed.validation import in_range, positive, whole
 
 __all__ = ['DenseConfig']
 
@@ -40,6 +40,13 @@ class DenseConfig:
     # 246 s of fusion, each point against all 299 pairs). 24: a ring at 15 degrees a photo, where
     # a surface is seen from a half turn (12 pairs) on either side; 0: every pair.
     check_pairs: int = 24
+    # Matches found before the stop (a live run's, behind the walk: `densify`'s ``propagated``)
+    # with cameras the finishing step moved since (the loop closure, a camera registered again
+    # between its neighbours) no longer lie on the final epipolar geometry: a pair of which fewer
+    # than this fraction reproject within max_reprojection_px is propagated again. A pair
+    # propagated with its final cameras keeps 0.8-1.0 of them (templeSparseRing); one whose
+    # camera moved keeps almost none.
+    found_min_fraction: float = 0.5
     # A point no other pair could judge (none matched near its image in their first views: the
     # surface only a walk's end pair sees) is kept, with support 2 and confidence 0.5: nothing
     # contradicts it. On fountain-P11 they are 3 % of the points and leave the share beyond 1 %
@@ -65,6 +72,7 @@ class DenseConfig:
 
     def __post_init__(self) -> None:
         positive(self, "max_reprojection_px", "match_noise_px", "agreement_sigmas")
+        in_range(self, "found_min_fraction", 0.0, 1.0)
         whole(self, "workers", "lookup_px", "resolution", "max_points", "check_pairs", minimum=0)
         whole(self, "min_support", minimum=2)
         if not 0 <= self.min_confidence < 1:

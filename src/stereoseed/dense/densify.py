@@ -275,6 +275,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
 
     propagated = propagated or {}
     todo = [pair for pair in pairs if pair not in propagated]
+    used = 0  # the pairs whose matches found before still lie on the final epipolar geometry
     local = executor_for(None, max(min(cfg.dense.pool_size(), len(todo)), 1)) if pool is None else nullcontext(pool)
     with local as jobs:
         computed = jobs.in_order(_run_pair, (pair_job(recon, pair, cfg, frames) for pair in todo))
@@ -283,8 +284,14 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         for i, pair in enumerate(pairs):
             if pair in propagated:  # its matches found already: triangulated with the cameras of now
                 path, found = propagated[pair]
-                image_a, _, P_a, P_b, *_ = pair_job(recon, pair, cfg, frames)
-                res = triangulated_pair(image_a, P_a, P_b, np.load(path, allow_pickle=False), found, cfg.dense)
+                job = pair_job(recon, pair, cfg, frames)
+                res = triangulated_pair(job[0], job[2], job[3], np.load(path, allow_pickle=False), found, cfg.dense)
+                if res["report"].get("small_reprojection", 0) < cfg.dense.found_min_fraction * found["matches"]:
+                    log.info("dense stage: %s-%s's cameras moved since its matches were found; propagated again",
+                             recon.views[pair[0]].name, recon.views[pair[1]].name)
+                    res = densify_pair(*job)
+                else:
+                    used += 1
             else:
                 res = (first.pop() if first else next(computed)).result()
             collect(pair, res)
@@ -315,7 +322,7 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     # within its cube of 27 cells (measured on the 18-image ring: 20 % faster than 1 voxel)
     normals = estimate_normals(fused, viewpoints, cell=1.5 * voxel) if len(fused) else np.zeros((0, 3))
     del viewpoints
-    report = {"pairs": per_pair, "pairs_found_before": sum(pair in propagated for pair in pairs),
+    report = {"pairs": per_pair, "pairs_found_before": used,
               "points_before_fusion": n_before,
               "points_supported": counted["points_supported"], "points_unjudged": counted["points_unjudged"],
               "points": int(len(fused)),
