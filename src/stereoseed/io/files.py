@@ -20,7 +20,7 @@ import numpy as np
 
 from stereoseed.errors import StereoseedError
 from stereoseed.io.atomic import atomic_path, write_json, write_text  # re-exported: the writers' home
-from stereoseed.io.decoders import decode_image, one_line as _show
+from stereoseed.io.decoders import decode_image, one_line
 from stereoseed.io.image_header import refuse_huge_image
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
@@ -79,7 +79,7 @@ def _read_bytes(path: Path, what: str) -> bytes:
     try:
         return path.read_bytes()
     except OSError as e:
-        raise StereoseedError(f"{path}: cannot read the {what} ({_show(e.strerror or e.__class__.__name__)}); "
+        raise StereoseedError(f"{path}: cannot read the {what} ({one_line(e.strerror or e.__class__.__name__)}); "
                               "check that it is a readable file") from None
 
 
@@ -116,11 +116,11 @@ def _numbers(fields: list[str], where: str) -> list[float]:
     for f in fields:
         if not _NUMBER.fullmatch(f):
             if _NON_FINITE.fullmatch(f):
-                raise StereoseedError(f"{where}: NaN or infinite value {_show(f)}; fix or remove the line")
-            raise StereoseedError(f"{where}: not a number: {_show(f, 40)}; fix or remove the line")
+                raise StereoseedError(f"{where}: NaN or infinite value {one_line(f)}; fix or remove the line")
+            raise StereoseedError(f"{where}: not a number: {one_line(f, 40)}; fix or remove the line")
         v = float(f)
         if not abs(v) <= MAX_MAGNITUDE:
-            raise StereoseedError(f"{where}: {_show(f, 40)} is out of range (magnitude above {MAX_MAGNITUDE:g}); "
+            raise StereoseedError(f"{where}: {one_line(f, 40)} is out of range (magnitude above {MAX_MAGNITUDE:g}); "
                                   "fix or remove the line")
         values.append(v)
     return values
@@ -178,7 +178,7 @@ def check_image_name(path: str | os.PathLike, where: str | os.PathLike) -> None:
     ``where``."""
     trouble = name_trouble(Path(path).name)
     if trouble:
-        raise StereoseedError(f"{where}: the image name '{_show(Path(path).name)}' holds {trouble}, which the "
+        raise StereoseedError(f"{where}: the image name '{one_line(Path(path).name)}' holds {trouble}, which the "
                               "results cannot hold (cameras.json, COLMAP, NVM, Bundler); rename the file")
 
 
@@ -197,7 +197,7 @@ def list_images(source: str | os.PathLike) -> list[Path]:
         try:
             paths = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
         except OSError as e:
-            raise StereoseedError(f"{source}: cannot list the folder ({_show(e.strerror or e.__class__.__name__)}); "
+            raise StereoseedError(f"{source}: cannot list the folder ({one_line(e.strerror or e.__class__.__name__)}); "
                                   "check its permissions") from None
         if not paths:
             raise StereoseedError(f"{source}: no images in this folder ({', '.join(IMAGE_EXTENSIONS)})")
@@ -212,7 +212,7 @@ def list_images(source: str | os.PathLike) -> list[Path]:
                               "that holds the sequence, or a text file listing its images one a line")
     if suffix in VIDEO_EXTENSIONS:
         raise StereoseedError(f"{source}: is a video; extract its frames into a folder first (e.g. ffmpeg -i "
-                              f"{_show(source.name)} frames/%04d.png) and give that folder")
+                              f"{one_line(source.name)} frames/%04d.png) and give that folder")
     text = _read_text(source, "list of images", _LIST_HINT, latin1=True)
     paths, linenos = [], []
     for lineno, line in enumerate(_NEWLINE.split(text), 1):
@@ -228,7 +228,7 @@ def list_images(source: str | os.PathLike) -> list[Path]:
     if missing:
         p, n = missing[0]
         what = "is a folder, not an image" if p.is_dir() else "not found"
-        raise StereoseedError(f"{source}:{n}: listed image {what}: {_show(str(p), 160)}"
+        raise StereoseedError(f"{source}:{n}: listed image {what}: {one_line(str(p), 160)}"
                               + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
                               + "; check the paths (relative ones are read from the list's folder)")
     for p, n in zip(paths, linenos):
@@ -380,7 +380,7 @@ def _parse_par(text: str, path: Path) -> dict[str, np.ndarray]:
         where = f"{path}:{lineno}"
         if len(fields) == 1 and count is None and not cameras:
             if not re.fullmatch(r"\d{1,9}", fields[0], re.ASCII):
-                raise StereoseedError(f"{where}: the count line must be a whole number, found {_show(fields[0], 40)}; "
+                raise StereoseedError(f"{where}: the count line must be a whole number, found {one_line(fields[0], 40)}; "
                                       f"{_PAR_FORMAT}")
             count = int(fields[0])
             continue
@@ -389,18 +389,18 @@ def _parse_par(text: str, path: Path) -> dict[str, np.ndarray]:
                                   f"{_PAR_FORMAT}")
         name = fields[0]
         if name in cameras:
-            raise StereoseedError(f"{where}: image '{_show(name)}' is given twice (first on line {line_of[name]}); "
+            raise StereoseedError(f"{where}: image '{one_line(name)}' is given twice (first on line {line_of[name]}); "
                                   "keep one line per image")
         v = np.array(_numbers(fields[1:], where))
         K, R, t = v[:9].reshape(3, 3), v[9:18].reshape(3, 3), v[18:21]
         if _singular(_singular_values(K)):
-            raise StereoseedError(f"{where}: K of {_show(name)} is singular; check the 9 numbers after the name "
+            raise StereoseedError(f"{where}: K of {one_line(name)} is singular; check the 9 numbers after the name "
                                   "(K row by row: fx s cx 0 fy cy 0 0 1)")
         off = float(np.abs(R @ R.T - np.eye(3)).max())
         if not off <= 1e-2:
-            raise StereoseedError(f"{where}: R of {_show(name)} is not a rotation (R R^T differs from I by "
+            raise StereoseedError(f"{where}: R of {one_line(name)} is not a rotation (R R^T differs from I by "
                                   f"{off:.2g}); check numbers 10 to 18 (R row by row) and the field order")
-        cameras[name] = _check_P(K @ np.hstack([R, t[:, None]]), f"{where}: {_show(name)}")
+        cameras[name] = _check_P(K @ np.hstack([R, t[:, None]]), f"{where}: {one_line(name)}")
         line_of[name] = lineno
     if not cameras:
         raise StereoseedError(f"{path}: no cameras in the par file; {_PAR_FORMAT}")
@@ -430,7 +430,7 @@ def read_calibration(path: str | os.PathLike, image_names: Iterable[str] | None 
             cams = read_colmap_cameras(path)
         except (ValueError, ArithmeticError, IndexError, KeyError, TypeError) as e:
             raise StereoseedError(f"{path}: the COLMAP model cannot be read ({e.__class__.__name__}: "
-                                  f"{_show(str(e), 80)}); export it again (colmap model_converter)") from None
+                                  f"{one_line(str(e), 80)}); export it again (colmap model_converter)") from None
         return _pair_by_name(cams, names, path, "COLMAP model")
     if not path.is_file():
         raise StereoseedError(f"{path}: calibration file not found; give {_CALIB_FORMATS}")
@@ -460,7 +460,7 @@ def read_calibration_unit(path: str | os.PathLike, given: str | None = None) -> 
     named = data.get("unit") if isinstance(data, dict) else None
     for what, unit in ((f'{path}: "unit"', named), ("--unit", given)):
         if unit is not None and not (isinstance(unit, str) and 0 < len(unit.strip()) <= 20):
-            raise StereoseedError(f'{what} is {_show(json.dumps(unit), 40)}; give a short name such as "mm", or leave it out')
+            raise StereoseedError(f'{what} is {one_line(json.dumps(unit), 40)}; give a short name such as "mm", or leave it out')
     named, given = (None if u is None else u.strip() for u in (named, given))
     if named and given and given != named:
         raise StereoseedError(f'{path} names its unit "{named}", not "{given}": leave --unit out')
@@ -474,7 +474,7 @@ def _calibration_json(text: str, path: Path) -> list[np.ndarray]:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
-        raise StereoseedError(f"{path}:{e.lineno}:{e.colno}: not valid JSON ({_show(e.msg, 60)}); "
+        raise StereoseedError(f"{path}:{e.lineno}:{e.colno}: not valid JSON ({one_line(e.msg, 60)}); "
                               f"give {_CALIB_JSON}") from None
     except (ValueError, RecursionError) as e:  # an integer of > 4300 digits, nesting too deep
         raise StereoseedError(f"{path}: not a JSON stereoseed reads ({e.__class__.__name__}); "
@@ -531,6 +531,6 @@ def _pair_by_name(cams: dict[str, np.ndarray], names: list[str], path: Path, wha
         raise StereoseedError(f"{path}: a {what} needs the image names to look the pair up; give the images too")
     missing = [n for n in names[:2] if n not in cams]
     if missing:
-        raise StereoseedError(f"{path}: no camera for image '{_show(missing[0])}' in the {what}; the first two "
+        raise StereoseedError(f"{path}: no camera for image '{one_line(missing[0])}' in the {what}; the first two "
                               f"images must be the calibrated pair, named as in the {what}")
-    return [_check_P(cams[n], f"{path}: {_show(n)}") for n in names[:2]]
+    return [_check_P(cams[n], f"{path}: {one_line(n)}") for n in names[:2]]
