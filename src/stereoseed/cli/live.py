@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from stereoseed.cli._terminal import say
+from stereoseed.cli.arguments import whole_number
 from stereoseed.errors import StereoseedError
 
 
@@ -22,24 +23,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"must be at least 2 (the calibrated pair), got {value}")
-    return value
-
-
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"must be within 0..65535 (0: a free one), got {value}")
-    return value
+# --until: the calibrated pair first; --port: 0 lets the system pick a free one
+_count = whole_number(2, note="the calibrated pair")
+_port = whole_number(0, 65535, what="a port number", note="0: a free one")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from stereoseed.cli._terminal import say
+from stereoseed.cli.arguments import whole_number
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
@@ -32,13 +33,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_mesh)
 
 
-def _depth(text: str) -> int:
-    if text == "auto":
-        return 0  # MeshConfig's "from the point spacing"
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if not 4 <= value <= 12:
-        raise argparse.ArgumentTypeError(f"must be within 4..12, or auto (from the point spacing), got {value}")
-    return value
+# Poisson's octree depth; "auto": MeshConfig's depth from the point spacing (0)
+_depth = whole_number(4, 12, words={"auto": 0}, note="from the point spacing")
