@@ -220,7 +220,7 @@ def test_matches_found_before_are_used_while_they_fit_the_final_cameras(small_bo
     frames = dense_frames(recon.views, cfg.dense.resolution)
     found = {}
     for pair in pairs:
-        matches, report = propagate_pair(*pair_job(recon, pair, cfg, frames)[:6])
+        matches, report = propagate_pair(*pair_job(recon, pair, cfg, frames).propagation_args)
         np.save(tmp_path / f"{pair[0]}_{pair[1]}.npy", matches)
         found[pair] = (tmp_path / f"{pair[0]}_{pair[1]}.npy", report)
     alone, report_alone = densify(recon, cfg)

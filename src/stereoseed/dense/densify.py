@@ -15,7 +15,7 @@ import os
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -41,7 +41,7 @@ from stereoseed.estimators.triangulation import triangulate_two_view
 log = logging.getLogger(__name__)
 
 __all__ = ["DenseCloud", "densify_pair", "propagate_pair", "triangulated_pair", "fuse", "densify", "dense_pairs",
-           "pair_job", "pair_overlaps"]
+           "PairJob", "pair_job", "pair_overlaps"]
 
 
 def densify_pair(image_a: np.ndarray, image_b: np.ndarray, P_a: np.ndarray, P_b: np.ndarray,
@@ -216,17 +216,34 @@ def dense_pairs(recon: Reconstruction, cfg: Config) -> list[tuple[int, int]]:
     return own + [(first_of[a], first_of[b]) for a, b in zip(stations[:-1], stations[1:])]
 
 
+class PairJob(NamedTuple):
+    """The arguments of :func:`densify_pair` for one pair (:func:`pair_job`); without ``dense``
+    (:attr:`propagation_args`), those of :func:`propagate_pair`."""
+
+    image_a: np.ndarray
+    image_b: np.ndarray
+    P_a: np.ndarray
+    P_b: np.ndarray
+    seeds: np.ndarray
+    propagation: PropagationConfig
+    dense: DenseConfig
+
+    @property
+    def propagation_args(self) -> tuple:
+        return tuple(self)[:6]
+
+
 def pair_job(recon: Reconstruction, pair: tuple[int, int], cfg: Config,
-             frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> tuple:
-    """The arguments of :func:`densify_pair` (and, but the last, of :func:`propagate_pair`) for
-    views ``pair`` = (a, b) in the dense stage's frames (:func:`~stereoseed.dense.frames.dense_frames`
-    of the views): both images at that size, their cameras, the sparse points they share as seeds."""
+             frames: tuple[list[float], list[np.ndarray], list[tuple[int, int]]]) -> PairJob:
+    """The job of views ``pair`` = (a, b) in the dense stage's frames
+    (:func:`~stereoseed.dense.frames.dense_frames` of the views): both images at that size, their
+    cameras, the sparse points they share as seeds."""
     scales, cameras, sizes = frames
     a, b = pair
     seeds = recon.shared_pixels(a, b)
     seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
-    return (resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
-            cameras[b], seeds, cfg.propagation, cfg.dense)
+    return PairJob(resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
+                   cameras[b], seeds, cfg.propagation, cfg.dense)
 
 
 @dataclass(frozen=True)
@@ -285,7 +302,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
             if pair in propagated:  # its matches found already: triangulated with the cameras of now
                 path, found = propagated[pair]
                 job = pair_job(recon, pair, cfg, frames)
-                res = triangulated_pair(job[0], job[2], job[3], np.load(path, allow_pickle=False), found, cfg.dense)
+                res = triangulated_pair(job.image_a, job.P_a, job.P_b, np.load(path, allow_pickle=False), found,
+                                        cfg.dense)
                 if res["report"].get("small_reprojection", 0) < cfg.dense.found_min_fraction * found["matches"]:
                     log.info("dense stage: %s-%s's cameras moved since its matches were found; propagated again",
                              recon.views[pair[0]].name, recon.views[pair[1]].name)

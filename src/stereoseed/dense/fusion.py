@@ -146,7 +146,7 @@ def check_views(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray],
     if not parts:
         counts = np.zeros(0, np.int32)
         return ViewChecks(np.zeros((0, 3)), counts, np.zeros(0), counts, counts, counts, np.zeros(0))
-    return ViewChecks(*(np.concatenate(arrays) for arrays in zip(*(dataclasses.astuple(c) for c in parts))))
+    return ViewChecks(*(np.concatenate([getattr(c, f.name) for c in parts]) for f in dataclasses.fields(ViewChecks)))
 
 
 def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.ndarray], sizes: list[tuple[int, int]],

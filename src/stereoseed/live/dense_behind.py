@@ -25,7 +25,7 @@ import numpy as np
 
 from stereoseed.cluster import processes_beside
 from stereoseed.config import Config
-from stereoseed.dense.densify import dense_pairs, pair_job, propagate_pair
+from stereoseed.dense.densify import PairJob, dense_pairs, pair_job, propagate_pair
 from stereoseed.dense.frames import dense_frames
 from stereoseed.io.atomic import atomic_path
 from stereoseed.scene.reconstruction import Reconstruction
@@ -38,8 +38,8 @@ log = logging.getLogger(__name__)
 FOLDER = ".dense-behind"  # in the staging folder: the pairs' matches, dropped when the result is written
 
 
-def _propagated(args: tuple) -> tuple[np.ndarray, dict[str, Any]]:
-    return propagate_pair(*args[:6])
+def _propagated(job: PairJob) -> tuple[np.ndarray, dict[str, Any]]:
+    return propagate_pair(*job.propagation_args)
 
 
 # pairs sent to the worker at most at a time: each holds its two images in this process until it
