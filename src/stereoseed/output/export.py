@@ -22,6 +22,7 @@ import logging
 import os
 import struct
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
@@ -66,8 +67,8 @@ def claim_folder(folder: Path, force: bool, names: list[str] = ()) -> None:
         return
     ours = _written_before(folder) | {EXPORT_MANIFEST}
     if force:
-        for rel in names:
-            if ((folder / rel).exists() or (folder / rel).is_symlink()) and rel not in ours:
+        for rel in _present(folder, names):
+            if rel not in ours:
                 raise StereoseedError(f"{folder / rel}: stereoseed export did not write it, and --force replaces only "
                                       f"the export's own files; move it away or give another --out")
         return
@@ -76,6 +77,12 @@ def claim_folder(folder: Path, force: bool, names: list[str] = ()) -> None:
         more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
         raise StereoseedError(f"{folder}: holds files stereoseed export did not write ({', '.join(foreign[:3])}{more}); "
                               f"give an empty or new folder, or --force to write beside them (never over them)")
+
+
+def _present(folder: Path, names: Iterable[str]) -> list[str]:
+    """The ``names`` (relative to ``folder``) something stands at: a file, a folder, or a link, even
+    a broken one."""
+    return [rel for rel in names if (folder / rel).exists() or (folder / rel).is_symlink()]
 
 
 def _ours(entry: Path, folder: Path, ours: set[str]) -> bool:
@@ -104,8 +111,7 @@ def other_colmap_model(folder: Path, model: str, binary: bool) -> list[str]:
     did not write one of them; the caller removes them once its own model is written
     (:func:`remove_written`)."""
     ours = _written_before(folder)
-    stale = [f"{model}/{name}".lstrip("/") for name in colmap_files(not binary)]
-    stale = [rel for rel in stale if (folder / rel).exists() or (folder / rel).is_symlink()]
+    stale = _present(folder, [f"{model}/{name}".lstrip("/") for name in colmap_files(not binary)])
     for rel in stale:
         if rel not in ours:
             raise StereoseedError(f"{folder / rel}: a COLMAP model stereoseed export did not write; COLMAP would read "
