@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from stereoseed.config import Config
 from stereoseed.dense.densify import densify
-from stereoseed.geometry.projection import camera_center
+from stereoseed.geometry.projection import camera_center, epipolar_distances, fundamental_from_projections
 from stereoseed.io.files import read_middlebury_par
 from stereoseed.io.sample_data import find_sample, missing_message
 from stereoseed.pipeline import load_sequence, reconstruct
@@ -64,20 +64,6 @@ def _sift(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array([k.pt for k in kp], np.float64), desc
 
 
-def _epipolar_px(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    """The larger of the two point-to-epipolar-line distances (px) of matches xa <-> xb."""
-    ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
-    lb, la = ha @ F.T, hb @ F
-    db = np.abs(np.sum(lb * hb, 1)) / np.hypot(lb[:, 0], lb[:, 1])
-    da = np.abs(np.sum(la * ha, 1)) / np.hypot(la[:, 0], la[:, 1])
-    return np.maximum(da, db)
-
-
-def _fundamental(Pa: np.ndarray, Pb: np.ndarray) -> np.ndarray:
-    from stereoseed.geometry.projection import fundamental_from_projections
-    return fundamental_from_projections(Pa, Pb)
-
-
 def _find(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -102,7 +88,7 @@ def build_reference(folder: Path) -> dict[str, np.ndarray]:
             good = np.array([(m[0].queryIdx, m[0].trainIdx) for m in knn
                              if len(m) == 2 and m[0].distance < REF_RATIO * m[1].distance], np.int64).reshape(-1, 2)
             xa, xb = feats[i][0][good[:, 0]], feats[j][0][good[:, 1]]
-            good = good[_epipolar_px(_fundamental(Ps[i], Ps[j]), xa, xb) <= REF_EPIPOLAR_PX]
+            good = good[epipolar_distances(fundamental_from_projections(Ps[i], Ps[j]), xa, xb) <= REF_EPIPOLAR_PX]
             for a, b in good:
                 ra, rb = _find(parent, offsets[i] + a), _find(parent, offsets[j] + b)
                 if ra != rb:
