@@ -102,6 +102,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
         run.close()
         raise
     published: dict[str, int] = {}  # photo -> the version that first showed it
+    step = 2 if rig is not None else 1  # photos taken together: a rig's station's two
     with page:
         def say(line: str, level: str = "info") -> None:
             (log.warning if level == "warning" else log.info)("%s", line)
@@ -144,7 +145,6 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 for note in look.notes:
                     say(note, "warning" if "ended" not in note else "info")
                 arrivals, pending = pending + look.arrivals, []
-                step = 2 if rig is not None else 1  # a rig's station: its two photos together
                 for group in (arrivals[i:i + step] for i in range(0, len(arrivals), step)):
                     if until is not None and len(run.names) + len(group) > until:
                         for arrival in group:
