@@ -301,13 +301,13 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
         for i, pair in enumerate(pairs):
             if pair in propagated:  # its matches found already: triangulated with the cameras of now
                 path, found = propagated[pair]
-                job = pair_job(recon, pair, cfg, frames)
-                res = triangulated_pair(job.image_a, job.P_a, job.P_b, np.load(path, allow_pickle=False), found,
-                                        cfg.dense)
+                a, b = pair
+                res = triangulated_pair(resized(recon.views[a].image, frames[2][a]), frames[1][a], frames[1][b],
+                                        np.load(path, allow_pickle=False), found, cfg.dense)
                 if res["report"].get("small_reprojection", 0) < cfg.dense.found_min_fraction * found["matches"]:
                     log.info("dense stage: %s-%s's cameras moved since its matches were found; propagated again",
-                             recon.views[pair[0]].name, recon.views[pair[1]].name)
-                    res = densify_pair(*job)
+                             recon.views[a].name, recon.views[b].name)
+                    res = densify_pair(*pair_job(recon, pair, cfg, frames))
                 else:
                     used += 1
             else:
