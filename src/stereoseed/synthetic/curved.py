@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stereoseed.synthetic.scene import look_at
+from stereoseed.validation import whole
 
 __all__ = ["CurvedConfig", "CurvedScene", "render_curved"]
 
@@ -41,12 +42,11 @@ class CurvedConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.n_images < 2:
-            raise ValueError("CurvedConfig.n_images must be >= 2 (the stereo pair)")
+        whole(self, "n_images", minimum=2)  # the stereo pair
+        whole(self, "supersample")
+        whole(self, "width", "height", minimum=16)
         if self.distance <= self.radius * 1.5:
             raise ValueError("CurvedConfig.distance must leave the cameras well outside the sphere")
-        if self.supersample < 1 or self.width < 16 or self.height < 16:
-            raise ValueError("CurvedConfig: supersample >= 1 and images of at least 16 x 16 pixels")
 
 
 @dataclass
