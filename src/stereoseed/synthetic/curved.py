@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stereoseed.geometry.projection import depths, project
 from stereoseed.synthetic.scene import look_at
 from stereoseed.validation import whole
 
@@ -94,9 +95,9 @@ class CurvedScene:
         centre = -self.R[i].T @ self.t[i]
         normal = (points - self.centre) / self.config.radius
         facing = np.einsum("ij,ij->i", normal, centre - points) > 0
-        x = points @ self.P[i][:, :3].T + self.P[i][:, 3]
-        u, v = x[:, 0] / x[:, 2], x[:, 1] / x[:, 2]
-        return facing & (x[:, 2] > 0) & (u >= 0) & (v >= 0) & (u <= self.config.width - 1) & (v <= self.config.height - 1)
+        uv = project(self.P[i], points)
+        inside = (uv >= 0).all(axis=1) & (uv[:, 0] <= self.config.width - 1) & (uv[:, 1] <= self.config.height - 1)
+        return facing & (depths(self.P[i], points) > 0) & inside
 
 
 def _solid_texture(points: np.ndarray, seed: int) -> np.ndarray:
