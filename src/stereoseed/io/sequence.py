@@ -56,6 +56,7 @@ class ImageSequence(Sequence):
         self._headers: dict[int, tuple[int, int] | None] = {}  # index -> the size its file's header gives, read once
         self._skip_from = len(self._entries)  # images from here on that cannot be decoded are skipped
         self._unreadable: dict[int, str] = {}  # index -> why it cannot be decoded
+        self._fingerprint: tuple[int, bytes] | None = None  # (images digested, their digest)
 
     def withhold_other_sizes(self, size: tuple[int, int], first: int = 0) -> None:
         """From image ``first`` on, an image file whose header gives another size than ``size``
@@ -162,7 +163,11 @@ class ImageSequence(Sequence):
 
     def fingerprint(self) -> bytes:
         """A digest of the images the run sees, without decoding them: each file's bytes (an
-        image in memory: its pixels) and what the transform depends on."""
+        image in memory: its pixels) and what the transform depends on. Kept until an image is
+        appended: a live run's stop signs its checkpoint and resumes from it, two digests of the
+        same photos."""
+        if self._fingerprint is not None and self._fingerprint[0] == len(self._entries):
+            return self._fingerprint[1]
         h = hashlib.sha256(self._transform_key)
         for entry in self._entries:
             if isinstance(entry, np.ndarray):
@@ -172,7 +177,8 @@ class ImageSequence(Sequence):
                 with open(entry, "rb") as f:
                     while chunk := f.read(_FINGERPRINT_CHUNK):
                         h.update(chunk)
-        return h.digest()
+        self._fingerprint = (len(self._entries), h.digest())
+        return self._fingerprint[1]
 
     def source(self, index: int) -> str:
         """Where image ``index`` comes from (its path; "memory" for an array)."""
