@@ -138,9 +138,25 @@ class OrderingConfig:
     features: int = 1500  # SIFT features per thumbnail: about what the sparse matcher keeps per image
     ratio: float = 0.8  # Lowe's ratio test (IJCV 2004: 0.8 drops 90 % of false matches)
     ransac_px: float = 2.0  # the robust F's threshold on thumbnails (a pixel and a half of 640 px)
-    # two thumbnails overlap when at least this many matches agree on one F (a robust F of 8 points
-    # with a few more to spare: fewer agree by chance among a thousand matches)
-    min_inliers: int = 20
+    # two thumbnails overlap when at least this many matches agree on one F: a robust F of 7-8
+    # points with a few more to spare (a few hundred mutual ratio-tested matches put one or two
+    # beyond the sample within 2 px by chance). The weak steps of real rings sit just above it
+    # (templeSparseRing 13, dinoRing1-24 every 3rd 16).
+    min_inliers: int = 12
+    # Where SIFT finds too little to match (dark, weakly textured turntable objects: 5 of
+    # dinoSparseRing's 15 steps have no overlap), neighbouring views still look alike: the
+    # thumbnails' grey levels (long side appearance_px, blurred by one pixel) correlate best after
+    # a shift of up to appearance_shift of their size (ZNCC of one's centre slid over the other).
+    # A step's strength is its SIFT overlap plus appearance_weight x that correlation, so the
+    # appearance only decides between steps SIFT cannot tell apart (a correlation is worth at most
+    # appearance_weight matches). A step without SIFT overlap counts as supported when the
+    # correlation reaches appearance_min: half the grey-level variance shared (the real rings'
+    # neighbours without overlap correlate at 0.64-0.93; any two views of one object often at
+    # 0.6-0.9, so this is a floor against unrelated photos, not a test of adjacency).
+    appearance_px: int = 96
+    appearance_shift: float = 0.15
+    appearance_weight: float = 5.0
+    appearance_min: float = 0.5
     # a given order is replaced only when the recovered walk's total overlap is this many times its
     # own (or the given order has a step without overlap): a walk in order is not second-guessed
     replace_factor: float = 1.25
@@ -151,7 +167,10 @@ class OrderingConfig:
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "images", "as-given"):
             raise ValueError(f"OrderingConfig.mode must be 'auto', 'images' or 'as-given', got {self.mode!r}")
-        whole(self, "thumbnail_px", "features", "min_inliers", "max_images", minimum=8)
+        whole(self, "thumbnail_px", "features", "min_inliers", "max_images", "appearance_px", minimum=8)
         positive(self, "ratio", "ransac_px", "replace_factor")
+        in_range(self, "appearance_shift", 0.0, 0.45)
+        in_range(self, "appearance_min", 0.0, 1.0)
+        in_range(self, "appearance_weight", 0.0, 1e6)
         if not self.ratio < 1.0:
             raise ValueError(f"OrderingConfig.ratio must be < 1, got {self.ratio!r}")

@@ -4,9 +4,10 @@ The incremental mapper needs its images in walk order: each one is placed from t
 it. A folder in name order is often not that order (templeSparseRing's names are not its ring),
 and every peer takes a folder of photos. The order is recovered from the images themselves: the
 overlap of every pair, measured on thumbnails (SIFT features matched both ways, the matches a
-robust fundamental matrix keeps), then a walk through that graph from the calibrated pair (images
-0 and 1 stay first: the calibration says which they are) that maximises the overlap of
-consecutive images (greedy, then improved by reversing parts of it, as for a travelling
+robust fundamental matrix keeps), with the thumbnails' likeness where SIFT finds too little (a
+dark, weakly textured object on a turntable), then a walk through that graph from the calibrated
+pair (images 0 and 1 stay first: the calibration says which they are) that maximises the
+strength of its steps (greedy, then improved by reversing parts of it, as for a travelling
 salesman's path). A given order that is already a walk is kept; one the overlaps contradict is
 replaced, and the caller says so.
 
@@ -20,7 +21,8 @@ import numpy as np
 
 from stereoseed.matching.config import OrderingConfig
 
-__all__ = ["OrderingConfig", "thumbnail", "overlaps", "best_walk", "too_many_to_order", "walk_order", "walk_strength"]
+__all__ = ["OrderingConfig", "thumbnail", "overlaps", "likeness", "step_strengths", "best_walk", "too_many_to_order",
+           "walk_order", "walk_strength"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +62,39 @@ def overlaps(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig(
     return out
 
 
+def likeness(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig()) -> np.ndarray:
+    """(N, N) float symmetric in [0, 1]: how alike each pair of thumbnails (h, w) uint8 looks,
+    the ZNCC of one's centre (a border of ``cfg.appearance_shift`` of its size left off) at its best
+    place over the other, both at ``cfg.appearance_px`` and blurred by a pixel; the smaller of the
+    two ways, 0 where either is flat or negative. The diagonal is 0."""
+    small = []
+    for t in thumbnails:
+        grey = thumbnail(t, cfg.appearance_px).astype(np.float32)
+        small.append(cv2.GaussianBlur(grey, (0, 0), 1.0))
+    n = len(small)
+    out = np.zeros((n, n))
+    for i, a in enumerate(small):
+        h, w = a.shape
+        dy, dx = int(h * cfg.appearance_shift), int(w * cfg.appearance_shift)
+        centre = a[dy:h - dy, dx:w - dx]
+        if centre.size == 0 or float(centre.std()) == 0.0:
+            continue
+        for j, b in enumerate(small):
+            if i == j or b.shape[0] < centre.shape[0] or b.shape[1] < centre.shape[1] or float(b.std()) == 0.0:
+                continue
+            found = cv2.matchTemplate(b, centre, cv2.TM_CCOEFF_NORMED)
+            out[i, j] = float(np.nanmax(found)) if np.isfinite(found).any() else 0.0
+    return np.clip(np.minimum(out, out.T), 0.0, 1.0)
+
+
+def step_strengths(overlap: np.ndarray, alike: np.ndarray, cfg: OrderingConfig = OrderingConfig()
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(strength (N, N) float: the SIFT overlap plus ``cfg.appearance_weight`` x the likeness,
+    supported (N, N) bool: a step the images support, by an overlap or by a likeness of
+    ``cfg.appearance_min``) from :func:`overlaps` and :func:`likeness`."""
+    return overlap + cfg.appearance_weight * alike, (overlap > 0) | (alike >= cfg.appearance_min)
+
+
 def _mutual_matches(matcher, ki, di, kj, dj, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (M, 2) float32 in both images of the matches that pass the ratio test and are each
     other's best both ways."""
@@ -73,9 +108,9 @@ def _mutual_matches(matcher, ki, di, kj, dj, ratio: float) -> tuple[np.ndarray, 
     return x1, x2
 
 
-def walk_strength(order: list[int], overlap: np.ndarray) -> tuple[int, int]:
+def walk_strength(order: list[int], overlap: np.ndarray) -> tuple[float, float]:
     """(total overlap of consecutive images, the weakest step's) of ``order``."""
-    steps = [int(overlap[a, b]) for a, b in zip(order, order[1:])]
+    steps = [overlap[a, b].item() for a, b in zip(order, order[1:])]
     return (sum(steps), min(steps)) if steps else (0, 0)
 
 
@@ -122,9 +157,10 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     """The order to run the images of ``thumbnails`` in (their index list, 0 and 1 first), why
     it is not the given one (None: kept as given), and a doubt about a given order that was kept
     (None: none). A walk is taken only where the images support every step of it (each pair of
-    consecutive thumbnails overlaps): a step without overlap (a plain back of an object, a wide
-    step) leaves the order to the user, since the mapper's motion prior may bridge it in the
-    given order but not in one guessed around it."""
+    consecutive thumbnails overlaps, or looks alike where SIFT finds too little:
+    :func:`step_strengths`): a step with neither (a plain back of an object, a wide step) leaves
+    the order to the user, since the mapper's motion prior may bridge it in the given order but
+    not in one guessed around it."""
     n = len(thumbnails)
     given = list(range(n))
     if cfg.mode == "as-given" or n <= 3:
@@ -132,21 +168,22 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     if too_many_to_order(n, cfg):
         return given, None, None
     overlap = overlaps(thumbnails, cfg)
-    found = best_walk(overlap)
-    (total, weakest), (found_total, found_weakest) = walk_strength(given, overlap), walk_strength(found, overlap)
-    better = found != given and (weakest == 0 or found_total >= cfg.replace_factor * total)
-    if better and found_weakest > 0:
-        why = (f"a step of the given order has no overlap, every step of the order found has {found_weakest} "
-               f"matches or more" if weakest == 0 else
-               f"consecutive images of the order found overlap by {found_total} matches in all, the given order's "
-               f"by {total}")
+    strength, supported = step_strengths(overlap, likeness(thumbnails, cfg), cfg)
+    found = best_walk(strength)
+    (total, _), (found_total, _) = walk_strength(given, strength), walk_strength(found, strength)
+    gaps = [i for i, (a, b) in enumerate(zip(given, given[1:])) if not supported[a, b]]
+    found_gaps = sum(not supported[a, b] for a, b in zip(found, found[1:]))
+    better = found != given and (bool(gaps) or found_total >= cfg.replace_factor * total)
+    if better and not found_gaps:
+        why = (f"a step of the given order has no overlap, every step of the order found has one"
+               if gaps else f"consecutive images of the order found overlap by {found_total:.0f} in all, "
+                            f"the given order's by {total:.0f}")
         return found, why, None
-    gaps = [i for i, (a, b) in enumerate(zip(given, given[1:])) if overlap[a, b] == 0]
     doubt = None
     if better:
         doubt = (f"{len(gaps)} step(s) of the given order show no overlap (the first after image {gaps[0]}) and "
-                 f"another order overlaps more ({found_total} matches against {total}); if the photos are not in "
+                 f"another order overlaps more ({found_total:.0f} against {total:.0f}); if the photos are not in "
                  f"walk order, list them in the order they were taken") if gaps else (
-                 f"another order of the images overlaps more ({found_total} matches against {total}); if the photos "
+                 f"another order of the images overlaps more ({found_total:.0f} against {total:.0f}); if the photos "
                  f"are not in walk order, list them in the order they were taken")
     return given, None, doubt
