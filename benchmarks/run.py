@@ -20,7 +20,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SECTIONS = ["speed", "calibration", "lens", "matching", "reconstruction", "propagation", "dense", "dense_real", "real", "walks", "realcal", "mesh", "rig", "firstrun", "stability", "live"]
+SECTIONS = ["speed", "calibration", "lens", "matching", "reconstruction", "propagation", "dense", "dense_real", "real", "walks", "realcal", "mesh", "rig", "firstrun", "stability", "ordering", "live"]
 
 
 def main() -> int:
