@@ -197,7 +197,11 @@ def test_ctrl_c_stops_the_command_and_writes_the_result_with_its_dense_cloud(pho
             assert proc.poll() is None, log.read_text()
             time.sleep(0.05)
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(60) == 0, log.read_text()
+        try:
+            code = proc.wait(60)
+        except subprocess.TimeoutExpired:
+            pytest.fail("no exit within 60 s of Ctrl-C; its output:\n" + log.read_text())
+        assert code == 0, log.read_text()
     finally:
         if proc.poll() is None:
             proc.kill()

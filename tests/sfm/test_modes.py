@@ -58,3 +58,38 @@ def test_each_mode_owns_the_defaults_the_resolved_config_takes():
     # what the user sets wins over the mode's default
     mine = Config(pipeline=PipelineConfig(mode="paper", camera_model="zero-skew")).resolve()
     assert mine.pipeline.camera_model == "zero-skew"
+
+
+def test_a_window_holding_a_weakly_placed_camera_does_not_decide_the_walk_s_lens(box_scene, monkeypatch):
+    # the box's camera zooms by up to 10 % at every image: the first resection that finds it
+    # decides the walk's lens, unless a camera of its window rests on weak evidence (a zoom
+    # explains that camera's offset as well as the offset itself does)
+    import stereoseed.sfm.mapper as mapper
+    from stereoseed.pipeline import reconstruct
+
+    n = 6
+    images, names, P_pair = box_scene.images[:n], box_scene.names[:n], box_scene.P[:2]
+    _, report = reconstruct(images, names, P_pair, Config())
+    first = next(k for k, r in enumerate(report["per_image"]) if r.get("zoom_evidence", {}).get("kept"))
+    before = first - 1
+    monkeypatch.setattr(mapper, "_weakly_placed", lambda recon, v: v == before)
+    _, held = reconstruct(images, names, P_pair, Config())
+    evidence = held["per_image"][first]["zoom_evidence"]
+    assert not evidence["kept"] and evidence["weakly_placed_in_window"] == [names[before]]
+
+
+def test_a_camera_is_weakly_placed_when_the_motion_prior_or_a_weak_kept_chain_placed_it():
+    from stereoseed.sfm.mapper import _weakly_placed
+
+    images, names, Ps, source = ring(5)
+    cfg = Config()
+    recon, _ = initialise(images, names, Ps[:2], cfg, source)
+    insert_view(recon, 2, cfg, source)
+    assert recon.views[2].found_by == "epipolar chain" and not _weakly_placed(recon, 2)
+    report = recon.reports()[2]
+    recon.record(2, {**report, "sparse_weak": "13 sparse resection inliers < 24"})
+    assert _weakly_placed(recon, 2)
+    recon.record(2, {**report, "registered_by": "motion prior"})
+    assert _weakly_placed(recon, 2)
+    recon.record(2, {**report, "registered_by": "quasi-dense", "sparse_weak": "13 sparse resection inliers < 24"})
+    assert not _weakly_placed(recon, 2)  # the propagated matches placed it
