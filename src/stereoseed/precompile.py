@@ -102,6 +102,9 @@ KERNELS: dict[str, tuple[str, str, str]] = {
                         ("float64[:, ::1], int64[::1], int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], "
                          "int64, int64")),
     "mirror_upper": ("stereoseed.estimators._schur", "_mirror_upper", "float64[:, ::1], int64"),
+    "camera_scores": ("stereoseed.estimators._schur", "camera_scores",
+                      ("float64[:, :, ::1], float64[:, ::1], int64[::1], int64[::1], float64[:, ::1], float64[::1], "
+                       "int64[::1], float64[:, :, :, ::1]")),
     "back_substitute": ("stereoseed.estimators._schur", "back_substitute",
                         ("float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, ::1], int64[::1], "
                          "int64[::1]")),
@@ -152,7 +155,7 @@ COST_S: dict[str, float] = {
     "candidate_pairs": 2.4, "pair_scores": 0.7, "best_of_pairs": 0.5, "align": 7.7, "competitors": 0.6,
     "largest_angles": 0.2, "choose_samples": 1.1, "score_hypotheses": 1.3, "nearest": 0.9, "tracks_lm": 3.9,
     "observation_errors": 0.2, "normal_equations": 0.9, "eliminate_points": 0.6, "add_point_pairs": 0.3,
-    "mirror_upper": 0.1, "back_substitute": 0.4, "candidate_mask": 0.4, "window_stats": 0.4, "zncc_points": 0.8,
+    "mirror_upper": 0.1, "back_substitute": 0.4, "camera_scores": 0.3, "candidate_mask": 0.4, "window_stats": 0.4, "zncc_points": 0.8,
     "propagate": 2.7, "refine_affine": 1.8, "refine_quadratic": 1.0, "two_view": 3.0, "cell_keys": 0.6,
     "grid_origin": 0.2, "voxel_means": 0.4, "cells": 0.4, "grid_neighbours": 0.6,
     "pca_normals": 0.4, "view_checks": 1.8,
@@ -161,7 +164,7 @@ COST_S: dict[str, float] = {
 _FEATURES = ("junctions", "sample_patches", "edge_corners", "repeats", "candidate_pairs", "pair_scores", "best_of_pairs", "align",
              "competitors", "largest_angles", "choose_samples", "score_hypotheses")
 _BUNDLE = ("tracks_lm", "observation_errors", "normal_equations", "eliminate_points", "add_point_pairs",
-           "mirror_upper", "back_substitute")
+           "mirror_upper", "back_substitute", "camera_scores")
 _PROPAGATION = ("window_stats", "zncc_points", "propagate", "refine_affine", "refine_quadratic")
 _FUSION = ("view_checks", "cell_keys", "grid_origin", "voxel_means", "cells", "grid_neighbours", "pca_normals")
 

@@ -8,7 +8,7 @@ import pytest
 
 from stereoseed.config import BundleConfig
 from stereoseed.estimators.bundle import BundleProblem, bundle_adjust
-from stereoseed.estimators.covariance import camera_uncertainty, parameter_names
+from stereoseed.estimators.covariance import camera_uncertainty, parameter_names, point_regions
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.projection import camera_center, decompose_projection, project
 from geometry_helpers import box_points, ring_camera
@@ -262,3 +262,66 @@ def test_observations_sharing_a_window_count_once():
     counted_once = camera_uncertainty(dense, sigma_px=sigma, independent_cell_px=cell)[last].position_sigma
     np.testing.assert_allclose(counted_once, base, rtol=1e-6)
     assert np.all(counted_each < 0.85 * base)
+
+
+def _solved(problem, xy):
+    """The least-squares solution of ``problem`` with pixels ``xy``, as a problem at it."""
+    noisy = BundleProblem(problem.Ps, problem.free_cameras, problem.points, problem.free_points, problem.obs_camera,
+                          problem.obs_point, xy, problem.model, problem.reference_K)
+    solved = bundle_adjust(noisy, BundleConfig(huber_px=1e9, max_iterations=30))
+    return BundleProblem(solved.Ps, problem.free_cameras, solved.points, problem.free_points, problem.obs_camera,
+                         problem.obs_point, xy, problem.model, problem.reference_K)
+
+
+def test_the_measured_spread_covers_errors_shared_by_a_region_where_the_model_does_not():
+    """Pixel errors shared by the points of a region in each image (the points one 60 px cell of
+    image 0 sees; a region matched with one bias, as propagated matches are) plus a little
+    independent noise: 80 Monte Carlo draws give
+    the cameras' real spread. The model's sigma (from the residuals, each observation counted
+    independent) falls well short of it; the spread measured from one draw's residuals over the
+    regions (the sandwich) comes within its own sampling error, and the reported sigma is the
+    larger of the two."""
+    rng = np.random.default_rng(5)
+    truth = _scene(rng, "focal", n_pts=500)
+    regions = point_regions(truth.obs_camera, truth.obs_point, truth.obs_xy, 500, 60.0)  # cells of image 0
+    n_regions = int(regions.max()) + 1
+    clean = truth.obs_xy.copy()
+    region_of_obs = truth.obs_camera * n_regions + regions[truth.obs_point]
+    free = np.flatnonzero(truth.free_cameras)
+
+    def draw():
+        shared = rng.normal(0.0, 0.5, (len(truth.Ps) * n_regions, 2))
+        return clean + shared[region_of_obs] + rng.normal(0.0, 0.1, clean.shape)
+
+    centres = {c: [] for c in free}
+    model, measured, reported = [], [], []
+    for k in range(80):
+        at = _solved(truth, draw())
+        for c in free:
+            centres[c].append(np.asarray(_axes_errors(at.Ps[c], truth.Ps[c])[0]))
+        if k < 10:
+            found = camera_uncertainty(at, point_clusters=regions)
+            model.append([found[c].model_position_sigma for c in free])
+            measured.append([found[c].measured_position_sigma for c in free])
+            reported.append([found[c].position_sigma for c in free])
+    real = np.array([np.std(np.array(centres[c]), axis=0, ddof=1) for c in free])  # (3 cameras, 3 axes)
+    model, measured, reported = (np.array(a) for a in (model, measured, reported))  # (draws, cameras, axes)
+    # the larger of the two by its worst axis, as the flags judge a camera
+    np.testing.assert_allclose(reported.max(axis=2), np.maximum(model.max(axis=2), measured.max(axis=2)),
+                               rtol=1e-9)
+    model, measured = model.mean(axis=0), measured.mean(axis=0)
+    assert np.all(model < 0.6 * real)  # the model counts every observation of an image independent
+    np.testing.assert_allclose(measured, real, rtol=0.35)
+
+
+def test_with_independent_errors_the_measured_spread_is_the_model_s():
+    rng = np.random.default_rng(6)
+    truth = _scene(rng, "focal", n_pts=200)
+    at = _solved(truth, truth.obs_xy + rng.normal(0.0, 0.5, truth.obs_xy.shape))
+    found = camera_uncertainty(at, point_clusters=np.arange(200) // 10)
+    plain = camera_uncertainty(at)
+    for c in np.flatnonzero(truth.free_cameras):
+        ratio = found[c].measured_position_sigma / found[c].model_position_sigma
+        assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio  # 20 regions: the measure's own spread
+        np.testing.assert_allclose(found[c].model_position_sigma, plain[c].position_sigma, rtol=1e-12)
+        assert plain[c].measured_position_sigma is None

@@ -2,6 +2,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 
 from stereoseed.cli._terminal import say
 from stereoseed.cli.arguments import whole_number
@@ -15,12 +19,38 @@ def _cmd_live(args: argparse.Namespace) -> int:
     cfg = Config.from_file(args.config) if args.config else Config()
     if args.video is not None and args.pair is None:
         raise StereoseedError("--video needs the calibrated pair's two photos first: --pair PAIR1.png PAIR2.png")
-    report = run_live(args.watch, args.calib, args.out, cfg, until=args.until, port=args.port, resume=args.resume,
-                      video=args.video, pair=args.pair, dense=args.dense, rig=args.rig,
-                      on_start=lambda url: say(f"live page: {url}  (Ctrl-C: stop and write {args.out})"),
-                      on_line=None if args.quiet else say)
+    stop = threading.Event()
+    with _stop_asked(stop):
+        report = run_live(args.watch, args.calib, args.out, cfg, until=args.until, port=args.port, resume=args.resume,
+                          video=args.video, pair=args.pair, dense=args.dense, rig=args.rig, stop=stop,
+                          on_start=lambda url: say(f"live page: {url}  (Ctrl-C: stop and write {args.out})"),
+                          on_line=None if args.quiet else say)
     say(f"{report['registered']}/{report['images']} photos placed, {report['points']} points; wrote {args.out}")
     return 0
+
+
+@contextlib.contextmanager
+def _stop_asked(stop: threading.Event) -> Iterator[None]:
+    """Ctrl-C (and SIGTERM) while the walk goes on ask it to stop: ``stop`` is set, the photo
+    under way is placed, and the run finishes and writes as after ``--until``. An exception
+    raised at whatever line the main thread was on could leave a lock it held taken (the page's,
+    the dense worker pool's: a run that never ended, seen under load in the suite). A second one
+    interrupts at once (``--resume`` continues). Only from the main thread (signals go there)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def ask(signum, frame) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    before = {s: signal.signal(s, ask) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
 
 
 # --until: the calibrated pair first; --port: 0 lets the system pick a free one

@@ -12,7 +12,7 @@ from numba import njit
 from stereoseed.threads import current_chunks, map_chunks
 
 __all__ = ["solve_symmetric", "eliminate_points", "back_substitute", "thread_rows", "damped_camera_system",
-           "reduced_camera_matrix", "homogeneous", "normal_equations", "PAIRS_PER_THREAD"]
+           "reduced_camera_matrix", "homogeneous", "normal_equations", "camera_scores", "PAIRS_PER_THREAD"]
 
 # Threads forming the reduced camera system: the cores this process may use (threads.py), at
 # most 4 (the loop is memory-bound beyond that); below PAIRS_PER_THREAD observation pairs a
@@ -231,3 +231,28 @@ def normal_equations(Ps, X, oc, op, xy, weight, cam_slot, pt_slot, dP, delta, bo
                     for b in range(3):
                         W[row, a, b] = w * (Jc[0, a] * Jp[0, b] + Jc[1, a] * Jp[1, b])
     return U, gc, V, gp, W
+
+
+@njit(cache=True, nogil=True)
+def camera_scores(Ps, X, oc, op, xy, weight, cam_slot, dP):
+    """Each observation's share of the free cameras' gradient, w Jc^T r (O, n): what
+    :func:`normal_equations` sums into gc, kept per observation (zero for a fixed camera's) so
+    that a covariance can sum it over clusters of observations instead. Arguments as
+    :func:`normal_equations`' (plain least squares: no Huber weight)."""
+    n = dP.shape[1]
+    out = np.zeros((oc.shape[0], n))
+    for o in range(oc.shape[0]):
+        c, p = oc[o], op[o]
+        sc = cam_slot[c]
+        if sc < 0:
+            continue
+        x0, x1, x2 = X[p, 0], X[p, 1], X[p, 2]
+        h0, h1, h2 = homogeneous(Ps, c, x0, x1, x2)
+        u, v = h0 / h2, h1 / h2
+        ru, rv = u - xy[o, 0], v - xy[o, 1]
+        for j in range(n):
+            d0 = dP[sc, j, 0, 0] * x0 + dP[sc, j, 0, 1] * x1 + dP[sc, j, 0, 2] * x2 + dP[sc, j, 0, 3]
+            d1 = dP[sc, j, 1, 0] * x0 + dP[sc, j, 1, 1] * x1 + dP[sc, j, 1, 2] * x2 + dP[sc, j, 1, 3]
+            d2 = dP[sc, j, 2, 0] * x0 + dP[sc, j, 2, 1] * x1 + dP[sc, j, 2, 2] * x2 + dP[sc, j, 2, 3]
+            out[o, j] = weight[o] * ((d0 - u * d2) / h2 * ru + (d1 - v * d2) / h2 * rv)
+    return out

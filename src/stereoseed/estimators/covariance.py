@@ -19,7 +19,14 @@ their parameters, so they are the marginal covariance of those parameters).
 The parameters of a camera are the model's (:class:`stereoseed.geometry.models.CameraModel`):
 its intrinsics, then a rotation increment w (rad) about the camera's own axes (R <- exp([w]x) R,
 the tangent space Ceres' manifolds use; :func:`stereoseed.geometry.models.projection_derivatives`),
-then t. Plain least squares, without the BA's Huber weights: for Gaussian pixel noise the Huber
+then t. The residuals' own spread (``point_clusters``): the cluster-robust ("sandwich") covariance
+S^-1 M S^-1, M the sum over clusters of points of r r^T, r a cluster's share of the reduced
+gradient g_cam - W V^-1 g_pt (White 1980; the linearised jackknife over the clusters). It needs
+no noise model: where the matches of one region share their errors (propagated matches, a
+pattern matched one period over), it grows past sigma^2 S^-1, which counts each observation as
+independent. The covariance reported is the larger of the two by its worst axis' position sigma
+(what the flags judge).
+Plain least squares, without the BA's Huber weights: for Gaussian pixel noise the Huber
 estimate (1 px, sigma 0.5 px) spreads within ~3 % of what this predicts (Monte Carlo, see the
 tests); an outlier would count at full weight, so drop outliers first (the mapper does).
 """
@@ -31,12 +38,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereoseed.estimators._schur import eliminate_points, normal_equations, reduced_camera_matrix, thread_rows
+from stereoseed.estimators._schur import camera_scores, eliminate_points, normal_equations, reduced_camera_matrix, thread_rows
 from stereoseed.estimators.bundle import BundleProblem, observation_errors, pairs_by_point
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.models import CameraModel
 
-__all__ = ["CameraUncertainty", "camera_uncertainty", "one_per_cell", "parameter_names"]
+__all__ = ["CameraUncertainty", "camera_uncertainty", "one_per_cell", "point_regions", "parameter_names"]
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +88,9 @@ class CameraUncertainty:
     """The 1-sigma uncertainty of one free camera.
 
     position_sigma (3,): of the camera centre C = -R^T t along the camera's own axes (x right,
-    y down, z forward), in the model's (world) unit. rotation_sigma_deg (3,): of the rotation
+    y down, z forward), in the model's (world) unit: that of the larger (by its worst axis) of
+    model_position_sigma (from the pixel noise, sigma^2 S^-1) and measured_position_sigma (the
+    residuals' own spread over clusters of points), each (3,) or None when not computed. rotation_sigma_deg (3,): of the rotation
     about those axes, degrees. focal_sigma_px: of fx in px (f for the 'zero-skew' and 'focal'
     models), None for the 'fixed' model. covariance (n, n): the camera's block, in the order of
     ``parameters`` (:func:`parameter_names`: intrinsics px, w rad, t unit). position_covariance
@@ -97,6 +106,8 @@ class CameraUncertainty:
     parameters: tuple[str, ...]
     sigma_px: float
     reason: str | None = None
+    model_position_sigma: np.ndarray | None = None
+    measured_position_sigma: np.ndarray | None = None
 
     @property
     def determined(self) -> bool:
@@ -105,12 +116,17 @@ class CameraUncertainty:
     def summary(self) -> dict:
         """What a report keeps of it (:meth:`to_dict` without the covariance matrices)."""
         d = self.to_dict()
-        return {k: d[k] for k in ("position_sigma", "rotation_sigma_deg", "focal_sigma_px", "sigma_px", "reason")}
+        return {k: d[k] for k in ("position_sigma", "model_position_sigma", "measured_position_sigma",
+                                  "rotation_sigma_deg", "focal_sigma_px", "sigma_px", "reason")}
 
     def to_dict(self) -> dict:
         """JSON-ready: finite floats, non-finite ones as None, plus ``reason`` (None when
         determined)."""
         return {"position_sigma": _json_floats(self.position_sigma),
+                "model_position_sigma": None if self.model_position_sigma is None else
+                _json_floats(self.model_position_sigma),
+                "measured_position_sigma": None if self.measured_position_sigma is None else
+                _json_floats(self.measured_position_sigma),
                 "rotation_sigma_deg": _json_floats(self.rotation_sigma_deg),
                 "focal_sigma_px": None if self.focal_sigma_px is None else _json_floats(self.focal_sigma_px),
                 "parameters": list(self.parameters),
@@ -153,11 +169,13 @@ def _usable_points(op: np.ndarray, oc: np.ndarray, free_pts: np.ndarray, n_cams:
     return ~free_pts | (views >= 2)
 
 
-def _inverse_camera_blocks(S: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _inverse_camera_blocks(S: np.ndarray, n: int, meat: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None]:
     """The (n, n) diagonal blocks of S^-1 for S (N n, N n) symmetric positive semi-definite:
     (blocks (N, n, n), determined (N,) bool, worst (N,) the weakest scaled eigenvalue a camera
     takes part in, relative to the strongest, NaN for a determined camera; the number of weak
-    directions, S's rank deficiency).
+    directions, S's rank deficiency; with ``meat`` (N n, N n), the diagonal blocks of the sandwich
+    S^-1 meat S^-1 (N, n, n), else None).
 
     S is first scaled to unit diagonal (Jacobi: focal lengths in px, rotations in rad and
     translations in metres differ by 1e6 in scale, which would swamp any threshold). Fast path:
@@ -174,7 +192,7 @@ def _inverse_camera_blocks(S: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
     Sh = S * scale[:, None] * scale[None, :]
     blocks = np.full((N, n, n), np.nan)
     if not np.isfinite(Sh).all():
-        return blocks, np.zeros(N, bool), np.full(N, np.nan), len(S)
+        return blocks, np.zeros(N, bool), np.full(N, np.nan), len(S), None if meat is None else blocks.copy()
     inverse = None
     try:
         inverse = cho_solve(cho_factor(Sh, lower=True, check_finite=False), np.eye(len(S)), check_finite=False)
@@ -200,23 +218,34 @@ def _inverse_camera_blocks(S: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
     for i in np.flatnonzero(determined):
         sl = slice(i * n, (i + 1) * n)
         blocks[i] = inverse[sl, sl] * scale[sl, None] * scale[None, sl]
-    return blocks, determined, worst, n_weak
+    if meat is None:
+        return blocks, determined, worst, n_weak, None
+    rows_of = inverse * scale[:, None] * scale[None, :]
+    sandwich = np.full((N, n, n), np.nan)
+    for i in np.flatnonzero(determined):
+        rows = rows_of[i * n:(i + 1) * n]
+        sandwich[i] = rows @ meat @ rows.T
+    return blocks, determined, worst, n_weak, sandwich
 
 
-def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: np.ndarray, A: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: np.ndarray, A: np.ndarray,
+                           meat: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
     """:func:`_inverse_camera_blocks` for cameras whose parameters are A_c @ (their group's), S
     the free cameras' reduced system (nC n, nC n): the groups' system T^T S T inverted, mapped
     back to each camera (a camera is determined when its group is). Also returns the number
-    of groups."""
+    of groups, and the sandwich's blocks with ``meat`` (the free cameras', as S)."""
     nC = len(free_cams)
     ids, slot = np.unique(np.asarray(group)[free_cams], return_inverse=True)
     T = np.zeros((nC * n, len(ids) * n))
     for i, c in enumerate(free_cams):
         T[i * n:(i + 1) * n, slot[i] * n:(slot[i] + 1) * n] = A[c]
-    g_blocks, g_determined, g_worst, n_weak = _inverse_camera_blocks(T.T @ S @ T, n)
+    g_blocks, g_determined, g_worst, n_weak, g_sandwich = _inverse_camera_blocks(
+        T.T @ S @ T, n, None if meat is None else T.T @ meat @ T)
     blocks = np.einsum("cij,cjk,clk->cil", A[free_cams], g_blocks[slot], A[free_cams])
-    return blocks, g_determined[slot], g_worst[slot], n_weak, len(ids)
+    sandwich = None if g_sandwich is None else np.einsum("cij,cjk,clk->cil", A[free_cams], g_sandwich[slot],
+                                                         A[free_cams])
+    return blocks, g_determined[slot], g_worst[slot], n_weak, len(ids), sandwich
 
 
 def one_per_cell(obs_camera: np.ndarray, obs_xy: np.ndarray, cell_px: float) -> np.ndarray:
@@ -235,9 +264,63 @@ def one_per_cell(obs_camera: np.ndarray, obs_xy: np.ndarray, cell_px: float) -> 
     return 1.0 / counts[cell.ravel()]
 
 
+def point_regions(obs_camera: np.ndarray, obs_point: np.ndarray, obs_xy: np.ndarray, n_points: int,
+                  cell_px: float) -> np.ndarray:
+    """(n_points,) int64: a region id per point, the square image cell of ``cell_px`` pixels its
+    first observation (in the lowest-numbered camera) falls in, in that camera (obs_camera,
+    obs_point (O,) int, obs_xy (O, 2) px): neighbouring points of one view share a region. A
+    point nothing observes gets a region of its own."""
+    out = np.arange(n_points, dtype=np.int64) + n_points  # (beyond every cell's id)
+    if len(obs_camera) == 0:
+        return out
+    oc, op = np.asarray(obs_camera, np.int64), np.asarray(obs_point, np.int64)
+    order = np.lexsort((oc, op))
+    first = order[np.r_[True, op[order][1:] != op[order][:-1]]]
+    cells = np.floor(np.asarray(obs_xy, np.float64)[first] / cell_px)
+    cells[~np.isfinite(cells)] = -1.0
+    keys = np.stack([oc[first], cells[:, 0].astype(np.int64), cells[:, 1].astype(np.int64)])
+    _, region = np.unique(keys, axis=1, return_inverse=True)
+    out[op[first]] = region.ravel()
+    return out
+
+
+def _cluster_meat(Ps, X, oc, op, xy, weight, cam_slot, dP, gp, Y, both_idx, both_point, both_camera,
+                  point_clusters: np.ndarray, nC: int) -> np.ndarray:
+    """M = sum over clusters of (r_c - mean)(r_c - mean)^T (nC n, nC n), r_c the cluster's share
+    of the cameras' reduced gradient g_cam - W V^-1 g_pt; a cluster holds whole points (``point_clusters`` (M,)
+    its id per point), so the points' gradient it eliminates is its own. Times G / (G - 1) for G
+    clusters (the small-sample factor of the cluster-robust "CR1" estimator; the caller applies
+    its other factor, the residuals' degrees of freedom)."""
+    from scipy import sparse
+
+    n = dP.shape[1]
+    scores = camera_scores(Ps, X, oc, op, xy, weight, cam_slot, dP)
+    on_free = cam_slot[oc] >= 0
+    keys = [point_clusters[op[on_free]] * nC + cam_slot[oc[on_free]]]
+    values = [scores[on_free]]
+    if len(both_idx):
+        keys.append(point_clusters[op[both_idx]] * nC + both_camera)
+        values.append(-np.einsum("ouk,ok->ou", Y, gp[both_point]))
+    keys, values = np.concatenate(keys), np.concatenate(values)
+    pairs, where = np.unique(keys, return_inverse=True)
+    summed = np.zeros((len(pairs), n))
+    np.add.at(summed, where.ravel(), values)
+    _, cluster = np.unique(pairs // nC, return_inverse=True)
+    cluster = cluster.ravel()
+    G = int(cluster.max()) + 1 if len(cluster) else 0
+    R = sparse.csr_matrix((summed.ravel(), (np.repeat(cluster, n), ((pairs % nC)[:, None] * n + np.arange(n)).ravel())),
+                          shape=(G, nC * n))
+    # about the clusters' mean share, as the jackknife's spread is about its mean: at a converged
+    # solution their sum is zero; where the model is not one (the paper mode has no final BA),
+    # the gradient they share is not a spread
+    mean = np.asarray(R.sum(axis=0)).ravel() / max(G, 1)
+    return ((R.T @ R).toarray() - G * np.outer(mean, mean)) * (G / max(G - 1, 1))
+
+
 def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
                        groups: tuple[np.ndarray, np.ndarray] | None = None,
-                       independent_cell_px: float | None = None) -> list[CameraUncertainty | None]:
+                       independent_cell_px: float | None = None,
+                       point_clusters: np.ndarray | None = None) -> list[CameraUncertainty | None]:
     """The uncertainty of every free camera of ``problem`` at its solution (a converged
     :func:`stereoseed.estimators.bundle.bundle_adjust`'s cameras and points).
 
@@ -250,6 +333,9 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
     parameters (T^T S T) and each camera's covariance A Sigma_group A^T.
     independent_cell_px: the observations of a camera in one image cell of this size share the
     information of one observation (:func:`one_per_cell`); None: each is independent evidence.
+    point_clusters: (M,) int, a cluster id per point of ``problem``: the covariance is also
+    measured from the residuals, clusters of points independent, and the larger one reported
+    (the module's docstring); None: the model's alone.
     Returns one entry per camera of ``problem.Ps`` (C,): None for a fixed camera, else a
     :class:`CameraUncertainty` (undetermined ones with infinite sigmas and a reason). Free
     cameras are first put in the model's family, as the BA does.
@@ -328,12 +414,17 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
                                thread_rows(order, starts, both_camera, nC))
     for i in range(nC):
         S[i * n:(i + 1) * n, i * n:(i + 1) * n] += U[i]
+    meat = None
+    if point_clusters is not None:
+        meat = _cluster_meat(Ps, X, oc_k, op_k, xy_k, weight_k, cam_slot, dP, gp, Y, both_idx, both_point,
+                             both_camera, np.asarray(point_clusters, np.int64), nC)
     t_built = time.perf_counter()
     if groups is None:
-        blocks, determined, worst, n_weak = _inverse_camera_blocks(S, n)
+        blocks, determined, worst, n_weak, sandwich = _inverse_camera_blocks(S, n, meat)
         n_blocks = nC
     else:
-        blocks, determined, worst, n_weak, n_blocks = _grouped_camera_blocks(S, n, free_cams, *groups)
+        blocks, determined, worst, n_weak, n_blocks, sandwich = _grouped_camera_blocks(S, n, free_cams, *groups,
+                                                                                       meat=meat)
 
     # The degrees of freedom: residuals minus the rank of J (the cameras' weak directions are
     # parameters the residuals do not see; every point kept has an invertible block).
@@ -346,6 +437,10 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         sigma = float(np.sqrt(np.sum(errors[keep] ** 2) / dof))
     else:
         sigma = np.nan
+    if sandwich is not None:
+        # the residuals at the solution are smaller than the errors by the parameters fitted to
+        # them, as in sigma's estimate: the usual CR1 correction (with _cluster_meat's G / (G - 1))
+        sandwich = sandwich * (2 * n_obs / dof if dof > 0 else np.nan)
     cam_obs = np.bincount(oc_k, minlength=len(Ps))
     for slot, c in enumerate(free_cams):
         if not np.isfinite(sigma):
@@ -360,12 +455,19 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
             continue
         cov = sigma ** 2 * 0.5 * (blocks[slot] + blocks[slot].T)
         J = _centre_jacobian(ts[slot], n)
+        model_sigma = measured_sigma = None
+        if sandwich is not None:
+            model_sigma = _frozen(np.sqrt(np.maximum(np.diag(J @ cov @ J.T), 0.0)))
+            measured_sigma = _frozen(np.sqrt(np.maximum(np.diag(J @ sandwich[slot] @ J.T), 0.0)))
+            if measured_sigma.max() > model_sigma.max():  # the larger by the flags' measure, its worst axis
+                cov = 0.5 * (sandwich[slot] + sandwich[slot].T)
         pos_cov = J @ cov @ J.T
         out[c] = CameraUncertainty(
             _frozen(np.sqrt(np.maximum(np.diag(pos_cov), 0.0))),
             _frozen(np.degrees(np.sqrt(np.maximum(np.diag(cov)[ni:ni + 3], 0.0)))),
             float(np.sqrt(max(cov[0, 0], 0.0))) if has_focal else None,
-            _frozen(cov), _frozen(pos_cov), names, sigma)
+            _frozen(cov), _frozen(pos_cov), names, sigma, model_position_sigma=model_sigma,
+            measured_position_sigma=measured_sigma)
     n_bad = int((~determined).sum())
     if n_bad:
         log.info("camera_uncertainty: %d of %d free cameras undetermined", n_bad, nC)

@@ -140,13 +140,15 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
             pending = [a for a in first if a.name not in run.names]
             while until is None or len(run.names) < until:
                 if stop is not None and stop.is_set():
+                    say("stopping (Ctrl-C or a stop asked for)")
                     break
                 look = source.look(time.monotonic())
                 for note in look.notes:
                     say(note, "warning" if "ended" not in note else "info")
                 arrivals, pending = pending + look.arrivals, []
                 for group in (arrivals[i:i + step] for i in range(0, len(arrivals), step)):
-                    if until is not None and len(run.names) + len(group) > until:
+                    if (until is not None and len(run.names) + len(group) > until) or (stop is not None
+                                                                                        and stop.is_set()):
                         for arrival in group:
                             if isinstance(source, (FolderWatch, RigWatch)):
                                 source.give_back(arrival.name)  # not this run's

@@ -347,6 +347,13 @@ class TrustConfig:
     # propagated matches were 10-22 mm off with a stated sigma of 1-4 mm). None: every
     # observation independent.
     independent_cell_px: float | None = 11.0
+    # The cameras' uncertainty is also measured from the residuals themselves, points grouped by
+    # the spread_cell_px cell of their first view (a few correlation windows: propagated matches
+    # share their errors that far), and the larger one reported (issue #47: "the covariance
+    # reported as the larger of the model's and the measured spread"). On the real sets the
+    # measured spread is 0.7-1.4x the model's at 11-128 px alike (docs/benchmarks.md). None: the
+    # model's alone.
+    spread_cell_px: float | None = 32.0
     # After the final BA, a camera must be tied to the model by at least this many observations
     # of points two other cameras also see (each pins it as a 3D-2D pair does; a two-view point
     # only moves with it); fewer and the BA cannot check where its registration put it (a view
@@ -365,6 +372,8 @@ class TrustConfig:
         positive(self, "ambiguity_shift", "residual_factor", "max_position_sigma")
         if self.independent_cell_px is not None:
             positive(self, "independent_cell_px")
+        if self.spread_cell_px is not None:
+            positive(self, "spread_cell_px")
         if self.min_tied_observations is not None:
             whole(self, "min_tied_observations")
         if self.residual_floor_px < 0:

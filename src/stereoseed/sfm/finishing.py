@@ -4,6 +4,8 @@ modules return verdicts (:mod:`stereoseed.sfm.hindsight`, :mod:`stereoseed.sfm.t
 module applies them, through the model's own methods (:class:`~stereoseed.scene.reconstruction.Reconstruction`)."""
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import time
 from typing import Any
@@ -83,7 +85,13 @@ def _verdicts(recon: Reconstruction, options: MapperOptions, between: dict[int, 
     """:func:`stereoseed.sfm.trust.judge` given its sections; the cameras' uncertainty under the
     camera model of the mode's BA (:meth:`~stereoseed.sfm.modes.Mode.adjustment_options`)."""
     model = mode_of(options.pipeline, recon).adjustment_options(recon, options).pipeline.camera_model
-    return judge(recon, between, trust=options.trust, resection=options.resection,
+    trust = options.trust
+    if options.pipeline.ba == "local":
+        # the residuals' spread is measured about a least-squares solution, which a model of
+        # local adjustments only is not (the paper's mode: its shared gradient would pass for
+        # spread, and its experiments are reproduced as the paper ran them)
+        trust = dataclasses.replace(trust, spread_cell_px=None)
+    return judge(recon, between, trust=trust, resection=options.resection,
                  motion_prior=options.motion_prior, model=model)
 
 

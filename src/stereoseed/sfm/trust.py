@@ -28,7 +28,7 @@ from scipy import sparse
 from stereoseed.estimators.config import ResectionConfig
 from stereoseed.geometry.camera_model import CameraModel
 from stereoseed.sfm.config import MotionPriorConfig, TrustConfig
-from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty
+from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty, point_regions
 from stereoseed.geometry.projection import depths
 from stereoseed.scene.camera_life import Flag, FlagKind
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
@@ -45,7 +45,8 @@ __all__ = ["camera_uncertainties", "contradicted_cameras", "weakly_tied_cameras"
 def camera_uncertainties(recon: Reconstruction, model: CameraModel, trust: TrustConfig) -> dict[int, CameraUncertainty]:
     """{view: its uncertainty} for every registered view after the pair, from the normal
     equations of all registered views (the pair fixed) and every live point, each camera's
-    observations counted once per ``TrustConfig.independent_cell_px`` cell of its image; a rig
+    observations counted once per ``TrustConfig.independent_cell_px`` cell of its image, the
+    larger of that and the residuals' own spread (``TrustConfig.spread_cell_px``); a rig
     walk's with one pose per station (the rig held, as its bundle adjustment holds it). model: the
     camera model the final BA used (the accurate mode holds the calibrated intrinsics when no
     image zoomed: the mode's ``adjustment_options``)."""
@@ -53,8 +54,10 @@ def camera_uncertainties(recon: Reconstruction, model: CameraModel, trust: Trust
     if built is None:
         return {}
     problem, cams, _ = built
+    regions = None if trust.spread_cell_px is None else point_regions(
+        problem.obs_camera, problem.obs_point, problem.obs_xy, len(problem.points), trust.spread_cell_px)
     found = camera_uncertainty(problem, groups=None if recon.rig is None else _stations(recon, cams),
-                               independent_cell_px=trust.independent_cell_px)
+                               independent_cell_px=trust.independent_cell_px, point_clusters=regions)
     return {int(v): u for v, u in zip(cams, found) if u is not None}
 
 
