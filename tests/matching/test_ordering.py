@@ -120,3 +120,24 @@ def test_the_dino_and_temple_rings_shuffled_are_put_back_in_walk_order(dino_dir,
         # either may come first
         same_spot = {"templeSR0001.png", "templeSR0011.png"}
         assert all(a == b or {a, b} <= same_spot for a, b in zip(got, names)), (folder.name, got, why)
+
+
+def test_a_walk_resting_on_likeness_replaces_a_given_order_only_when_clearly_stronger(monkeypatch):
+    # SIFT leaves a gap in the given order and in every other; photos of one object all look
+    # somewhat alike, so a walk bridged by likeness alone must beat the given order clearly
+    import stereoseed.matching.ordering as ordering
+
+    n = 8
+    truth = _ring_overlap(n, reach=2)
+    truth[3, 4] = truth[4, 3] = truth[2, 4] = truth[4, 2] = truth[3, 5] = truth[5, 3] = 0
+    perm = [0, 1, 5, 3, 2, 7, 4, 6]  # the given order: a shuffle
+    alike = np.full((n, n), 0.6)
+    np.fill_diagonal(alike, 0.0)
+    monkeypatch.setattr(ordering, "overlaps", lambda thumbs, cfg: truth[np.ix_(perm, perm)])
+    monkeypatch.setattr(ordering, "likeness", lambda thumbs, cfg: alike)
+    order, why, _ = walk_order([np.zeros((8, 8), np.uint8)] * n)
+    assert order != list(range(n)) and "overlap by" in why  # the shuffle's total is far weaker
+    in_order = truth.copy()
+    monkeypatch.setattr(ordering, "overlaps", lambda thumbs, cfg: in_order)
+    order, why, doubt = walk_order([np.zeros((8, 8), np.uint8)] * n)
+    assert order == list(range(n)) and why is None  # the walk, its gap bridged by likeness: kept

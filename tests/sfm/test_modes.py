@@ -78,7 +78,7 @@ def test_a_window_holding_a_weakly_placed_camera_does_not_decide_the_walk_s_lens
     assert not evidence["kept"] and evidence["weakly_placed_in_window"] == [names[before]]
 
 
-def test_a_camera_is_weakly_placed_when_the_motion_prior_or_a_weak_kept_chain_placed_it():
+def test_a_camera_is_weakly_placed_when_a_weak_sparse_registration_was_kept():
     from stereoseed.sfm.mapper import _weakly_placed
 
     images, names, Ps, source = ring(5)
@@ -90,6 +90,9 @@ def test_a_camera_is_weakly_placed_when_the_motion_prior_or_a_weak_kept_chain_pl
     recon.record(2, {**report, "sparse_weak": "13 sparse resection inliers < 24"})
     assert _weakly_placed(recon, 2)
     recon.record(2, {**report, "registered_by": "motion prior"})
+    assert not _weakly_placed(recon, 2)  # a trusted prediction (enough inliers, no gap)
+    recon.record(2, {**report, "registered_by": "motion prior", "sparse_weak": "the motion prior's camera, predicted "
+                                                                              "across 1 view"})
     assert _weakly_placed(recon, 2)
     recon.record(2, {**report, "registered_by": "quasi-dense", "sparse_weak": "13 sparse resection inliers < 24"})
     assert not _weakly_placed(recon, 2)  # the propagated matches placed it

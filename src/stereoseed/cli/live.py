@@ -34,8 +34,11 @@ def _stop_asked(stop: threading.Event) -> Iterator[None]:
     """Ctrl-C (and SIGTERM) while the walk goes on ask it to stop: ``stop`` is set, the photo
     under way is placed, and the run finishes and writes as after ``--until``. An exception
     raised at whatever line the main thread was on could leave a lock it held taken (the page's,
-    the dense worker pool's: a run that never ended, seen under load in the suite). A second one
-    interrupts at once (``--resume`` continues). Only from the main thread (signals go there)."""
+    the dense worker pool's: a run that never ended, seen under load in the suite); the main
+    thread never waits on ``stop`` itself (live.run sleeps between looks), so setting it here
+    cannot wait on a lock this thread holds. A second one raises KeyboardInterrupt where the run
+    is: in the walk, the run still finishes; while finishing, it stops and ``--resume``
+    continues. Only from the main thread (signals go there)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -50,7 +53,8 @@ def _stop_asked(stop: threading.Event) -> Iterator[None]:
         yield
     finally:
         for s, handler in before.items():
-            signal.signal(s, handler)
+            if handler is not None:  # (None: a handler installed from C, which cannot be put back)
+                signal.signal(s, handler)
 
 
 # --until: the calibrated pair first; --port: 0 lets the system pick a free one

@@ -230,11 +230,11 @@ def _inverse_camera_blocks(S: np.ndarray, n: int, meat: np.ndarray | None = None
 
 def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: np.ndarray, A: np.ndarray,
                            meat: np.ndarray | None = None
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None, int]:
     """:func:`_inverse_camera_blocks` for cameras whose parameters are A_c @ (their group's), S
     the free cameras' reduced system (nC n, nC n): the groups' system T^T S T inverted, mapped
-    back to each camera (a camera is determined when its group is). Also returns the number
-    of groups, and the sandwich's blocks with ``meat`` (the free cameras', as S)."""
+    back to each camera (a camera is determined when its group is): :func:`_inverse_camera_blocks`'
+    five (the sandwich's with ``meat``, the free cameras' as S), then the number of groups."""
     nC = len(free_cams)
     ids, slot = np.unique(np.asarray(group)[free_cams], return_inverse=True)
     T = np.zeros((nC * n, len(ids) * n))
@@ -245,7 +245,7 @@ def _grouped_camera_blocks(S: np.ndarray, n: int, free_cams: np.ndarray, group: 
     blocks = np.einsum("cij,cjk,clk->cil", A[free_cams], g_blocks[slot], A[free_cams])
     sandwich = None if g_sandwich is None else np.einsum("cij,cjk,clk->cil", A[free_cams], g_sandwich[slot],
                                                          A[free_cams])
-    return blocks, g_determined[slot], g_worst[slot], n_weak, len(ids), sandwich
+    return blocks, g_determined[slot], g_worst[slot], n_weak, sandwich, len(ids)
 
 
 def one_per_cell(obs_camera: np.ndarray, obs_xy: np.ndarray, cell_px: float) -> np.ndarray:
@@ -407,24 +407,42 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         keep &= ~np.isin(op, pts[bad])
 
     both_point, both_camera = pt_slot[op_k[both_idx]], cam_slot[oc_k[both_idx]]
-    Vinv, Y, _ = eliminate_points(V, gp, gc, W, 0.0, both_point, both_camera)
     # grouped by point, then camera: the layout reduced_camera_matrix's kernel adds pairs in
     order, starts = pairs_by_point(both_point, both_camera)
-    S = reduced_camera_matrix(order, starts, both_camera, np.swapaxes(W, 1, 2).copy(), Y, nC,
-                               thread_rows(order, starts, both_camera, nC))
-    for i in range(nC):
-        S[i * n:(i + 1) * n, i * n:(i + 1) * n] += U[i]
-    meat = None
-    if point_clusters is not None:
-        meat = _cluster_meat(Ps, X, oc_k, op_k, xy_k, weight_k, cam_slot, dP, gp, Y, both_idx, both_point,
-                             both_camera, np.asarray(point_clusters, np.int64), nC)
+    rows = thread_rows(order, starts, both_camera, nC)
+
+    def reduced(U, V, gp, gc, W) -> tuple[np.ndarray, np.ndarray]:
+        """(S (nC n, nC n), Y = W V^-1 per observation) of the normal equations' blocks."""
+        Y = eliminate_points(V, gp, gc, W, 0.0, both_point, both_camera)[1]
+        S = reduced_camera_matrix(order, starts, both_camera, np.swapaxes(W, 1, 2).copy(), Y, nC, rows)
+        for i in range(nC):
+            S[i * n:(i + 1) * n, i * n:(i + 1) * n] += U[i]
+        return S, Y
+
+    S, Y = reduced(U, V, gp, gc, W)
+    def inverted(S: np.ndarray, meat: np.ndarray | None) -> tuple:
+        """(blocks, determined, worst, n_weak, sandwich, n_blocks) of S, per camera or group."""
+        if groups is None:
+            return (*_inverse_camera_blocks(S, n, meat), nC)
+        return _grouped_camera_blocks(S, n, free_cams, *groups, meat=meat)
+
     t_built = time.perf_counter()
-    if groups is None:
-        blocks, determined, worst, n_weak, sandwich = _inverse_camera_blocks(S, n, meat)
-        n_blocks = nC
-    else:
-        blocks, determined, worst, n_weak, n_blocks, sandwich = _grouped_camera_blocks(S, n, free_cams, *groups,
-                                                                                       meat=meat)
+    blocks, determined, worst, n_weak, _, n_blocks = inverted(S, None)
+    sandwich = None
+    if point_clusters is not None:
+        # the spread of the estimator the bundle adjustment runs: every observation at full
+        # weight (the cell shares above are the model's count of independent evidence)
+        point_clusters = np.asarray(point_clusters, np.int64)
+        if len(point_clusters) != len(X):
+            raise ValueError(f"point_clusters has {len(point_clusters)} entries for {len(X)} points")
+        ones = np.ones(len(oc_k))
+        if independent_cell_px is not None:
+            U, gc, V, gp, W = normal_equations(Ps, X, oc_k, op_k, xy_k, ones, cam_slot, pt_slot, dP, np.inf,
+                                                both_row, nC, len(pts), len(both_idx))
+            S, Y = reduced(U, V, gp, gc, W)
+        meat = _cluster_meat(Ps, X, oc_k, op_k, xy_k, ones, cam_slot, dP, gp, Y, both_idx, both_point,
+                             both_camera, point_clusters, nC)
+        sandwich = inverted(S, meat)[4]
 
     # The degrees of freedom: residuals minus the rank of J (the cameras' weak directions are
     # parameters the residuals do not see; every point kept has an invertible block).
@@ -438,9 +456,11 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
     else:
         sigma = np.nan
     if sandwich is not None:
-        # the residuals at the solution are smaller than the errors by the parameters fitted to
-        # them, as in sigma's estimate: the usual CR1 correction (with _cluster_meat's G / (G - 1))
-        sandwich = sandwich * (2 * n_obs / dof if dof > 0 else np.nan)
+        # CR1's other factor (with _cluster_meat's G / (G - 1)): the cameras' parameters fitted
+        # to the residuals. Not the points': each lies wholly in one cluster, whose share of the
+        # reduced gradient has them eliminated already (fixed effects nested in the clusters)
+        k_cams = n_blocks * n - n_weak
+        sandwich = sandwich * ((2 * n_obs - 1) / (2 * n_obs - k_cams) if 2 * n_obs > k_cams else np.nan)
     cam_obs = np.bincount(oc_k, minlength=len(Ps))
     for slot, c in enumerate(free_cams):
         if not np.isfinite(sigma):
@@ -462,10 +482,13 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
             if measured_sigma.max() > model_sigma.max():  # the larger by the flags' measure, its worst axis
                 cov = 0.5 * (sandwich[slot] + sandwich[slot].T)
         pos_cov = J @ cov @ J.T
+        # the rotation and focal length: the larger of the two on each (the worst axis chose
+        # the position's)
+        spread = np.diag(cov) if sandwich is None else np.maximum(np.diag(cov), np.diag(sigma ** 2 * blocks[slot]))
         out[c] = CameraUncertainty(
             _frozen(np.sqrt(np.maximum(np.diag(pos_cov), 0.0))),
-            _frozen(np.degrees(np.sqrt(np.maximum(np.diag(cov)[ni:ni + 3], 0.0)))),
-            float(np.sqrt(max(cov[0, 0], 0.0))) if has_focal else None,
+            _frozen(np.degrees(np.sqrt(np.maximum(spread[ni:ni + 3], 0.0)))),
+            float(np.sqrt(max(spread[0], 0.0))) if has_focal else None,
             _frozen(cov), _frozen(pos_cov), names, sigma, model_position_sigma=model_sigma,
             measured_position_sigma=measured_sigma)
     n_bad = int((~determined).sum())

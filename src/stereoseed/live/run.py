@@ -166,10 +166,9 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                         say(note)
                     break
                 if not arrivals:
-                    if stop is not None:
-                        stop.wait(live.poll_s)
-                    else:
-                        time.sleep(live.poll_s)
+                    # (not stop.wait: a signal handler that sets stop while this thread holds
+                    # the event's lock inside wait would wait on that lock for ever)
+                    time.sleep(live.poll_s)
         except KeyboardInterrupt:
             say("stopping (Ctrl-C)")
         except BaseException:

@@ -173,7 +173,12 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     (total, _), (found_total, _) = walk_strength(given, strength), walk_strength(found, strength)
     gaps = [i for i, (a, b) in enumerate(zip(given, given[1:])) if not supported[a, b]]
     found_gaps = sum(not supported[a, b] for a, b in zip(found, found[1:]))
-    better = found != given and (bool(gaps) or found_total >= cfg.replace_factor * total)
+    # A given order with a step nothing supports gives way to a walk SIFT supports throughout;
+    # a walk resting on likeness somewhere must also be clearly stronger (photos of another
+    # object of the same kind can look as alike as neighbours: 0.5-0.7 between the dino and the
+    # temple), else the given order stays, with the doubt said
+    by_likeness = any(overlap[a, b] == 0 for a, b in zip(found, found[1:]))
+    better = found != given and ((bool(gaps) and not by_likeness) or found_total >= cfg.replace_factor * total)
     if better and not found_gaps:
         why = (f"a step of the given order has no overlap, every step of the order found has one"
                if gaps else f"consecutive images of the order found overlap by {found_total:.0f} in all, "

@@ -5,7 +5,6 @@ module applies them, through the model's own methods (:class:`~stereoseed.scene.
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import time
 from typing import Any

@@ -351,12 +351,11 @@ def _lens_in_question(recon: Reconstruction, k: int, options: MapperOptions) -> 
 
 
 def _weakly_placed(recon: Reconstruction, v: int) -> bool:
-    """Whether view v's camera rests on weak evidence: predicted by the motion prior, or a sparse
-    registration kept below the trusted chain (its report's ``sparse_weak``) when the
-    quasi-dense matches did not place it."""
+    """Whether view v's camera rests on weak evidence: a sparse registration the run judged weak
+    (its report's ``sparse_weak``: below the trusted chain, or the motion prior's camera
+    predicted across a gap) and kept because the quasi-dense matches did not place it."""
     report = report_of(recon.views[v].history) or {}
-    by = report.get("registered_by")
-    return by == FoundBy.MOTION_PRIOR or (by == FoundBy.EPIPOLAR_CHAIN and "sparse_weak" in report)
+    return "sparse_weak" in report and report.get("registered_by") in (FoundBy.MOTION_PRIOR, FoundBy.EPIPOLAR_CHAIN)
 
 
 def _lens_judged_by_the_window(recon: Reconstruction, mode: Mode, prev: int, k: int, ids: np.ndarray,
