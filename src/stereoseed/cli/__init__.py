@@ -22,7 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # the commands' modules import NumPy: after the BLAS setting
 from stereoseed.cli import calibration, data, live, mesh, reconstruct, results, tools  # noqa: E402
-from stereoseed.cli._terminal import LibraryLines, complain, warn  # noqa: E402
+from stereoseed.cli._terminal import LibraryLines, complain, on_main_thread, warn  # noqa: E402
 from stereoseed.errors import StereoseedError  # noqa: E402
 
 
@@ -97,17 +97,12 @@ def _interrupt(signum, frame) -> None:
     """SIGTERM ends a run as Ctrl-C does: what is written stays consistent, --resume continues."""
     raise KeyboardInterrupt
 
-def _main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _configure_logging(args)
     shown_before, warnings.showwarning = warnings.showwarning, _show_warning
-    term_before = signal.signal(signal.SIGTERM, _interrupt) if _main_thread() else None
+    term_before = signal.signal(signal.SIGTERM, _interrupt) if on_main_thread() else None
     try:
         return int(args.func(args) or 0)
     except StereoseedError as e:

@@ -9,8 +9,9 @@ import io
 import logging
 import os
 import sys
+import threading
 
-__all__ = ["say", "complain", "warn", "LibraryLines"]
+__all__ = ["say", "complain", "warn", "on_main_thread", "LibraryLines"]
 
 
 def _write_line(stream, text: str) -> None:
@@ -91,6 +92,12 @@ def say(line: str) -> None:
 def complain(line: str) -> None:
     """A line for the user's attention (stderr): a warning, an error, a note on the run."""
     _ERR.warning("%s", line)
+
+
+def on_main_thread() -> bool:
+    """Whether this is the main thread: the one signals reach, and the only one that may set
+    their handlers (main() is also called from tests' threads)."""
+    return threading.current_thread() is threading.main_thread()
 
 
 def warn(message: str) -> None:

@@ -7,7 +7,7 @@ import signal
 import threading
 from collections.abc import Iterator
 
-from stereoseed.cli._terminal import say
+from stereoseed.cli._terminal import on_main_thread, say
 from stereoseed.cli.arguments import whole_number
 from stereoseed.errors import StereoseedError
 
@@ -39,7 +39,7 @@ def _stop_asked(stop: threading.Event) -> Iterator[None]:
     cannot wait on a lock this thread holds. A second one raises KeyboardInterrupt where the run
     is: in the walk, the run still finishes; while finishing, it stops and ``--resume``
     continues. Only from the main thread (signals go there)."""
-    if threading.current_thread() is not threading.main_thread():
+    if not on_main_thread():
         yield
         return
 

@@ -179,6 +179,16 @@ def homogeneous(Ps, c, x0, x1, x2):
             Ps[c, 2, 0] * x0 + Ps[c, 2, 1] * x1 + Ps[c, 2, 2] * x2 + Ps[c, 2, 3])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def camera_derivative(dP, sc, j, x0, x1, x2, u, v, h2):
+    """(du, dv): how the pixel (u, v) of the point (x0, x1, x2), whose homogeneous pixel has
+    depth h2, moves with parameter j of the free camera in slot sc (dP (n_cams, n, 3, 4): dP/dparams)."""
+    d0 = dP[sc, j, 0, 0] * x0 + dP[sc, j, 0, 1] * x1 + dP[sc, j, 0, 2] * x2 + dP[sc, j, 0, 3]
+    d1 = dP[sc, j, 1, 0] * x0 + dP[sc, j, 1, 1] * x1 + dP[sc, j, 1, 2] * x2 + dP[sc, j, 1, 3]
+    d2 = dP[sc, j, 2, 0] * x0 + dP[sc, j, 2, 1] * x1 + dP[sc, j, 2, 2] * x2 + dP[sc, j, 2, 3]
+    return (d0 - u * d2) / h2, (d1 - v * d2) / h2
+
+
 @njit(cache=True, nogil=True)
 def normal_equations(Ps, X, oc, op, xy, weight, cam_slot, pt_slot, dP, delta, both_row, n_cams, n_points, n_both):
     """The Gauss-Newton blocks of the robust (Huber, IRLS) reprojection error, one pass over the
@@ -208,11 +218,7 @@ def normal_equations(Ps, X, oc, op, xy, weight, cam_slot, pt_slot, dP, delta, bo
         sc, sp = cam_slot[c], pt_slot[p]
         if sc >= 0:
             for j in range(n):
-                d0 = dP[sc, j, 0, 0] * x0 + dP[sc, j, 0, 1] * x1 + dP[sc, j, 0, 2] * x2 + dP[sc, j, 0, 3]
-                d1 = dP[sc, j, 1, 0] * x0 + dP[sc, j, 1, 1] * x1 + dP[sc, j, 1, 2] * x2 + dP[sc, j, 1, 3]
-                d2 = dP[sc, j, 2, 0] * x0 + dP[sc, j, 2, 1] * x1 + dP[sc, j, 2, 2] * x2 + dP[sc, j, 2, 3]
-                Jc[0, j] = (d0 - u * d2) / h2
-                Jc[1, j] = (d1 - v * d2) / h2
+                Jc[0, j], Jc[1, j] = camera_derivative(dP, sc, j, x0, x1, x2, u, v, h2)
             for a in range(n):
                 gc[sc, a] += w * (Jc[0, a] * ru + Jc[1, a] * rv)
                 for b in range(n):
@@ -251,8 +257,6 @@ def camera_scores(Ps, X, oc, op, xy, weight, cam_slot, dP):
         u, v = h0 / h2, h1 / h2
         ru, rv = u - xy[o, 0], v - xy[o, 1]
         for j in range(n):
-            d0 = dP[sc, j, 0, 0] * x0 + dP[sc, j, 0, 1] * x1 + dP[sc, j, 0, 2] * x2 + dP[sc, j, 0, 3]
-            d1 = dP[sc, j, 1, 0] * x0 + dP[sc, j, 1, 1] * x1 + dP[sc, j, 1, 2] * x2 + dP[sc, j, 1, 3]
-            d2 = dP[sc, j, 2, 0] * x0 + dP[sc, j, 2, 1] * x1 + dP[sc, j, 2, 2] * x2 + dP[sc, j, 2, 3]
-            out[o, j] = weight[o] * ((d0 - u * d2) / h2 * ru + (d1 - v * d2) / h2 * rv)
+            du, dv = camera_derivative(dP, sc, j, x0, x1, x2, u, v, h2)
+            out[o, j] = weight[o] * (du * ru + dv * rv)
     return out

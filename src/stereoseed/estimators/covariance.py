@@ -38,7 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereoseed.estimators._schur import camera_scores, eliminate_points, normal_equations, reduced_camera_matrix, thread_rows
+from stereoseed.estimators._schur import (camera_scores, eliminate_points, normal_equations, reduced_camera_matrix,
+                                          thread_rows)
 from stereoseed.estimators.bundle import BundleProblem, observation_errors, pairs_by_point
 from stereoseed.geometry import models as camera_models
 from stereoseed.geometry.models import CameraModel
@@ -90,8 +91,8 @@ class CameraUncertainty:
     position_sigma (3,): of the camera centre C = -R^T t along the camera's own axes (x right,
     y down, z forward), in the model's (world) unit: that of the larger (by its worst axis) of
     model_position_sigma (from the pixel noise, sigma^2 S^-1) and measured_position_sigma (the
-    residuals' own spread over clusters of points), each (3,) or None when not computed. rotation_sigma_deg (3,): of the rotation
-    about those axes, degrees. focal_sigma_px: of fx in px (f for the 'zero-skew' and 'focal'
+    residuals' own spread over clusters of points), each (3,) or None when not computed.
+    rotation_sigma_deg (3,): of the rotation about those axes, degrees (the larger of the two). focal_sigma_px: of fx in px (f for the 'zero-skew' and 'focal'
     models), None for the 'fixed' model. covariance (n, n): the camera's block, in the order of
     ``parameters`` (:func:`parameter_names`: intrinsics px, w rad, t unit). position_covariance
     (3, 3): of the centre, in the camera's axes. sigma_px: the pixel noise used. An undetermined
@@ -420,15 +421,14 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         return S, Y
 
     S, Y = reduced(U, V, gp, gc, W)
+
     def inverted(S: np.ndarray, meat: np.ndarray | None) -> tuple:
         """(blocks, determined, worst, n_weak, sandwich, n_blocks) of S, per camera or group."""
         if groups is None:
             return (*_inverse_camera_blocks(S, n, meat), nC)
         return _grouped_camera_blocks(S, n, free_cams, *groups, meat=meat)
 
-    t_built = time.perf_counter()
-    blocks, determined, worst, n_weak, _, n_blocks = inverted(S, None)
-    sandwich = None
+    S_full, meat = S, None
     if point_clusters is not None:
         # the spread of the estimator the bundle adjustment runs: every observation at full
         # weight (the cell shares above are the model's count of independent evidence)
@@ -439,10 +439,14 @@ def camera_uncertainty(problem: BundleProblem, sigma_px: float | None = None,
         if independent_cell_px is not None:
             U, gc, V, gp, W = normal_equations(Ps, X, oc_k, op_k, xy_k, ones, cam_slot, pt_slot, dP, np.inf,
                                                 both_row, nC, len(pts), len(both_idx))
-            S, Y = reduced(U, V, gp, gc, W)
+            S_full, Y = reduced(U, V, gp, gc, W)
         meat = _cluster_meat(Ps, X, oc_k, op_k, xy_k, ones, cam_slot, dP, gp, Y, both_idx, both_point,
                              both_camera, point_clusters, nC)
-        sandwich = inverted(S, meat)[4]
+    t_built = time.perf_counter()
+    # (one inversion when the model's weights are the adjustment's own)
+    blocks, determined, worst, n_weak, sandwich, n_blocks = inverted(S, meat if S_full is S else None)
+    if meat is not None and S_full is not S:
+        sandwich = inverted(S_full, meat)[4]
 
     # The degrees of freedom: residuals minus the rank of J (the cameras' weak directions are
     # parameters the residuals do not see; every point kept has an invertible block).

@@ -138,8 +138,12 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
             else:
                 say(f"watching {source.folder} for photos")
             pending = [a for a in first if a.name not in run.names]
+
+            def stopped() -> bool:
+                return stop is not None and stop.is_set()
+
             while until is None or len(run.names) < until:
-                if stop is not None and stop.is_set():
+                if stopped():
                     say("stopping (Ctrl-C or a stop asked for)")
                     break
                 look = source.look(time.monotonic())
@@ -147,8 +151,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                     say(note, "warning" if "ended" not in note else "info")
                 arrivals, pending = pending + look.arrivals, []
                 for group in (arrivals[i:i + step] for i in range(0, len(arrivals), step)):
-                    if (until is not None and len(run.names) + len(group) > until) or (stop is not None
-                                                                                        and stop.is_set()):
+                    if stopped() or (until is not None and len(run.names) + len(group) > until):
                         for arrival in group:
                             if isinstance(source, (FolderWatch, RigWatch)):
                                 source.give_back(arrival.name)  # not this run's

@@ -67,10 +67,8 @@ def likeness(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig(
     the ZNCC of one's centre (a border of ``cfg.appearance_shift`` of its size left off) at its best
     place over the other, both at ``cfg.appearance_px`` and blurred by a pixel; the smaller of the
     two ways, 0 where either is flat or negative. The diagonal is 0."""
-    small = []
-    for t in thumbnails:
-        grey = thumbnail(t, cfg.appearance_px).astype(np.float32)
-        small.append(cv2.GaussianBlur(grey, (0, 0), 1.0))
+    small = [cv2.GaussianBlur(thumbnail(t, cfg.appearance_px).astype(np.float32), (0, 0), 1.0) for t in thumbnails]
+    flat = [float(a.std()) == 0.0 for a in small]
     n = len(small)
     out = np.zeros((n, n))
     for i, a in enumerate(small):
@@ -80,7 +78,7 @@ def likeness(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfig(
         if centre.size == 0 or float(centre.std()) == 0.0:
             continue
         for j, b in enumerate(small):
-            if i == j or b.shape[0] < centre.shape[0] or b.shape[1] < centre.shape[1] or float(b.std()) == 0.0:
+            if i == j or flat[j] or b.shape[0] < centre.shape[0] or b.shape[1] < centre.shape[1]:
                 continue
             found = cv2.matchTemplate(b, centre, cv2.TM_CCOEFF_NORMED)
             out[i, j] = float(np.nanmax(found)) if np.isfinite(found).any() else 0.0
@@ -172,12 +170,13 @@ def walk_order(thumbnails: list[np.ndarray], cfg: OrderingConfig = OrderingConfi
     found = best_walk(strength)
     (total, _), (found_total, _) = walk_strength(given, strength), walk_strength(found, strength)
     gaps = [i for i, (a, b) in enumerate(zip(given, given[1:])) if not supported[a, b]]
-    found_gaps = sum(not supported[a, b] for a, b in zip(found, found[1:]))
+    steps = list(zip(found, found[1:]))
+    found_gaps = sum(not supported[a, b] for a, b in steps)
     # A given order with a step nothing supports gives way to a walk SIFT supports throughout;
     # a walk resting on likeness somewhere must also be clearly stronger (photos of another
     # object of the same kind can look as alike as neighbours: 0.5-0.7 between the dino and the
     # temple), else the given order stays, with the doubt said
-    by_likeness = any(overlap[a, b] == 0 for a, b in zip(found, found[1:]))
+    by_likeness = any(overlap[a, b] == 0 for a, b in steps)
     better = found != given and ((bool(gaps) and not by_likeness) or found_total >= cfg.replace_factor * total)
     if better and not found_gaps:
         why = (f"a step of the given order has no overlap, every step of the order found has one"
