@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterable, Iterator
 from stereoseed.errors import StereoseedError
 from stereoseed.threads import CORES, limit_chunks
 
-__all__ = ["JobPool", "executor_for", "processes_beside", "CONNECT_TIMEOUT_S"]
+__all__ = ["JobPool", "executor_for", "ProcessesBeside", "CONNECT_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ def executor_for(scheduler: str | None, workers: int,
         if workers <= 1:
             yield JobPool()
             return
-        with processes_beside(workers) as pool:
+        with ProcessesBeside(workers) as pool:
             yield pool
         return
     client = _connect(scheduler, connect_timeout)
@@ -212,20 +212,27 @@ class _Job:
         self.fn, self.args, self.future, self.number, self.deaths = fn, args, Future(), number, 0
 
 
-@contextmanager
-def processes_beside(workers: int, cores_each: int | None = None) -> Iterator[JobPool]:
-    """A :class:`JobPool` of ``workers`` local processes (at least one: never this process, for
-    work that runs beside the caller, as a live run's dense stage behind the walk), each cutting
-    its kernels' rows into ``cores_each`` chunks (default: its share of the cores). Closed as
-    :func:`executor_for` closes its local pool."""
-    workers = max(int(workers), 1)
-    local = _LocalPool(workers, cores_each)
-    try:
-        yield JobPool(workers, local.submit, f"in {workers} local process{'es' if workers > 1 else ''}")
-    except BaseException:  # an error or an interrupt: its jobs' results are not wanted
-        local.close(abandon=True)
-        raise
-    local.close(abandon=False)
+class ProcessesBeside:
+    """A :class:`JobPool` (``pool``) of ``workers`` local processes (at least one: never this
+    process, for work that runs beside the caller, as a live run's dense stage behind the walk),
+    each cutting its kernels' rows into ``cores_each`` chunks (default: its share of the cores).
+    :meth:`close` ends it as :func:`executor_for` ends its local pool; as a context manager it
+    gives the pool and abandons its jobs on an error or an interrupt."""
+
+    def __init__(self, workers: int, cores_each: int | None = None):
+        workers = max(int(workers), 1)
+        self._local = _LocalPool(workers, cores_each)
+        self.pool = JobPool(workers, self._local.submit, f"in {workers} local process{'es' if workers > 1 else ''}")
+
+    def close(self, abandon: bool = False) -> None:
+        """Stop the workers: once idle, or at once (``abandon``: the results are not wanted)."""
+        self._local.close(abandon=abandon)
+
+    def __enter__(self) -> JobPool:
+        return self.pool
+
+    def __exit__(self, kind: Any, value: Any, traceback: Any) -> None:
+        self.close(abandon=kind is not None)
 
 
 class _LocalPool:

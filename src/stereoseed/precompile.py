@@ -141,7 +141,7 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "pca_normals": ("stereoseed.dense.normals", "pca_normals",
                     "float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
     "view_checks": ("stereoseed.dense.fusion", "_check",
-                    ("float64[:, ::1], int32[:, ::1], float64[::1], int32[::1], int64[:, ::1], int32[:, :, ::1], "
+                    ("float64[:, ::1], int32[:, ::1], float64[::1], int64, int64[:, ::1], int32[:, :, ::1], "
                      "float64[:, :, ::1], float64[:, ::1], float64[::1], float64, float64, int64, "
                      "int64, int64[:, ::1], int64, float64[:, ::1], int32[::1], float64[::1], int32[::1], int32[::1], "
                      "int32[::1], int64, int64")),

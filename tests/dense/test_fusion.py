@@ -172,14 +172,18 @@ def test_a_rig_walks_pairs_that_share_a_first_view_are_each_checked():
     from stereoseed.dense.densify import pair_overlaps
     from stereoseed.dense.fusion import overlapping_pairs
 
-    class Model:  # what _shared_points reads: views, observations, live points
+    from stereoseed.scene.reconstruction import Reconstruction
+
+    class Model:  # what Reconstruction.shared_points reads: views, observations, points, live points
         views = [None] * 6
         obs_view = np.array([0, 1, 2, 0, 2, 4, 2, 4, 5])
         obs_point = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
+        points = np.zeros((3, 3))
         alive = np.array([True, True, True])
+        shared_points = Reconstruction.shared_points
 
     pairs = [(0, 1), (0, 2), (2, 3), (2, 4), (4, 5)]
-    shared = pair_overlaps(Model, pairs)
+    shared = pair_overlaps(Model(), pairs)
     assert shared.tolist() == [[2, 2, 2, 2, 1], [2, 2, 2, 2, 1], [2, 2, 3, 3, 2], [2, 2, 3, 3, 2], [1, 1, 2, 2, 2]]
     others = overlapping_pairs(shared, 2)
     assert (others >= 0).sum(axis=1).tolist() == [2, 2, 2, 2, 2]  # every pair checked, the station pairs too

@@ -366,20 +366,9 @@ def pair_overlaps(recon: Reconstruction, pairs: list[tuple[int, int]]) -> np.nda
     observe (a rig walk's station pair and its pair with the next station start from the same
     view: counted once per distinct view, then given to each pair)."""
     firsts, slot = np.unique(np.array([a for a, _ in pairs], np.int64), return_inverse=True)
-    return _shared_points(recon, firsts.tolist())[np.ix_(slot.reshape(-1), slot.reshape(-1))]
-
-
-def _shared_points(recon: Reconstruction, views: list[int]) -> np.ndarray:
-    """(V, V) int64: how many live sparse points each two of ``views`` (V,), distinct, both observe."""
-    from scipy.sparse import csr_matrix
-
-    slot = np.full(len(recon.views), -1, np.int64)
-    slot[views] = np.arange(len(views))
-    sel = recon.alive[recon.obs_point] & (slot[recon.obs_view] >= 0)
-    seen = csr_matrix((np.ones(int(sel.sum())), (slot[recon.obs_view[sel]], recon.obs_point[sel])),
-                      shape=(len(views), len(recon.alive)))
-    seen.data[:] = 1.0  # (an observation counted once however many times it was added)
-    return np.rint((seen @ seen.T).toarray()).astype(np.int64)
+    shared = recon.shared_points(recon.alive[recon.obs_point] & np.isin(recon.obs_view, firsts))
+    counts = np.rint(shared[firsts][:, firsts].toarray()).astype(np.int64)
+    return counts[np.ix_(slot.reshape(-1), slot.reshape(-1))]
 
 
 def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alone: bool,

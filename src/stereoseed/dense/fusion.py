@@ -163,7 +163,6 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
     if others is None:
         others = every_other_pair(len(pair_views))
     points, pixels = np.ascontiguousarray(stacked.points), np.ascontiguousarray(stacked.pixels)
-    source = np.repeat(np.arange(len(pair_views), dtype=np.int32), np.diff(offsets))
     sigma = np.empty(n)
     for q, (first, end) in enumerate(zip(offsets[:-1], offsets[1:])):
         a = pair_views[q, 0]
@@ -181,7 +180,7 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
         support, agree, violate, judged = (np.zeros(m, np.int32) for _ in range(4))
         angle = np.zeros(m)
         bounds = first + split_rows(m, 20_000)
-        map_chunks(lambda a, b: _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal,
+        map_chunks(lambda a, b: _check(points, pixels, sigma, q, pair_views, index, Pn, centres, focal,
                                        float(noise_px), float(sigmas), int(lookup_px), len(cameras), others, first,
                                        merged, support, angle, agree, violate, judged, a, b), bounds)
         confidence = (agree + 1.0) / (agree + violate + 2.0)
@@ -197,16 +196,15 @@ def _project(P, X):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _check(points, pixels, sigma, source, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
+def _check(points, pixels, sigma, p, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
            n_views, others, base, merged, support, angle, agree, violate, judged, first, end):
-    """The checks of points [first, end) (check_views' module doc), written to the outputs' rows
-    i - base."""
+    """The checks of points [first, end), all of pair p (check_views' module doc), written to the
+    outputs' rows i - base."""
     height, width = index.shape[1], index.shape[2]
     seen = np.zeros(n_views, np.int64)  # the agreeing views of the current point: seen[v] == i + 1
     members = np.empty(n_views, np.int64)
     rays = np.empty((n_views, 3))
     for i in range(first, end):
-        p = source[i]
         X = points[i]
         a = pair_views[p, 0]
         _, _, za = _project(Pn[a], X)  # X's depth in its own first view (for every pair that agrees)

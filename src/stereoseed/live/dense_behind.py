@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import Future
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stereoseed.cluster import processes_beside
+from stereoseed.cluster import ProcessesBeside
 from stereoseed.config import Config
 from stereoseed.dense.densify import PairJob, dense_pairs, pair_job, propagate_pair
 from stereoseed.dense.frames import dense_frames
@@ -57,15 +56,16 @@ class DenseBehind:
 
     @classmethod
     def for_run(cls, staging: Path, cfg: Config) -> "DenseBehind | None":
+        cfg = cfg.resolve()  # (the mode's window and BA policy)
         return None if cfg.pipeline.ba == "global" else cls(staging, cfg)
 
     def __init__(self, staging: Path, cfg: Config):
         self.cfg = cfg
         self.folder = Path(staging) / FOLDER
         self.folder.mkdir(mode=0o700, exist_ok=True)
-        self._stack = ExitStack()
         # one worker, a core left to the insertions (the page's latency is theirs)
-        self._pool = self._stack.enter_context(processes_beside(1, cores_each=max(1, CORES - 1)))
+        self._workers = ProcessesBeside(1, cores_each=max(1, CORES - 1))
+        self._pool = self._workers.pool
         self._running: dict[tuple[int, int], Future] = {}
         self.done: dict[tuple[int, int], tuple[Path, dict[str, Any]]] = {}
         self._sent: set[tuple[int, int]] = set()
@@ -77,7 +77,9 @@ class DenseBehind:
         back. A failure here is said and leaves the pairs to the stop: the walk goes on."""
         try:
             self._collect(wait=False)
-            window = (self.cfg.pipeline.window or 3) * (2 if recon.rig is not None else 1)
+            if len(self._running) >= IN_FLIGHT:
+                return
+            window = self.cfg.pipeline.window * (2 if recon.rig is not None else 1)
             moving = set(recon.registered_views[-window:])
             pairs = [p for p in dense_pairs(recon, self.cfg) if p not in self._sent and not moving & set(p)]
             pairs = pairs[:max(IN_FLIGHT - len(self._running), 0)]
@@ -114,7 +116,4 @@ class DenseBehind:
     def close(self, abandon: bool = False) -> None:
         """Stop the worker: once idle, or at once (``abandon``: the run was interrupted, the
         pairs under way are not wanted)."""
-        if abandon:
-            self._stack.__exit__(InterruptedError, InterruptedError("the live run stopped"), None)
-        else:
-            self._stack.close()
+        self._workers.close(abandon)

@@ -19,6 +19,7 @@ from stereoseed.live.status import page_state
 from stereoseed.live.video import VideoFeed
 from stereoseed.live.watch import Arrival, FolderWatch, RigWatch
 from stereoseed.output.result_set import result_name
+from stereoseed.scene.camera_life import report_of
 
 __all__ = ["run_live"]
 
@@ -42,11 +43,8 @@ def _photo_line(name: str, report: dict[str, Any] | None, run: LiveRun) -> tuple
 def _report_of(run: LiveRun, name: str) -> dict[str, Any] | None:
     """The report of photo ``name`` as the model holds it (a rig station's left photo, inserted
     before its right one), None before the pair."""
-    if run.recon is None:
-        return None
-    reports = run.recon.reports()
     k = run.names.index(name)
-    return reports[k] if k < len(reports) else None
+    return None if run.recon is None or k >= len(run.recon.views) else report_of(run.recon.views[k].history)
 
 
 def _pair_arrivals(pair: list[str | Path]) -> list[Arrival]:
@@ -125,8 +123,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 published.setdefault(name, version)
 
         try:
-            if isinstance(source, (FolderWatch, RigWatch)):
-                source.mark_taken(run.names)
+            source.mark_taken(run.names)
             if run.resumed:
                 say(f"resumed: {len(run.resumed)} photos from the interrupted run")
             publish(force=True)
@@ -153,8 +150,7 @@ def run_live(watch: str | Path | None, calib: str | Path, out: str | Path, cfg: 
                 for group in (arrivals[i:i + step] for i in range(0, len(arrivals), step)):
                     if stopped() or (until is not None and len(run.names) + len(group) > until):
                         for arrival in group:
-                            if isinstance(source, (FolderWatch, RigWatch)):
-                                source.give_back(arrival.name)  # not this run's
+                            source.give_back(arrival.name)  # not this run's
                         continue
                     if group[0].name in run.names:  # a resumed video run: read again from its start
                         continue

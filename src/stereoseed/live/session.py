@@ -94,21 +94,17 @@ class LiveRun:
         self.saver = CheckpointWriter(self.checkpoint, self.key)  # its key set with the pair
         self.resumed: list[str] = []
         self.dense_behind: DenseBehind | None = None
-        if resume:
-            try:
+        try:
+            if resume:
                 self._resume()
-            except BaseException:  # refused (another kind of run, photos gone): the folder is free again
-                self.results.unlock()
-                raise
-        if dense:  # after the resume, which inserts again what the checkpoint did not hold
-            try:
+            if dense:  # after the resume, which inserts again what the checkpoint did not hold
                 self.dense_behind = DenseBehind.for_run(self.staging, self.cfg)
                 if self.dense_behind is not None and self.recon is not None:
                     self.dense_behind.after_insertion(self.recon)
-            except BaseException:
-                self._close_dense_behind(abandon=True)
-                self.results.unlock()
-                raise
+        except BaseException:  # refused (another kind of run, photos gone): the folder is free again
+            self._close_dense_behind(abandon=True)
+            self.results.unlock()
+            raise
 
     # ------------------------------------------------------------------ arrivals
     def add(self, *arrivals: Arrival) -> dict[str, Any] | None:

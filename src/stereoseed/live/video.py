@@ -93,6 +93,14 @@ class VideoFeed:
         self._thread.start()
         return self
 
+    def mark_taken(self, names: list[str]) -> None:
+        """(As a watched folder's; nothing to do: a resumed video run reads again from its start
+        and the run skips the keyframes it holds.)"""
+
+    def give_back(self, name: str) -> None:
+        """(As a watched folder's; nothing to do: a keyframe past ``--until`` is dropped with the
+        rest of the video.)"""
+
     def _put(self, arrival: Arrival) -> None:
         """Into the queue, waiting while it is full (the run is behind)."""
         while not self._stop.is_set():

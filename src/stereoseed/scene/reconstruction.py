@@ -388,6 +388,18 @@ class Reconstruction:
         sel = (self.obs_view == view) & self.alive[self.obs_point]
         return self.obs_point[sel]
 
+    def shared_points(self, observations: np.ndarray):
+        """(views, views) scipy sparse CSR: how many points two views both observe among
+        ``observations`` (O,) bool (a view observing a point twice shares it once; a long walk's
+        views see few others: sparse)."""
+        from scipy import sparse
+
+        seen = sparse.csr_matrix((np.ones(int(observations.sum())),
+                                  (self.obs_view[observations], self.obs_point[observations])),
+                                 shape=(len(self.views), len(self.points)))
+        seen.data[:] = 1.0
+        return (seen @ seen.T).tocsr()
+
     @property
     def registered_views(self) -> list[int]:
         return [i for i, v in enumerate(self.views) if v.registered]

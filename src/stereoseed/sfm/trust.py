@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import sparse
 
 from stereoseed.estimators.config import ResectionConfig
 from stereoseed.geometry.camera_model import CameraModel
@@ -109,16 +108,6 @@ def tied_observation_limit(trust: TrustConfig, motion_prior: MotionPriorConfig, 
     return trusted_chain_inliers(motion_prior, resection)
 
 
-def _shared_points(recon: Reconstruction, observations: np.ndarray) -> sparse.csr_matrix:
-    """(views, views) sparse: how many points two views both observe among ``observations`` (O,)
-    bool (a long walk's views see few others: sparse)."""
-    seen = sparse.csr_matrix((np.ones(int(observations.sum())),
-                              (recon.obs_view[observations], recon.obs_point[observations])),
-                             shape=(len(recon.views), len(recon.points)))
-    seen.data[:] = 1.0  # a view observing a point twice shares it once
-    return (seen @ seen.T).tocsr()
-
-
 def _tied(recon: Reconstruction, vouched: set[int]) -> np.ndarray:
     """(O,) bool: the observations by ``vouched`` views of live points that three of them see."""
     live = recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched))
@@ -153,7 +142,7 @@ def cut_off_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: 
     four cameras after a flagged one, 15-34 mm off, each well tied to the others of its part). A
     rig's station is one body: its two images are linked."""
     need = resection.min_inliers
-    shared = _shared_points(recon, _tied(recon, vouched))
+    shared = recon.shared_points(_tied(recon, vouched))
     reached, frontier = set(CALIBRATED), list(CALIBRATED)
     while frontier:
         u = frontier.pop()
@@ -181,7 +170,7 @@ def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouch
     dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
     stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
     need = resection.min_inliers
-    shared = _shared_points(recon, recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched)))
+    shared = recon.shared_points(recon.alive[recon.obs_point] & np.isin(recon.obs_view, sorted(vouched)))
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
         found_by = recon.views[v].found_by
