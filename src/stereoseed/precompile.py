@@ -133,13 +133,13 @@ KERNELS: dict[str, tuple[str, str, str]] = {
     "grid_origin": ("stereoseed.dense.grid", "_grid_origin", "float64[:, ::1]"),
     "voxel_means": ("stereoseed.dense.densify", "_voxel_means",
                     ("int64[::1], int64[::1], float64[:, ::1], uint8[:, ::1], int64[::1], float64[:, ::1], "
-                     "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], int64, int64")),
+                     "float64[:, ::1], uint8[:, ::1], float64[:, ::1], int64[::1], int64, int64")),
     "cells": ("stereoseed.dense.grid", "_cells", "float64[:, ::1], float64"),
     "grid_neighbours": ("stereoseed.dense.grid", "_grid_neighbours",
                         ("float64[:, ::1], int64[:, ::1], int64[::1], int64[::1], int64, float64, float64[::1], int64, "
-                         "int64, int64, int32[:, ::1]")),
+                         "int64, int64, int32[:, ::1], int64")),
     "pca_normals": ("stereoseed.dense.normals", "pca_normals",
-                    "float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[:, ::1], int64, int64"),
+                    "float64[:, ::1], int32[:, ::1], int64[::1], float64[:, ::1], float64[:, ::1], int64, int64"),
     "view_checks": ("stereoseed.dense.fusion", "_check",
                     ("float64[:, ::1], int32[:, ::1], float64[::1], int64, int64[:, ::1], int32[:, :, ::1], "
                      "float64[:, :, ::1], float64[:, ::1], float64[::1], float64, float64, int64, "

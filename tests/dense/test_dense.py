@@ -115,7 +115,7 @@ def test_grid_neighbours_are_the_k_d_trees():
     cell or many, duplicates, and points farther than the grid looks (the tree finishes them)."""
     from scipy.spatial import cKDTree
 
-    from stereoseed.dense.grid import nearest_neighbours
+    from stereoseed.dense.grid import nearest_neighbours, neighbour_chunks
     from stereoseed.dense.normals import estimate_normals
 
     rng = np.random.default_rng(4)
@@ -131,6 +131,13 @@ def test_grid_neighbours_are_the_k_d_trees():
     np.testing.assert_allclose(estimate_normals(cloud, views, 8, cell=0.02), estimate_normals(cloud, views, 8), atol=1e-9)
     with pytest.raises(ValueError):
         nearest_neighbours(cloud[:3], 4, 0.02)
+    # a chunk at a time (the normals of a full-resolution cloud): every point once, the same rows
+    for step in (0.02, None):
+        chunks = list(neighbour_chunks(cloud, 8, step, chunk=700))
+        assert len(chunks) == 5
+        rows = np.concatenate([r for r, _ in chunks])
+        np.testing.assert_array_equal(np.sort(rows), np.arange(len(cloud)))
+        np.testing.assert_array_equal(np.concatenate([f for _, f in chunks]), nearest_neighbours(cloud, 8, step)[rows])
 
 
 def test_grid_search_looks_past_a_near_point_in_its_cube():

@@ -187,3 +187,25 @@ def test_a_rig_walks_pairs_that_share_a_first_view_are_each_checked():
     assert shared.tolist() == [[2, 2, 2, 2, 1], [2, 2, 2, 2, 1], [2, 2, 3, 3, 2], [2, 2, 3, 3, 2], [1, 1, 2, 2, 2]]
     others = overlapping_pairs(shared, 2)
     assert (others >= 0).sum(axis=1).tolist() == [2, 2, 2, 2, 2]  # every pair checked, the station pairs too
+
+
+def test_the_spool_gives_the_pairs_stacked_as_in_memory(tmp_path):
+    """The pairs' clouds kept on disk until the fusion come back as the in-memory stack, colours
+    in step."""
+    from stereoseed.dense.fusion import PairClouds, PairSpool
+
+    rng = np.random.default_rng(3)
+    cameras = [_camera(x) for x in (0.0, 0.3, 0.6)]
+    clouds = [_pair_cloud(cameras, a, a + 1, rng, 0.01) for a in (0, 1)]
+    clouds.append(PairCloud(np.zeros((0, 3)), np.zeros((0, 2), np.int64), np.zeros(0), (2, 0)))  # a pair with none
+    colors = [rng.integers(0, 256, (len(c.points), 3), dtype=np.uint8) for c in clouds]
+    spool = PairSpool(tmp_path)
+    for cloud, col in zip(clouds, colors):
+        spool.add(cloud, col)
+    stacked = spool.stacked()
+    expected = PairClouds.stack(clouds)
+    for name in ("points", "pixels", "angles", "offsets", "views"):
+        np.testing.assert_array_equal(getattr(stacked, name), getattr(expected, name))
+        assert getattr(stacked, name).dtype == getattr(expected, name).dtype
+    for q, col in enumerate(colors):
+        np.testing.assert_array_equal(spool.colors(q), col)

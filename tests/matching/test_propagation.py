@@ -522,3 +522,19 @@ def test_quadratic_refinement_reads_no_window_leaving_image_2(monkeypatch):
     assert np.all(np.abs(python[0][3:] - x2[3:]) <= 1.0)  # refined within one pixel
     for got, want in zip(compiled, python):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("use_f", [False, True])
+def test_affine_refinement_in_bands_is_the_whole_images(affine_pair, use_f, monkeypatch):
+    """Image 1 taken a few rows at a time (as a 24-megapixel image is, to bound memory) gives
+    the same positions, bit for bit, as one band over the whole image: a fit reads only its
+    band and the margin."""
+    from stereoseed.matching.propagation import refine
+
+    img1, img2, _, F, seeds = affine_pair
+    whole = propagate(img1, img2, seeds, F if use_f else None, subpixel=True, subpixel_method="affine")
+    monkeypatch.setattr(refine, "_BAND_PIXELS", 7 * W)  # 35 bands of 7 rows, narrower than the fit's window
+    banded = propagate(img1, img2, seeds, F if use_f else None, subpixel=True, subpixel_method="affine")
+    assert whole.n_matches > 10_000
+    np.testing.assert_array_equal(banded.matches, whole.matches)
+    np.testing.assert_array_equal(banded.refined_by, whole.refined_by)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import logging
 import os
+import tempfile
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -26,7 +27,7 @@ from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
 from stereoseed.dense.frames import dense_frames, resized
-from stereoseed.dense.fusion import PairCloud, PairClouds, check_views_by_pair, overlapping_pairs
+from stereoseed.dense.fusion import PairCloud, PairClouds, PairSpool, check_views_by_pair, overlapping_pairs
 from stereoseed.dense.grid import voxel_keys
 from stereoseed.dense.normals import estimate_normals
 from stereoseed.errors import StereoseedError
@@ -129,34 +130,36 @@ def _fuse(points: np.ndarray, colors: np.ndarray, sources: np.ndarray, stand: np
     groups: the points' voxels as :func:`sorted_groups` gives them, when the caller has them."""
     order, starts = groups if groups is not None else sorted_groups(voxel_keys(points, voxel))
     k = len(starts) - 1
-    fused, mean_colors, viewpoints, support = np.zeros((k, 3)), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k, np.int64)
+    fused, mean_colors, viewpoints, support = np.zeros((k, 3)), np.zeros((k, 3), np.uint8), np.zeros((k, 3)), np.zeros(k, np.int64)
     args = (order, starts, np.ascontiguousarray(points, np.float64), np.ascontiguousarray(colors),
             np.ascontiguousarray(sources, np.int64), np.ascontiguousarray(stand, np.float64),
             fused, mean_colors, viewpoints, support)
     map_chunks(lambda a, b: _voxel_means(*args, a, b), split_rows(k, _GROUPS_PER_THREAD))
-    return fused, np.rint(mean_colors).astype(np.uint8), viewpoints, support
+    return fused, mean_colors, viewpoints, support
 
 
 @njit(cache=True, nogil=True)
 def _voxel_means(order, starts, points, colors, sources, stand, fused, mean_colors, viewpoints, support,
                  first, end):
     """Per group g in [first, end) (groups as :func:`~stereoseed.arrays.sorted_groups` gives
-    them), into rows g of the zeroed outputs (K, 3), (K, 3), (K, 3), (K,): the mean point,
-    mean colour, mean stand[source], and the number of distinct sources. Each group's sums run
-    in increasing point order, as np.bincount's do (the same bits)."""
+    them), into rows g of the zeroed outputs (K, 3), (K, 3) uint8, (K, 3), (K,): the mean point,
+    mean colour (rounded half to even), mean stand[source], and the number of distinct sources.
+    Each group's sums run in increasing point order, as np.bincount's do (the same bits)."""
     last_group = np.full(stand.shape[0], -1, np.int64)
+    colour = np.zeros(3)  # the group's colour sum: a (K, 3) float64 array would be 200 MB at full resolution
     for g in range(first, end):
+        colour[:] = 0.0
         for j in range(starts[g], starts[g + 1]):
             i = order[j]
             for a in range(3):
                 fused[g, a] += points[i, a]
-                mean_colors[g, a] += float(colors[i, a])
+                colour[a] += float(colors[i, a])
                 viewpoints[g, a] += stand[sources[i], a]
         support[g] = _distinct_sources(order, starts, sources, g, last_group)
         count = float(starts[g + 1] - starts[g])
         for a in range(3):
             fused[g, a] /= count
-            mean_colors[g, a] /= count
+            mean_colors[g, a] = np.uint8(np.rint(colour[a] / count))
             viewpoints[g, a] /= count
 
 
@@ -282,12 +285,12 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     t0 = time.perf_counter()
     pairs = dense_pairs(recon, cfg)
     frames = dense_frames(recon.views, cfg.dense.resolution)
-    clouds: list[PairCloud] = []
-    cols, per_pair = [], []
+    spool_folder = tempfile.TemporaryDirectory(prefix="stereoseed-dense-", ignore_cleanup_errors=True)
+    spool = PairSpool(spool_folder.name)
+    per_pair = []
 
     def collect(pair: tuple[int, int], res: dict[str, Any]) -> None:
-        clouds.append(PairCloud(res["points"], res["pixels"], res["angles"], pair))
-        cols.append(res["colors"])
+        spool.add(PairCloud(res["points"], res["pixels"], res["angles"], pair), res["colors"])
         per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
 
     propagated = propagated or {}
@@ -318,18 +321,16 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     if progress and pairs:
         progress(len(pairs), len(pairs), "fusing")
     t_fusion = time.perf_counter()
-    # one copy of the points from here on: the pairs' own arrays are let go as soon as stacked
-    colors = np.vstack(cols) if cols else np.zeros((0, 3), np.uint8)
-    cols.clear()
-    stacked = PairClouds.stack(clouds)
-    clouds.clear()
     dc = cfg.dense
-    n_before = len(stacked)
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
     others = overlapping_pairs(pair_overlaps(recon, pairs), dc.check_pairs)
-    kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, colors, frames, dc, alone, others)
-    del stacked, colors  # only the kept points go on to the fusion
+    with spool_folder:  # the colours stay there until their pair's points are judged
+        stacked = spool.stacked()
+        n_before = len(stacked)
+        kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, spool.colors, frames, dc, alone,
+                                                                              others)
+    del stacked  # only the kept points go on to the fusion
     # one pixel's footprint at the propagation's resolution
     voxel = _fusion_voxel(recon, dc.fusion_voxel, float(np.median([frames[0][v] for v in dense_views(recon, cfg)] or [1.0])))
     voxel = _voxel_for_at_most(kept_points, voxel, dc.max_points)
@@ -371,7 +372,7 @@ def pair_overlaps(recon: Reconstruction, pairs: list[tuple[int, int]]) -> np.nda
     return counts[np.ix_(slot.reshape(-1), slot.reshape(-1))]
 
 
-def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alone: bool,
+def _judged(stacked: PairClouds, colors: Callable[[int], np.ndarray], frames: tuple, dc: Any, alone: bool,
             others: np.ndarray) -> tuple:
     """The points the other pairs' checks keep (:func:`stereoseed.dense.fusion.check_views_by_pair`,
     pair after pair: the checks of all points are never held at once): their merged positions
@@ -379,7 +380,7 @@ def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alo
     the counts the report gives. A point no other pair could judge (none matched near its image
     in their views: the walk's ends) cannot be confirmed; kept or not as
     ``DenseConfig.keep_unjudged`` says."""
-    parts: list[tuple[np.ndarray, ...]] = []
+    parts: tuple[list[np.ndarray], ...] = tuple([] for _ in range(6))  # per field: each pair's kept rows
     counted = {"points_supported": 0, "points_unjudged": 0}
     histogram = np.zeros(2, np.int64)
 
@@ -389,9 +390,10 @@ def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alo
         if dc.keep_unjudged:
             keep |= checks.judged == 0
         kept = np.flatnonzero(keep)  # take() by index: 3x faster than a boolean mask on rows
-        parts.append((checks.points.take(kept, axis=0), colors.take(stacked.offsets[q] + kept, axis=0),
-                      np.full(len(kept), q, np.int32), checks.support.take(kept), checks.angle.take(kept),
-                      checks.confidence.take(kept)))
+        for part, values in zip(parts, (checks.points.take(kept, axis=0), colors(q).take(kept, axis=0),
+                                        np.full(len(kept), q, np.int32), checks.support.take(kept),
+                                        checks.angle.take(kept), checks.confidence.take(kept))):
+            part.append(values)
         counted["points_supported"] += len(kept)
         counted["points_unjudged"] += int(np.sum(checks.judged == 0))
         counts = np.bincount(checks.support, minlength=2)
@@ -401,10 +403,16 @@ def _judged(stacked: PairClouds, colors: np.ndarray, frames: tuple, dc: Any, alo
     check_views_by_pair(stacked, frames[1], frames[2], dc.match_noise_px, dc.agreement_sigmas, dc.lookup_px, take,
                         others)
     counted["support_histogram"] = histogram.tolist()[2:] if len(stacked) else []
-    if not parts:
+    if not parts[0]:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32), \
             {"support": np.zeros(0, np.int32), "angle": np.zeros(0), "confidence": np.zeros(0)}, counted
-    points, cols, sources, support, angle, confidence = (np.concatenate(arrays) for arrays in zip(*parts))
+
+    def joined(part: list[np.ndarray]) -> np.ndarray:  # field by field, each let go once joined: one copy at most
+        whole = np.concatenate(part)
+        part.clear()
+        return whole
+
+    points, cols, sources, support, angle, confidence = (joined(part) for part in parts)
     return points, cols, sources, {"support": support, "angle": angle, "confidence": confidence}, counted
 
 

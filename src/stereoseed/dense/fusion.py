@@ -25,7 +25,9 @@ contradicted.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -34,7 +36,7 @@ from numba import njit
 from stereoseed.geometry.projection import camera_center, normalize_projection
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["PairCloud", "PairClouds", "ViewChecks", "check_views", "check_views_by_pair", "depth_sigma",
+__all__ = ["PairCloud", "PairClouds", "PairSpool", "ViewChecks", "check_views", "check_views_by_pair", "depth_sigma",
            "every_other_pair", "overlapping_pairs"]
 
 
@@ -79,6 +81,45 @@ class PairClouds:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+class PairSpool:
+    """The pairs' clouds as they come in, kept on disk in ``folder`` (the caller's, e.g. a
+    temporary one) until :meth:`stacked`: at full resolution a pair's cloud is ~100 MB, and held
+    in memory the clouds of the pairs done would add up while the pair workers hold theirs."""
+
+    _FIELDS = (("points", np.float64, 3), ("pixels", np.int32, 2), ("angles", np.float64, None),
+               ("colors", np.uint8, 3))
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self.counts: list[int] = []
+        self.views: list[tuple[int, int]] = []
+
+    def add(self, cloud: PairCloud, colors: np.ndarray) -> None:
+        """Keep pair ``cloud`` and its points' colours (N, 3) uint8 (after those added before)."""
+        values = {"points": cloud.points, "pixels": cloud.pixels, "angles": cloud.angles, "colors": colors}
+        for name, dtype, _ in self._FIELDS:
+            np.save(self.folder / f"{len(self.counts)}-{name}.npy", np.asarray(values[name]).astype(dtype, copy=False),
+                    allow_pickle=False)
+        self.counts.append(len(cloud.points))
+        self.views.append(cloud.views)
+
+    def stacked(self) -> PairClouds:
+        """Every pair's points as :meth:`PairClouds.stack` gives them, read pair after pair into
+        the stacked arrays (one copy in memory); their colours stay here (:meth:`colors`)."""
+        offsets = np.r_[0, np.cumsum(np.array(self.counts, np.int64))].astype(np.int64)
+        n = int(offsets[-1])
+        fields = self._FIELDS[:3]
+        out = {name: np.empty((n,) if width is None else (n, width), dtype) for name, dtype, width in fields}
+        for q, (first, end) in enumerate(zip(offsets[:-1], offsets[1:])):
+            for name, _, _ in fields:
+                out[name][first:end] = np.load(self.folder / f"{q}-{name}.npy", mmap_mode="r", allow_pickle=False)
+        return PairClouds(out["points"], out["pixels"], out["angles"], offsets, np.array(self.views, np.int64).reshape(-1, 2))
+
+    def colors(self, q: int) -> np.ndarray:
+        """Pair q's points' colours (N_q, 3) uint8."""
+        return np.load(self.folder / f"{q}-colors.npy", allow_pickle=False)
 
 
 @dataclass(frozen=True)
@@ -159,14 +200,11 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
     Pn = np.stack([normalize_projection(np.asarray(P, np.float64)) for P in cameras])
     centres = np.stack([camera_center(P) for P in Pn])
     focal = np.array([_focal(P) for P in Pn])
-    offsets, pair_views, n = stacked.offsets, stacked.views, len(stacked)
+    offsets, pair_views = stacked.offsets, stacked.views
     if others is None:
         others = every_other_pair(len(pair_views))
     points, pixels = np.ascontiguousarray(stacked.points), np.ascontiguousarray(stacked.pixels)
-    sigma = np.empty(n)
-    for q, (first, end) in enumerate(zip(offsets[:-1], offsets[1:])):
-        a = pair_views[q, 0]
-        sigma[first:end] = depth_sigma(points[first:end], centres[a], focal[a], stacked.angles[first:end], noise_px)
+    angles = np.ascontiguousarray(stacked.angles, np.float64)  # each point's depth sigma from it, in the kernel
     # each pair's depth map: the row of its point at each pixel of its first view, -1 where none
     width = max((s[0] for s in sizes), default=1)
     height = max((s[1] for s in sizes), default=1)
@@ -180,7 +218,7 @@ def check_views_by_pair(clouds: list[PairCloud] | PairClouds, cameras: list[np.n
         support, agree, violate, judged = (np.zeros(m, np.int32) for _ in range(4))
         angle = np.zeros(m)
         bounds = first + split_rows(m, 20_000)
-        map_chunks(lambda a, b: _check(points, pixels, sigma, q, pair_views, index, Pn, centres, focal,
+        map_chunks(lambda a, b: _check(points, pixels, angles, q, pair_views, index, Pn, centres, focal,
                                        float(noise_px), float(sigmas), int(lookup_px), len(cameras), others, first,
                                        merged, support, angle, agree, violate, judged, a, b), bounds)
         confidence = (agree + 1.0) / (agree + violate + 2.0)
@@ -195,8 +233,16 @@ def _project(P, X):
     return h0, h1, z
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _depth_sigma(points, i, centre, focal, angle, noise_px):
+    """:func:`depth_sigma` of point i, computed where it is needed: an array of every point's
+    would be 140 MB more at full resolution."""
+    dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz) * noise_px / (focal * np.sin(np.radians(max(angle, 1e-3))))
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _check(points, pixels, sigma, p, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
+def _check(points, pixels, angles, p, pair_views, index, Pn, centres, focal, noise_px, sigmas, lookup_px,
            n_views, others, base, merged, support, angle, agree, violate, judged, first, end):
     """The checks of points [first, end), all of pair p (check_views' module doc), written to the
     outputs' rows i - base."""
@@ -207,6 +253,7 @@ def _check(points, pixels, sigma, p, pair_views, index, Pn, centres, focal, nois
     for i in range(first, end):
         X = points[i]
         a = pair_views[p, 0]
+        sigma_i = _depth_sigma(points, i, centres[a], focal[a], angles[i], noise_px)
         _, _, za = _project(Pn[a], X)  # X's depth in its own first view (for every pair that agrees)
         sx, sy, sz = X[0], X[1], X[2]
         count = 1
@@ -251,7 +298,8 @@ def _check(points, pixels, sigma, p, pair_views, index, Pn, centres, focal, nois
             # the lookup's offset of up to lookup_px pixels of c moves along a surface slanted
             # in c by about that footprint: allowed on top of the two points' noise
             footprint = z / focal[c] * (lookup_px + 0.5)
-            tol = sigmas * np.sqrt(sigma[i] ** 2 + sigma[best] ** 2) + footprint
+            sigma_best = _depth_sigma(points, best, centres[c], focal[c], angles[best], noise_px)
+            tol = sigmas * np.sqrt(sigma_i ** 2 + sigma_best ** 2) + footprint
             if zy - z > tol:
                 n_violate += 1
                 continue

@@ -4,13 +4,15 @@ by cell (:func:`nearest_neighbours`, the normals' neighbourhoods), a k-d tree wh
 cannot do it."""
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 from numba import njit
 
 from stereoseed.arrays import sort_order
 from stereoseed.threads import map_chunks, split_rows
 
-__all__ = ["voxel_keys", "nearest_neighbours"]
+__all__ = ["voxel_keys", "nearest_neighbours", "neighbour_chunks"]
 
 
 def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
@@ -91,10 +93,22 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
     the k-th distance is within the cells it has scanned), the points sorted by column (x, y
     cell) then z; a k-d tree finishes the points without k neighbours within
     ``_GRID_MAX_RADIUS`` cells, and does it all when the grid's column table would be too large."""
+    found = np.empty((len(points), k), np.int32)
+    for rows, part in neighbour_chunks(points, k, cell):
+        found[rows] = part
+    return found
+
+
+def neighbour_chunks(points: np.ndarray, k: int, cell: float | None = None,
+                     chunk: int = 1 << 20) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """:func:`nearest_neighbours`, ``chunk`` points at a time: (rows (R,) int64, their neighbours
+    (R, k) int32), every point in one chunk. A caller that uses each point's neighbours once (the
+    normals) never holds all of them: for a full-resolution cloud, hundreds of MB."""
     points = np.ascontiguousarray(points, np.float64)
     n = len(points)
     if not 1 <= k <= n:
         raise ValueError(f"nearest_neighbours: k = {k} neighbours of {n} points")
+    tree = _Tree(points)
     if cell is not None:
         cells = _cells(points, float(cell))
         span = cells.max(axis=0) + 1
@@ -107,33 +121,46 @@ def nearest_neighbours(points: np.ndarray, k: int, cell: float | None = None) ->
             starts = np.zeros(span[0] * span[1] + 1, np.int64)
             np.cumsum(np.bincount(column, minlength=span[0] * span[1]), out=starts[1:])
             del column
-            # in the points' own order: no remapped copies; int32: half the memory of the
-            # largest array of the normals (a cloud of 2**31 points would not fit anyway)
-            found = np.empty((n, k), np.int32)
             low = _grid_origin(points)
-            map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, order, int(span[1]), float(cell),
-                                                     low, a, b, _GRID_MAX_RADIUS, found), split_rows(n, 50_000))
-            missing = np.flatnonzero(found[:, 0] < 0)
-            if len(missing):
-                found[missing] = _tree_neighbours(points, points[missing], k)
-            return found
-    return _tree_neighbours(points, points, k)
+            for first in range(0, n, chunk):
+                end = min(first + chunk, n)
+                # int32: half the memory of the largest array of the normals (a cloud of 2**31
+                # points would not fit anyway)
+                found = np.empty((end - first, k), np.int32)
+                map_chunks(lambda a, b: _grid_neighbours(ordered, ordered_cells, starts, order, int(span[1]),
+                                                         float(cell), low, a, b, _GRID_MAX_RADIUS, found, first),
+                           first + split_rows(end - first, 50_000))
+                missing = np.flatnonzero(found[:, 0] < 0)
+                if len(missing):
+                    found[missing] = tree.query(ordered[first + missing], k)
+                yield order[first:end], found
+            return
+    for first in range(0, n, chunk):
+        rows = np.arange(first, min(first + chunk, n))
+        yield rows, tree.query(points[rows], k)
 
 
-def _tree_neighbours(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
-    """The indices (M, k) int32 of the k nearest points (N, 3) of each query (M, 3), by scipy's
-    k-d tree: loaded here only, where the grid search cannot do it."""
-    from scipy.spatial import cKDTree
+class _Tree:
+    """scipy's k-d tree of the points (N, 3), built at its first query (a grid search may need
+    none): ``query(queries (M, 3), k)`` the indices (M, k) int32 of each query's k nearest,
+    nearest first. scipy is loaded here only, where the grid search cannot do it."""
 
-    return cKDTree(points).query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int32)
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points
+        self.tree = None
 
+    def query(self, queries: np.ndarray, k: int) -> np.ndarray:
+        if self.tree is None:
+            from scipy.spatial import cKDTree
 
+            self.tree = cKDTree(self.points)
+        return self.tree.query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int32)
 @njit(cache=True, nogil=True)
-def _grid_neighbours(points, cells, starts, order, span_y, step, low, first, end, max_radius, found):
+def _grid_neighbours(points, cells, starts, order, span_y, step, low, first, end, max_radius, found, base):
     """The k = found.shape[1] nearest of points i in [first, end) of the points (N, 3) sorted by
     column (x cell * span_y + y cell) then z cell (cells (N, 3), of side step from the corner
     low (3,)); starts (C + 1,) the first row of each column; order (N,) each sorted point's
-    index in the caller's order, in which found (N, k) is written. The cells are scanned in
+    index in the caller's order, which found (R, k) gives; point i's are its row i - base. The cells are scanned in
     growing cubes of radius r around the point's own; after the cube of radius r every point
     left out is at least r * step + (the point's distance to its own cell's nearest face) away,
     so the search stops once the k-th distance is within that. -1 in found's first column: not
@@ -192,6 +219,6 @@ def _grid_neighbours(points, cells, starts, order, span_y, step, low, first, end
             r += 1
         if done:
             for m in range(k):
-                found[order[i], m] = order[best_i[m]]
+                found[i - base, m] = order[best_i[m]]
         else:
-            found[order[i], 0] = -1
+            found[i - base, 0] = -1

@@ -1,12 +1,12 @@
 """The dense cloud's normals (:func:`estimate_normals`): each point's neighbours
-(:func:`stereoseed.dense.grid.nearest_neighbours`), then the compiled per-point plane fit
+(:func:`stereoseed.dense.grid.neighbour_chunks`), then the compiled per-point plane fit
 (:func:`pca_normals`)."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from stereoseed.dense.grid import nearest_neighbours
+from stereoseed.dense.grid import neighbour_chunks
 from stereoseed.threads import map_chunks, split_rows
 
 __all__ = ["estimate_normals", "pca_normals"]
@@ -28,22 +28,23 @@ def estimate_normals(points: np.ndarray, viewpoints: np.ndarray, neighbours: int
         return normals
     points = np.ascontiguousarray(points, np.float64)
     viewpoints = np.ascontiguousarray(viewpoints, np.float64)
-    idx = nearest_neighbours(points, min(neighbours, n), cell)
-    map_chunks(lambda a, b: pca_normals(points, idx, viewpoints, normals, a, b), split_rows(n, 50_000))
+    for rows, idx in neighbour_chunks(points, min(neighbours, n), cell):
+        map_chunks(lambda a, b: pca_normals(points, idx, rows, viewpoints, normals, a, b), split_rows(len(rows), 50_000))
     return normals
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def pca_normals(points, idx, viewpoints, normals, first, end):
-    """normals[i] for i in [first, end): the eigenvector of the smallest eigenvalue of the scatter
-    matrix of points[idx[i]], turned towards viewpoints[i]. Closed form for a symmetric 3 x 3
-    (the trigonometric eigenvalues, then the largest cross product of two rows of A - lambda I),
-    not a batched LAPACK call per point."""
+def pca_normals(points, idx, rows, viewpoints, normals, first, end):
+    """normals[i] for the points i = rows[r], r in [first, end): the eigenvector of the smallest
+    eigenvalue of the scatter matrix of points[idx[r]] (its neighbours), turned towards
+    viewpoints[i]. Closed form for a symmetric 3 x 3 (the trigonometric eigenvalues, then the
+    largest cross product of two rows of A - lambda I), not a batched LAPACK call per point."""
     k = idx.shape[1]
-    for i in range(first, end):
+    for r in range(first, end):
+        i = rows[r]
         mx = my = mz = 0.0
         for j in range(k):
-            p = idx[i, j]
+            p = idx[r, j]
             mx += points[p, 0]
             my += points[p, 1]
             mz += points[p, 2]
@@ -52,7 +53,7 @@ def pca_normals(points, idx, viewpoints, normals, first, end):
         mz /= k
         a00 = a01 = a02 = a11 = a12 = a22 = 0.0
         for j in range(k):
-            p = idx[i, j]
+            p = idx[r, j]
             dx, dy, dz = points[p, 0] - mx, points[p, 1] - my, points[p, 2] - mz
             a00 += dx * dx
             a01 += dx * dy

@@ -53,7 +53,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(vertex.tobytes())
+            fh.write(memoryview(vertex).cast("B"))  # not tobytes(): a second copy of the cloud
             fh.write(face_bytes)
     return Path(path)
 

@@ -242,7 +242,7 @@ def propagate(
         raise StereoseedError(f"F must be a finite (3, 3) matrix, got shape {Fm.shape}")
 
     # per-pixel statistics; ok = may take part in a match (textured, full window, not flat)
-    (mean1, inv1), (mean2, inv2) = map_items(lambda img: window_stats(img, half), (I1, I2))
+    (mean1, inv1), (_, inv2) = map_items(lambda img: window_stats(img, half), (I1, I2))  # image 2's mean: unused
     ok1 = texture_mask(I1, cfg.min_texture) & (inv1 > 0.0)
     ok2 = texture_mask(I2, cfg.min_texture) & (inv2 > 0.0)
 

@@ -120,6 +120,9 @@ _AFFINE_PASSES = 2  # pass 2 re-fits the affine maps on the pass-1 positions
 _INVALID = -2.0  # _warped_zncc's value for a window leaving image 2 or flat
 _UNSEEN = -3.0  # search-grid cell not evaluated yet
 _MATCHES_PER_THREAD = 2048  # a match's search takes ~2 us: fewer per thread cost more than they save
+# image 1's pixels whose affine fields are held at once (8 MB a field): the fit's 12 filters keep
+# their speed, and a 24-megapixel image's fields are not all in memory together
+_BAND_PIXELS = 1 << 20
 
 
 def _fit_system(matched, x1, y1, radius, min_count):
@@ -167,25 +170,29 @@ def _filter_at(img, at, kx, ky):
 def _affine_fields(fx, fy, x1, y1, radius, system):
     """Local affine map x1 -> x2 around each match, fitted on its neighbours' matches.
 
-    fx, fy: (H1, W1) float64 positions in image 2 of the matched pixels of image 1, NaN where
-    unmatched; x1, y1: (M,) int32 the matched pixels; system: :func:`_fit_system` of the
-    matched pixels at x1, y1. For each match p, fits by least squares
+    fx, fy: (B, W1) float64 positions in image 2 of the matched pixels of a band of B rows of
+    image 1 (rows lo to lo + B - 1), y less lo, NaN where unmatched (overwritten: the
+    disparities); x1, y1: (M,) int32 the matched pixels (image 1's rows), system:
+    :func:`_fit_system` of the band's matched pixels at them. For each match p, fits by least squares
     x2(q) = c + J (q - p) over the matched q of the (2 radius + 1)^2 window of p.
     Returns (M, 6) float64 (cx, cy, J00, J01, J10, J11), c being the fitted x2 at p itself;
     NaN rows where the system refuses the fit.
 
     The fit is written on the disparity d(q) = x2(q) - q, which is small, and every window sum
     is a separable filter of a per-pixel image (sum_q m(q) (qx - px)^a (qy - py)^b d(q)), so
-    all matches are fitted at once at the cost of 12 separable filters of image 1's size (6
-    of them, the system's, shared by the passes).
+    all the band's matches are fitted at once at the cost of 12 separable filters of its size.
     Plain least squares: a robust re-weighting costs 3x the time for no measurable gain
     (docs/propagation.md).
     """
     H, W = fx.shape
-    m = np.isfinite(fx)
-    grid_y, grid_x = np.mgrid[0:H, 0:W]
-    dx = np.where(m, fx - grid_x, 0.0)
-    dy = np.where(m, fy - grid_y, 0.0)
+    # the disparities in place of the positions (the caller's fields are spent): at 3072 x 2048
+    # a pixel grid and two new fields would be 300 MB more
+    unmatched = ~np.isfinite(fx)
+    dx = np.subtract(fx, np.arange(W, dtype=np.float64)[None, :], out=fx)
+    dy = np.subtract(fy, np.arange(H, dtype=np.float64)[:, None], out=fy)
+    dx[unmatched] = 0.0
+    dy[unmatched] = 0.0
+    del unmatched
     k0, k1, _ = _window_kernels(radius)
     at, (c00, c01, c02, c11, c12, c22), det = system
     out = np.empty((x1.shape[0], 6))
@@ -392,32 +399,51 @@ def refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc,
     out exactly as in a run over all matches, at a fraction of the cost when few are wanted.
     Returns x2, y2 (M,) float64 and used (M,) bool, False where no pass produced a position
     (x2, y2 are then the integer ones, as everywhere outside the wanted rows' neighbourhoods).
+
+    Image 1 is taken in bands of rows (``_BAND_PIXELS``): a match's fit reads only the fields
+    within ``_AFFINE_RADIUS`` rows of it, so each band's fields are filtered on the band and that
+    margin, and the per-pixel fields of the whole image are never held at once (at 3072 x 2048
+    they were 700 MB). The outcome is the whole image's, bit for bit.
     """
     H1, W1 = I1.shape
     cur_x = x2.astype(np.float64)
     cur_y = y2.astype(np.float64)
     used = np.zeros(x1.shape[0], dtype=bool)
-    matched = np.zeros((H1, W1), bool)
-    matched[y1, x1] = True
-    system, system_sel = None, None
+    by_row = np.argsort(y1, kind="stable")  # the matches row after row of image 1
+    row_start = np.searchsorted(y1[by_row], np.arange(H1 + 1))  # row r's are by_row[row_start[r]:row_start[r + 1]]
+    band = max(1, _BAND_PIXELS // max(W1, 1))
     for p in range(_AFFINE_PASSES):
         sel = _within(x1, y1, rows, (_AFFINE_PASSES - 1 - p) * _AFFINE_RADIUS, (H1, W1))
-        xs, ys = x1[sel], y1[sel]
-        if system is None or not _same_selection(sel, system_sel):  # the matched pixels do not change
-            system, system_sel = _fit_system(matched, xs, ys, _AFFINE_RADIUS, _AFFINE_MIN_MATCHES), sel
-        # pass 1 fits the integer matches, later passes the refined positions
-        fx = np.full((H1, W1), np.nan)
-        fy = np.full((H1, W1), np.nan)
-        fx[y1, x1] = cur_x
-        fy[y1, x1] = cur_y
-        aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, system)
-        prev_x, prev_y = cur_x[sel], cur_y[sel]  # the matches are independent: threads share them out
-        new_x, new_y, u = concat_chunks(lambda a, b: _refine_affine_pass(
-            I1, mean1, inv1, I2, xs[a:b], ys[a:b], aff[a:b], use_f, F, half, _SEARCH_PX, _SEARCH_STEP, min_zncc,
-            prev_x[a:b], prev_y[a:b]), len(xs), _MATCHES_PER_THREAD)
-        cur_x, cur_y = cur_x.copy(), cur_y.copy()
-        cur_x[sel], cur_y[sel] = new_x, new_y
-        used[sel] |= u
+        wanted = np.zeros(x1.shape[0], bool)
+        wanted[sel] = True
+        # pass 1 fits the integer matches, later passes the positions of the pass before
+        new_x, new_y = cur_x.copy(), cur_y.copy()
+        for top in range(0, H1, band):
+            bottom = min(top + band, H1)
+            here = by_row[row_start[top]:row_start[bottom]]
+            here = np.sort(here[wanted[here]])
+            if not len(here):
+                continue
+            lo, hi = max(top - _AFFINE_RADIUS, 0), min(bottom + _AFFINE_RADIUS, H1)
+            near = by_row[row_start[lo]:row_start[hi]]  # the matches the band's fits read
+            matched = np.zeros((hi - lo, W1), bool)
+            matched[y1[near] - lo, x1[near]] = True
+            xs, ys = x1[here], y1[here]
+            system = _fit_system(matched, xs, ys - lo, _AFFINE_RADIUS, _AFFINE_MIN_MATCHES)
+            del matched
+            fx = np.full((hi - lo, W1), np.nan)
+            fy = np.full((hi - lo, W1), np.nan)
+            fx[y1[near] - lo, x1[near]] = cur_x[near]
+            fy[y1[near] - lo, x1[near]] = cur_y[near] - lo  # the band's own rows
+            aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, system)  # the disparities: no offset left
+            del fx, fy, system
+            prev_x, prev_y = cur_x[here], cur_y[here]  # the matches are independent: threads share them out
+            bx, by, u = concat_chunks(lambda a, b: _refine_affine_pass(
+                I1, mean1, inv1, I2, xs[a:b], ys[a:b], aff[a:b], use_f, F, half, _SEARCH_PX, _SEARCH_STEP,
+                min_zncc, prev_x[a:b], prev_y[a:b]), len(xs), _MATCHES_PER_THREAD)
+            new_x[here], new_y[here] = bx, by
+            used[here] |= u
+        cur_x, cur_y = new_x, new_y
     return cur_x, cur_y, used
 
 
