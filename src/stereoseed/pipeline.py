@@ -31,6 +31,7 @@ from stereoseed.sfm.mapper import finish, initialise, pair_rig
 from stereoseed.sfm.steps import frame_offset, insert_next, shift
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.io.sequence import ImageSequence, header_size
+from stereoseed.matching.alignment import release_gradients
 from stereoseed.matching.ordering import OrderingConfig, thumbnail, too_many_to_order, walk_order
 from stereoseed.io.video import read_keyframes, read_rig_keyframes
 from stereoseed.output.inputs import write_inputs
@@ -130,6 +131,7 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             if after_insertion:  # the reports so far, rendered only for whoever reads them
                 after_insertion(recon, recon.reports())
     report = _finished(recon, cfg, t0, source)
+    release_gradients()  # the sparse run is over: no more alignment
     if offset is not None:
         for v in recon.registered_views:
             recon.views[v].P = recon.views[v].P @ shift(-offset)

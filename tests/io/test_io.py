@@ -386,3 +386,22 @@ def test_a_file_name_near_the_file_systems_limit_is_written(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     write_text(tmp_path / ("t" * NAME_MAX), "text")
     assert [len(p.name.encode()) for p in tmp_path.iterdir()] == [NAME_MAX] * 3  # no temporary file left
+
+
+def test_a_ply_written_in_chunks_is_the_ply_written_at_once(tmp_path, monkeypatch):
+    """A large cloud's rows are put together a chunk at a time (memory): the file is the same,
+    byte for byte, as the rows written at once, and reads back."""
+    from stereoseed.io import ply
+
+    rng = np.random.default_rng(1)
+    n = 1000
+    points, colors = rng.normal(size=(n, 3)), rng.integers(0, 256, (n, 3)).astype(np.uint8)
+    props = {"nx": rng.normal(size=n), "support": rng.integers(2, 9, n)}
+    monkeypatch.setattr(ply, "_ROWS_PER_WRITE", 3 * n)
+    ply.write_ply(tmp_path / "once.ply", points, colors, props)
+    monkeypatch.setattr(ply, "_ROWS_PER_WRITE", 64)
+    ply.write_ply(tmp_path / "chunks.ply", points, colors, props)
+    assert (tmp_path / "chunks.ply").read_bytes() == (tmp_path / "once.ply").read_bytes()
+    vertex = ply.read_ply_vertices(tmp_path / "chunks.ply")
+    np.testing.assert_array_equal(vertex["x"], points[:, 0].astype(np.float32))
+    np.testing.assert_array_equal(vertex["support"], props["support"])

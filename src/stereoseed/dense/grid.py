@@ -116,8 +116,9 @@ def neighbour_chunks(points: np.ndarray, k: int, cell: float | None = None,
         if columns * float(span[2]) < 2.0 ** 62 and columns <= max(_GRID_COLUMNS_PER_POINT * n, 1 << 20):
             column = cells[:, 0] * span[1] + cells[:, 1]
             order = sort_order(column * span[2] + cells[:, 2])
-            ordered, ordered_cells = points[order], np.ascontiguousarray(cells[order])
             del cells  # (a fused full-resolution cloud is millions of points: each copy counts)
+            ordered = points[order]
+            ordered_cells = _cells(ordered, float(cell))  # the same corner (the lowest coordinates), the same cells
             starts = np.zeros(span[0] * span[1] + 1, np.int64)
             np.cumsum(np.bincount(column, minlength=span[0] * span[1]), out=starts[1:])
             del column

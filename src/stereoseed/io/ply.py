@@ -14,6 +14,7 @@ __all__ = ["write_ply", "read_ply", "read_ply_vertices"]
 
 _PLY_TYPES = {"<f4": "float", "u1": "uchar", "<i4": "int"}  # the property types write_ply writes
 GREY = 200  # the colour of points that come without one
+_ROWS_PER_WRITE = 1 << 20  # vertices put together and written at once (~50 MB with a dense cloud's properties)
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,
@@ -32,13 +33,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         values = np.asarray(values).reshape(-1)
         kind = "<f4" if values.dtype.kind == "f" else "u1" if values.dtype == np.uint8 else "<i4"
         columns.append((name, kind))
-        extra[name] = values.astype(kind)
-    vertex = np.empty(len(points), dtype=columns)
-    vertex["x"], vertex["y"], vertex["z"] = points.T.astype(np.float32)
-    colors = np.asarray(colors).reshape(-1, 3).astype(np.uint8)
-    vertex["red"], vertex["green"], vertex["blue"] = colors.T
-    for name, values in extra.items():
-        vertex[name] = values
+        extra[name] = values.astype(kind, copy=False)
     header = ["ply", "format binary_little_endian 1.0", "comment written by stereoseed",
               f"element vertex {len(points)}"]
     header += [f"property {_PLY_TYPES[kind]} {name}" for name, kind in columns]
@@ -50,10 +45,19 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
         face_bytes = face.tobytes()
     header.append("end_header")
+    colors = np.asarray(colors).reshape(-1, 3)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(memoryview(vertex).cast("B"))  # not tobytes(): a second copy of the cloud
+            # the rows a chunk at a time: a full-resolution cloud's rows at once would be 400 MB more
+            for first in range(0, len(points), _ROWS_PER_WRITE):
+                rows = slice(first, first + _ROWS_PER_WRITE)
+                vertex = np.empty(len(points[rows]), dtype=columns)
+                vertex["x"], vertex["y"], vertex["z"] = points[rows].T.astype(np.float32)
+                vertex["red"], vertex["green"], vertex["blue"] = colors[rows].T.astype(np.uint8)
+                for name, values in extra.items():
+                    vertex[name] = values[rows]
+                fh.write(memoryview(vertex).cast("B"))
             fh.write(face_bytes)
     return Path(path)
 
