@@ -110,8 +110,41 @@ def test_dense_resolution_propagates_on_smaller_images(box_scene):
     d_full, d_half = surface_distance(full.points), surface_distance(half.points)
     assert np.median(d_half) < 2.5 * np.median(d_full) and np.median(d_half) < 0.001  # half the pixels' precision
     assert report["peak_memory_mb"]["process"] > 0
+    assert "resolution_lowered" not in report
+    # the same pairs held within a budget of pixels: brought down alike, and said
+    budget, budget_report = densify(recon, cfg.replace(dense={"max_megapixels": 2 * 0.08}))
+    assert budget_report["resolution_scale"] == pytest.approx(0.5, abs=0.01)
+    assert "max_megapixels" in budget_report["resolution_lowered"]
+    assert np.median(surface_distance(budget.points)) < 0.001
     with pytest.raises(ValueError, match="resolution"):
         DenseConfig(resolution=-1)
+    with pytest.raises(ValueError, match="max_megapixels"):
+        DenseConfig(max_megapixels=float("nan"))
+
+
+def test_the_pixel_budget_lowers_the_resolution_only_when_exceeded():
+    """The fountain's 10 pairs at 3072 x 2048 (63 MP) fit the default budget as they are; 39
+    pairs of 6000 x 4000 photos are brought down to the largest side within it."""
+    from types import SimpleNamespace
+
+    from stereoseed.dense.frames import budgeted_resolution, dense_scale
+
+    def walk(n, size):
+        return [SimpleNamespace(image_size=size) for _ in range(n)], [(i, i + 1) for i in range(n - 1)]
+
+    budget = DenseConfig().max_megapixels
+    assert budgeted_resolution(*walk(11, (3072, 2048)), 0, budget) == 0
+    assert budgeted_resolution(*walk(11, (3072, 2048)), 1000, budget) == 1000  # asked for less: kept
+    views, pairs = walk(40, (6000, 4000))
+    side = budgeted_resolution(views, pairs, 0, budget)
+
+    def megapixels(side):
+        s = dense_scale((6000, 4000), side)
+        return len(pairs) * round(6000 * s) * round(4000 * s) / 1e6
+
+    assert megapixels(side) <= budget < megapixels(side + 1)
+    assert 1500 < side < 1700
+    assert budgeted_resolution(views, pairs, 0, 0.0) == 0  # no limit
 
 
 @pytest.mark.parametrize("options, says", [(["--min-support", "1"], "DenseConfig.min_support must be a whole number >= 2"),

@@ -63,6 +63,12 @@ class DenseConfig:
     # windows are 16 times a 768 x 512 one's); the points' accuracy with the resolution
     # (docs/dense.md has the fountain at both).
     resolution: int = 0
+    # The pairs' first images propagated, in all, at most this many megapixels (0: no limit);
+    # beyond, the resolution above is brought down for every image alike (the report and the log
+    # say so). The fusion holds each pair's points and depth map: the fountain's 10 pairs at
+    # 3072 x 2048 (63 MP) peak at 2.6 GiB with the whole run (docs/dense.md); 40 photos of 24
+    # megapixels (940 MP) would not fit in 24 GB.
+    max_megapixels: float = 64.0
     # At most this many points in dense.ply (0: no limit): the fusion voxel grown until the
     # cloud fits (a 24-megapixel walk's full-resolution cloud is tens of millions of points).
     max_points: int = 0
@@ -72,6 +78,9 @@ class DenseConfig:
 
     def __post_init__(self) -> None:
         positive(self, "max_reprojection_px", "match_noise_px", "agreement_sigmas")
+        if not 0 <= self.max_megapixels < math.inf:
+            raise ValueError(f"DenseConfig.max_megapixels must be a finite number >= 0 (0: no limit), "
+                             f"got {self.max_megapixels}")
         in_range(self, "found_min_fraction", 0.0, 1.0)
         whole(self, "workers", "lookup_px", "resolution", "max_points", "check_pairs", minimum=0)
         whole(self, "min_support", minimum=2)

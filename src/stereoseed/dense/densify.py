@@ -26,7 +26,7 @@ from stereoseed.geometry.projection import camera_center, fundamental_from_proje
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
-from stereoseed.dense.frames import dense_frames, resized
+from stereoseed.dense.frames import budgeted_resolution, dense_frames, resized
 from stereoseed.dense.fusion import PairCloud, PairClouds, PairSpool, check_views_by_pair, overlapping_pairs
 from stereoseed.dense.grid import voxel_keys
 from stereoseed.dense.normals import estimate_normals
@@ -241,12 +241,20 @@ def pair_job(recon: Reconstruction, pair: tuple[int, int], cfg: Config,
     """The job of views ``pair`` = (a, b) in the dense stage's frames
     (:func:`~stereoseed.dense.frames.dense_frames` of the views): both images at that size, their
     cameras, the sparse points they share as seeds."""
-    scales, cameras, sizes = frames
+    _, cameras, sizes = frames
     a, b = pair
-    seeds = recon.shared_pixels(a, b)
-    seeds = np.hstack([(seeds[:, :2] + 0.5) * scales[a] - 0.5, (seeds[:, 2:] + 0.5) * scales[b] - 0.5])
+    seeds = np.asarray(recon.shared_pixels(a, b), np.float64).reshape(-1, 4)
+    seeds = np.hstack([_to_frame(seeds[:, :2], recon.views[a].image_size, sizes[a]),
+                       _to_frame(seeds[:, 2:], recon.views[b].image_size, sizes[b])])
     return PairJob(resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
                    cameras[b], seeds, cfg.propagation, cfg.dense)
+
+
+def _to_frame(pixels: np.ndarray, size: tuple[int, int] | None, new_size: tuple[int, int]) -> np.ndarray:
+    """Pixels (N, 2) of an image of ``size`` in it resized to ``new_size``, each axis by its own
+    ratio as :func:`~stereoseed.dense.frames.frame_map` maps them."""
+    ratio = np.ones(2) if size is None else np.array(new_size, np.float64) / np.array(size, np.float64)
+    return (pixels + 0.5) * ratio - 0.5
 
 
 @dataclass(frozen=True)
@@ -284,7 +292,14 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
     the cameras of now."""
     t0 = time.perf_counter()
     pairs = dense_pairs(recon, cfg)
-    frames = dense_frames(recon.views, cfg.dense.resolution)
+    resolution = budgeted_resolution(recon.views, pairs, cfg.dense.resolution, cfg.dense.max_megapixels)
+    frames = dense_frames(recon.views, resolution)
+    lowered = None
+    if resolution != cfg.dense.resolution:
+        lowered = (f"{len(pairs)} image pairs at their resolution would exceed DenseConfig.max_megapixels "
+                   f"({cfg.dense.max_megapixels:g}): propagated at {resolution} px on the longer side")
+        log.warning("dense stage: %s", lowered)
+        propagated = {}  # matches found before were found at the resolution asked for
     spool_folder = tempfile.TemporaryDirectory(prefix="stereoseed-dense-", ignore_cleanup_errors=True)
     spool = PairSpool(spool_folder.name)
     per_pair = []
@@ -349,6 +364,8 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
               "min_support": dc.min_support, "fusion_voxel_m": voxel, "resolution_scale": min(frames[0], default=1.0),
               "seconds": time.perf_counter() - t0, "fusion_seconds": time.perf_counter() - t_fusion,
               "peak_memory_mb": _peak_memory_mb()}
+    if lowered:
+        report["resolution_lowered"] = lowered
     if alone and pairs:
         report["note"] = (f"{len(pairs)} image pair: no other pair can confirm a point (--min-support "
                           f"{dc.min_support} is off), so wrong matches are not removed")

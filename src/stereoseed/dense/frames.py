@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["dense_scale", "scaling", "dense_frames", "resized"]
+__all__ = ["dense_scale", "scaling", "frame_map", "dense_frames", "budgeted_resolution", "resized"]
 
 
 def dense_scale(size: tuple[int, int], resolution: int) -> float:
@@ -16,11 +16,20 @@ def dense_scale(size: tuple[int, int], resolution: int) -> float:
     return min(1.0, resolution / max(size)) if resolution else 1.0
 
 
-def scaling(scale: float) -> np.ndarray:
-    """The pixel map (3, 3) of an image resized by ``scale``, pixel (0, 0) the centre of the
-    top-left pixel in both: x' = (x + 0.5) scale - 0.5."""
-    shift = 0.5 * scale - 0.5
-    return np.array([[scale, 0.0, shift], [0.0, scale, shift], [0.0, 0.0, 1.0]])
+def scaling(scale: float, scale_y: float | None = None) -> np.ndarray:
+    """The pixel map (3, 3) of an image resized by ``scale`` (by ``scale_y`` down when given: an
+    image resized to whole pixels is scaled by its new width over its width across, its new
+    height over its height down), pixel (0, 0) the centre of the top-left pixel in both:
+    x' = (x + 0.5) scale - 0.5."""
+    sy = scale if scale_y is None else scale_y
+    return np.array([[scale, 0.0, 0.5 * scale - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def frame_map(size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
+    """:func:`scaling` of an image of size (width, height) resized to new_size: each axis by its own
+    ratio (3072 x 2048 brought to 1000 px is 1000 x 667, 0.3255 across and 0.3257 down: one scale
+    for both would put the bottom rows a third of a pixel off)."""
+    return scaling(new_size[0] / size[0], new_size[1] / size[1])
 
 
 def dense_frames(views: list[Any], resolution: int) -> tuple[list[float], list[np.ndarray], list[tuple[int, int]]]:
@@ -31,10 +40,38 @@ def dense_frames(views: list[Any], resolution: int) -> tuple[list[float], list[n
     for v in views:
         size = v.image_size or (1, 1)
         s = dense_scale(size, resolution)
+        new_size = (int(round(size[0] * s)), int(round(size[1] * s))) if s < 1 else tuple(size)
         scales.append(s)
-        cameras.append(scaling(s) @ v.P if v.P is not None else np.eye(3, 4))
-        sizes.append((int(round(size[0] * s)), int(round(size[1] * s))) if s < 1 else tuple(size))
+        cameras.append(frame_map(size, new_size) @ v.P if v.P is not None else np.eye(3, 4))
+        sizes.append(new_size)
     return scales, cameras, sizes
+
+
+def budgeted_resolution(views: list[Any], pairs: list[tuple[int, int]], resolution: int, max_megapixels: float) -> int:
+    """The propagation's resolution (a longer side in pixels, 0: as given) that keeps the pairs'
+    first images within ``max_megapixels`` in all (0: no limit): ``resolution`` when they fit,
+    else the largest longer side at which they do (every image brought down alike). The fusion
+    holds a depth map and the points of every pair, so its memory goes with that sum."""
+    def megapixels(side: int) -> float:
+        total = 0.0
+        for a, _ in pairs:
+            size = views[a].image_size or (1, 1)
+            s = dense_scale(size, side)
+            total += round(size[0] * s) * round(size[1] * s) / 1e6
+        return total
+
+    if not max_megapixels or not pairs or megapixels(resolution) <= max_megapixels:
+        return resolution
+    low, high = 1, max(max(views[a].image_size or (1, 1)) for a, _ in pairs)
+    if resolution:
+        high = min(high, resolution)
+    while low < high:  # the largest side within the budget (the pixels grow with the side)
+        mid = (low + high + 1) // 2
+        if megapixels(mid) <= max_megapixels:
+            low = mid
+        else:
+            high = mid - 1
+    return low
 
 
 def resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
