@@ -191,18 +191,15 @@ def _peak_mb() -> float:
     return float(max(own, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024))
 
 
-def whole_command(full: Path, ref: dict, Ps: list[np.ndarray], size: tuple[int, int]) -> dict:
-    """``stereoseed reconstruct full/ --dense`` on the 3072 x 2048 originals as a user runs it (its
-    own cameras, the dense stage at full resolution), in a child process: its seconds, the peak
-    memory of it and its pair workers together (proportional set size sampled every 0.5 s: the
-    pages they share counted once) and its cloud judged as the others."""
+def sampled_run(args: list[str]) -> dict:
+    """Run a command to its end in a child process: its seconds, exit code, the end of its stderr,
+    and the peak memory of it and its children together (proportional set size sampled every
+    0.5 s: the pages they share counted once)."""
     import psutil
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryFile("w+") as err:  # a file, not a pipe: a long stderr cannot block the child
         t = time.perf_counter()
-        child = subprocess.Popen([str(Path(sys.executable).parent / "stereoseed"), "reconstruct", str(full), "--calib",
-                                  str(full / f"{SET}_full_par.txt"), "--unit", "m", "--dense", "--out", tmp, "--quiet"],
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        child = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, text=True)
         me, peak = psutil.Process(child.pid), 0.0
         while child.poll() is None:
             try:
@@ -211,11 +208,22 @@ def whole_command(full: Path, ref: dict, Ps: list[np.ndarray], size: tuple[int, 
                 pass
             time.sleep(0.5)
         seconds = time.perf_counter() - t
-        stderr = child.stderr.read() if child.stderr else ""
-        if child.returncode != 0:
-            return {"exit": child.returncode, "stderr": stderr[-2000:]}
+        err.seek(0)
+        stderr = err.read()
+    return {"seconds": seconds, "exit": child.returncode, "peak_pss_mib": peak, "stderr_end": stderr[-1500:]}
+
+
+def whole_command(full: Path, ref: dict, Ps: list[np.ndarray], size: tuple[int, int]) -> dict:
+    """``stereoseed reconstruct full/ --dense`` on the 3072 x 2048 originals as a user runs it (its
+    own cameras, the dense stage at full resolution), in a child process (:func:`sampled_run`),
+    and its cloud judged as the others."""
+    with tempfile.TemporaryDirectory() as tmp:
+        run = sampled_run([str(Path(sys.executable).parent / "stereoseed"), "reconstruct", str(full), "--calib",
+                           str(full / f"{SET}_full_par.txt"), "--unit", "m", "--dense", "--out", tmp, "--quiet"])
+        if run["exit"] != 0:
+            return run
         points, _, normals, _, _ = read_dense_ply(Path(tmp) / "dense.ply")
-        return {"seconds": seconds, "peak_pss_mib": peak, "points": int(len(points)),
+        return {"seconds": run["seconds"], "peak_pss_mib": run["peak_pss_mib"], "points": int(len(points)),
                 **judge(points, normals, ref, Ps, size)}
 
 
@@ -242,7 +250,6 @@ def run() -> dict:
                       "points_unjudged": report["points_unjudged"],
                       **judge(cloud.points, cloud.normals, ref, Ps, size)}
     out["peak_rss_mb"] = _peak_mb()
-    out["3072x2048_whole_command"] = whole_command(folder / "full", ref, Ps, size)
     # the 3072 x 2048 originals: the sparse run on them, the dense stage at --dense-resolution
     # FULL_DENSE_RESOLUTION
     full = published_run(folder / "full", cfg, f"{SET}_full_par.txt")
@@ -254,6 +261,8 @@ def run() -> dict:
         "seconds": time.perf_counter() - t, "fusion_seconds": report["fusion_seconds"],
         "points_before_fusion": report["points_before_fusion"], "peak_memory_mb": report["peak_memory_mb"],
         **judge(cloud.points, cloud.normals, ref, Ps, size)}
+    # last: the child's peak would count in this process's children's peak above
+    out["3072x2048_whole_command"] = whole_command(folder / "full", ref, Ps, size)
     return out
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from stereoseed.dense.config import DenseConfig
-from stereoseed.dense.fusion import PairCloud, check_views, depth_sigma
+from stereoseed.dense.fusion import PairCloud, PairSpool, check_views, depth_sigma
 from stereoseed.geometry.projection import normalize_projection
 
 WIDTH, HEIGHT, FOCAL = 160, 120, 200.0
@@ -89,7 +89,7 @@ def test_dense_config_refuses_a_support_without_a_check():
         DenseConfig(match_noise_px=0.0)
 
 
-def test_dense_resolution_propagates_on_smaller_images(box_scene):
+def test_dense_resolution_propagates_on_smaller_images(box_scene, tmp_path, monkeypatch):
     """--dense-resolution: the pairs propagated on images brought down to 320 px (half the
     render's 640): a quarter of the pixels, the same surface, the cameras and seeds in the
     resized frame (a slip of the pixel map would put the points off the surface)."""
@@ -99,10 +99,18 @@ def test_dense_resolution_propagates_on_smaller_images(box_scene):
     from stereoseed.experiments.evaluation import TrueCorrespondences, surface_distance
     from stereoseed.pipeline import reconstruct
 
+    import tempfile
+
+    from stereoseed.dense import densify as dense_module
+
     scene = box_scene.prefix(3)
     cfg = Config()
     recon, _ = reconstruct(scene.images, scene.names, scene.P[:2], cfg, source=TrueCorrespondences(scene))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    spools = []
+    monkeypatch.setattr(dense_module, "PairSpool", lambda folder: spools.append(folder) or PairSpool(folder))
     full, full_report = densify(recon, cfg)
+    assert len(spools) == 1 and spools[0].startswith(str(tmp_path)) and not list(tmp_path.iterdir())  # spool gone
     half, report = densify(recon, cfg.replace(dense={"resolution": 320}))
     assert dense_scale(recon.views[0].image_size, 320) == 0.5 and report["resolution_scale"] == 0.5
     assert report["fusion_voxel_m"] == pytest.approx(2 * full_report["fusion_voxel_m"])

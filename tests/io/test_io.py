@@ -405,3 +405,7 @@ def test_a_ply_written_in_chunks_is_the_ply_written_at_once(tmp_path, monkeypatc
     vertex = ply.read_ply_vertices(tmp_path / "chunks.ply")
     np.testing.assert_array_equal(vertex["x"], points[:, 0].astype(np.float32))
     np.testing.assert_array_equal(vertex["support"], props["support"])
+    # one colour and one value for every vertex, past the first chunk too
+    ply.write_ply(tmp_path / "one.ply", points, np.array([10, 20, 30], np.uint8), {"support": np.array([4])})
+    vertex = ply.read_ply_vertices(tmp_path / "one.ply")
+    assert (vertex["green"] == 20).all() and (vertex["support"] == 4).all() and len(vertex) == n

@@ -538,3 +538,25 @@ def test_affine_refinement_in_bands_is_the_whole_images(affine_pair, use_f, monk
     assert whole.n_matches > 10_000
     np.testing.assert_array_equal(banded.matches, whole.matches)
     np.testing.assert_array_equal(banded.refined_by, whole.refined_by)
+
+
+@pytest.mark.parametrize("use_f", [False, True])
+def test_bands_are_the_whole_image_under_a_large_vertical_disparity(use_f, monkeypatch):
+    """Image 2 is image 1 moved 600.3 rows up (a walk along the image's y axis): the positions in
+    a band far below image 2's are still the whole image's, bit for bit (each disparity is its
+    position less its pixel's row in one subtraction, as over the whole image)."""
+    from stereoseed.matching.propagation import refine
+
+    rng = np.random.default_rng(11)
+    img1 = multiscale_texture(1100, 96, rng)
+    img2 = cv2.warpAffine(img1, np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -600.3]]), (96, 1100), flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+    x1 = np.column_stack([rng.uniform(10, 86, 30), rng.uniform(640, 1080, 30)])
+    seeds = np.hstack([x1, x1 - [0.0, 600.3]])
+    F = skew(np.array([0.0, 1.0, 0.0])) if use_f else None  # vertical epipolar lines
+    monkeypatch.setattr(refine, "_BAND_PIXELS", 1 << 30)
+    whole = propagate(img1, img2, seeds, F, subpixel=True, subpixel_method="affine")
+    monkeypatch.setattr(refine, "_BAND_PIXELS", 341 * 96)  # a 3072 x 2048 image's bands
+    banded = propagate(img1, img2, seeds, F, subpixel=True, subpixel_method="affine")
+    assert whole.n_matches > 20_000 and np.count_nonzero(whole.refined_by == 2) > 10_000
+    np.testing.assert_array_equal(banded.matches, whole.matches)

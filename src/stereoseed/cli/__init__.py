@@ -27,17 +27,20 @@ def _keep_large_arrays_mapped() -> None:
     between live ones. At 3072 x 2048 the full run's peak memory was 0.5 GB higher (docs/dense.md).
     A fixed threshold keeps them mapped, so that freeing one gives its memory back. Set for this
     process (mallopt) and, through the environment, for the pair workers it starts."""
-    if "MALLOC_MMAP_THRESHOLD_" in os.environ:  # the user's own choice, which glibc has read
+    if "malloc" in os.environ.get("GLIBC_TUNABLES", ""):  # the user's own tuning, which glibc has read
         return
-    threshold, trim = 4 << 20, 16 << 20  # a 4 MB array's pages cost ~0.2 ms to map: nothing next to its use
-    os.environ["MALLOC_MMAP_THRESHOLD_"] = str(threshold)
-    os.environ.setdefault("MALLOC_TRIM_THRESHOLD_", str(trim))
+    # a 4 MB array's pages cost ~0.2 ms to map: nothing next to its use
+    settings = [(name, option, value) for name, option, value in
+                (("MALLOC_MMAP_THRESHOLD_", -3, 4 << 20), ("MALLOC_TRIM_THRESHOLD_", -1, 16 << 20))
+                if name not in os.environ]  # (-3, -1: glibc's M_MMAP_THRESHOLD, M_TRIM_THRESHOLD)
+    for name, _, value in settings:
+        os.environ[name] = str(value)
     try:
         import ctypes
 
         libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, threshold)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, trim)  # M_TRIM_THRESHOLD
+        for _, option, value in settings:
+            libc.mallopt(option, value)
     except (OSError, AttributeError):  # not glibc: its allocator does as it does
         pass
 

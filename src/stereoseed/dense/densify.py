@@ -300,48 +300,19 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
                    f"({cfg.dense.max_megapixels:g}): propagated at {resolution} px on the longer side")
         log.warning("dense stage: %s", lowered)
         propagated = {}  # matches found before were found at the resolution asked for
-    spool_folder = tempfile.TemporaryDirectory(prefix="stereoseed-dense-", ignore_cleanup_errors=True)
-    spool = PairSpool(spool_folder.name)
-    per_pair = []
-
-    def collect(pair: tuple[int, int], res: dict[str, Any]) -> None:
-        spool.add(PairCloud(res["points"], res["pixels"], res["angles"], pair), res["colors"])
-        per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
-
-    propagated = propagated or {}
-    todo = [pair for pair in pairs if pair not in propagated]
-    used = 0  # the pairs whose matches found before still lie on the final epipolar geometry
-    local = executor_for(None, max(min(cfg.dense.pool_size(), len(todo)), 1)) if pool is None else nullcontext(pool)
-    with local as jobs:
-        computed = jobs.in_order(_run_pair, (pair_job(recon, pair, cfg, frames) for pair in todo))
-        # the pool's first jobs sent before any pair is triangulated here: they run meanwhile
-        first = [next(computed)] if todo and len(todo) < len(pairs) else []
-        for i, pair in enumerate(pairs):
-            if pair in propagated:  # its matches found already: triangulated with the cameras of now
-                path, found = propagated[pair]
-                a, b = pair
-                res = triangulated_pair(resized(recon.views[a].image, frames[2][a]), frames[1][a], frames[1][b],
-                                        np.load(path, allow_pickle=False), found, cfg.dense)
-                if res["report"].get("small_reprojection", 0) < cfg.dense.found_min_fraction * found["matches"]:
-                    log.info("dense stage: %s-%s's cameras moved since its matches were found; propagated again",
-                             recon.views[a].name, recon.views[b].name)
-                    res = densify_pair(*pair_job(recon, pair, cfg, frames))
-                else:
-                    used += 1
-            else:
-                res = (first.pop() if first else next(computed)).result()
-            collect(pair, res)
-            if progress:
-                progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
-    if progress and pairs:
-        progress(len(pairs), len(pairs), "fusing")
-    t_fusion = time.perf_counter()
     dc = cfg.dense
     # a pair alone cannot be confirmed by another: its points are kept, and the report says so
     alone = len(pairs) < 2
-    others = overlapping_pairs(pair_overlaps(recon, pairs), dc.check_pairs)
-    with spool_folder:  # the colours stay there until their pair's points are judged
-        stacked = spool.stacked()
+    # the pairs' clouds on disk from the first pair to the check (a run that fails or is stopped
+    # takes the folder with it)
+    with tempfile.TemporaryDirectory(prefix="stereoseed-dense-", ignore_cleanup_errors=True) as folder:
+        spool = PairSpool(folder)
+        per_pair, used = _pair_clouds(recon, cfg, pairs, frames, spool, pool, progress, propagated or {})
+        if progress and pairs:
+            progress(len(pairs), len(pairs), "fusing")
+        t_fusion = time.perf_counter()
+        others = overlapping_pairs(pair_overlaps(recon, pairs), dc.check_pairs)
+        stacked = spool.stacked()  # the colours stay on disk until their pair's points are judged
         n_before = len(stacked)
         kept_points, kept_colors, kept_sources, attributes, counted = _judged(stacked, spool.colors, frames, dc, alone,
                                                                               others)
@@ -377,6 +348,41 @@ def densify(recon: Reconstruction, cfg: Config = Config(), out_dir: str | os.Pat
                    "angle": merged["angle"].astype(np.float32),
                    "confidence": merged["confidence"].astype(np.float32)})
     return DenseCloud(fused, fused_colors, normals, merged["support"], merged["angle"], merged["confidence"]), report
+
+
+def _pair_clouds(recon: Reconstruction, cfg: Config, pairs: list[tuple[int, int]], frames: tuple, spool: PairSpool,
+                 pool: JobPool | None, progress: Callable[[int, int, str], None] | None,
+                 propagated: Mapping[tuple[int, int], tuple[str | os.PathLike, dict[str, Any]]]
+                 ) -> tuple[list[dict[str, Any]], int]:
+    """Every pair's cloud into ``spool``, in pair order (:func:`densify`'s arguments): the pairs'
+    reports and how many pairs' matches found before were used."""
+    per_pair: list[dict[str, Any]] = []
+    todo = [pair for pair in pairs if pair not in propagated]
+    used = 0  # the pairs whose matches found before still lie on the final epipolar geometry
+    local = executor_for(None, max(min(cfg.dense.pool_size(), len(todo)), 1)) if pool is None else nullcontext(pool)
+    with local as jobs:
+        computed = jobs.in_order(_run_pair, (pair_job(recon, pair, cfg, frames) for pair in todo))
+        # the pool's first jobs sent before any pair is triangulated here: they run meanwhile
+        first = [next(computed)] if todo and len(todo) < len(pairs) else []
+        for i, pair in enumerate(pairs):
+            if pair in propagated:  # its matches found already: triangulated with the cameras of now
+                path, found = propagated[pair]
+                a, b = pair
+                res = triangulated_pair(resized(recon.views[a].image, frames[2][a]), frames[1][a], frames[1][b],
+                                        np.load(path, allow_pickle=False), found, cfg.dense)
+                if res["report"].get("small_reprojection", 0) < cfg.dense.found_min_fraction * found["matches"]:
+                    log.info("dense stage: %s-%s's cameras moved since its matches were found; propagated again",
+                             recon.views[a].name, recon.views[b].name)
+                    res = densify_pair(*pair_job(recon, pair, cfg, frames))
+                else:
+                    used += 1
+            else:
+                res = (first.pop() if first else next(computed)).result()
+            spool.add(PairCloud(res["points"], res["pixels"], res["angles"], pair), res["colors"])
+            per_pair.append({"pair": [recon.views[pair[0]].name, recon.views[pair[1]].name], **res["report"]})
+            if progress:
+                progress(i + 1, len(pairs), f"{per_pair[-1]['matches']} matches")
+    return per_pair, used
 
 
 def pair_overlaps(recon: Reconstruction, pairs: list[tuple[int, int]]) -> np.ndarray:

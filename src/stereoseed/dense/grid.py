@@ -156,6 +156,8 @@ class _Tree:
 
             self.tree = cKDTree(self.points)
         return self.tree.query(queries, k=k, workers=-1)[1].reshape(len(queries), k).astype(np.int32)
+
+
 @njit(cache=True, nogil=True)
 def _grid_neighbours(points, cells, starts, order, span_y, step, low, first, end, max_radius, found, base):
     """The k = found.shape[1] nearest of points i in [first, end) of the points (N, 3) sorted by

@@ -33,7 +33,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         values = np.asarray(values).reshape(-1)
         kind = "<f4" if values.dtype.kind == "f" else "u1" if values.dtype == np.uint8 else "<i4"
         columns.append((name, kind))
-        extra[name] = values.astype(kind, copy=False)
+        # one value for every vertex is spread to all of them, as a whole-array assignment would
+        extra[name] = np.broadcast_to(values.astype(kind, copy=False), (len(points),))
     header = ["ply", "format binary_little_endian 1.0", "comment written by stereoseed",
               f"element vertex {len(points)}"]
     header += [f"property {_PLY_TYPES[kind]} {name}" for name, kind in columns]
@@ -45,7 +46,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
         face_bytes = face.tobytes()
     header.append("end_header")
-    colors = np.asarray(colors).reshape(-1, 3)
+    colors = np.broadcast_to(np.asarray(colors).reshape(-1, 3), (len(points), 3))  # (one colour: every vertex's)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))

@@ -127,7 +127,7 @@ _BAND_PIXELS = 1 << 20
 
 def _fit_system(matched, x1, y1, radius, min_count):
     """The least-squares system of each match's local affine fit (:func:`_affine_fields`):
-    it depends only on which pixels of image 1 are matched, so the passes share it.
+    it depends only on which pixels of image 1 are matched (each band's pass builds its own).
 
     matched: (H1, W1) bool; x1, y1: (M,) int32 the matched pixels to fit at. Returns their flat
     indices ``at`` (M,) int64, the six cofactors (c00, c01, c02, c11, c12, c22), each (M,), of each
@@ -167,12 +167,13 @@ def _filter_at(img, at, kx, ky):
     return cv2.sepFilter2D(img, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).reshape(-1)[at]
 
 
-def _affine_fields(fx, fy, x1, y1, radius, system):
+def _affine_fields(fx, fy, x1, y1, radius, system, top=0):
     """Local affine map x1 -> x2 around each match, fitted on its neighbours' matches.
 
     fx, fy: (B, W1) float64 positions in image 2 of the matched pixels of a band of B rows of
-    image 1 (rows lo to lo + B - 1), y less lo, NaN where unmatched (overwritten: the
-    disparities); x1, y1: (M,) int32 the matched pixels (image 1's rows), system:
+    image 1 (rows top to top + B - 1), NaN where unmatched (overwritten: the disparities, each
+    position less its own pixel's, in one subtraction as over the whole image); x1, y1: (M,)
+    int32 the matched pixels (image 1's rows), system:
     :func:`_fit_system` of the band's matched pixels at them. For each match p, fits by least squares
     x2(q) = c + J (q - p) over the matched q of the (2 radius + 1)^2 window of p.
     Returns (M, 6) float64 (cx, cy, J00, J01, J10, J11), c being the fitted x2 at p itself;
@@ -189,7 +190,7 @@ def _affine_fields(fx, fy, x1, y1, radius, system):
     # a pixel grid and two new fields would be 300 MB more
     unmatched = ~np.isfinite(fx)
     dx = np.subtract(fx, np.arange(W, dtype=np.float64)[None, :], out=fx)
-    dy = np.subtract(fy, np.arange(H, dtype=np.float64)[:, None], out=fy)
+    dy = np.subtract(fy, np.arange(top, top + H, dtype=np.float64)[:, None], out=fy)
     dx[unmatched] = 0.0
     dy[unmatched] = 0.0
     del unmatched
@@ -434,8 +435,8 @@ def refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc,
             fx = np.full((hi - lo, W1), np.nan)
             fy = np.full((hi - lo, W1), np.nan)
             fx[y1[near] - lo, x1[near]] = cur_x[near]
-            fy[y1[near] - lo, x1[near]] = cur_y[near] - lo  # the band's own rows
-            aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, system)  # the disparities: no offset left
+            fy[y1[near] - lo, x1[near]] = cur_y[near]
+            aff = _affine_fields(fx, fy, xs, ys, _AFFINE_RADIUS, system, lo)
             del fx, fy, system
             prev_x, prev_y = cur_x[here], cur_y[here]  # the matches are independent: threads share them out
             bx, by, u = concat_chunks(lambda a, b: _refine_affine_pass(
@@ -445,13 +446,6 @@ def refine_affine(I1, mean1, inv1, I2, x1, y1, x2, y2, half, use_f, F, min_zncc,
             used[here] |= u
         cur_x, cur_y = new_x, new_y
     return cur_x, cur_y, used
-
-
-def _same_selection(a, b):
-    """Whether two selections of :func:`_within` pick the same matches."""
-    if isinstance(a, slice) or isinstance(b, slice):
-        return isinstance(a, slice) and isinstance(b, slice)
-    return np.array_equal(a, b)
 
 
 def _within(x1, y1, rows, radius, shape):
