@@ -1,4 +1,5 @@
-"""`make bench` section `big_walk`: 40 photos of 6000 x 4000 (24 megapixels) walked around the
+"""Benchmark `big_walk` (``python benchmarks/run.py --only big_walk``; not in `make bench`'s list
+while it cannot finish within its bounds, docs/dense.md): 40 photos of 6000 x 4000 (24 megapixels) walked around the
 rendered box, reconstructed with the dense cloud by the command a user runs, in a child process:
 its time and the peak memory of it and its pair workers together (issue #50: within 8 GB), the
 cameras against the rendered ones, the cloud against the true surface.

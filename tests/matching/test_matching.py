@@ -711,3 +711,18 @@ def test_gradient_cache_lets_a_freed_image_go():
     del gray, g
     gc.collect()
     assert key not in alignment._GRADIENTS
+
+
+def test_gradient_cache_holds_a_bounded_number_of_bytes(monkeypatch):
+    """Large images' gradients are kept within the byte limit (the newest always), and a finished
+    run lets them all go."""
+    from stereoseed.matching import alignment
+
+    monkeypatch.setattr(alignment, "_GRADIENT_BYTES", 3 * 2 * 4 * 60 * 80)  # three images' gx and gy
+    grays = [np.random.default_rng(i).random((60, 80)).astype(np.float32) for i in range(6)]
+    for g in grays:
+        alignment._with_gradients(g)
+    kept = [k for k in alignment._GRADIENTS if k in {id(g) for g in grays}]
+    assert kept == [id(g) for g in grays[-3:]]
+    alignment.release_gradients()
+    assert not alignment._GRADIENTS

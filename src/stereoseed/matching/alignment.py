@@ -72,6 +72,8 @@ class PairCache:
 # tracked into later views and checked again, each time with the same Sobel images
 _GRADIENTS: OrderedDict[int, tuple] = OrderedDict()
 _GRADIENTS_KEPT = 8
+# and at most this many bytes of them: eight 24-megapixel images' would be 1.5 GB
+_GRADIENT_BYTES = 512 << 20
 # re-entrant: the finalizer that drops an image's entry may run inside a locked section (a
 # garbage collection there freeing a grey image)
 _gradients_lock = threading.RLock()
@@ -93,7 +95,8 @@ def _with_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
     with _gradients_lock:  # not the image: a view that lets its image go frees it
         _GRADIENTS[key] = (weakref.ref(gray), gx, gy)
-        while len(_GRADIENTS) > _GRADIENTS_KEPT:
+        while len(_GRADIENTS) > 1 and (len(_GRADIENTS) > _GRADIENTS_KEPT or sum(
+                e[1].nbytes + e[2].nbytes for e in _GRADIENTS.values()) > _GRADIENT_BYTES):
             _GRADIENTS.popitem(last=False)
     weakref.finalize(gray, _forget_gradients, key, gx)  # and its gradients with it
     return g, gx, gy
