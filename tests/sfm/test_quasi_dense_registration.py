@@ -57,6 +57,21 @@ def test_faint_texture_registers_every_image_and_quasi_dense_where_the_chain_is_
     assert np.median(err) < 0.003 and max(err) < 0.01  # metres, against the rendered cameras
 
 
+def test_large_photos_are_propagated_brought_down_and_matched_in_their_own_pixels(faint_scene):
+    """Photos larger than QuasiDenseConfig.max_side (here the 640 x 480 renders against 480) are
+    seeded and propagated brought down: the matches come back in the photos' pixels (the
+    quasi-dense camera as accurate as at full size), and the report says the size used."""
+    scene = faint_scene
+    cfg = Config().replace(quasi_dense={"max_side": 480})
+    recon, report = reconstruct(scene.images, scene.names, scene.P[:2], cfg)
+    assert report["registered"] == scene.config.n_images
+    err = camera_errors([v.P_input for v in recon.views], scene.P)["center_m"]
+    by_quasi_dense = [i for i, r in enumerate(report["per_image"]) if r.get("registered_by") == FoundBy.QUASI_DENSE]
+    assert by_quasi_dense and all(report["per_image"][i]["quasi_dense"]["brought_down_to"] == [480, 360]
+                                  for i in by_quasi_dense)
+    assert max(err[i] for i in by_quasi_dense) < 0.003 and np.median(err[2:]) < 0.003  # metres
+
+
 def test_reconsider_changes_nothing(faint_scene):
     scene = faint_scene
     cfg = Config().mapper_options()

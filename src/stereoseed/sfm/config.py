@@ -63,11 +63,17 @@ class QuasiDenseConfig:
     # epipolar geometry does on these matches), and never below f_threshold_px. dinoSparseRing:
     # cameras 0.3-14 mm off 0.84-1.43, cameras 80-280 mm off 2.4 and more
     camera_epipolar_factor: float = 2.0
+    # Images whose longer side exceeds this many pixels are brought down to it for the seeds and
+    # the propagation (the matches are mapped back to the photos' pixels; 0: never): a 24-megapixel
+    # pair's propagation held 2.8 GB, two at once (the candidate's and the previous pair's) 10 GB.
+    # 3072 x 2048 (a 6-megapixel pair, 0.75 GB) is the largest the sets with ground truth have.
+    max_side: int = 3072
 
     def __post_init__(self) -> None:
         if self.weak_chain_inliers is not None:
             whole(self, "weak_chain_inliers")
         whole(self, "grid_cell_px", "f_max_iters")
+        whole(self, "max_side", minimum=0)
         in_range(self, "sift_ratio", 0.0, 1.0)
         in_range(self, "f_confidence", 0.0, 1.0)
         positive(self, "f_threshold_px", "chain_epipolar_px")

@@ -106,13 +106,20 @@ class QuasiDenseMatches:
     f_inlier: np.ndarray
     report: dict[str, Any] = field(default_factory=dict)
     pair: PairPoints | None = None  # the previous pair's points, chained through ``matches``
+    # (2,) the ratio (new over old width, height) of a brought down for the propagation, whose
+    # pixels row_of_pixel is indexed by (:func:`_brought_down`); None: a's own pixels
+    ratio_a: np.ndarray | None = None
+
+    def rows_at(self, xy: np.ndarray) -> np.ndarray:
+        """:func:`_rows_at` of pixels xy (C, 2) of a (a's own pixels)."""
+        return _rows_at(self.row_of_pixel, xy if self.ratio_a is None else _to_frame(xy, self.ratio_a))
 
     def pair_chain(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The previous pair's points followed to b: (indices into ``pair`` (C,), xb (C, 2),
         scores (C,))."""
         if self.pair is None or len(self.pair.X) == 0:
             return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
-        row = _rows_at(self.row_of_pixel, self.pair.xa)  # whole pixels of a, as the propagation's
+        row = self.rows_at(self.pair.xa)  # whole pixels of a, as the propagation's
         idx = np.flatnonzero(row >= 0)
         return idx, self.matches[row[idx], 2:], self.scores[row[idx]]
 
@@ -127,6 +134,34 @@ def weak_chain_limit(quasi_dense: QuasiDenseConfig, motion_prior: MotionPriorCon
 
 def _grey_u8(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+
+
+def _brought_down(image: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The image brought down to a longer side of ``max_side`` pixels (OpenCV's area resampling)
+    and the ratio (2,) of its new width and height to the old; itself and None when it fits (or
+    max_side is 0)."""
+    h, w = image.shape[:2]
+    if not max_side or max(h, w) <= max_side:
+        return image, None
+    s = max_side / max(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
+
+
+def _to_frame(xy: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of an image in it brought down by ``ratio`` (2,), pixel (0, 0) the centre of
+    the top-left pixel in both."""
+    return (np.asarray(xy, np.float64) + 0.5) * ratio - 0.5
+
+
+def _from_frame(xy: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+    """:func:`_to_frame`'s inverse."""
+    return (np.asarray(xy, np.float64) + 0.5) / ratio - 0.5
+
+
+def _frame_map(ratio: np.ndarray) -> np.ndarray:
+    """:func:`_to_frame` as a (3, 3) matrix on homogeneous pixels."""
+    return np.array([[ratio[0], 0.0, 0.5 * ratio[0] - 0.5], [0.0, ratio[1], 0.5 * ratio[1] - 0.5], [0.0, 0.0, 1.0]])
 
 
 def sift_seeds(img_a: np.ndarray, img_b: np.ndarray, ratio: float) -> np.ndarray:
@@ -186,13 +221,17 @@ def _grid_and_f(res: Any, qc: Any, grid: np.ndarray | None = None) -> tuple[np.n
 
 def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quasi_dense: QuasiDenseConfig,
                    propagation: PropagationConfig,
-                   chained_pixels: Callable[[], np.ndarray] | None = None) -> QuasiDenseMatches:
+                   chained_pixels: Callable[[], np.ndarray] | None = None,
+                   frame: tuple[np.ndarray, np.ndarray] | None = None) -> QuasiDenseMatches:
     """Steps 2-3: propagation from seeds (S, 4) without F, the grid resampling, a robust F.
 
     chained_pixels: the pixels (C, 2) of a whose matches are read besides the grid's, asked
     once the whole-pixel matches are known (it may wait for a result computed meanwhile): only
     those matches and the grid's get a sub-pixel position, the others keep whole pixels (a
-    weak insertion reads a few thousand of 40-60 thousand). None: every match is refined."""
+    weak insertion reads a few thousand of 40-60 thousand). None: every match is refined.
+    frame: the ratios (2,) of a and b when the images and seeds given are the photos brought
+    down (:func:`_brought_down`); chained_pixels then gives the photo's pixels, and the matches
+    and F come back in the photos' pixels."""
     qc = quasi_dense
     t = time.perf_counter()
     img_a, img_b = _foreground(img_a, qc.background_grey), _foreground(img_b, qc.background_grey)
@@ -207,7 +246,8 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
 
     def read_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
         known["row_of_pixel"] = _row_of_pixel(q, img_a.shape[:2])
-        chained = _rows_at(known["row_of_pixel"], chained_pixels())
+        pixels = chained_pixels()
+        chained = _rows_at(known["row_of_pixel"], pixels if frame is None else _to_frame(pixels, frame[0]))
         return np.union1d(grid_rows(q, sc), chained[chained >= 0])
 
     res = propagate(img_a, img_b, seeds, None, propagation,
@@ -225,7 +265,13 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
     report = {"seeds": int(len(seeds)), "seeds_used": res.n_seeds_used, "propagated": int(len(q)),
               "grid": int(len(grid)), "f_inliers": int(inlier.sum()),
               "seconds": {"propagation": t_prop}}
-    return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report)
+    if frame is None:
+        return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report)
+    ra, rb = frame  # back to the photos' pixels: x_small = S x, so F = S_b^T F_small S_a
+    q = np.hstack([_from_frame(q[:, :2], ra), _from_frame(q[:, 2:], rb)])
+    F = None if F is None else _frame_map(rb).T @ F @ _frame_map(ra)
+    report["brought_down_to"] = [int(img_a.shape[1]), int(img_a.shape[0])]
+    return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report, ratio_a=ra)
 
 
 def _row_of_pixel(q: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -253,9 +299,12 @@ def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[n
     Returns features (C,) of a observing them, point ids (C,), xa (C, 2), xb (C, 2), scores
     (C,); each point once."""
     feats, pids, xa = _observed(recon, a)
-    row = _rows_at(qd.row_of_pixel, xa)
+    row = qd.rows_at(xa)
     ok = row >= 0
-    xb = qd.matches[row[ok], 2:] + (xa[ok] - np.rint(xa[ok]))
+    # the offset from the match's pixel of a carried over to b (a whole pixel but where the
+    # propagation ran on the photo brought down: its match's position mapped back)
+    at = np.rint(xa[ok]) if qd.ratio_a is None else qd.matches[row[ok], :2]
+    xb = qd.matches[row[ok], 2:] + (xa[ok] - at)
     return feats[ok], pids[ok], xa[ok], xb, qd.scores[row[ok]]
 
 
@@ -286,14 +335,25 @@ def previous_pair_points(recon: Reconstruction, a: int, quasi_dense: QuasiDenseC
     bg = quasi_dense.background_grey
     observed = _cell_keys(recon.observation_xy(recon.obs_view == a), cell)  # an observation's point is alive
 
-    def free_grid(q: np.ndarray, scores: np.ndarray) -> np.ndarray:  # the rows kept (and refined)
-        free = np.flatnonzero(~np.isin(_cell_keys(q[:, :2], cell), observed))
-        return free[grid_best(q[free, :2], scores[free].astype(np.float64), cell)]
+    img_a, ra = _brought_down(_foreground(va.image, bg), quasi_dense.max_side)
+    img_b, rb = _brought_down(_foreground(vb.image, bg), quasi_dense.max_side)
+    seeds, F = recon.shared_pixels(a, b), fundamental_from_projections(va.P, vb.P)
+    if ra is not None or rb is not None:  # propagated on the photos brought down, kept in their pixels
+        ra, rb = (np.ones(2) if r is None else r for r in (ra, rb))
+        seeds = np.hstack([_to_frame(seeds[:, :2], ra), _to_frame(seeds[:, 2:], rb)])
+        F = np.linalg.inv(_frame_map(rb)).T @ F @ np.linalg.inv(_frame_map(ra))
 
-    res = propagate(_foreground(va.image, bg), _foreground(vb.image, bg), recon.shared_pixels(a, b),
-                    fundamental_from_projections(va.P, vb.P), propagation, refine_rows=free_grid)
+    def photo(q: np.ndarray) -> np.ndarray:  # matches (M, 4) in the photos' pixels
+        return q if ra is None else np.hstack([_from_frame(q[:, :2], ra), _from_frame(q[:, 2:], rb)])
+
+    def free_grid(q: np.ndarray, scores: np.ndarray) -> np.ndarray:  # the rows kept (and refined)
+        xy = photo(q)[:, :2]
+        free = np.flatnonzero(~np.isin(_cell_keys(xy, cell), observed))
+        return free[grid_best(xy[free], scores[free].astype(np.float64), cell)]
+
+    res = propagate(img_a, img_b, seeds, F, propagation, refine_rows=free_grid)
     rows = free_grid(res.matches, res.scores)
-    q, sc = res.matches[rows], res.scores[rows].astype(np.float64)
+    q, sc = photo(res.matches[rows]), res.scores[rows].astype(np.float64)
     tc = triangulation
     tri = triangulate(np.stack([va.P, vb.P]), np.stack([q[:, :2], q[:, 2:]]), iterations=tc.lm_iterations)
     ok = tri.valid(tc.max_reprojection_px, tc.min_angle_deg)
@@ -444,10 +504,16 @@ def propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource,
     pair_cache = optional(source, "pair_cache")  # a source without one computes afresh
     harris = localised_candidates(vp.features, cand.features, matching,
                                   pair_cache(vp.features, cand.features) if pair_cache else None)
-    sift = sift_seeds(vp.image, cand.image, quasi_dense.sift_ratio)
+    img_a, ra = _brought_down(vp.image, quasi_dense.max_side)
+    img_b, rb = _brought_down(cand.image, quasi_dense.max_side)
+    frame = None
+    if ra is not None or rb is not None:  # seeds and propagation on the photos brought down
+        frame = tuple(np.ones(2) if r is None else r for r in (ra, rb))
+        harris = np.hstack([_to_frame(harris[:, :2], frame[0]), _to_frame(harris[:, 2:], frame[1])])
+    sift = sift_seeds(img_a, img_b, quasi_dense.sift_ratio)
     seeds = np.vstack([harris, sift])
     t_seeds = time.perf_counter() - t
-    qd = propagate_pair(vp.image, cand.image, seeds, quasi_dense, propagation, chained_pixels)
+    qd = propagate_pair(img_a, img_b, seeds, quasi_dense, propagation, chained_pixels, frame)
     qd.report.update(harris_seeds=int(len(harris)), sift_seeds=int(len(sift)))
     qd.report["seconds"]["seeds"] = t_seeds
     return qd
