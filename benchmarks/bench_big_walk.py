@@ -12,6 +12,7 @@ The photos are rendered once (JPEG, quality 95, about 4 MB each) into the bench 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import tempfile
 from dataclasses import replace
@@ -58,6 +59,7 @@ def run() -> dict:
     folder = cache_dir() / f"big_walk_{SIZE[0]}x{SIZE[1]}"
     truth = rendered(folder)
     with tempfile.TemporaryDirectory() as tmp:
+        tmp = os.environ.get("STEREOSEED_BIG_WALK_OUT", tmp)  # where to keep the result to look at
         out = sampled_run([str(Path(sys.executable).parent / "stereoseed"), "reconstruct", str(folder), "--calib",
                            str(folder / "calib.json"), "--dense", "--out", tmp, "--quiet"])
         if out["exit"] != 0:
@@ -65,18 +67,21 @@ def run() -> dict:
         report = json.loads((Path(tmp) / "report.json").read_text())
         cams = json.loads((Path(tmp) / "cameras.json").read_text())
         by_name = {c["name"]: c for c in cams["images"]}
-        errors = []
+        errors, off = [], []
         for i, P in enumerate(truth[2:], start=2):
             cam = by_name.get(f"img_{i:03d}.jpg")
             if cam is not None and cam.get("P") is not None:
                 errors.append(float(np.linalg.norm(camera_center(np.array(cam["P"])) - camera_center(P))))
+                if errors[-1] > 0.01 * float(np.linalg.norm(camera_center(P))):  # beyond 1 % of its distance
+                    off.append({"image": cam["name"], "error_mm": errors[-1] * 1000, "reliable": cam.get("reliable")})
         points, _ = read_ply(Path(tmp) / "dense.ply")
         d = surface_distance(points)
         dense = report.get("dense", {})
         out.update(images=N_IMAGES, size=list(SIZE), registered=report.get("registered"),
                    flagged=sum(1 for c in cams["images"] if c.get("registered") and c.get("reliable") is False),
                    camera_centre_error_mm_median=float(np.median(errors) * 1000),
-                   camera_centre_error_mm_max=float(np.max(errors) * 1000), dense_points=int(len(points)),
+                   camera_centre_error_mm_max=float(np.max(errors) * 1000), beyond_1pct=off,
+                   dense_points=int(len(points)),
                    dense_resolution_scale=dense.get("resolution_scale"),
                    resolution_lowered=dense.get("resolution_lowered"),
                    surface_distance_mm_median=float(np.median(d) * 1000),

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from stereoseed.scene.view_store import working_set
+from stereoseed.scene.view_store import release_pixels, working_set
 from stereoseed.scene.checkpoint import SPILL_SUFFIX, CheckpointWriter, inputs_key, load_checkpoint, spill_folder
 from stereoseed.config import Config
 from stereoseed.io.config import VideoConfig
@@ -131,7 +131,11 @@ def reconstruct(images: list[np.ndarray], names: list[str], P_pair: list[np.ndar
             if after_insertion:  # the reports so far, rendered only for whoever reads them
                 after_insertion(recon, recon.reports())
     report = _finished(recon, cfg, t0, source)
-    release_gradients()  # the sparse run is over: no more alignment
+    # the sparse run is over: no more alignment, and no grey image is read again (a later reader
+    # computes it again from the image); at 24 megapixels the views' were 100 MB each
+    release_gradients()
+    for view in recon.views:
+        release_pixels(view)
     if offset is not None:
         for v in recon.registered_views:
             recon.views[v].P = recon.views[v].P @ shift(-offset)
