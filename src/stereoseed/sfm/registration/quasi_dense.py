@@ -73,7 +73,8 @@ class PairPoints:
     """Points of the previous pair's quasi-dense matches, not yet in the model: the registered
     view ``a`` propagated to the view ``other`` registered before it under their known F, one
     match per grid cell of a (cells without an observed point), triangulated. X (T, 3); xa
-    (T, 2) whole pixels of a; x_other (T, 2); scores (T,)."""
+    (T, 2) pixels of a (whole pixels of the propagation's image of a, mapped back to the photo's
+    when it was brought down); x_other (T, 2); scores (T,)."""
 
     other: int
     X: np.ndarray
@@ -90,11 +91,12 @@ class PairPoints:
 class QuasiDenseMatches:
     """Propagated matches between a registered view a and a candidate b.
 
-    matches: (M, 4) float64 rows (xa, ya, xb, yb), xa, ya whole pixels, xb, yb sub-pixel on the
-    rows the registration reads (the grid's, the chained pixels'; every row with
-    ``keep_tracks``: :func:`propagate_pair`), else whole;
-    scores: (M,) ZNCC; row_of_pixel: (H, W) int32, the row of ``matches`` of each pixel of a
-    (-1: unmatched); grid: (G,) int64 rows of ``matches``, the best one per grid cell of a;
+    matches: (M, 4) float64 rows (xa, ya, xb, yb) in the photos' pixels: xa, ya whole pixels of
+    the propagation's image of a, xb, yb sub-pixel on the rows the registration reads (the
+    grid's, the chained pixels'; every row with ``keep_tracks``: :func:`propagate_pair`), else
+    whole (mapped back when the photos were brought down: ``ratio_a``, ``ratio_b``);
+    scores: (M,) ZNCC; row_of_pixel: (H, W) int32, the row of ``matches`` of each pixel of the
+    propagation's image of a (-1: unmatched; read it through :meth:`rows_at`); grid: (G,) int64 rows of ``matches``, the best one per grid cell of a;
     F: (3, 3) robust F of the grid matches (xb.T F xa = 0) or None; f_inlier: (G,) bool;
     report: counts and seconds (JSON-able)."""
 
@@ -106,9 +108,10 @@ class QuasiDenseMatches:
     f_inlier: np.ndarray
     report: dict[str, Any] = field(default_factory=dict)
     pair: PairPoints | None = None  # the previous pair's points, chained through ``matches``
-    # (2,) the ratio (new over old width, height) of a brought down for the propagation, whose
-    # pixels row_of_pixel is indexed by (:func:`_brought_down`); None: a's own pixels
+    # (2,) the ratios (new over old width, height) of a and b brought down for the propagation
+    # (:func:`_brought_down`; row_of_pixel is indexed by the pixels of a's); None: the photos'
     ratio_a: np.ndarray | None = None
+    ratio_b: np.ndarray | None = None
 
     def rows_at(self, xy: np.ndarray) -> np.ndarray:
         """:func:`_rows_at` of pixels xy (C, 2) of a (a's own pixels)."""
@@ -270,8 +273,8 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
     ra, rb = frame  # back to the photos' pixels: x_small = S x, so F = S_b^T F_small S_a
     q = np.hstack([_from_frame(q[:, :2], ra), _from_frame(q[:, 2:], rb)])
     F = None if F is None else _frame_map(rb).T @ F @ _frame_map(ra)
-    report["brought_down_to"] = [int(img_a.shape[1]), int(img_a.shape[0])]
-    return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report, ratio_a=ra)
+    report["brought_down_to"] = [[int(img.shape[1]), int(img.shape[0])] for img in (img_a, img_b)]
+    return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report, ratio_a=ra, ratio_b=rb)
 
 
 def _row_of_pixel(q: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -301,10 +304,12 @@ def dense_chain(recon: Reconstruction, a: int, qd: QuasiDenseMatches) -> tuple[n
     feats, pids, xa = _observed(recon, a)
     row = qd.rows_at(xa)
     ok = row >= 0
-    # the offset from the match's pixel of a carried over to b (a whole pixel but where the
-    # propagation ran on the photo brought down: its match's position mapped back)
-    at = np.rint(xa[ok]) if qd.ratio_a is None else qd.matches[row[ok], :2]
-    xb = qd.matches[row[ok], 2:] + (xa[ok] - at)
+    # the offset from the match's pixel of a carried over to b: where the propagation ran on
+    # the photos brought down, from its match's position mapped back, as in the small images
+    if qd.ratio_a is None:
+        xb = qd.matches[row[ok], 2:] + (xa[ok] - np.rint(xa[ok]))
+    else:
+        xb = qd.matches[row[ok], 2:] + (xa[ok] - qd.matches[row[ok], :2]) * qd.ratio_a / qd.ratio_b
     return feats[ok], pids[ok], xa[ok], xb, qd.scores[row[ok]]
 
 
@@ -335,8 +340,8 @@ def previous_pair_points(recon: Reconstruction, a: int, quasi_dense: QuasiDenseC
     bg = quasi_dense.background_grey
     observed = _cell_keys(recon.observation_xy(recon.obs_view == a), cell)  # an observation's point is alive
 
-    img_a, ra = _brought_down(_foreground(va.image, bg), quasi_dense.max_side)
-    img_b, rb = _brought_down(_foreground(vb.image, bg), quasi_dense.max_side)
+    (img_a, ra), (img_b, rb) = (_brought_down(v.image, quasi_dense.max_side) for v in (va, vb))
+    img_a, img_b = _foreground(img_a, bg), _foreground(img_b, bg)  # masked as propagate_pair masks
     seeds, F = recon.shared_pixels(a, b), fundamental_from_projections(va.P, vb.P)
     if ra is not None or rb is not None:  # propagated on the photos brought down, kept in their pixels
         ra, rb = (np.ones(2) if r is None else r for r in (ra, rb))
