@@ -170,12 +170,13 @@ def test_matches_of_photos_brought_down_by_different_ratios_are_in_the_photos_pi
     the centre of the top-left pixel at every size: mapping without the half-pixel shift puts
     them 0.78 px off at the median), and the robust F maps with them."""
     from stereoseed.geometry.projection import epipolar_distances
+    from stereoseed.geometry.resampling import brought_down, frame_matrix, to_frame
     from stereoseed.sfm.registration import quasi_dense as qdm
 
     scene = render_scene(SceneConfig(n_images=2))
     cfg = Config()
-    (a, ra), (b, rb) = qdm._brought_down(scene.images[0], 320), qdm._brought_down(scene.images[1], 256)
-    np.testing.assert_allclose(qdm._frame_map(ra) @ [10.0, 20.0, 1.0], [*qdm._to_frame([[10.0, 20.0]], ra)[0], 1.0])
+    (a, ra), (b, rb) = brought_down(scene.images[0], 320), brought_down(scene.images[1], 256)
+    np.testing.assert_allclose(frame_matrix(ra) @ [10.0, 20.0, 1.0], [*to_frame([[10.0, 20.0]], ra)[0], 1.0])
     qd = qdm.propagate_pair(a, b, qdm.sift_seeds(a, b, cfg.quasi_dense.sift_ratio), cfg.quasi_dense, cfg.propagation,
                             None, (ra, rb))
     inliers = qd.matches[qd.grid[qd.f_inlier]]

@@ -23,6 +23,7 @@ from numba import njit
 
 from stereoseed.arrays import sorted_groups
 from stereoseed.geometry.projection import camera_center, fundamental_from_projections
+from stereoseed.geometry.resampling import ratio_of, to_frame
 from stereoseed.cluster import JobPool, executor_for
 from stereoseed.config import Config
 from stereoseed.dense.config import DenseConfig
@@ -244,17 +245,10 @@ def pair_job(recon: Reconstruction, pair: tuple[int, int], cfg: Config,
     _, cameras, sizes = frames
     a, b = pair
     seeds = np.asarray(recon.shared_pixels(a, b), np.float64).reshape(-1, 4)
-    seeds = np.hstack([_to_frame(seeds[:, :2], recon.views[a].image_size, sizes[a]),
-                       _to_frame(seeds[:, 2:], recon.views[b].image_size, sizes[b])])
+    seeds = np.hstack([to_frame(seeds[:, :2], ratio_of(recon.views[a].image_size or sizes[a], sizes[a])),
+                       to_frame(seeds[:, 2:], ratio_of(recon.views[b].image_size or sizes[b], sizes[b]))])
     return PairJob(resized(recon.views[a].image, sizes[a]), resized(recon.views[b].image, sizes[b]), cameras[a],
                    cameras[b], seeds, cfg.propagation, cfg.dense)
-
-
-def _to_frame(pixels: np.ndarray, size: tuple[int, int] | None, new_size: tuple[int, int]) -> np.ndarray:
-    """Pixels (N, 2) of an image of ``size`` in it resized to ``new_size``, each axis by its own
-    ratio as :func:`~stereoseed.dense.frames.frame_map` maps them."""
-    ratio = np.ones(2) if size is None else np.array(new_size, np.float64) / np.array(size, np.float64)
-    return (pixels + 0.5) * ratio - 0.5
 
 
 @dataclass(frozen=True)

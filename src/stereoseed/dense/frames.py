@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from stereoseed.geometry.resampling import frame_matrix, ratio_of
+
 __all__ = ["dense_scale", "scaling", "frame_map", "dense_frames", "budgeted_resolution", "resized"]
 
 
@@ -17,19 +19,15 @@ def dense_scale(size: tuple[int, int], resolution: int) -> float:
 
 
 def scaling(scale: float, scale_y: float | None = None) -> np.ndarray:
-    """The pixel map (3, 3) of an image resized by ``scale`` (by ``scale_y`` down when given: an
-    image resized to whole pixels is scaled by its new width over its width across, its new
-    height over its height down), pixel (0, 0) the centre of the top-left pixel in both:
-    x' = (x + 0.5) scale - 0.5."""
-    sy = scale if scale_y is None else scale_y
-    return np.array([[scale, 0.0, 0.5 * scale - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    """The pixel map (3, 3) of an image resized by ``scale`` (by ``scale_y`` down when given),
+    :func:`~stereoseed.geometry.resampling.frame_matrix`."""
+    return frame_matrix((scale, scale if scale_y is None else scale_y))
 
 
 def frame_map(size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
-    """:func:`scaling` of an image of size (width, height) resized to new_size: each axis by its own
-    ratio (3072 x 2048 brought to 1000 px is 1000 x 667, 0.3255 across and 0.3257 down: one scale
-    for both would put the bottom rows a third of a pixel off)."""
-    return scaling(new_size[0] / size[0], new_size[1] / size[1])
+    """The pixel map (3, 3) of an image of size (width, height) resized to new_size, each axis
+    by its own ratio (:mod:`stereoseed.geometry.resampling`)."""
+    return frame_matrix(ratio_of(size, new_size))
 
 
 def dense_frames(views: list[Any], resolution: int) -> tuple[list[float], list[np.ndarray], list[tuple[int, int]]]:

@@ -60,6 +60,7 @@ from stereoseed.sfm.registration.base import (Candidate, FoundBy, Registration, 
                                              consistent_chain)
 from stereoseed.estimators.resection import ResectionResult
 from stereoseed.geometry.models import CameraModel
+from stereoseed.geometry.resampling import brought_down, frame_matrix, from_frame, to_frame
 
 __all__ = ["QuasiDenseMatches", "weak_chain_limit", "sift_seeds", "grid_best", "propagate_pair", "register_quasi_dense",
            "dense_chain", "epipolar_agreement", "robust_f_agreement", "camera_epipolar_limit", "grow_quasi_dense"]
@@ -109,13 +110,13 @@ class QuasiDenseMatches:
     report: dict[str, Any] = field(default_factory=dict)
     pair: PairPoints | None = None  # the previous pair's points, chained through ``matches``
     # (2,) the ratios (new over old width, height) of a and b brought down for the propagation
-    # (:func:`_brought_down`; row_of_pixel is indexed by the pixels of a's); None: the photos'
+    # (:func:`~stereoseed.geometry.resampling.brought_down`; row_of_pixel is indexed by the pixels of a's); None: the photos'
     ratio_a: np.ndarray | None = None
     ratio_b: np.ndarray | None = None
 
     def rows_at(self, xy: np.ndarray) -> np.ndarray:
         """:func:`_rows_at` of pixels xy (C, 2) of a (a's own pixels)."""
-        return _rows_at(self.row_of_pixel, xy if self.ratio_a is None else _to_frame(xy, self.ratio_a))
+        return _rows_at(self.row_of_pixel, xy if self.ratio_a is None else to_frame(xy, self.ratio_a))
 
     def pair_chain(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The previous pair's points followed to b: (indices into ``pair`` (C,), xb (C, 2),
@@ -137,34 +138,6 @@ def weak_chain_limit(quasi_dense: QuasiDenseConfig, motion_prior: MotionPriorCon
 
 def _grey_u8(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-
-
-def _brought_down(image: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """The image brought down to a longer side of ``max_side`` pixels (OpenCV's area resampling)
-    and the ratio (2,) of its new width and height to the old; itself and None when it fits (or
-    max_side is 0)."""
-    h, w = image.shape[:2]
-    if not max_side or max(h, w) <= max_side:
-        return image, None
-    s = max_side / max(h, w)
-    size = (max(1, round(w * s)), max(1, round(h * s)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
-
-
-def _to_frame(xy: np.ndarray, ratio: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of an image in it brought down by ``ratio`` (2,), pixel (0, 0) the centre of
-    the top-left pixel in both."""
-    return (np.asarray(xy, np.float64) + 0.5) * ratio - 0.5
-
-
-def _from_frame(xy: np.ndarray, ratio: np.ndarray) -> np.ndarray:
-    """:func:`_to_frame`'s inverse."""
-    return (np.asarray(xy, np.float64) + 0.5) / ratio - 0.5
-
-
-def _frame_map(ratio: np.ndarray) -> np.ndarray:
-    """:func:`_to_frame` as a (3, 3) matrix on homogeneous pixels."""
-    return np.array([[ratio[0], 0.0, 0.5 * ratio[0] - 0.5], [0.0, ratio[1], 0.5 * ratio[1] - 0.5], [0.0, 0.0, 1.0]])
 
 
 def sift_seeds(img_a: np.ndarray, img_b: np.ndarray, ratio: float) -> np.ndarray:
@@ -233,7 +206,7 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
     those matches and the grid's get a sub-pixel position, the others keep whole pixels (a
     weak insertion reads a few thousand of 40-60 thousand). None: every match is refined.
     frame: the ratios (2,) of a and b when the images and seeds given are the photos brought
-    down (:func:`_brought_down`); chained_pixels then gives the photo's pixels, and the matches
+    down (:func:`~stereoseed.geometry.resampling.brought_down`); chained_pixels then gives the photo's pixels, and the matches
     and F come back in the photos' pixels."""
     qc = quasi_dense
     t = time.perf_counter()
@@ -250,7 +223,7 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
     def read_rows(q: np.ndarray, sc: np.ndarray) -> np.ndarray:
         known["row_of_pixel"] = _row_of_pixel(q, img_a.shape[:2])
         pixels = chained_pixels()
-        chained = _rows_at(known["row_of_pixel"], pixels if frame is None else _to_frame(pixels, frame[0]))
+        chained = _rows_at(known["row_of_pixel"], pixels if frame is None else to_frame(pixels, frame[0]))
         return np.union1d(grid_rows(q, sc), chained[chained >= 0])
 
     res = propagate(img_a, img_b, seeds, None, propagation,
@@ -271,8 +244,8 @@ def propagate_pair(img_a: np.ndarray, img_b: np.ndarray, seeds: np.ndarray, quas
     if frame is None:
         return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report)
     ra, rb = frame  # back to the photos' pixels: x_small = S x, so F = S_b^T F_small S_a
-    q = np.hstack([_from_frame(q[:, :2], ra), _from_frame(q[:, 2:], rb)])
-    F = None if F is None else _frame_map(rb).T @ F @ _frame_map(ra)
+    q = np.hstack([from_frame(q[:, :2], ra), from_frame(q[:, 2:], rb)])
+    F = None if F is None else frame_matrix(rb).T @ F @ frame_matrix(ra)
     report["brought_down_to"] = [[int(img.shape[1]), int(img.shape[0])] for img in (img_a, img_b)]
     return QuasiDenseMatches(q, sc, row_of_pixel, grid, F, inlier, report, ratio_a=ra, ratio_b=rb)
 
@@ -340,16 +313,16 @@ def previous_pair_points(recon: Reconstruction, a: int, quasi_dense: QuasiDenseC
     bg = quasi_dense.background_grey
     observed = _cell_keys(recon.observation_xy(recon.obs_view == a), cell)  # an observation's point is alive
 
-    (img_a, ra), (img_b, rb) = (_brought_down(v.image, quasi_dense.max_side) for v in (va, vb))
+    (img_a, ra), (img_b, rb) = (brought_down(v.image, quasi_dense.max_side) for v in (va, vb))
     img_a, img_b = _foreground(img_a, bg), _foreground(img_b, bg)  # masked as propagate_pair masks
     seeds, F = recon.shared_pixels(a, b), fundamental_from_projections(va.P, vb.P)
     if ra is not None or rb is not None:  # propagated on the photos brought down, kept in their pixels
         ra, rb = (np.ones(2) if r is None else r for r in (ra, rb))
-        seeds = np.hstack([_to_frame(seeds[:, :2], ra), _to_frame(seeds[:, 2:], rb)])
-        F = np.linalg.inv(_frame_map(rb)).T @ F @ np.linalg.inv(_frame_map(ra))
+        seeds = np.hstack([to_frame(seeds[:, :2], ra), to_frame(seeds[:, 2:], rb)])
+        F = np.linalg.inv(frame_matrix(rb)).T @ F @ np.linalg.inv(frame_matrix(ra))
 
     def photo(q: np.ndarray) -> np.ndarray:  # matches (M, 4) in the photos' pixels
-        return q if ra is None else np.hstack([_from_frame(q[:, :2], ra), _from_frame(q[:, 2:], rb)])
+        return q if ra is None else np.hstack([from_frame(q[:, :2], ra), from_frame(q[:, 2:], rb)])
 
     def free_grid(q: np.ndarray, scores: np.ndarray) -> np.ndarray:  # the rows kept (and refined)
         xy = photo(q)[:, :2]
@@ -509,12 +482,12 @@ def propagated_to_candidate(recon: Reconstruction, source: CorrespondenceSource,
     pair_cache = optional(source, "pair_cache")  # a source without one computes afresh
     harris = localised_candidates(vp.features, cand.features, matching,
                                   pair_cache(vp.features, cand.features) if pair_cache else None)
-    img_a, ra = _brought_down(vp.image, quasi_dense.max_side)
-    img_b, rb = _brought_down(cand.image, quasi_dense.max_side)
+    img_a, ra = brought_down(vp.image, quasi_dense.max_side)
+    img_b, rb = brought_down(cand.image, quasi_dense.max_side)
     frame = None
     if ra is not None or rb is not None:  # seeds and propagation on the photos brought down
         frame = tuple(np.ones(2) if r is None else r for r in (ra, rb))
-        harris = np.hstack([_to_frame(harris[:, :2], frame[0]), _to_frame(harris[:, 2:], frame[1])])
+        harris = np.hstack([to_frame(harris[:, :2], frame[0]), to_frame(harris[:, 2:], frame[1])])
     sift = sift_seeds(img_a, img_b, quasi_dense.sift_ratio)
     seeds = np.vstack([harris, sift])
     t_seeds = time.perf_counter() - t
