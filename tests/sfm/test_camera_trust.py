@@ -362,3 +362,25 @@ def test_a_prediction_no_later_camera_confirms_is_flagged_weak():
     assert list(unconfirmed_cameras(recon, Config().resection, everyone - {7})) == [6]  # 7 flagged: it confirms nothing
     out = assess(recon, Config().replace(trust={"keep_flagged": True}))
     assert list(out["flagged"]) == [recon.views[7].name]  # one unconfirmed prediction does not unconfirm the one before
+
+
+def test_points_only_the_two_cameras_triangulated_do_not_confirm_a_prediction():
+    # a camera off along its baseline to the next still fits the points the two triangulate
+    # together (a 24-megapixel walk's img_027, 7 % off, "confirmed" through 533 of them): only
+    # points a third camera also sees confirm it
+    from stereoseed.sfm.trust import unconfirmed_cameras
+
+    recon, _, _, source = walked(8)
+    finish(recon, Config(), source)
+    everyone = set(recon.registered_views)
+    as_if_placed_by(recon, 6, "motion prior")
+    assert unconfirmed_cameras(recon, Config().resection, everyone) == {}
+    live = recon.alive[recon.obs_point]
+    seen_by = [set(recon.obs_point[live & (recon.obs_view == v)]) for v in (6, 7)]
+    shared = sorted(seen_by[0] & seen_by[1])
+    assert len(shared) >= Config().resection.min_inliers
+    # what 6 and 7 share, seen by them alone; what 6 sees besides, seen by no later camera
+    recon.remove_observations(np.isin(recon.obs_point, shared) & ~np.isin(recon.obs_view, [6, 7]))
+    recon.remove_observations((recon.obs_view == 6) & ~np.isin(recon.obs_point, shared))
+    found = unconfirmed_cameras(recon, Config().resection, everyone)
+    assert list(found) == [6] and "shares 0;" in found[6].reason
