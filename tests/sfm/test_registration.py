@@ -85,6 +85,8 @@ def test_a_failure_says_its_kind():
     assert report["failure"] == FailureKind.TOO_FEW_MATCHES == "too few matches"
     found = register_view(recon, 3, cfg.mapper_options().registering, source)
     assert isinstance(found, RegistrationFailure) and found.kind is FailureKind.TOO_FEW_MATCHES
+    # the need it names is the resection's (it said the DLT's 6 where 6 chained points had failed)
+    assert f"(need {cfg.resection.min_inliers})" in found.reason
     # an image of another size than the moving camera's
     recon.views[4]._size = (100, 80)
     assert register_view(recon, 4, cfg.mapper_options().registering, source).kind is FailureKind.IMAGE_SIZE

@@ -441,6 +441,7 @@ def _resect(recon: Reconstruction, prev: int, cand: Candidate, X3: np.ndarray, x
         return _Resected(*chosen[0], found_by, chosen[1], flag, rivals)
     if error:
         return _Failed(error, FailureKind.NO_CAMERA)
+    # (the chain is resected from ResectionConfig.min_inliers pairs on: fewer say nothing here)
     return _Failed(f"{cand.name}: only {len(X3)} matches with already reconstructed points (need "
-                   f"{settings.registration.min_chained_points}); the view is too far from {recon.views[prev].name} "
+                   f"{settings.resection.min_inliers}); the view is too far from {recon.views[prev].name} "
                    f"or too poorly textured", FailureKind.TOO_FEW_MATCHES)
