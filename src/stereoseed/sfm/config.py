@@ -60,9 +60,16 @@ class QuasiDenseConfig:
     # (each 60-120 mm off, unzoomed 2-25 mm) 0.93-1.10
     zoom_epipolar_ratio: float = 0.5
     # the chosen camera's median must be within this factor of the robust F's own (the best any
-    # epipolar geometry does on these matches), and never below f_threshold_px. dinoSparseRing:
-    # cameras 0.3-14 mm off 0.84-1.43, cameras 80-280 mm off 2.4 and more
-    camera_epipolar_factor: float = 2.0
+    # epipolar geometry does on these matches), and never below f_threshold_px. Over the 23 real
+    # walks, as published and from JPEG q90 copies (docs/quasi_dense.md): right cameras at
+    # 0.75-2.16 times the floor where the factor decides, wrong ones at 3.8 and more, and one at
+    # 2.6 placed across 7 views not placed (157 degrees on: wrong), which 2.5 still refuses. 2.0
+    # refused right cameras at 2.04 and 2.16 (0.3 and 0.6 % off once taken), and with each every
+    # later image of the walk (the castle from JPEG q97, dinoSparseRing from q90).
+    camera_epipolar_factor: float = 2.5
+    # an ambiguous choice's flag is lifted only when every rival camera lies this many times
+    # farther from the propagated matches' epipolar geometry than the winner
+    rival_epipolar_factor: float = 2.0
     # Images whose longer side exceeds this many pixels are brought down to it for the seeds and
     # the propagation (the matches are mapped back to the photos' pixels; 0: never): a 24-megapixel
     # pair's propagation held 2.8 GB, two at once (the candidate's and the previous pair's) 10 GB.
@@ -78,6 +85,9 @@ class QuasiDenseConfig:
         in_range(self, "f_confidence", 0.0, 1.0)
         positive(self, "f_threshold_px", "chain_epipolar_px")
         in_range(self, "zoom_epipolar_ratio", 0.0, 1.0)
+        if not self.rival_epipolar_factor >= 1.0:
+            raise ValueError(f"QuasiDenseConfig.rival_epipolar_factor must be >= 1 (a rival at least as far as the "
+                             f"winner), got {self.rival_epipolar_factor!r}")
         if not self.camera_epipolar_factor >= 1.0:
             raise ValueError(f"QuasiDenseConfig.camera_epipolar_factor must be >= 1 (the robust F is the floor), got "
                              f"{self.camera_epipolar_factor!r}")

@@ -43,7 +43,7 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, setti
     the matches propagated between the previous view and this one, which cover the whole
     overlap, the pattern's ends and everything around it included. The flag is lifted when the
     winner agrees with their epipolar geometry (:func:`camera_epipolar_limit`) and every rival
-    lies at least ``camera_epipolar_factor`` times farther from them than the winner; otherwise
+    lies at least ``rival_epipolar_factor`` times farther from them than the winner; otherwise
     it stays, with the evidence in the notes. The choice itself never changes here. The matches
     only say how the two cameras stand to each other: a previous view that is flagged itself (a
     walk that carries an offset keeps it between consecutive views; on a rig, either image of
@@ -72,7 +72,7 @@ def judge_ambiguity(recon: Reconstruction, prev: int, found: Registration, setti
     rival = min(epipolar_agreement(P_prev, P, qd) for P in found.rivals)
     evidence = (f"the propagated matches lie {winner:.2f} px from its epipolar lines, {rival:.2f} px from the "
                 f"nearest rival's (the robust F's own {floor:.2f} px)")
-    if winner <= camera_epipolar_limit(floor, qc) and rival >= qc.camera_epipolar_factor * winner:
+    if winner <= camera_epipolar_limit(floor, qc) and rival >= qc.rival_epipolar_factor * winner:
         log.info("%s: the repeated structure's ambiguity is resolved: %s", found.candidate.name, evidence)
         return dataclasses.replace(found, flag=None, notes={**found.notes, "ambiguity_resolved": evidence})
     return dataclasses.replace(found, notes={**found.notes, "ambiguity": f"unresolved: {evidence}"})
