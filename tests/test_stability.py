@@ -35,3 +35,27 @@ def test_a_right_quasi_dense_camera_near_the_limit_keeps_the_re_encoded_dino_rin
         pytest.skip(r["skipped"])
     assert r["per_copy"]["jpeg90"]["registered"] == 8
     assert r["summary"]["off_unflagged"] == []  # and none the run vouches for beyond 1 %
+
+
+def test_a_pair_on_repeated_windows_is_not_refused_for_how_it_was_saved(tmp_path):
+    # the castle walked back from 0014: the robust F of 0014/0013 locks on the windows' wrong
+    # period (77-78 % of its matches on the calibration's epipolar lines); the calibration's own
+    # matching finds 0.99-1.04 times as many, and the JPEG q90 copy's 300 against 303 refused
+    # the published pair when the rule was "fewer"
+    from bench_real import walk_images
+    from bench_walks import WALKS
+    from stereoseed.config import Config
+    from stereoseed.io.sample_data import find_sample, missing_message
+    from stereoseed.pipeline import load_sequence
+    from stereoseed.sfm.mapper import initialise
+
+    walk = WALKS["strechaCastleP19 backwards from 0014"]
+    seq = find_sample(walk.folder)
+    if seq is None:
+        pytest.skip(missing_message(walk.folder))
+    pair = bench_stability.write_copy([seq / n for n in walk_images(seq, walk)[:2]], tmp_path,
+                                      bench_stability.COPIES["jpeg90"])
+    (tmp_path / "pair.txt").write_text("\n".join(map(str, pair)))
+    images, names, P = load_sequence(str(tmp_path / "pair.txt"), str(seq / walk.par))
+    recon, report = initialise(images, names, P, Config())
+    assert report["new_points"] >= 100

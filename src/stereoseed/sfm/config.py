@@ -328,9 +328,16 @@ class PairCheckConfig:
     # least min_matches such matches (repeated patterns give none).
     min_consistent: float = 0.8
     min_matches: int = 20
+    # A pair under min_consistent still stands when matching under its own epipolar geometry finds
+    # at least this fraction of the robust F's matches: a robust F locked on a repeated pattern's
+    # wrong period (the castle's 0014/0013: 77-78 % consistent, its own matching 0.99-1.04 times
+    # as many, the two counts trading places with the JPEG quality). Calibrations of other images
+    # (swapped cameras or images, another set's pair) find 0.03-0.85 times as many (docs/mapper.md).
+    min_known_ratio: float = 0.9
 
     def __post_init__(self) -> None:
         in_range(self, "min_consistent", 0.0, 1.0)
+        in_range(self, "min_known_ratio", 0.0, 1.0)
         whole(self, "min_matches")
 
 

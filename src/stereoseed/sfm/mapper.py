@@ -134,9 +134,10 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, pair_check:
     x0, x1 = m.points(v0.features, v1.features)
     d = epipolar_distances(fundamental_from_projections(v0.P, v1.P), x0, x1)
     consistent = float(np.mean(d <= matching.epipolar_band_px))
-    if consistent < pair_check.min_consistent and len(_match_known(recon, source, 0, 1)) < len(m):
+    if (consistent < pair_check.min_consistent
+            and len(_match_known(recon, source, 0, 1)) < pair_check.min_known_ratio * len(m)):
         # A robust F can also lock onto a wrong period of a repeated pattern (a box of squares);
-        # then the calibration's own epipolar geometry still matches more than that F does,
+        # then the calibration's own epipolar geometry still matches about as many as that F does,
         # while a calibration of other images matches only what falls in its bands by chance.
         raise StereoseedError(
             f"{v0.name}, {v1.name}: the calibration does not fit these images: only {100 * consistent:.0f} % of "
