@@ -91,6 +91,22 @@ def test_a_withdrawal_puts_back_the_model_as_before_the_insertion_when_kept():
     assert [type(e).__name__ for e in recon.views[3].history] == ["Registered", "Inserted", "Withdrawn"]
 
 
+def test_a_withdrawal_keeps_the_failures_of_the_views_tried_after_it():
+    # view 3 placed (doubted), view 4 failed after it, view 5 placed only without it: the model
+    # goes back to before 3's insertion, 4's failure stays (the castle walked back from a JPEG
+    # q90 copy: its report ended at the withdrawn view, 4 of 19 images)
+    recon = _model(n_views=6)
+    before = recon.checkpoint()
+    recon.register(3, Camera(ring_camera(60.0)[3]), "quasi-dense", recon.views[3].features, recon.views[3].image,
+                   False, None, False)
+    recon.record(3, {"image": "v3", "status": "registered"})
+    recon.fail(4, "v4: too few matches", {"image": "v4", "status": "failed", "reason": "v4: too few matches"})
+    recon.withdraw(3, "v3: withdrawn", before)
+    assert recon.views[4].status == "failed: v4: too few matches"
+    assert [r["image"] for r in recon.reports()] == ["v0", "v1", "v2", "v3", "v4"]
+    assert recon.reports()[4]["reason"] == "v4: too few matches" and recon.reports()[3]["status"] == "failed"
+
+
 def test_registered_again_and_dropped_are_rendered_over_the_first_registration():
     recon = _model()
     recon.flag(2, AMBIGUOUS)

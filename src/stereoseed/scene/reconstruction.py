@@ -298,13 +298,18 @@ class Reconstruction:
         v = self.views[view]
         if v.life.status != Status.REGISTERED:
             raise ValueError(f"{v.name}: {v.status}; only a registered camera is withdrawn")
-        history, life = v.history, v.life
+        # the restore takes every view's history back to before the insertion: the withdrawn
+        # view's, and the failures of the views tried after it since, which it must not erase
+        # (they hold nothing of the model; erased, the run's report ended at the first of them)
+        kept = {u: (w.history, w.life) for u, w in enumerate(self.views)
+                if u == view or w.life.status == Status.FAILED}
         if before is not None:
             self.restore(before)
         else:
             self._forget_camera(view)
         v.features, v.point_of_feature = None, np.zeros(0, np.int64)
-        v.history, v.life = history, life  # the restore took them back to before the insertion
+        for u, (history, life) in kept.items():
+            self.views[u].history, self.views[u].life = history, life
         v._record(Withdrawn(reason))
 
     def register_again(self, view: int, found: str) -> None:
