@@ -6,7 +6,7 @@ import pytest
 
 from stereoseed.config import (BundleConfig, Config, ExportConfig, OutlierConfig, PairCheckConfig, RegistrationConfig,
                                ResolvedConfig, LoopClosureConfig, MotionPriorConfig, PipelineConfig,
-                               PropagationConfig, ResectionConfig, TriangulationConfig)
+                               PropagationConfig, QuasiDenseConfig, ResectionConfig, TriangulationConfig)
 
 
 @pytest.mark.parametrize("make, field", [
@@ -19,6 +19,9 @@ from stereoseed.config import (BundleConfig, Config, ExportConfig, OutlierConfig
     (lambda: OutlierConfig(factor=-1.0), "factor"),
     (lambda: OutlierConfig(max_px=0.0), "max_px"),
     (lambda: PairCheckConfig(min_consistent=1.5), "min_consistent"),
+    (lambda: PairCheckConfig(min_known_ratio=1.5), "min_known_ratio"),
+    (lambda: QuasiDenseConfig(rival_epipolar_factor=0.5), "rival_epipolar_factor"),
+    (lambda: QuasiDenseConfig(camera_epipolar_factor=0.5), "camera_epipolar_factor"),
     (lambda: ExportConfig(far_point_factor=0.0), "far_point_factor"),
     (lambda: ResectionConfig(min_inliers=3), "min_inliers"),
     (lambda: ResectionConfig(ransac_threshold_px=0.0), "ransac_threshold_px"),

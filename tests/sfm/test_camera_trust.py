@@ -366,7 +366,7 @@ def test_a_prediction_no_later_camera_confirms_is_flagged_weak():
 
 def test_points_only_the_two_cameras_triangulated_do_not_confirm_a_prediction():
     # a camera off along its baseline to the next still fits the points the two triangulate
-    # together (a 24-megapixel walk's img_027, 7 % off, "confirmed" through 533 of them): only
+    # together (a 24-megapixel walk's img_027, 7 % off, "confirmed" through such points): only
     # points a third camera also sees confirm it
     from stereoseed.sfm.trust import unconfirmed_cameras
 

@@ -61,12 +61,12 @@ class QuasiDenseConfig:
     zoom_epipolar_ratio: float = 0.5
     # the chosen camera's median must be within this factor of the robust F's own (the best any
     # epipolar geometry does on these matches), and never below f_threshold_px. Over the 23 real
-    # walks, as published and from JPEG q90 copies (docs/quasi_dense.md): right cameras at
-    # 0.75-2.16 times the floor where the factor decides, wrong ones at 3.8 and more, and one at
-    # 2.6 placed across 7 views not placed (157 degrees on: wrong), which 2.5 still refuses. 2.0
-    # refused right cameras at 2.04 and 2.16 (0.3 and 0.6 % off once taken), and with each every
-    # later image of the walk (the castle from JPEG q97, dinoSparseRing from q90).
-    camera_epipolar_factor: float = 2.5
+    # walks, as published and from JPEG q90 copies (docs/benchmarks.md, "The quasi-dense camera's
+    # limit"): right cameras at 0.75-2.16 times the floor where the factor decides, wrong ones at
+    # 2.61 (across 7 views not placed) and 3.8 and more; dinoSparseRing's wrong cameras (80-280 mm
+    # off) had measured 2.4 and more before. 2.0 refused right cameras at 2.04 and 2.16 (0.3 and
+    # 0.6 % off once taken), and with each every later image of the walk.
+    camera_epipolar_factor: float = 2.25
     # an ambiguous choice's flag is lifted only when every rival camera lies this many times
     # farther from the propagated matches' epipolar geometry than the winner
     rival_epipolar_factor: float = 2.0

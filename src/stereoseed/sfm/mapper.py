@@ -122,7 +122,8 @@ def _check_pair(recon: Reconstruction, source: CorrespondenceSource, pair_check:
                 matching: MatchingConfig) -> None:
     """The calibration must fit its two images: their matches found without it (robust F) must
     lie on its epipolar lines (``PairCheckConfig.min_consistent``), or, when they do not,
-    matching under the calibration's epipolar geometry must find more of them. Raises
+    matching under the calibration's epipolar geometry must find at least
+    ``PairCheckConfig.min_known_ratio`` times as many. Raises
     :class:`StereoseedError` naming the likely causes."""
     v0, v1 = recon.views[0], recon.views[1]
     if v0.image.shape == v1.image.shape and np.array_equal(v0.image, v1.image):

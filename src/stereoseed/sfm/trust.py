@@ -165,14 +165,14 @@ def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouch
     """{view: flag} of the ``vouched`` views placed on the weakest evidence (the motion prior's
     prediction, or the propagated matches alone) that no later vouched camera confirms: none
     shares ``ResectionConfig.min_inliers`` live points with it that a third vouched camera also
-    sees (a later camera placed from it observes its points again; the calibrated pair counts for the end of a walk its loop closure
-    tied to the start). A prediction nothing after it checks is the walk's last word on it: on
+    sees (a later camera placed from it observes its points again; the calibrated pair counts
+    for the end of a walk its loop closure tied to the start). A prediction nothing after it checks is the walk's last word on it: on
     dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
     stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
     need = resection.min_inliers
     # only points a third vouched camera also sees: the points v and w triangulated together
     # fit both whatever v's error along their baseline (a 24-megapixel walk's img_027 stood 7 %
-    # of its distance off, "confirmed" by the next camera through 533 such points)
+    # of its distance off, "confirmed" by the next camera through such points)
     shared = recon.shared_points(_tied(recon, vouched))
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
