@@ -29,7 +29,7 @@ from stereoseed.geometry.camera_model import CameraModel
 from stereoseed.sfm.config import MotionPriorConfig, TrustConfig
 from stereoseed.estimators.covariance import CameraUncertainty, camera_uncertainty, point_regions
 from stereoseed.geometry.projection import depths
-from stereoseed.scene.camera_life import Flag, FlagKind
+from stereoseed.scene.camera_life import Flag, FlagKind, Status
 from stereoseed.sfm.motion_prior import trusted_chain_inliers
 from stereoseed.scene.reconstruction import Reconstruction
 from stereoseed.sfm.rig import side_of, station_of, station_partner
@@ -161,12 +161,19 @@ def cut_off_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: 
             for v in sorted(vouched) if v not in reached}
 
 
-def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: set[int]) -> dict[int, Flag]:
-    """{view: flag} of the ``vouched`` views placed on the weakest evidence (the motion prior's
-    prediction, or the propagated matches alone) that no later vouched camera confirms: none
-    shares ``ResectionConfig.min_inliers`` live points with it that a third vouched camera also
-    sees (a later camera placed from it observes its points again; the calibrated pair counts
-    for the end of a walk its loop closure tied to the start). A prediction nothing after it checks is the walk's last word on it: on
+def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: set[int],
+                        recent_views: int = 3) -> dict[int, Flag]:
+    """{view: flag} of the ``vouched`` views that no later vouched camera confirms: none shares
+    ``ResectionConfig.min_inliers`` live points with it that a third vouched camera also sees (a
+    later camera placed from it observes its points again). Judged so: the views placed on the
+    weakest evidence (the motion prior's prediction, or the propagated matches alone), and any
+    view after which the run tried an image and failed (the walk could not go on from it: the
+    castle from 0008 from a +-1 grey-level copy, 0015, an epipolar chain of 27 inliers, 3.5 %
+    off, every image after it failed). The calibrated pair confirms a view only when it was not
+    among the ``recent_views`` (``MotionPriorConfig.recent_views``) registered views it was placed
+    from: the end of a walk its loop closure tied to the start (a prediction two images after the
+    pair is placed from the pair's points: the castle from 0010's 0013, 1.8 % off, "confirmed"
+    by them). A prediction nothing after it checks is the walk's last word on it: on
     dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
     stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
     need = resection.min_inliers
@@ -174,17 +181,20 @@ def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouch
     # fit both whatever v's error along their baseline (a 24-megapixel walk's img_027 stood 7 %
     # of its distance off, "confirmed" by the next camera through such points)
     shared = recon.shared_points(_tied(recon, vouched))
+    failed = [u for u, view in enumerate(recon.views) if view.life.status == Status.FAILED]
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
         found_by = recon.views[v].found_by
-        if found_by not in (FoundBy.MOTION_PRIOR, FoundBy.QUASI_DENSE):
+        weakest = found_by in (FoundBy.MOTION_PRIOR, FoundBy.QUASI_DENSE)
+        if not weakest and not any(u > v for u in failed):
             continue
-        confirming = [w for w in vouched if w > v or w in CALIBRATED]
+        placed_from = set(recon.registered_before(v, recent_views))
+        confirming = [w for w in vouched if w > v or (w in CALIBRATED and w not in placed_from)]
         best = max((int(shared[v, w]) for w in confirming), default=0)
         if best < need:
-            out[v] = Flag(FlagKind.WEAK, f"placed by the {found_by} alone, and no later camera confirms it (the one "
-                                         f"sharing most of its points that a third camera sees shares {best}; a "
-                                         f"confirmation needs {need})")
+            how = f"placed by the {found_by} alone" if weakest else "the images after it could not be placed"
+            out[v] = Flag(FlagKind.WEAK, f"{how}, and no later camera confirms it (the one sharing most of its "
+                                         f"points that a third camera sees shares {best}; a confirmation needs {need})")
     return out
 
 
@@ -236,7 +246,8 @@ def judge(recon: Reconstruction, between_neighbours: dict[int, Flag], *, trust: 
     if recon.rig is None:  # (a rig's stations are placed by the rig, from both their images)
         # judged among the cameras vouched for so far: one unconfirmed prediction does not
         # unconfirm the one before it, which it observed again
-        unconfirmed = unconfirmed_cameras(recon, resection, {v for v, flag in flags.items() if flag is None})
+        unconfirmed = unconfirmed_cameras(recon, resection, {v for v, flag in flags.items() if flag is None},
+                                          motion_prior.recent_views)
         flags.update(unconfirmed)
     _flag_stations(recon, flags)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
