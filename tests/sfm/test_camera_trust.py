@@ -1,5 +1,7 @@
 """Trust: each camera's uncertainty, the flag of a camera the others contradict, and the refusal
 of a registration a repeated pattern makes ambiguous."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -350,16 +352,17 @@ def test_a_prediction_no_later_camera_confirms_is_flagged_weak():
     finish(recon, Config(), source)
     everyone = set(recon.registered_views)
     # the epipolar chain's: confirmed or not, not predicted
-    assert unconfirmed_cameras(recon, Config().resection, everyone) == {}
+    assert unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior) == {}
     # the box's top is seen from everywhere: the end of this walk sees the pair's points, which
     # confirm it as a closed loop would; taken out here, as a walk that ends far from its start
     of_pair = np.isin(recon.obs_point, recon.obs_point[np.isin(recon.obs_view, [0, 1])])
     recon.remove_observations(of_pair & np.isin(recon.obs_view, [6, 7]))
     for v in (6, 7):
         as_if_placed_by(recon, v, "motion prior")
-    found = unconfirmed_cameras(recon, Config().resection, everyone)
+    found = unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior)
     assert list(found) == [7] and found[7].reason.startswith("weak: placed by the motion prior alone, and no later")
-    assert list(unconfirmed_cameras(recon, Config().resection, everyone - {7})) == [6]  # 7 flagged: it confirms nothing
+    # 7 flagged: it confirms nothing
+    assert list(unconfirmed_cameras(recon, Config().resection, everyone - {7}, Config().motion_prior)) == [6]
     out = assess(recon, Config().replace(trust={"keep_flagged": True}))
     assert list(out["flagged"]) == [recon.views[7].name]  # one unconfirmed prediction does not unconfirm the one before
 
@@ -374,7 +377,7 @@ def test_points_only_the_two_cameras_triangulated_do_not_confirm_a_prediction():
     finish(recon, Config(), source)
     everyone = set(recon.registered_views)
     as_if_placed_by(recon, 6, "motion prior")
-    assert unconfirmed_cameras(recon, Config().resection, everyone) == {}
+    assert unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior) == {}
     live = recon.alive[recon.obs_point]
     seen_by = [set(recon.obs_point[live & (recon.obs_view == v)]) for v in (6, 7)]
     shared = sorted(seen_by[0] & seen_by[1])
@@ -382,7 +385,7 @@ def test_points_only_the_two_cameras_triangulated_do_not_confirm_a_prediction():
     # what 6 and 7 share, seen by them alone; what 6 sees besides, seen by no later camera
     recon.remove_observations(np.isin(recon.obs_point, shared) & ~np.isin(recon.obs_view, [6, 7]))
     recon.remove_observations((recon.obs_view == 6) & ~np.isin(recon.obs_point, shared))
-    found = unconfirmed_cameras(recon, Config().resection, everyone)
+    found = unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior)
     assert list(found) == [6] and "shares 0;" in found[6].reason
 
 
@@ -397,9 +400,9 @@ def test_a_camera_the_walk_could_not_go_on_from_needs_a_confirmation_too():
     everyone = set(recon.registered_views)
     of_pair = np.isin(recon.obs_point, recon.obs_point[np.isin(recon.obs_view, [0, 1])])
     recon.remove_observations(of_pair & (recon.obs_view == 6))  # (a walk that ends far from its start)
-    assert unconfirmed_cameras(recon, Config().resection, everyone) == {}  # the end of the walk
+    assert unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior) == {}  # the end of the walk
     recon.fail(7, "img_7: too few matches", {"image": "img_7", "status": "failed"})
-    found = unconfirmed_cameras(recon, Config().resection, everyone)
+    found = unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior)
     assert list(found) == [6] and found[6].reason.startswith("weak: the images after it could not be placed")
 
 
@@ -414,7 +417,8 @@ def test_the_pair_does_not_confirm_a_prediction_placed_from_its_points():
     as_if_placed_by(recon, 3, "motion prior")
     shared = recon.shared_points(np.ones(len(recon.obs_view), bool))
     assert max(shared[3, 0], shared[3, 1]) >= Config().resection.min_inliers
-    found = unconfirmed_cameras(recon, Config().resection, everyone)
+    found = unconfirmed_cameras(recon, Config().resection, everyone, Config().motion_prior)
     assert list(found) == [3] and found[3].reason.startswith("weak: placed by the motion prior alone")
     # a view placed farther on, once its recent views are past the pair, is confirmed by it (a loop closed)
-    assert unconfirmed_cameras(recon, Config().resection, everyone, recent_views=1) == {}
+    assert unconfirmed_cameras(recon, Config().resection, everyone,
+                               replace(Config().motion_prior, recent_views=1)) == {}

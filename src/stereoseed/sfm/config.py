@@ -85,12 +85,10 @@ class QuasiDenseConfig:
         in_range(self, "f_confidence", 0.0, 1.0)
         positive(self, "f_threshold_px", "chain_epipolar_px")
         in_range(self, "zoom_epipolar_ratio", 0.0, 1.0)
-        if not self.rival_epipolar_factor >= 1.0:
-            raise ValueError(f"QuasiDenseConfig.rival_epipolar_factor must be >= 1 (a rival at least as far as the "
-                             f"winner), got {self.rival_epipolar_factor!r}")
-        if not self.camera_epipolar_factor >= 1.0:
-            raise ValueError(f"QuasiDenseConfig.camera_epipolar_factor must be >= 1 (the robust F is the floor), got "
-                             f"{self.camera_epipolar_factor!r}")
+        for name, why in (("camera_epipolar_factor", "the robust F is the floor"),
+                          ("rival_epipolar_factor", "a rival at least as far as the winner")):
+            if not getattr(self, name) >= 1.0:
+                raise ValueError(f"QuasiDenseConfig.{name} must be >= 1 ({why}), got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

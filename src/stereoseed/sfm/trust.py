@@ -162,33 +162,29 @@ def cut_off_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: 
 
 
 def unconfirmed_cameras(recon: Reconstruction, resection: ResectionConfig, vouched: set[int],
-                        recent_views: int = 3) -> dict[int, Flag]:
+                        motion_prior: MotionPriorConfig) -> dict[int, Flag]:
     """{view: flag} of the ``vouched`` views that no later vouched camera confirms: none shares
     ``ResectionConfig.min_inliers`` live points with it that a third vouched camera also sees (a
     later camera placed from it observes its points again). Judged so: the views placed on the
     weakest evidence (the motion prior's prediction, or the propagated matches alone), and any
-    view after which the run tried an image and failed (the walk could not go on from it: the
-    castle from 0008 from a +-1 grey-level copy, 0015, an epipolar chain of 27 inliers, 3.5 %
-    off, every image after it failed). The calibrated pair confirms a view only when it was not
-    among the ``recent_views`` (``MotionPriorConfig.recent_views``) registered views it was placed
-    from: the end of a walk its loop closure tied to the start (a prediction two images after the
-    pair is placed from the pair's points: the castle from 0010's 0013, 1.8 % off, "confirmed"
-    by them). A prediction nothing after it checks is the walk's last word on it: on
-    dinoRing1-24 every 2nd from a JPEG q90 copy, dino0021 (the motion prior's, 11 chained points)
-    stood 16 mm (2.5 %) off at a stated 0.9 mm, followed only by a camera flagged ambiguous."""
+    view after which the run tried an image and failed (the walk could not go on from it). The
+    calibrated pair confirms a view only when it was not among the registered views it was placed
+    from (``MotionPriorConfig.recent_views``): the end of a walk its loop closure tied to the
+    start. A prediction nothing after it checks is the walk's last word on it (docs/mapper.md, "A
+    prediction nothing later confirms", has the cameras each rule caught)."""
     need = resection.min_inliers
     # only points a third vouched camera also sees: the points v and w triangulated together
     # fit both whatever v's error along their baseline (a 24-megapixel walk's img_027 stood 7 %
     # of its distance off, "confirmed" by the next camera through such points)
     shared = recon.shared_points(_tied(recon, vouched))
-    failed = [u for u, view in enumerate(recon.views) if view.life.status == Status.FAILED]
+    last_failed = max((u for u, view in enumerate(recon.views) if view.life.status == Status.FAILED), default=-1)
     out = {}
     for v in sorted(vouched - set(CALIBRATED)):
         found_by = recon.views[v].found_by
         weakest = found_by in (FoundBy.MOTION_PRIOR, FoundBy.QUASI_DENSE)
-        if not weakest and not any(u > v for u in failed):
+        if not weakest and v > last_failed:
             continue
-        placed_from = set(recon.registered_before(v, recent_views))
+        placed_from = set(recon.registered_before(v, motion_prior.recent_views))
         confirming = [w for w in vouched if w > v or (w in CALIBRATED and w not in placed_from)]
         best = max((int(shared[v, w]) for w in confirming), default=0)
         if best < need:
@@ -247,7 +243,7 @@ def judge(recon: Reconstruction, between_neighbours: dict[int, Flag], *, trust: 
         # judged among the cameras vouched for so far: one unconfirmed prediction does not
         # unconfirm the one before it, which it observed again
         unconfirmed = unconfirmed_cameras(recon, resection, {v for v, flag in flags.items() if flag is None},
-                                          motion_prior.recent_views)
+                                          motion_prior)
         flags.update(unconfirmed)
     _flag_stations(recon, flags)
     # ties to flagged cameras hold nothing: each flag may leave another camera weakly tied
